@@ -1,0 +1,270 @@
+"""Incremental STIM300 parser: bytes in any chunking -> samples, with stream statistics.
+
+There is no start-of-frame marker, so a frame is any known id byte followed by enough bytes
+whose CRC (and CR LF when the format has it) verifies; after a failed candidate the scan
+advances one byte. The same `Scanner` state machine drives the bulk decoder, which only adds a
+vectorised fast path over runs of well-formed datagrams, so both give identical results.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from .codec import SAMPLE_DTYPE, decode_frames
+from .crc import datagram_crc
+from .protocol import (CONFIGURATION, COUNTER_MODULUS, CR_LF, INTERNAL_RATE_HZ, NORMAL_LAYOUTS, PART_NUMBER,
+                       SERIAL_NUMBER, SPECIAL_IDS, Format)
+from .special import decode_special
+
+SPECIAL_HISTORY = 64  # special datagrams remembered (they are rare: power-up and on request)
+
+
+@dataclass
+class Stats:
+    """What the stream looked like. `lost_samples` derives from a histogram of counter steps."""
+
+    bytes_in: int = 0
+    datagrams: int = 0  # CRC-valid normal datagrams
+    crc_errors: int = 0  # candidates of a known id and full length that failed, one per failed span
+    skipped_bytes: int = 0  # bytes that belonged to no valid datagram
+    restarts: int = 0  # power-up sequences seen after normal data
+    config_changes: int = 0  # the normal format changed (new configuration or new datagram id)
+    special_datagrams: int = 0
+    undecodable_specials: int = 0  # CRC-valid special datagrams with codes the byte map lacks
+    counter_steps: np.ndarray = field(default_factory=lambda: np.zeros(COUNTER_MODULUS, np.int64))
+    configured_step: int | None = None  # from the sample rate when known
+
+    @property
+    def counter_step(self) -> int | None:
+        """Counter increment per datagram: 2000 / sample rate, or inferred from the data."""
+        if self.configured_step:
+            return self.configured_step
+        seen = np.flatnonzero(self.counter_steps)
+        seen = seen[seen > 0]
+        if not len(seen):
+            return None
+        step = math.gcd(*seen.tolist())
+        step &= -step  # largest power of two dividing the gcd
+        return min(step, INTERNAL_RATE_HZ // 125)
+
+    @property
+    def lost_samples(self) -> int:
+        """Datagrams missing by the counter (losses of a whole counter cycle alias to fewer)."""
+        step = self.counter_step
+        if step is None:
+            return 0
+        deltas = np.arange(COUNTER_MODULUS)
+        deltas[0] = COUNTER_MODULUS
+        missing = np.maximum(-(-deltas // step) - 1, 0)
+        return int(missing @ self.counter_steps)
+
+    def as_dict(self) -> dict:
+        return {"bytes_in": self.bytes_in, "datagrams": self.datagrams, "crc_errors": self.crc_errors,
+                "lost_samples": self.lost_samples, "skipped_bytes": self.skipped_bytes,
+                "restarts": self.restarts, "config_changes": self.config_changes,
+                "special_datagrams": self.special_datagrams, "undecodable_specials": self.undecodable_specials,
+                "counter_step": self.counter_step}
+
+
+WAIT = -1  # scan result: not enough bytes yet to decide
+
+
+class Scanner:
+    """The framing state machine shared by the stream and bulk decoders.
+
+    `step(buf, i, final)` decides what starts at offset i and returns the next offset (or WAIT).
+    Accepted normal datagrams are reported to `on_normal(offset, layout_id)`; special datagrams
+    are decoded and kept. `final` means no more bytes will come, so a short tail is skipped.
+    """
+
+    def __init__(self, fmt: Format | None, on_normal):
+        self.format = fmt or Format()
+        self.stats = Stats(configured_step=self.format.counter_step)
+        self.specials: collections.deque = collections.deque(maxlen=SPECIAL_HISTORY)
+        self.configuration = None
+        self.part_number = None
+        self.serial_number = None
+        self.last_counter: int | None = None
+        self._on_normal = on_normal
+        self._after_part_number = False  # a requested part number is not a restart
+        self._quiet_until = 0  # no further CRC error is counted inside a failed candidate's span
+        self._consumed = 0  # absolute offset of buf[0], to keep _quiet_until valid across buffers
+
+    # ------------------------------------------------------------------ decisions
+    def step(self, buf, i: int, final: bool) -> int:
+        ident = buf[i]
+        layout = NORMAL_LAYOUTS.get(ident)
+        if layout is not None:
+            crlf = self.format.crlf
+            return self._candidate(buf, i, final, layout.pre_crc, crlf, normal=True)
+        special = SPECIAL_IDS.get(ident)
+        if special is not None:
+            kind, crlf = special
+            return self._candidate(buf, i, final, kind.pre_crc, crlf, normal=False)
+        return self._skip(i)
+
+    def _candidate(self, buf, i, final, pre, crlf, normal) -> int:
+        end = i + pre + 4
+        if len(buf) < end:
+            return WAIT if not final else self._skip(i)
+        if datagram_crc(buf[i:i + pre]) != int.from_bytes(buf[i + pre:end], "big"):
+            return self._fail(i, end)
+        if crlf is not False:
+            if len(buf) < end + 2 and not final:
+                return WAIT
+            has_crlf = buf[end:end + 2] == CR_LF
+            if crlf and not has_crlf:
+                return self._fail(i, end)
+            if normal and crlf is None:
+                self.format = replace(self.format, crlf=has_crlf)
+            if has_crlf:
+                end += 2
+        if normal:
+            self._accept_normal(buf, i)
+        else:
+            self._accept_special(bytes(buf[i:end]))
+        return end
+
+    def _skip(self, i: int) -> int:
+        self.stats.skipped_bytes += 1
+        return i + 1
+
+    def _fail(self, i: int, end: int) -> int:
+        absolute = self._consumed + i
+        if absolute >= self._quiet_until:
+            self.stats.crc_errors += 1
+            self._quiet_until = self._consumed + end
+        return self._skip(i)
+
+    # ------------------------------------------------------------------ accepted datagrams
+    def _accept_normal(self, buf, i: int) -> None:
+        ident = buf[i]
+        if self.format.datagram_id is None:
+            self.format = replace(self.format, datagram_id=ident)
+        elif ident != self.format.datagram_id:
+            self.format = replace(self.format, datagram_id=ident)
+            self.stats.config_changes += 1
+        counter = buf[i + NORMAL_LAYOUTS[ident].counter_offset]
+        if self.last_counter is not None:
+            self.stats.counter_steps[(counter - self.last_counter) % COUNTER_MODULUS] += 1
+        self.stats.datagrams += 1
+        self.last_counter = counter
+        self._after_part_number = False
+        self._on_normal(i, ident)
+
+    def count_counters(self, counters: np.ndarray) -> None:
+        """`_accept_normal`'s counter accounting for a run of datagrams at once (uint8 array)."""
+        if not len(counters):
+            return
+        if self.last_counter is not None:
+            steps = np.diff(counters.astype(np.int16), prepend=self.last_counter) % COUNTER_MODULUS
+        else:
+            steps = np.diff(counters.astype(np.int16)) % COUNTER_MODULUS
+        self.stats.counter_steps += np.bincount(steps, minlength=COUNTER_MODULUS)
+        self.stats.datagrams += len(counters)
+        self.last_counter = int(counters[-1])
+
+    def _accept_special(self, frame: bytes) -> None:
+        self.stats.special_datagrams += 1
+        try:
+            item = decode_special(frame, acc_range_g=self.format.acc_range_g)
+        except ValueError:  # e.g. unit codes of firmware the datasheet does not describe
+            self.stats.undecodable_specials += 1
+            self._after_part_number = False
+            return
+        self.specials.append(item)
+        kind = item.kind
+        if kind is SERIAL_NUMBER:
+            self.serial_number = item
+            if self._after_part_number:  # part number then serial number: the power-up sequence
+                self.stats.restarts += 1
+                self.last_counter = None  # the counter restarts with the sensor
+        elif kind is PART_NUMBER:
+            self.part_number = item
+        elif kind is CONFIGURATION:
+            self._adopt(item)
+        self._after_part_number = kind is PART_NUMBER and self.stats.datagrams > 0
+
+    def _adopt(self, configuration) -> None:
+        new = configuration.format
+        if self.configuration is not None and new != self.format:
+            self.stats.config_changes += 1
+        elif self.configuration is None and self.format.datagram_id not in (None, new.datagram_id):
+            self.stats.config_changes += 1
+        self.configuration = configuration
+        self.format = new
+        self.stats.configured_step = new.counter_step
+
+    def advance(self, consumed: int) -> None:
+        """The owner dropped `consumed` bytes from the front of its buffer."""
+        self._consumed += consumed
+
+
+class StreamParser:
+    """`feed(bytes) -> samples`: identical output for any chunking of the same bytes.
+
+    Memory stays bounded: only an undecided tail shorter than the longest datagram is kept.
+    Never raises on any input.
+    """
+
+    def __init__(self, fmt: Format | None = None):
+        self._buf = bytearray()
+        self._found: list[tuple[int, int, Format]] = []
+        self.scanner = Scanner(fmt, self._found_normal)
+
+    def _found_normal(self, offset: int, ident: int) -> None:
+        self._found.append((offset, ident, self.scanner.format))
+
+    @property
+    def stats(self) -> Stats:
+        return self.scanner.stats
+
+    @property
+    def format(self) -> Format:
+        return self.scanner.format
+
+    def feed(self, data: bytes, t_host: float = math.nan) -> np.ndarray:
+        """Add bytes; return the samples they complete, stamped with `t_host` (s)."""
+        self.stats.bytes_in += len(data)
+        self._buf += data
+        return self._scan(final=False, t_host=t_host)
+
+    def finish(self, t_host: float = math.nan) -> np.ndarray:
+        """End of stream: decide the tail (incomplete datagrams are skipped bytes)."""
+        return self._scan(final=True, t_host=t_host)
+
+    def _scan(self, final: bool, t_host: float) -> np.ndarray:
+        buf, i, scanner = self._buf, 0, self.scanner
+        while i < len(buf):
+            nxt = scanner.step(buf, i, final)
+            if nxt == WAIT:
+                break
+            i = nxt
+        samples = self._decode(buf, t_host)
+        del buf[:i]
+        scanner.advance(i)
+        return samples
+
+    def _decode(self, buf: bytearray, t_host: float) -> np.ndarray:
+        found, self._found = self._found, []
+        out = np.empty(len(found), SAMPLE_DTYPE)
+        if not found:
+            return out
+        view = np.frombuffer(buf, np.uint8)
+        start = 0
+        while start < len(found):  # runs of one id and format decode together
+            _, ident, fmt = found[start]
+            stop = start + 1
+            while stop < len(found) and found[stop][1] == ident and found[stop][2] is fmt:
+                stop += 1
+            layout = NORMAL_LAYOUTS[ident]
+            offsets = np.fromiter((f[0] for f in found[start:stop]), np.int64, stop - start)
+            frames = view[offsets[:, None] + np.arange(layout.pre_crc)]
+            decode_frames(frames, layout, fmt, out[start:stop], t_host)
+            start = stop
+        del view
+        return out

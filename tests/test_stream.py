@@ -1,0 +1,245 @@
+"""Streaming parser and bulk decoder: chunking invariance, re-synchronisation, statistics."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from captures import capture, same_samples
+from stim300.bulk import decode_capture
+from stim300.crc import datagram_crc
+from stim300.protocol import CONFIGURATION, NORMAL_LAYOUTS, Format
+from stim300.special import Configuration, PartNumber, SerialNumber, encode_special
+from stim300.stream import StreamParser
+
+LONGEST = max(layout.wire_length(True) for layout in NORMAL_LAYOUTS.values())
+
+
+def stream_decode(data: bytes, cuts, fmt=None):
+    """Feed `data` split at `cuts`; return (samples, parser)."""
+    parser = StreamParser(fmt)
+    edges = [0, *sorted(set(cuts)), len(data)]
+    parts = [parser.feed(data[a:b]) for a, b in zip(edges, edges[1:])]
+    parts.append(parser.finish())
+    return np.concatenate(parts), parser
+
+
+def assert_same_as_bulk(data: bytes, cuts=(), fmt=None):
+    samples, parser = stream_decode(data, cuts, fmt)
+    bulk, scanner = decode_capture(data, fmt)
+    assert same_samples(samples, bulk)
+    assert parser.stats.as_dict() == scanner.stats.as_dict()
+    return samples, parser
+
+
+def test_clean_stream_decodes_every_sample():
+    data, truth, fmt = capture(1000, 0xA7, False, rate=2000)
+    samples, parser = assert_same_as_bulk(data, range(0, len(data), 4096))
+    assert same_samples(samples, truth)
+    s = parser.stats
+    assert (s.datagrams, s.crc_errors, s.skipped_bytes, s.lost_samples) == (1000, 0, 0, 0)
+    assert parser.format.datagram_id == 0xA7 and parser.format.crlf is False
+    assert s.counter_step == 1
+
+
+def test_crlf_is_detected_without_a_configuration():
+    data, truth, _ = capture(100, 0x93, True, rate=125)
+    samples, parser = assert_same_as_bulk(data)
+    assert same_samples(samples, truth)
+    assert parser.format.crlf is True
+    assert parser.stats.counter_step == 16
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.sampled_from([(0xA7, False), (0x93, True), (0x90, False), (0xF7, True)]),
+       st.lists(st.integers(0, 3000), max_size=40), st.integers(0, 1000))
+def test_any_chunking_gives_identical_output(id_crlf, cuts, seed):
+    ident, crlf = id_crlf
+    data, truth, _ = capture(60, ident, crlf, seed=seed)
+    data = data[:3000]
+    cuts = [c for c in cuts if c < len(data)]
+    reference, ref_parser = stream_decode(data, [])
+    samples, parser = stream_decode(data, cuts)
+    assert same_samples(samples, reference)
+    assert parser.stats.as_dict() == ref_parser.stats.as_dict()
+
+
+def test_one_byte_at_a_time():
+    data, truth, _ = capture(40, 0xA7, True)
+    samples, _ = assert_same_as_bulk(data, range(len(data)))
+    assert same_samples(samples, truth)
+
+
+def test_garbage_between_datagrams_is_skipped_and_counted():
+    data, truth, fmt = capture(200, 0xA7, False)
+    length = NORMAL_LAYOUTS[0xA7].wire_length(False)
+    rng = np.random.default_rng(5)
+    garbage = bytes(rng.integers(0, 256, 1000, dtype=np.uint8))
+    # garbage without id bytes, so nothing in it can pass for a datagram start
+    garbage = bytes(b for b in garbage if b not in NORMAL_LAYOUTS and b < 0xB0)
+    stream = data[:50 * length] + garbage + data[50 * length:]
+    samples, parser = assert_same_as_bulk(stream, [17, 3000, 5000])
+    assert same_samples(samples, truth)
+    assert parser.stats.skipped_bytes == len(garbage)
+    assert parser.stats.lost_samples == 0
+
+
+def test_bit_flip_costs_one_datagram_and_one_crc_error():
+    data, truth, _ = capture(100, 0xA7, False, rate=125)
+    length = NORMAL_LAYOUTS[0xA7].wire_length(False)
+    corrupted = bytearray(data)
+    corrupted[10 * length + 20] ^= 0x04
+    samples, parser = assert_same_as_bulk(bytes(corrupted), [333])
+    assert same_samples(samples, np.delete(truth, 10))
+    s = parser.stats
+    assert (s.datagrams, s.crc_errors, s.lost_samples, s.skipped_bytes) == (99, 1, 1, length)
+
+
+def test_missing_crlf_rejects_the_datagram_when_crlf_is_configured():
+    data, truth, fmt = capture(10, 0x93, True)
+    length = NORMAL_LAYOUTS[0x93].wire_length(True)
+    broken = data[:3 * length - 1] + b"\x00" + data[3 * length:]
+    samples, parser = assert_same_as_bulk(broken, fmt=fmt)
+    assert same_samples(samples, np.delete(truth, 2))
+    assert parser.stats.crc_errors == 1
+
+
+def test_truncated_tail_is_skipped_at_finish():
+    data, truth, _ = capture(10, 0xA7, False)
+    samples, parser = assert_same_as_bulk(data[:-7])
+    assert same_samples(samples, truth[:9])
+    assert parser.stats.skipped_bytes == NORMAL_LAYOUTS[0xA7].wire_length(False) - 7
+
+
+@pytest.mark.parametrize("rate,step", [(125, 16), (2000, 1), (500, 4)])
+def test_counter_gaps_are_lost_samples_across_the_wrap(rate, step):
+    data, truth, fmt = capture(600, 0x91, False, rate=rate)  # counters wrap several times at every rate
+    length = NORMAL_LAYOUTS[0x91].wire_length(False)
+    drop = [5, 6, 7, 100, 255, 256, 257, 400]
+    kept = b"".join(data[i * length:(i + 1) * length] for i in range(600) if i not in drop)
+    for given_fmt in (None, fmt):  # inferred step and configured rate agree
+        samples, parser = assert_same_as_bulk(kept, [1000], given_fmt)
+        assert len(samples) == 600 - len(drop)
+        assert parser.stats.lost_samples == len(drop)
+        assert parser.stats.counter_step == step
+
+
+@pytest.mark.parametrize("missing,counted", [(15, 15), (16, 0), (17, 1)])
+def test_counter_gaps_of_a_whole_cycle_alias(missing, counted):
+    data, _, _ = capture(40, 0x90, False, rate=125)  # 16 datagrams per counter cycle at 125 Hz
+    length = NORMAL_LAYOUTS[0x90].wire_length(False)
+    kept = data[:5 * length] + data[(5 + missing) * length:]
+    _, parser = assert_same_as_bulk(kept, fmt=Format(sample_rate_hz=125))
+    assert parser.stats.lost_samples == counted  # the counter cannot tell a whole cycle
+
+
+def test_datagram_id_change_counts_as_configuration_change():
+    a, ta, _ = capture(30, 0xA7, False, seed=1)
+    b, tb, _ = capture(30, 0x93, False, seed=2)
+    samples, parser = assert_same_as_bulk(a + b, [100, 2000])
+    assert same_samples(samples, np.concatenate([ta, tb]))
+    assert parser.stats.config_changes == 1
+    assert parser.format.datagram_id == 0x93
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.binary(max_size=3000), st.lists(st.integers(0, 3000), max_size=10))
+def test_random_bytes_never_raise_and_match_bulk(blob, cuts):
+    assert_same_as_bulk(blob, [c for c in cuts if c < len(blob)])
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 10**6), st.lists(st.tuples(st.integers(0, 5000), st.sampled_from(["flip", "drop", "insert"])),
+                                        max_size=8))
+def test_corrupted_streams_match_bulk(seed, damage):
+    data, _, _ = capture(80, 0xA7, True, seed=seed)
+    buf = bytearray(data)
+    rng = np.random.default_rng(seed)
+    for pos, kind in damage:
+        pos %= len(buf)
+        if kind == "flip":
+            buf[pos] ^= 1 << int(rng.integers(8))
+        elif kind == "drop":
+            del buf[pos:pos + int(rng.integers(1, 70))]
+        else:
+            buf[pos:pos] = bytes(rng.integers(0, 256, int(rng.integers(1, 70)), dtype=np.uint8))
+    samples, parser = assert_same_as_bulk(bytes(buf), [int(x) for x in rng.integers(0, len(buf) + 1, 5)])
+    assert parser.stats.datagrams == len(samples)
+
+
+def test_memory_stays_bounded_on_endless_garbage():
+    parser = StreamParser()
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        parser.feed(bytes(rng.integers(0, 256, 20000, dtype=np.uint8)))
+        assert len(parser._buf) < LONGEST + 2
+    assert parser.stats.datagrams == 0
+    assert parser.stats.skipped_bytes > 990000
+
+
+def test_t_host_stamps_the_samples_a_read_completes():
+    data, _, _ = capture(3, 0x90, False)
+    parser = StreamParser()
+    first = parser.feed(data[:30], t_host=1.5)  # completes the first datagram (18 B) only
+    second = parser.feed(data[30:], t_host=2.5)
+    assert first["t_host"].tolist() == [1.5]
+    assert second["t_host"].tolist() == [2.5, 2.5]
+
+
+def power_up(config, part="84167-4400003-321", serial="N25582405002002") -> bytes:
+    return (encode_special(PartNumber(part, "K"), config.crlf) + encode_special(SerialNumber(serial), config.crlf)
+            + encode_special(config, config.crlf))
+
+
+def test_configuration_datagram_is_adopted():
+    config = Configuration.build(sample_rate_hz=500, acc_range_g=30, crlf=True, temp_included=False)
+    assert config.datagram_id == 0x93
+    data, truth, _ = capture(100, 0x93, True, rate=500, acc_range_g=30)
+    # the user's guess (10 g, no CR LF) is overridden by what the sensor says
+    samples, parser = assert_same_as_bulk(power_up(config) + data, [7, 50], Format(acc_range_g=10, crlf=False))
+    assert same_samples(samples, truth)
+    assert parser.format == config.format
+    assert parser.scanner.configuration == config
+    assert str(parser.scanner.part_number) == "84167-4400003-321 REV K"
+    assert parser.scanner.serial_number.text == "N25582405002002"
+    assert parser.stats.counter_step == 4
+    assert (parser.stats.restarts, parser.stats.config_changes, parser.stats.special_datagrams) == (0, 0, 3)
+
+
+def test_sensor_restart_is_counted_and_does_not_count_as_loss():
+    config = Configuration.build(sample_rate_hz=125)
+    first, t1, _ = capture(50, 0xA7, False, rate=125, seed=1)
+    second, t2, _ = capture(50, 0xA7, False, rate=125, seed=2)  # counter starts again at 0
+    first = power_up(config) + first[:40 * 59]
+    samples, parser = assert_same_as_bulk(first + power_up(config) + second, [1000, 3001])
+    assert same_samples(samples, np.concatenate([t1[:40], t2]))
+    assert (parser.stats.restarts, parser.stats.lost_samples, parser.stats.config_changes) == (1, 0, 0)
+
+
+def test_requested_part_number_is_not_a_restart():
+    data, truth, _ = capture(30, 0xA7, False, rate=125)
+    stream = data[:10 * 59] + encode_special(PartNumber("84167-4400003-321", "K"), False) + data[11 * 59:]
+    samples, parser = assert_same_as_bulk(stream)
+    assert parser.stats.restarts == 0
+    assert parser.stats.lost_samples == 1  # the special datagram replaced one normal datagram
+
+
+def test_new_configuration_counts_as_change():
+    a = Configuration.build(sample_rate_hz=125)
+    b = Configuration.build(sample_rate_hz=2000)
+    data, _, _ = capture(20, 0xA7, False, rate=125)
+    _, parser = assert_same_as_bulk(encode_special(a, False) + data + encode_special(b, False) + data)
+    assert parser.stats.config_changes == 1
+    assert parser.format.sample_rate_hz == 2000
+
+
+def test_undecodable_configuration_is_counted_not_raised():
+    frame = bytearray(encode_special(Configuration.default(), False))
+    frame[6] |= 0x07  # gyro LPF Y code 7: not in the byte map
+    covered = bytes(frame[:CONFIGURATION.pre_crc])
+    frame[CONFIGURATION.pre_crc:CONFIGURATION.pre_crc + 4] = datagram_crc(covered).to_bytes(4, "big")
+    data, truth, _ = capture(5, 0xA7, False)
+    samples, parser = assert_same_as_bulk(bytes(frame) + data)
+    assert same_samples(samples, truth)
+    assert parser.stats.undecodable_specials == 1
+    assert parser.scanner.configuration is None
