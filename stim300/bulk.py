@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.lib.stride_tricks import as_strided
 
-from .codec import SAMPLE_DTYPE, decode_frames
+from .codec import SAMPLE_DTYPE, decode_frames, empty_columns
 from .crc import crc_columns
 from .protocol import NORMAL_LAYOUTS, SPECIAL_IDS, Format
 from .stream import WAIT, Scanner
@@ -27,16 +27,17 @@ _SHORTEST = min(layout.wire_length(False) for layout in NORMAL_LAYOUTS.values())
 class BulkDecoder:
     """Decode one capture held in memory (bytes, bytearray, mmap)."""
 
-    def __init__(self, data, fmt: Format | None = None):
+    def __init__(self, data, fmt: Format | None = None, columns: bool = False):
         self._raw = memoryview(data).cast("B")
         self._bytes = np.frombuffer(self._raw, np.uint8)
         self._found: list[tuple[int, int]] = []
         self.scanner = Scanner(fmt, lambda offset, ident: self._found.append((offset, ident)))
         self.scanner.stats.bytes_in = len(self._raw)
-        self._out = np.empty(len(self._raw) // _SHORTEST + 1, SAMPLE_DTYPE)
+        most = len(self._raw) // _SHORTEST + 1  # untouched rows cost address space only
+        self._out = empty_columns(most) if columns else np.empty(most, SAMPLE_DTYPE)
         self._n = 0
 
-    def run(self) -> np.ndarray:
+    def run(self) -> np.ndarray | dict[str, np.ndarray]:
         """All normal samples in stream order (scanner statistics in `self.scanner.stats`)."""
         pos, end = 0, len(self._raw)
         block = FIRST_BLOCK
@@ -48,7 +49,17 @@ class BulkDecoder:
                 continue
             pos = self._scalar_step(pos)
             block = FIRST_BLOCK
-        return self._out[:self._n]
+        return self._rows(0, self._n)
+
+    def _rows(self, start: int, stop: int):
+        if isinstance(self._out, dict):
+            return {name: column[start:stop] for name, column in self._out.items()}
+        return self._out[start:stop]
+
+    def release(self) -> None:
+        """Let go of the capture's buffer (an mmap can only close once nothing points into it)."""
+        self._bytes = None
+        self._raw.release()
 
     def _scalar_step(self, pos: int) -> int:
         """One scanner decision at `pos`, after jumping over bytes that cannot start a datagram."""
@@ -107,12 +118,17 @@ class BulkDecoder:
 
     def _decode(self, frames: np.ndarray, layout) -> None:
         n = len(frames)
-        decode_frames(frames, layout, self.scanner.format, self._out[self._n:self._n + n])
+        decode_frames(frames, layout, self.scanner.format, self._rows(self._n, self._n + n))
         self._n += n
 
 
-def decode_capture(data, fmt: Format | None = None) -> tuple[np.ndarray, Scanner]:
-    """Samples of a whole capture and the scanner (stats, format, special datagrams) after it."""
-    decoder = BulkDecoder(data, fmt)
+def decode_capture(data, fmt: Format | None = None, columns: bool = False):
+    """Samples of a whole capture and the scanner (stats, format, special datagrams) after it.
+
+    Samples come as a SAMPLE_DTYPE array, or with `columns` as a dict of per-field arrays like
+    `codec.empty_columns` (what writing tables wants: no strided passes over whole records).
+    """
+    decoder = BulkDecoder(data, fmt, columns)
     samples = decoder.run()
+    decoder.release()
     return samples, decoder.scanner

@@ -8,10 +8,14 @@ not carry are NaN (values) and 0 (status).
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
 from .crc import crc_columns
 from .protocol import CLUSTERS, CR_LF, NORMAL_LAYOUTS, Format, Layout
+
+AXES = "xyz"
 
 SAMPLE_DTYPE = np.dtype([
     ("t_host", "f8"),  # host monotonic clock when the read that completed it returned (s); NaN offline
@@ -35,63 +39,96 @@ SAMPLE_DTYPE = np.dtype([
 ])
 
 
-def _clear(out: np.ndarray, names) -> None:
+def empty_columns(n: int) -> dict[str, np.ndarray]:
+    """Column-major storage for n samples: SAMPLE_DTYPE's fields as separate arrays, every axis of
+    a vector field contiguous (field[:, k] is a contiguous view). Bulk output to files wants this."""
+    columns = {}
+    for name in SAMPLE_DTYPE.names:
+        dtype, shape = SAMPLE_DTYPE[name].base, SAMPLE_DTYPE[name].shape
+        columns[name] = np.empty(shape + (n,), dtype).T
+    return columns
+
+
+def _clear(out, names) -> None:
     """Mark the blocks `names` (and their status bytes) absent: NaN values, status 0."""
     for name in names:
-        out[name] = np.nan
-        out["status_" + name] = 0
+        out[name][...] = np.nan
+        out["status_" + name][...] = 0
 
 
-def _int24(frames: np.ndarray, offset: int, signed: bool = True) -> np.ndarray:
-    """Big-endian 24-bit integers at `offset` of every row, as int32."""
-    word = frames[:, offset].astype(np.int32) << 24
-    word |= frames[:, offset + 1].astype(np.int32) << 16
-    word |= frames[:, offset + 2].astype(np.int32) << 8
+@lru_cache(maxsize=None)
+def _record(layout: Layout, width: int) -> np.dtype:
+    """Overlapping big-endian fields over one datagram row, so each value is a strided view.
+
+    A 24-bit value at offset o is read as the 32-bit word at o - 1 (the byte before it is
+    shifted out); o >= 1 always, as byte 0 is the id.
+    """
+    off = layout.offsets
+    fields: dict[str, tuple[str, int]] = {}
+    for name in layout.clusters:
+        for k, axis in enumerate(AXES):
+            fields[f"{name}_{axis}"] = (">i4", off[name] + 3 * k - 1)
+        fields["status_" + name] = ("u1", off["status_" + name])
+    for name in layout.temperatures:
+        for k, axis in enumerate(AXES):
+            fields[f"temp_{name}_{axis}"] = (">i2", off["temp_" + name] + 2 * k)
+        fields["status_temp_" + name] = ("u1", off["status_temp_" + name])
+    if layout.aux:
+        fields["aux"] = (">i4", off["aux"] - 1)
+        fields["status_aux"] = ("u1", off["status_aux"])
+    fields["counter"] = ("u1", off["counter"])
+    fields["latency_us"] = (">u2", off["latency"])
+    return np.dtype({"names": list(fields), "formats": [f for f, _ in fields.values()],
+                     "offsets": [o for _, o in fields.values()], "itemsize": width})
+
+
+def _int24(word: np.ndarray, signed: bool = True) -> np.ndarray:
+    """The low 24 bits of big-endian words, sign-extended or not, as native int32."""
+    value = word.astype(np.int32)
     if signed:
-        return word >> 8
-    return (word >> 8) & 0xFFFFFF
-
-
-def _int16(frames: np.ndarray, offset: int) -> np.ndarray:
-    word = frames[:, offset].astype(np.int16) << 8
-    word |= frames[:, offset + 1]
-    return word
+        value <<= 8
+        value >>= 8
+    else:
+        value &= 0xFFFFFF
+    return value
 
 
 def decode_frames(frames: np.ndarray, layout: Layout, fmt: Format, out: np.ndarray,
                   t_host: float = np.nan) -> None:
-    """Decode normal datagrams (rows of `frames`, N x >= pre_crc uint8) into `out` (N samples).
+    """Decode normal datagrams (rows of `frames`, N x width uint8 with width >= pre_crc) into
+    `out`: N samples of SAMPLE_DTYPE, or a dict of columns like `empty_columns` gives.
 
     Every field of `out` is written, so it may come from np.empty. The CRC is not checked here:
     callers only pass frames they have verified.
     """
-    scales = fmt.scales()
-    off = layout.offsets
-    out["t_host"] = t_host
-    out["datagram_id"] = layout.datagram_id
+    if not frames.flags.c_contiguous:
+        frames = np.ascontiguousarray(frames)
+    rec = frames.view(_record(layout, frames.shape[1]))[:, 0]
+    scales = {name: np.float32(value) for name, value in fmt.scales().items()}
+    out["t_host"][...] = t_host
+    out["datagram_id"][...] = layout.datagram_id
     _clear(out, [c for c in CLUSTERS if c not in layout.clusters])
     _clear(out, ["temp_" + c for c in CLUSTERS if c not in layout.temperatures])
-    if not layout.aux:
-        _clear(out, ["aux"])
     for name in layout.clusters:
         block = out[name]
-        for axis in range(3):
-            np.multiply(_int24(frames, off[name] + 3 * axis), scales[name], out=block[:, axis], casting="unsafe")
-        out["status_" + name] = frames[:, off["status_" + name]]
+        for k, axis in enumerate(AXES):
+            np.multiply(_int24(rec[f"{name}_{axis}"]), scales[name], out=block[:, k], dtype=np.float32,
+                        casting="unsafe")
+        out["status_" + name][...] = rec["status_" + name]
     for name in layout.temperatures:
         block = out["temp_" + name]
-        for axis in range(3):
-            np.multiply(_int16(frames, off["temp_" + name] + 2 * axis), scales["temp"], out=block[:, axis],
+        for k, axis in enumerate(AXES):
+            np.multiply(rec[f"temp_{name}_{axis}"], scales["temp"], out=block[:, k], dtype=np.float32,
                         casting="unsafe")
-        out["status_temp_" + name] = frames[:, off["status_temp_" + name]]
+        out["status_temp_" + name][...] = rec["status_temp_" + name]
     if layout.aux:
         unsigned = layout.aux == "pps" and fmt.pps_unsigned
-        out["aux"] = _int24(frames, off["aux"], signed=not unsigned) * scales[layout.aux]
-        out["status_aux"] = frames[:, off["status_aux"]]
-    out["counter"] = frames[:, off["counter"]]
-    latency = frames[:, off["latency"]].astype(np.uint16) << 8
-    latency |= frames[:, off["latency"] + 1]
-    out["latency_us"] = latency
+        out["aux"][...] = _int24(rec["aux"], signed=not unsigned) * fmt.scales()[layout.aux]
+        out["status_aux"][...] = rec["status_aux"]
+    else:
+        _clear(out, ["aux"])
+    out["counter"][...] = rec["counter"]
+    out["latency_us"][...] = rec["latency_us"]
 
 
 def _put_int(frames: np.ndarray, offset: int, counts: np.ndarray, nbytes: int) -> None:
