@@ -1,0 +1,319 @@
+"""`stim300 decode | info | record`: captures to tables, a capture's health, raw recording.
+
+Bad input (missing or empty files, bytes that are not STIM300, unknown option values,
+unwritable outputs) ends with one line on stderr and a non-zero exit, never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import mmap
+import os
+import sys
+import tempfile
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+
+from .bulk import decode_capture
+from .protocol import ACC_RANGE_LSB_EXP, DEFAULT_BIT_RATE, NORMAL_LAYOUTS, SAMPLE_RATES_HZ, AccUnit, Format, GyroUnit
+
+AXES = "xyz"
+GYRO_UNITS = {"rate": GyroUnit.RATE, "incremental": GyroUnit.INCREMENTAL_ANGLE,
+              "average": GyroUnit.AVERAGE_RATE, "integrated": GyroUnit.INTEGRATED_ANGLE}
+GYRO_UNITS |= {name + "-delayed": GyroUnit(unit | 8) for name, unit in GYRO_UNITS.items()}
+ACC_UNITS = {"acceleration": AccUnit.ACCELERATION, "incremental": AccUnit.INCREMENTAL_VELOCITY,
+             "average": AccUnit.AVERAGE_ACCELERATION, "integrated-gs": AccUnit.INTEGRATED_VELOCITY_GS,
+             "integrated-ms": AccUnit.INTEGRATED_VELOCITY_MS}
+
+
+class UsageError(Exception):
+    """A problem with what the user gave us: reported as one line, exit status 2."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # one line, not usage + message
+        raise UsageError(f"{self.prog}: {message}")
+
+
+def _datagram_id(text: str) -> int:
+    try:
+        value = int(text, 16)
+    except ValueError:
+        value = -1
+    if value not in NORMAL_LAYOUTS:
+        known = ", ".join(f"0x{i:02X}" for i in sorted(NORMAL_LAYOUTS))
+        raise argparse.ArgumentTypeError(f"unknown normal datagram id {text!r} (known: {known})")
+    return value
+
+
+def _choice(table: dict):
+    def parse(text: str):
+        if text not in table:
+            raise argparse.ArgumentTypeError(f"{text!r} is not one of {', '.join(map(str, table))}")
+        return table[text]
+    return parse
+
+
+def _add_format_options(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("format when the capture has no configuration datagram")
+    g.add_argument("--datagram", type=_datagram_id, help="normal datagram id, e.g. 0x93 (default: detect)")
+    g.add_argument("--crlf", choices=("yes", "no", "detect"), default="detect", help="CR LF termination")
+    g.add_argument("--rate", type=_choice({str(r): r for r in SAMPLE_RATES_HZ}),
+                   help="sample rate in Hz (default: infer the counter step from the data)")
+    g.add_argument("--gyro-unit", type=_choice(GYRO_UNITS), default=GyroUnit.RATE, metavar="UNIT",
+                   help=f"{', '.join(GYRO_UNITS)} (default rate)")
+    g.add_argument("--acc-unit", type=_choice(ACC_UNITS), default=AccUnit.ACCELERATION, metavar="UNIT",
+                   help=f"{', '.join(ACC_UNITS)} (default acceleration)")
+    g.add_argument("--incl-unit", type=_choice(ACC_UNITS), default=AccUnit.ACCELERATION, metavar="UNIT",
+                   help="as --acc-unit")
+    g.add_argument("--acc-range", type=_choice({str(r): r for r in ACC_RANGE_LSB_EXP}), default=10,
+                   metavar="G", help=f"accelerometer range in g: {', '.join(map(str, ACC_RANGE_LSB_EXP))} "
+                                     "(default 10)")
+
+
+def _format(args) -> Format:
+    return Format(datagram_id=args.datagram, crlf={"yes": True, "no": False}.get(args.crlf),
+                  sample_rate_hz=args.rate, gyro_unit=args.gyro_unit, acc_unit=args.acc_unit,
+                  acc_range_g=args.acc_range, incl_unit=args.incl_unit)
+
+
+@contextmanager
+def _mapped(path: str):
+    """The capture's bytes, memory-mapped (no copy of a large file)."""
+    p = Path(path)
+    if not p.exists():
+        raise UsageError(f"{path}: no such file")
+    if p.is_dir():
+        raise UsageError(f"{path}: is a directory, expected a capture file")
+    try:
+        with open(p, "rb") as f:
+            if os.fstat(f.fileno()).st_size == 0:
+                raise UsageError(f"{path}: empty file, no STIM300 data")
+            with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as m:
+                yield m
+    except OSError as exc:
+        raise UsageError(f"{path}: cannot read: {exc.strerror or exc}") from None
+
+
+def _decode(path: str, fmt: Format):
+    with _mapped(path) as data:
+        samples, scanner = decode_capture(data, fmt, columns=True)
+    if scanner.stats.datagrams == 0:
+        raise UsageError(f"{path}: no STIM300 datagram found in {scanner.stats.bytes_in} bytes "
+                         "(not a STIM300 capture, or a format the options do not describe)")
+    return samples, scanner
+
+
+def columns(samples) -> dict[str, np.ndarray]:
+    """Output columns: those of the blocks some datagram of the capture carries, in a fixed order."""
+    ids = np.unique(samples["datagram_id"])
+    layouts = [NORMAL_LAYOUTS[int(i)] for i in ids]
+    clusters = [c for c in ("gyro", "acc", "incl") if any(c in lay.clusters for lay in layouts)]
+    temps = [c for c in ("gyro", "acc", "incl") if any(c in lay.temperatures for lay in layouts)]
+    aux = any(lay.aux for lay in layouts)
+    out = {"counter": samples["counter"], "latency_us": samples["latency_us"]}
+    for block in clusters + ["temp_" + c for c in temps]:
+        for k, axis in enumerate(AXES):
+            out[f"{block}_{axis}"] = samples[block][:, k]  # contiguous in decode_capture's columns
+    if aux:
+        out["aux"] = samples["aux"]
+    for block in clusters + ["temp_" + c for c in temps] + (["aux"] if aux else []):
+        out["status_" + block] = samples["status_" + block]
+    return out
+
+
+def column_units(names, fmt: Format) -> dict[str, str]:
+    units = fmt.units()
+    result = {}
+    for name in names:
+        block = name.split("_")[0] if not name.startswith("temp_") else "temp"
+        if name.startswith("status_") or name == "counter":
+            result[name] = "1"
+        elif name == "latency_us":
+            result[name] = "us"
+        elif name == "aux":
+            result[name] = units["pps"] if fmt.datagram_id and fmt.datagram_id >= 0xF0 else units["aux"]
+        else:
+            result[name] = units[block]
+    return result
+
+
+@contextmanager
+def _atomic(path: str, suffix: str, durable: bool = True):
+    """Write to a temporary file beside `path`, rename into place only when complete.
+
+    `durable` also syncs it to disk first; a decoded table can be made again from its capture,
+    so it skips that (syncing hundreds of MB costs seconds)."""
+    target = Path(path)
+    directory = target.parent if str(target.parent) else Path(".")
+    if not directory.is_dir():
+        raise UsageError(f"{path}: directory {directory} does not exist")
+    if target.is_dir():
+        raise UsageError(f"{path}: is a directory")
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=target.name + ".", suffix=".part" + suffix, dir=directory)
+    except OSError as exc:
+        raise UsageError(f"{path}: cannot write: {exc.strerror or exc}") from None
+    try:
+        with os.fdopen(fd, "wb") as f:
+            yield f
+            if durable:
+                f.flush()
+                os.fsync(f.fileno())
+        os.replace(tmp, target)
+    except OSError as exc:
+        raise UsageError(f"{path}: cannot write: {exc.strerror or exc}") from None
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def _write_csv(f, cols: dict[str, np.ndarray]) -> None:
+    names = list(cols)
+    f.write((",".join(names) + "\n").encode())
+    formats = ["%d" if cols[n].dtype.kind in "ui" else "%.9g" for n in names]
+    rows = len(next(iter(cols.values())))
+    chunk = 100_000
+    for start in range(0, rows, chunk):
+        part = [cols[n][start:start + chunk] for n in names]
+        table = np.column_stack([p.astype(np.float64) for p in part])
+        np.savetxt(f, table, fmt=formats, delimiter=",")
+
+
+def cmd_decode(args) -> int:
+    out = args.output
+    if not (out.endswith(".npz") or out.endswith(".csv")):
+        raise UsageError(f"{out}: output must end in .npz or .csv")
+    started = time.perf_counter()
+    samples, scanner = _decode(args.capture, _format(args))
+    cols = columns(samples)
+    units = column_units(cols, scanner.format)
+    with _atomic(out, Path(out).suffix, durable=False) as f:
+        if out.endswith(".npz"):
+            np.savez(f, **cols, units=np.array(json.dumps(units)))
+        else:
+            _write_csv(f, cols)
+    s = scanner.stats
+    print(f"{args.capture}: {s.datagrams} datagrams -> {out} ({len(cols)} columns) in "
+          f"{time.perf_counter() - started:.2f} s; crc_errors {s.crc_errors}, lost_samples {s.lost_samples}, "
+          f"skipped_bytes {s.skipped_bytes} B", file=sys.stderr)
+    return 0
+
+
+def capture_info(samples: np.ndarray, scanner) -> dict:
+    s = scanner.stats
+    fmt = scanner.format
+    step = s.counter_step
+    rate = fmt.sample_rate_hz or (2000 // step if step else None)
+    info = {
+        "datagrams": s.datagrams,
+        "crc_errors": s.crc_errors,
+        "lost_samples": s.lost_samples,
+        "skipped_bytes": s.skipped_bytes,
+        "bytes": s.bytes_in,
+        "restarts": s.restarts,
+        "config_changes": s.config_changes,
+        "datagram_id": f"0x{fmt.datagram_id:02X}" if fmt.datagram_id is not None else None,
+        "crlf": fmt.crlf,
+        "sample_rate_hz": rate,
+        "duration_s": (s.datagrams + s.lost_samples) / rate if rate else None,
+        "units": {k: v for k, v in fmt.units().items()},
+        "acc_range_g": fmt.acc_range_g,
+        "part_number": str(scanner.part_number) if scanner.part_number else None,
+        "serial_number": str(scanner.serial_number) if scanner.serial_number else None,
+        "configuration": scanner.configuration.as_dict() if scanner.configuration else None,
+        "status_flagged": int(np.count_nonzero(samples["status_gyro"] | samples["status_acc"]
+                                               | samples["status_incl"])),
+    }
+    return info
+
+
+def _describe(info: dict) -> str:
+    def value(v, unit=""):
+        return "-" if v is None else f"{v}{unit}"
+    lines = [
+        f"datagrams        {info['datagrams']}",
+        f"datagram_id      {value(info['datagram_id'])}  (CR LF: {value(info['crlf'])})",
+        f"sample rate      {value(info['sample_rate_hz'], ' Hz')}",
+        f"duration         {'-' if info['duration_s'] is None else format(info['duration_s'], '.3f') + ' s'}",
+        f"bytes            {info['bytes']} B",
+        f"crc_errors       {info['crc_errors']}",
+        f"lost_samples     {info['lost_samples']}",
+        f"skipped_bytes    {info['skipped_bytes']} B",
+        f"restarts         {info['restarts']}",
+        f"config_changes   {info['config_changes']}",
+        f"status flagged   {info['status_flagged']} datagrams",
+        f"units            " + ", ".join(f"{k} {v}" for k, v in info["units"].items()),
+        f"acc range        {info['acc_range_g']} g",
+        f"part number      {value(info['part_number'])}",
+        f"serial number    {value(info['serial_number'])}",
+    ]
+    if info["configuration"]:
+        lines.append("configuration    " + json.dumps(info["configuration"]))
+    return "\n".join(lines)
+
+
+def cmd_info(args) -> int:
+    samples, scanner = _decode(args.capture, _format(args))
+    info = capture_info(samples, scanner)
+    print(json.dumps(info, indent=1) if args.json else _describe(info))
+    return 0
+
+
+def cmd_record(args) -> int:
+    from .port import record
+    return record(args.port, args.output, baudrate=args.baud, duration_s=args.duration, max_bytes=args.max_bytes)
+
+
+def _positive(kind):
+    def parse(text):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+        if value <= 0:
+            raise argparse.ArgumentTypeError(f"{text!r} must be positive")
+        return value
+    return parse
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="stim300", description="STIM300 captures: decode, inspect, record.")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    p = sub.add_parser("decode", help="capture -> .npz or .csv table in physical units")
+    p.add_argument("capture")
+    p.add_argument("-o", "--output", required=True, help="OUT.npz or OUT.csv")
+    _add_format_options(p)
+    p.set_defaults(func=cmd_decode)
+    p = sub.add_parser("info", help="datagrams, errors, losses, rate, duration, identity, configuration")
+    p.add_argument("capture")
+    p.add_argument("--json", action="store_true")
+    _add_format_options(p)
+    p.set_defaults(func=cmd_info)
+    p = sub.add_parser("record", help="raw bytes from a serial port to a capture file")
+    p.add_argument("port", help="device path (/dev/ttyUSB0) or pyserial URL")
+    p.add_argument("-o", "--output", required=True)
+    p.add_argument("--baud", type=_positive(int), default=DEFAULT_BIT_RATE, help="bit/s (default 921600)")
+    p.add_argument("--duration", type=_positive(float), help="seconds to record (default: until Ctrl-C)")
+    p.add_argument("--max-bytes", type=_positive(int), help="stop after this many bytes")
+    p.set_defaults(func=cmd_record)
+    return parser
+
+
+def main(argv=None) -> int:
+    try:
+        args = build_parser().parse_args(argv)
+        return args.func(args)
+    except UsageError as exc:
+        print(f"stim300: {exc}" if not str(exc).startswith("stim300") else str(exc), file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,127 @@
+"""`stim300 decode | info`: tables in physical units, capture health, one-line errors."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from captures import capture
+from stim300.cli import main
+from stim300.special import Configuration, encode_special
+
+
+@pytest.fixture
+def capture_file(tmp_path):
+    config = Configuration.build(sample_rate_hz=125, crlf=True)
+    data, truth, _ = capture(300, 0xA7, True, rate=125)
+    path = tmp_path / "session.bin"
+    path.write_bytes(encode_special(config, True) + data[:100 * 61] + b"\x00garbage" + data[101 * 61:])
+    return path, np.delete(truth, 100)
+
+
+def run(argv, capsys):
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_decode_to_npz_gives_physical_columns(capture_file, tmp_path, capsys):
+    path, truth = capture_file
+    out = tmp_path / "table.npz"
+    code, _, err = run(["decode", path, "-o", out], capsys)
+    assert code == 0, err
+    table = np.load(out)
+    expected = ["counter", "latency_us", "gyro_x", "gyro_y", "gyro_z", "acc_x", "acc_y", "acc_z",
+                "incl_x", "incl_y", "incl_z", "temp_gyro_x", "temp_gyro_y", "temp_gyro_z", "temp_acc_x",
+                "temp_acc_y", "temp_acc_z", "temp_incl_x", "temp_incl_y", "temp_incl_z", "status_gyro",
+                "status_acc", "status_incl", "status_temp_gyro", "status_temp_acc", "status_temp_incl", "units"]
+    assert table.files == expected
+    assert np.array_equal(table["gyro_y"], truth["gyro"][:, 1])
+    assert np.array_equal(table["temp_incl_z"], truth["temp_incl"][:, 2])
+    assert np.array_equal(table["counter"], truth["counter"])
+    assert table["gyro_x"].dtype == np.float32 and table["counter"].dtype == np.uint8
+    units = json.loads(str(table["units"]))
+    assert units["gyro_x"] == "deg/s" and units["acc_z"] == "g" and units["temp_acc_x"] == "degC"
+    assert "299 datagrams" in err and "lost_samples 1" in err
+
+
+def test_decode_to_csv_matches_npz(capture_file, tmp_path, capsys):
+    path, truth = capture_file
+    code, _, err = run(["decode", path, "-o", tmp_path / "t.csv"], capsys)
+    assert code == 0, err
+    lines = (tmp_path / "t.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    assert header[:5] == ["counter", "latency_us", "gyro_x", "gyro_y", "gyro_z"]
+    table = np.loadtxt(tmp_path / "t.csv", delimiter=",", skiprows=1)
+    assert table.shape == (299, len(header))
+    assert np.array_equal(table[:, header.index("acc_y")].astype(np.float32), truth["acc"][:, 1])
+
+
+def test_decode_without_configuration_takes_options(tmp_path, capsys):
+    data, truth, _ = capture(50, 0x93, False, rate=500, acc_range_g=30)
+    path = tmp_path / "c.bin"
+    path.write_bytes(data)
+    code, _, err = run(["decode", path, "-o", tmp_path / "t.npz", "--acc-range", "30"], capsys)
+    assert code == 0, err
+    table = np.load(tmp_path / "t.npz")
+    assert np.array_equal(table["acc_x"], truth["acc"][:, 0])
+    assert "temp_gyro_x" not in table.files
+
+
+def test_info_json(capture_file, capsys):
+    path, _ = capture_file
+    code, out, err = run(["info", path, "--json"], capsys)
+    assert code == 0, err
+    info = json.loads(out)
+    assert info["datagrams"] == 299
+    assert info["lost_samples"] == 1
+    assert info["crc_errors"] == 0
+    assert info["skipped_bytes"] == len(b"\x00garbage")
+    assert info["datagram_id"] == "0xA7"
+    assert info["sample_rate_hz"] == 125
+    assert info["duration_s"] == pytest.approx(300 / 125)
+    assert info["configuration"]["sample_rate_hz"] == 125
+
+
+def test_info_text_has_units(capture_file, capsys):
+    path, _ = capture_file
+    code, out, _ = run(["info", path], capsys)
+    assert code == 0
+    assert "125 Hz" in out and "2.400 s" in out and "datagrams        299" in out
+
+
+@pytest.mark.parametrize("case", ["missing", "directory", "empty", "not_stim300", "bad_datagram", "bad_range",
+                                  "bad_unit", "bad_suffix", "no_output_dir", "output_is_dir"])
+def test_bad_input_is_one_line_and_nonzero(case, capture_file, tmp_path, capsys):
+    path, _ = capture_file
+    empty = tmp_path / "empty.bin"
+    empty.write_bytes(b"")
+    noise = tmp_path / "noise.bin"
+    noise.write_bytes(bytes(range(256)) * 40)
+    argv = {
+        "missing": ["info", tmp_path / "nope.bin"],
+        "directory": ["info", tmp_path],
+        "empty": ["info", empty],
+        "not_stim300": ["decode", noise, "-o", tmp_path / "x.npz"],
+        "bad_datagram": ["info", path, "--datagram", "0x42"],
+        "bad_range": ["info", path, "--acc-range", "7"],
+        "bad_unit": ["decode", path, "-o", tmp_path / "x.npz", "--gyro-unit", "furlongs"],
+        "bad_suffix": ["decode", path, "-o", tmp_path / "x.txt"],
+        "no_output_dir": ["decode", path, "-o", tmp_path / "missing" / "x.npz"],
+        "output_is_dir": ["decode", path, "-o", tmp_path / "d.npz"],
+    }[case]
+    (tmp_path / "d.npz").mkdir()
+    code, out, err = run(argv, capsys)
+    assert code != 0
+    assert len(err.strip().splitlines()) == 1, err
+    assert "Traceback" not in err
+    assert not list(tmp_path.glob("*.part*"))
+
+
+def test_console_script_reports_errors_without_traceback(tmp_path):
+    result = subprocess.run([sys.executable, "-m", "stim300.cli", "info", str(tmp_path / "nope.bin")],
+                            capture_output=True, text=True)
+    assert result.returncode == 2
+    assert result.stderr.strip() == f"stim300: {tmp_path / 'nope.bin'}: no such file"
