@@ -1,0 +1,354 @@
+"""The serial side of the driver: open a port, read it into a ring, record it, talk Service Mode.
+
+`PortReader` is what the daemon runs: a thread that reads whatever the port has, stamps each
+read with the host clock, feeds one `StreamParser` (kept across reopens, so its statistics
+cover the whole session) and pushes the samples into a `RingBuffer`. A vanished device is
+closed and reopened with exponential backoff, and every (re)open asks for the configuration
+datagram (`C<CR>`, protocol doc §12) so the parser re-adopts the sensor's format.
+
+The Service Mode helpers (protocol doc §10) work on an open `serial.Serial` that nothing else
+is reading: stop the `PortReader` first.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import re
+import sys
+import threading
+import time
+from pathlib import Path
+
+import serial
+import structlog
+
+from .protocol import CONFIGURATION, DEFAULT_BIT_RATE
+from .ringbuffer import RingBuffer
+from .stream import StreamParser
+
+log = structlog.get_logger(__name__)
+
+WRITE_TIMEOUT_S = 1.0  # a command write that blocks longer means the port is dead
+
+_ERRNO_TEXT = {
+    errno.ENOENT: "no such device",
+    errno.ENODEV: "no such device",
+    errno.ENXIO: "no such device",
+    errno.EACCES: "permission denied (is the user in the dialout group?)",
+    errno.EPERM: "permission denied (is the user in the dialout group?)",
+    errno.EBUSY: "device busy",
+    errno.EAGAIN: "in use by another process",  # the exclusive lock is taken
+    errno.EIO: "input/output error (device unplugged?)",
+}
+
+
+class PortError(Exception):
+    """A serial port could not be opened or used; the message is one line naming the port."""
+
+
+def _describe(exc: BaseException) -> str:
+    code = getattr(exc, "errno", None)
+    if code in _ERRNO_TEXT:
+        return _ERRNO_TEXT[code]
+    if code:
+        return os.strerror(code).lower()
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
+def open_serial(url: str, baudrate: int = DEFAULT_BIT_RATE, timeout: float = 0.05) -> serial.Serial:
+    """Open a device path or pyserial URL at 8N1, locked against a second reader.
+
+    Rates that are not termios constants (374400, 1843200, user-defined) are set by pyserial
+    (BOTHER / termios2 on Linux). Raises `PortError` with a one-line reason.
+    """
+    try:
+        return serial.serial_for_url(url, baudrate=baudrate, bytesize=8, parity="N", stopbits=1, timeout=timeout,
+                                     write_timeout=WRITE_TIMEOUT_S, exclusive=True, do_not_open=False)
+    except (serial.SerialException, OSError, ValueError) as exc:
+        raise PortError(f"{url}: {_describe(exc)}") from exc
+
+
+def _read_available(ser: serial.Serial, limit: int | None = None) -> bytes:
+    """Everything the port holds now, else wait (up to the port timeout) for the first byte."""
+    size = max(1, ser.in_waiting)
+    return ser.read(size if limit is None else min(size, limit))
+
+
+class PortReader:
+    """A thread: serial port -> `StreamParser` -> `RingBuffer`, surviving unplug/replug.
+
+    `start()` opens the port (raising `PortError` if that fails) and starts the thread; later
+    read errors close the port and reopen it, waiting reopen_backoff[0] s, doubling up to
+    reopen_backoff[1] s, until it opens or `stop()` is called. `on_raw(bytes)` sees every read
+    before the parser (e.g. to record it).
+
+    Each read takes everything the port holds and is stamped with `clock()` as it returns. A
+    parser call that decodes samples has a fixed cost (~0.1 ms) whatever their number, so after one the
+    thread sleeps `batch_s`: at high rates a call then decodes several datagrams, while a
+    datagram arriving after a quiet spell (low rates) is decoded at once. Added latency is at
+    most `batch_s`.
+
+    Counters: `reopens`, `read_errors`, `bytes_read`, `parser.stats`; `connected` is False while
+    the port is being reopened. An unexpected exception (e.g. from `on_raw`) ends the thread and
+    is kept in `error`.
+    """
+
+    def __init__(self, url: str, ring: RingBuffer, fmt=None, baudrate: int = DEFAULT_BIT_RATE,
+                 request_config: bool = True, reopen_backoff: tuple[float, float] = (0.1, 2.0), on_raw=None,
+                 clock=time.monotonic, batch_s: float = 0.004):
+        self.url = url
+        self.ring = ring
+        self.baudrate = baudrate
+        self.request_config = request_config
+        self.reopen_backoff = reopen_backoff
+        self.on_raw = on_raw
+        self.clock = clock
+        self.batch_s = batch_s
+        self.parser = StreamParser(fmt)
+        self.reopens = 0
+        self.read_errors = 0
+        self.bytes_read = 0
+        self.connected = False
+        self.error: BaseException | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> PortReader:
+        if self._thread is not None:
+            raise RuntimeError("PortReader.start() called twice")
+        ser = self._open()
+        self._thread = threading.Thread(target=self._run, args=(ser,), name=f"stim300 reader {self.url}",
+                                        daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        """Stop reading and close the port (within one port timeout); safe to call again."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+
+    def is_alive(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def __enter__(self) -> PortReader:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def _open(self) -> serial.Serial:
+        ser = open_serial(self.url, self.baudrate)
+        if self.request_config:
+            try:
+                ser.reset_input_buffer()
+                ser.write(CONFIGURATION.request)
+            except (serial.SerialException, OSError) as exc:
+                ser.close()
+                raise PortError(f"{self.url}: {_describe(exc)}") from exc
+        self.connected = True
+        log.info("port_opened", port=self.url, baudrate=self.baudrate, config_requested=self.request_config)
+        return ser
+
+    def _run(self, ser: serial.Serial) -> None:
+        parser, ring, clock, on_raw, batch_s = self.parser, self.ring, self.clock, self.on_raw, self.batch_s
+        try:
+            while not self._stop.is_set():
+                try:
+                    data = _read_available(ser)
+                except (serial.SerialException, OSError) as exc:
+                    ser = self._reopen(ser, exc)
+                    if ser is None:
+                        return
+                    continue
+                t_host = clock()
+                if not data:
+                    continue
+                self.bytes_read += len(data)
+                if on_raw is not None:
+                    on_raw(data)
+                samples = parser.feed(data, t_host)
+                if len(samples):
+                    ring.push(samples)
+                    time.sleep(batch_s)
+        except Exception as exc:  # noqa: BLE001 - the thread must report, not vanish silently
+            self.error = exc
+            log.exception("reader_failed", port=self.url)
+        finally:
+            self.connected = False
+            if ser is not None:
+                ser.close()
+
+    def _reopen(self, ser: serial.Serial, exc: BaseException) -> serial.Serial | None:
+        """Close the failed port and reopen it with backoff; None if stopped meanwhile."""
+        self.connected = False
+        self.read_errors += 1
+        log.warning("port_error", port=self.url, error=_describe(exc))
+        try:
+            ser.close()
+        except (serial.SerialException, OSError):
+            pass  # the device is gone: nothing left to release but the fd, which close() drops
+        delay, longest = self.reopen_backoff
+        while not self._stop.wait(delay):
+            try:
+                ser = self._open()
+            except PortError as err:
+                delay = min(2 * delay, longest)
+                log.debug("port_reopen_failed", port=self.url, error=str(err), retry_in_s=delay)
+                continue
+            self.reopens += 1
+            log.info("port_reopened", port=self.url, reopens=self.reopens)
+            return ser
+        return None
+
+
+def record(url: str, output_path, baudrate: int = DEFAULT_BIT_RATE, duration_s: float | None = None,
+           max_bytes: int | None = None) -> int:
+    """Copy raw bytes from the port to `output_path` until duration, max_bytes or Ctrl-C.
+
+    Bytes go to OUT.part, renamed to OUT at the end whatever stopped the recording (a port
+    error included), so a file named OUT is always complete. Progress goes to stderr about once
+    a second. Returns the exit status: 0, or 1 after a port or file error (one line on stderr).
+    """
+    out = Path(output_path)
+    part = out.with_name(out.name + ".part")
+    try:
+        ser = open_serial(url, baudrate)
+    except PortError as exc:
+        print(f"stim300 record: {exc}", file=sys.stderr)
+        return 1
+    total, status = 0, 0
+    start = time.monotonic()
+    next_report = start + 1.0
+    try:
+        with ser, open(part, "wb") as f:
+            try:
+                while max_bytes is None or total < max_bytes:
+                    now = time.monotonic()
+                    if duration_s is not None and now - start >= duration_s:
+                        break
+                    if now >= next_report:
+                        print(f"recorded {total} B in {now - start:.1f} s", file=sys.stderr, flush=True)
+                        next_report += 1.0
+                    try:
+                        data = _read_available(ser, None if max_bytes is None else max_bytes - total)
+                    except (serial.SerialException, OSError) as exc:
+                        print(f"stim300 record: {url}: {_describe(exc)}", file=sys.stderr)
+                        status = 1
+                        break
+                    f.write(data)
+                    total += len(data)
+            except KeyboardInterrupt:
+                pass  # Ctrl-C is how an open-ended recording ends: keep what we have
+        part.replace(out)
+    except OSError as exc:
+        print(f"stim300 record: {part}: {(exc.strerror or str(exc)).lower()}", file=sys.stderr)
+        return 1
+    print(f"recorded {total} B in {time.monotonic() - start:.1f} s to {out}", file=sys.stderr)
+    return status
+
+
+# ---------------------------------------------------------------- Service Mode (protocol doc §10)
+
+PROMPT = b"\r>"
+SERVICEMODE_REQUEST = b"SERVICEMODE\r"
+ENTER_SETTLE_S = 0.05  # silence after CR '>' that proves it was the prompt, not datagram bytes
+_ERROR_REPLY = re.compile(r"E(\d{3})\s*(.*)", re.S)
+_EXIT_LINE = re.compile(rb"SYSTEM RETURNING TO (?:NORMAL|INIT) MODE\.?\r")
+_TEXT_TAIL = re.compile(rb"[\t\n\r\x20-\x7e]*\Z")
+
+
+class ServiceError(Exception):
+    """The sensor answered a Service Mode command with an error (`code` from `Ennn`, else None)."""
+
+    def __init__(self, command: str, code: int | None, text: str):
+        label = f"E{code:03d} " if code is not None else "unexpected reply: "
+        super().__init__(f"service command {command!r}: {label}{text}")
+        self.command = command
+        self.code = code
+        self.text = text
+
+
+def _read_until(ser: serial.Serial, done, timeout: float, what: str) -> bytearray:
+    """Read until `done(buf)` is true; TimeoutError after `timeout` s (plus one port timeout)."""
+    deadline = time.monotonic() + timeout
+    buf = bytearray()
+    while not done(buf):
+        if time.monotonic() >= deadline:
+            raise TimeoutError(f"{ser.port}: no {what} within {timeout} s; last bytes {bytes(buf[-80:])!r}")
+        buf += _read_available(ser)
+    return buf
+
+
+def _text(raw: bytes) -> str:
+    """Service Mode text with CR / CR LF line ends as '\\n', surrounding blank space removed."""
+    return raw.decode("ascii", "replace").replace("\r\n", "\n").replace("\r", "\n").strip()
+
+
+def _reply(command: str, body: bytes) -> str:
+    """The text of a reply without the command's echo; raises ServiceError on `Ennn ...`."""
+    echo = command.encode("ascii") + b"\r"
+    if body.startswith(echo):
+        body = body[len(echo):]
+    text = _text(body)
+    error = _ERROR_REPLY.match(text)
+    if error:
+        raise ServiceError(command, int(error[1]), error[2].strip())
+    return text
+
+
+def enter_service_mode(ser: serial.Serial, timeout: float = 3.0) -> str:
+    """Send SERVICEMODE; return the information report printed before the first prompt.
+
+    The unit finishes the datagram in progress first, so binary bytes precede the report; the
+    prompt counts only once the line stays quiet after it, and the report is the text after
+    the last non-text byte (a few printable bytes ending that datagram may remain in front).
+    """
+    ser.reset_input_buffer()
+    ser.write(SERVICEMODE_REQUEST)
+
+    def prompted(buf: bytearray) -> bool:
+        if not buf.endswith(PROMPT):
+            return False
+        time.sleep(ENTER_SETTLE_S)
+        return not ser.in_waiting
+
+    buf = _read_until(ser, prompted, timeout, "Service Mode prompt")
+    body = bytes(buf[:-len(PROMPT)])
+    return _text(_TEXT_TAIL.search(body)[0])
+
+
+def service_command(ser: serial.Serial, command: str, timeout: float = 3.0) -> str:
+    """Run one Service Mode command (e.g. "i m", "m 4"); return its reply text.
+
+    Not for commands that ask for confirmation (`s`, lower-case `x n`): they end without a prompt.
+    """
+    if "\r" in command or "\n" in command:
+        raise ValueError(f"a Service Mode command is one line, got {command!r}")
+    ser.write(command.encode("ascii") + b"\r")
+    buf = _read_until(ser, lambda b: PROMPT in b, timeout, f"prompt after {command!r}")
+    return _reply(command, bytes(buf[:buf.index(PROMPT)]))
+
+
+def exit_service_mode(ser: serial.Serial, to: str = "N", timeout: float = 3.0) -> bytes:
+    """Leave Service Mode at once (`x N` to Normal, `x I` to Init Mode, no confirmation).
+
+    The unit echoes the command and prints SYSTEM RETURNING TO ... MODE (real firmware: no
+    period, no prompt), then datagrams follow at once. Returns the bytes read after that line:
+    feed them to the parser before anything read later.
+    """
+    if to not in ("N", "I"):
+        raise ValueError(f"exit to 'N' (Normal) or 'I' (Init) Mode, got {to!r}")
+    command = f"x {to}"
+    ser.write(command.encode("ascii") + b"\r")
+
+    def answered(buf: bytearray) -> bool:
+        return _EXIT_LINE.search(buf) is not None or PROMPT in buf
+
+    buf = _read_until(ser, answered, timeout, f"answer to {command!r}")
+    line = _EXIT_LINE.search(buf)
+    if line is None:  # still in Service Mode: the unit refused, with an error and a prompt
+        _reply(command, bytes(buf[:buf.index(PROMPT)]))
+        raise ServiceError(command, None, _text(bytes(buf)))
+    return bytes(buf[line.end():])
