@@ -11,14 +11,15 @@ import json
 import mmap
 import os
 import sys
-import tempfile
 import time
 from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 
+from .atomic import atomic_file
 from .bulk import decode_capture
+from .cliutil import CommandParser, UsageError, run_command
 from .protocol import ACC_RANGE_LSB_EXP, DEFAULT_BIT_RATE, NORMAL_LAYOUTS, SAMPLE_RATES_HZ, AccUnit, Format, GyroUnit
 
 AXES = "xyz"
@@ -28,15 +29,6 @@ GYRO_UNITS |= {name + "-delayed": GyroUnit(unit | 8) for name, unit in GYRO_UNIT
 ACC_UNITS = {"acceleration": AccUnit.ACCELERATION, "incremental": AccUnit.INCREMENTAL_VELOCITY,
              "average": AccUnit.AVERAGE_ACCELERATION, "integrated-gs": AccUnit.INTEGRATED_VELOCITY_GS,
              "integrated-ms": AccUnit.INTEGRATED_VELOCITY_MS}
-
-
-class UsageError(Exception):
-    """A problem with what the user gave us: reported as one line, exit status 2."""
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message):  # one line, not usage + message
-        raise UsageError(f"{self.prog}: {message}")
 
 
 def _datagram_id(text: str) -> int:
@@ -143,33 +135,13 @@ def column_units(names, fmt: Format) -> dict[str, str]:
 
 
 @contextmanager
-def _atomic(path: str, suffix: str, durable: bool = True):
-    """Write to a temporary file beside `path`, rename into place only when complete.
-
-    `durable` also syncs it to disk first; a decoded table can be made again from its capture,
-    so it skips that (syncing hundreds of MB costs seconds)."""
-    target = Path(path)
-    directory = target.parent if str(target.parent) else Path(".")
-    if not directory.is_dir():
-        raise UsageError(f"{path}: directory {directory} does not exist")
-    if target.is_dir():
-        raise UsageError(f"{path}: is a directory")
+def _output(path: str):
+    """`atomic_file` for a table that can be made again (no sync), with one-line errors."""
     try:
-        fd, tmp = tempfile.mkstemp(prefix=target.name + ".", suffix=".part" + suffix, dir=directory)
-    except OSError as exc:
-        raise UsageError(f"{path}: cannot write: {exc.strerror or exc}") from None
-    try:
-        with os.fdopen(fd, "wb") as f:
+        with atomic_file(path, durable=False) as f:
             yield f
-            if durable:
-                f.flush()
-                os.fsync(f.fileno())
-        os.replace(tmp, target)
     except OSError as exc:
-        raise UsageError(f"{path}: cannot write: {exc.strerror or exc}") from None
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+        raise UsageError(f"{path}: cannot write: {(exc.strerror or str(exc)).lower()}") from None
 
 
 def _write_csv(f, cols: dict[str, np.ndarray]) -> None:
@@ -192,7 +164,7 @@ def cmd_decode(args) -> int:
     samples, scanner = _decode(args.capture, _format(args))
     cols = columns(samples)
     units = column_units(cols, scanner.format)
-    with _atomic(out, Path(out).suffix, durable=False) as f:
+    with _output(out) as f:
         if out.endswith(".npz"):
             np.savez(f, **cols, units=np.array(json.dumps(units)))
         else:
@@ -282,8 +254,8 @@ def _positive(kind):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="stim300", description="STIM300 captures: decode, inspect, record.")
-    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    parser = CommandParser(prog="stim300", description="STIM300 captures: decode, inspect, record.")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=CommandParser)
     p = sub.add_parser("decode", help="capture -> .npz or .csv table in physical units")
     p.add_argument("capture")
     p.add_argument("-o", "--output", required=True, help="OUT.npz or OUT.csv")
@@ -305,14 +277,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    try:
-        args = build_parser().parse_args(argv)
-        return args.func(args)
-    except UsageError as exc:
-        print(f"stim300: {exc}" if not str(exc).startswith("stim300") else str(exc), file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        return 130
+    return run_command(build_parser(), argv)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,29 @@
+"""Command-line plumbing shared by `stim300` and `calibd`: one-line errors, never a traceback."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+class UsageError(Exception):
+    """A problem with what the user gave us: reported as one line, exit status 2."""
+
+
+class CommandParser(argparse.ArgumentParser):
+    def error(self, message):  # one line, not usage + message
+        raise UsageError(f"{self.prog}: {message}")
+
+
+def run_command(parser: argparse.ArgumentParser, argv=None) -> int:
+    """Parse, dispatch to the subcommand's `func`, and turn UsageError into one stderr line."""
+    prog = parser.prog
+    try:
+        args = parser.parse_args(argv)
+        return args.func(args)
+    except UsageError as exc:
+        text = str(exc)
+        print(text if text.startswith(prog) else f"{prog}: {text}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
