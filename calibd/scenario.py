@@ -1,0 +1,300 @@
+"""Simulation scenarios: a TOML file (or a ready-made one by name) -> a validated `Scenario`.
+
+A scenario says what the sensor is and sends (datagram, rate, units), where it is (site), the
+truth the estimators must find (biases at thermal equilibrium, attitude at the home position,
+interface tilt), the noise and warm-up models, the motion (segments) and optional faults.
+Errors name the file, the table and the key, and say what was expected.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+from stim300.protocol import ACC_RANGE_LSB_EXP, NORMAL_LAYOUTS, SAMPLE_RATES_HZ
+
+from .frames import Site
+
+READY_MADE = ("thesis-real", "thesis-bench", "continuous")
+GYRO_UNITS = ("rate", "average", "incremental")
+ACC_UNITS = ("acceleration", "average", "incremental")
+UP_AXES = ("+Z", "-Z", "+Y", "-Y", "+X", "-X")
+
+
+class ScenarioError(ValueError):
+    """A scenario that cannot be simulated; the message says where and why in one line."""
+
+
+@dataclass(frozen=True)
+class Sensor:
+    datagram_id: int = 0xA7
+    sample_rate_hz: int = 125
+    crlf: bool = False
+    acc_range_g: int = 10
+    gyro_unit: str = "rate"
+    acc_unit: str = "acceleration"
+    part_number: str = "84167-4400003-321"
+    revision: str = "K"
+    serial_number: str = "N25582405002002"
+    latency_us: int = 516
+
+
+@dataclass(frozen=True)
+class Truth:
+    """Biases at thermal equilibrium; attitude of the IMU at the home position (platform angle 0)."""
+
+    yaw_deg: float = 0.0
+    pitch_deg: float = 0.0
+    roll_deg: float = 0.0
+    alpha_deg: float = 0.0
+    beta_deg: float = 0.0
+    gyro_bias_deg_h: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    acc_bias_mg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    incl_bias_mg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class Noise:
+    """STIM300 noise figures. Gyro ARW 0.15 deg/sqrt(h) and bias instability 0.3 deg/h, and
+    accelerometer bias instability 0.04 mg, are the thesis's (section 3.3); accelerometer VRW
+    0.07 m/s/sqrt(h) is the datasheet's typical for 10 g units. No inclinometer noise figure was
+    found in the sources read: the defaults (VRW 0.03 m/s/sqrt(h), bias instability 0.01 mg)
+    are assumptions reflecting its lower bandwidth. Bias instability is the minimum of the
+    Allan deviation, as the manufacturer defines it."""
+
+    enabled: bool = True
+    gyro_arw_deg_sqrt_h: float = 0.15
+    gyro_bias_instability_deg_h: float = 0.3
+    acc_vrw_m_s_sqrt_h: float = 0.07
+    acc_bias_instability_mg: float = 0.04
+    incl_vrw_m_s_sqrt_h: float = 0.03
+    incl_bias_instability_mg: float = 0.01
+    temperature_noise_c: float = 0.01
+
+
+@dataclass(frozen=True)
+class Warmup:
+    """Temperature T(t) = settled - (settled - ambient) exp(-(t + power_on_s) / time_constant_s).
+
+    30 min makes 1 h 30 min three time constants (5% of the rise left), matching the thesis's
+    warm-up of at least 1 h 30 min (section 5.1). Biases move with temperature by the
+    coefficients, so data taken early gives visibly wrong biases."""
+
+    power_on_s: float = 5400.0  # time since power-on when the capture starts
+    time_constant_s: float = 1800.0
+    ambient_c: float = 22.0
+    settled_c: float = 38.0
+    gyro_tempco_deg_h_per_c: tuple[float, float, float] = (1.5, -2.0, 1.0)
+    acc_tempco_mg_per_c: tuple[float, float, float] = (0.05, -0.04, 0.03)
+    incl_tempco_mg_per_c: tuple[float, float, float] = (0.02, 0.03, -0.01)
+
+
+@dataclass(frozen=True)
+class Segment:
+    """static, turn (about the platform axis; positive angle = counter-clockwise about Up), or
+    position (bench: the IMU re-mounted with the named axis up, then static)."""
+
+    kind: str
+    duration_s: float = 0.0
+    angle_deg: float = 0.0
+    peak_rate_deg_s: float = 0.0
+    accel_deg_s2: float = 0.0
+    up: str = "+Z"
+
+
+@dataclass(frozen=True)
+class Faults:
+    drop: int = 0  # normal datagrams removed
+    garbage_bursts: int = 0  # bursts of random bytes inserted between datagrams
+    garbage_max_bytes: int = 100
+    bit_flips: int = 0  # single-bit errors in random datagrams
+    restart_at_s: float | None = None  # the sensor restarts here: power-up datagrams, counter from 0
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    seed: int
+    sensor: Sensor
+    site: Site
+    truth: Truth
+    noise: Noise
+    warmup: Warmup
+    segments: tuple[Segment, ...]
+    faults: Faults = field(default_factory=Faults)
+
+
+# ---------------------------------------------------------------- reading
+
+class _Table:
+    """Typed access to one TOML table, with errors that say file, table and key."""
+
+    def __init__(self, data: dict, where: str):
+        self.data, self.where, self.used = data, where, set()
+
+    def fail(self, key: str, message: str):
+        raise ScenarioError(f"{self.where} {key}: {message}")
+
+    def get(self, key: str, default, kind=float, check=None, expect: str = ""):
+        self.used.add(key)
+        if key not in self.data:
+            return default
+        value = self.data[key]
+        try:
+            if kind is float:
+                if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                    raise TypeError
+                value = float(value)
+            elif kind is tuple:
+                if not isinstance(value, list) or len(value) != 3:
+                    raise TypeError
+                value = tuple(float(v) for v in value if not isinstance(v, bool) and isinstance(v, (int, float)))
+                if len(value) != 3 or not all(map(math.isfinite, value)):
+                    raise TypeError
+            elif not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
+                raise TypeError
+        except TypeError:
+            names = {float: "a number", int: "an integer", bool: "true or false", str: "a string",
+                     tuple: "a list of 3 numbers"}
+            self.fail(key, f"{value!r} is not {names[kind]}")
+        if check is not None and not check(value):
+            self.fail(key, f"{value!r} is not {expect}")
+        return value
+
+    def finish(self) -> None:
+        unknown = sorted(set(self.data) - self.used)
+        if unknown:
+            self.fail(unknown[0], f"unknown key (known: {', '.join(sorted(self.used))})")
+
+
+def _datagram(text: str) -> int:
+    try:
+        value = int(text, 16)
+    except ValueError:
+        return -1
+    return value
+
+
+def _positive(x) -> bool:
+    return x > 0
+
+
+def _sensor(t: _Table) -> Sensor:
+    d = Sensor()
+    ident = _datagram(t.get("datagram", f"0x{d.datagram_id:02X}", str, lambda s: _datagram(s) in NORMAL_LAYOUTS,
+                            "a normal datagram id such as \"0xA7\""))
+    layout = NORMAL_LAYOUTS[ident]
+    if layout.clusters != ("gyro", "acc", "incl") and layout.clusters != ("gyro", "acc"):
+        t.fail("datagram", f"0x{ident:02X} carries no accelerometers: nothing to calibrate with")
+    sensor = Sensor(
+        datagram_id=ident,
+        sample_rate_hz=t.get("sample_rate_hz", d.sample_rate_hz, int, lambda r: r in SAMPLE_RATES_HZ,
+                             f"one of {', '.join(map(str, SAMPLE_RATES_HZ))} Hz"),
+        crlf=t.get("crlf", d.crlf, bool),
+        acc_range_g=t.get("acc_range_g", d.acc_range_g, int, lambda r: r in ACC_RANGE_LSB_EXP,
+                          f"one of {', '.join(map(str, ACC_RANGE_LSB_EXP))} g"),
+        gyro_unit=t.get("gyro_unit", d.gyro_unit, str, lambda u: u in GYRO_UNITS, f"one of {', '.join(GYRO_UNITS)}"),
+        acc_unit=t.get("acc_unit", d.acc_unit, str, lambda u: u in ACC_UNITS, f"one of {', '.join(ACC_UNITS)}"),
+        part_number=t.get("part_number", d.part_number, str),
+        revision=t.get("revision", d.revision, str, lambda r: len(r) == 1, "one character"),
+        serial_number=t.get("serial_number", d.serial_number, str),
+        latency_us=t.get("latency_us", d.latency_us, int, lambda v: 0 <= v < 65536, "0 to 65535 us"),
+    )
+    t.finish()
+    return sensor
+
+
+def _site(t: _Table) -> Site:
+    lat = t.get("latitude_deg", None, float, lambda v: -90 <= v <= 90, "a latitude in [-90, 90] deg")
+    if lat is None:
+        t.fail("latitude_deg", "missing: the site's latitude is needed for the Earth rate")
+    site = Site(lat, t.get("height_m", 0.0), t.get("g0", None, float, lambda g: 9.7 <= g <= 9.9,
+                                                     "an Earth gravity in m/s^2 (9.7 to 9.9)"))
+    t.finish()
+    return site
+
+
+def _fields(cls, t: _Table):
+    values = {}
+    for name, default in vars(cls()).items():
+        kind = tuple if isinstance(default, tuple) else type(default) if default is not None else float
+        values[name] = t.get(name, default, kind)
+    t.finish()
+    return cls(**values)
+
+
+def _segment(t: _Table) -> Segment:
+    kind = t.get("type", None, str, lambda k: k in ("static", "turn", "position"), "static, turn or position")
+    if kind is None:
+        t.fail("type", "missing (static, turn or position)")
+    if kind == "turn":
+        seg = Segment(kind, angle_deg=t.get("angle_deg", None, float, lambda a: a != 0, "a non-zero angle"),
+                      peak_rate_deg_s=t.get("peak_rate_deg_s", None, float, _positive, "a positive rate in deg/s"),
+                      accel_deg_s2=t.get("accel_deg_s2", None, float, _positive, "a positive acceleration"))
+        for key in ("angle_deg", "peak_rate_deg_s", "accel_deg_s2"):
+            if getattr(seg, key) is None:
+                t.fail(key, "missing for a turn")
+    else:
+        duration = t.get("duration_s", None, float, _positive, "a positive duration in s")
+        if duration is None:
+            t.fail("duration_s", f"missing for a {kind} segment")
+        up = t.get("up", "+Z", str, lambda u: u in UP_AXES, f"one of {', '.join(UP_AXES)}") if kind == "position" \
+            else "+Z"
+        seg = Segment(kind, duration_s=duration, up=up)
+    t.finish()
+    return seg
+
+
+def parse_scenario(data: dict, where: str) -> Scenario:
+    """Build a Scenario from TOML data; `where` names the source in error messages."""
+    top = _Table(data, where)
+
+    def table(key):
+        value = top.get(key, {}, dict)
+        return _Table(value, f"{where} [{key}]")
+
+    name = top.get("name", Path(where).stem, str)
+    seed = top.get("seed", 0, int, lambda s: s >= 0, "a non-negative integer")
+    segments_data = top.get("segments", None, list)
+    if not segments_data:
+        top.fail("segments", "missing: a scenario needs at least one [[segments]] entry")
+    segments = tuple(_segment(_Table(s if isinstance(s, dict) else {}, f"{where} [[segments]] #{i + 1}"))
+                     for i, s in enumerate(segments_data))
+    faults_t = table("faults")
+    faults = Faults(drop=faults_t.get("drop", 0, int, lambda v: v >= 0, "a count >= 0"),
+                    garbage_bursts=faults_t.get("garbage_bursts", 0, int, lambda v: v >= 0, "a count >= 0"),
+                    garbage_max_bytes=faults_t.get("garbage_max_bytes", 100, int, _positive, "a positive size"),
+                    bit_flips=faults_t.get("bit_flips", 0, int, lambda v: v >= 0, "a count >= 0"),
+                    restart_at_s=faults_t.get("restart_at_s", None, float, _positive, "a positive time in s"))
+    faults_t.finish()
+    scenario = Scenario(name=name, seed=seed, sensor=_sensor(table("sensor")), site=_site(table("site")),
+                        truth=_fields(Truth, table("truth")), noise=_fields(Noise, table("noise")),
+                        warmup=_fields(Warmup, table("warmup")), segments=segments, faults=faults)
+    top.finish()
+    if scenario.warmup.time_constant_s <= 0:
+        raise ScenarioError(f"{where} [warmup] time_constant_s: must be positive")
+    return scenario
+
+
+def load_scenario(source: str) -> Scenario:
+    """A scenario from a TOML file path, or one of READY_MADE by name."""
+    if source in READY_MADE:
+        text = resources.files("calibd").joinpath("scenarios", f"{source}.toml").read_text()
+        where = f"{source} (ready-made)"
+    else:
+        path = Path(source)
+        if not path.is_file():
+            raise ScenarioError(f"{source}: no such scenario file (ready-made ones: {', '.join(READY_MADE)})")
+        try:
+            text = path.read_text()
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ScenarioError(f"{source}: cannot read: {exc}") from None
+        where = source
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ScenarioError(f"{where}: not valid TOML: {exc}") from None
+    return parse_scenario(data, where)

@@ -1,0 +1,358 @@
+"""Scenario simulator: truth -> sensor samples -> the bytes a STIM300 would send.
+
+Physics as method.md §1: R_NAV^IMU(t) = M · R_int^IMU · R3(chi(t)) · R_NAV^int, with chi the
+platform angle about the interface Z axis (counter-clockwise positive) and M the bench
+re-mounting (identity unless a `position` segment says otherwise);
+gyro = R(t)·Omega_E + M·R_int^IMU·[0, 0, chi'] + b_g + noise,
+accelerometer and inclinometer = R(t)·[0, 0, g0] + b + noise, in the sensor's units (g of
+9.80665 m/s^2). Rates are averages over each sample interval, so they integrate exactly to the
+angle turned. Everything is vectorised over samples; the bytes come from `stim300.codec`.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from scipy.signal import lfilter
+
+from stim300.atomic import write_atomic
+from stim300.codec import SAMPLE_DTYPE, encode_samples
+from stim300.protocol import NORMAL_LAYOUTS, AccUnit, Format, GyroUnit
+from stim300.special import Configuration, PartNumber, SerialNumber, encode_special
+
+from .frames import EARTH_RATE, STANDARD_GRAVITY, euler_321, int_to_imu, nav_to_imu, nav_to_int, r1, r2, r3
+from .scenario import Scenario
+
+START_UP_S = 0.7  # gyro start-up period after power-on: status bit 6 set (DS §7.5.2.1)
+DEG = np.pi / 180
+TEMP_OFFSETS_C = {"gyro": 0.6, "acc": 0.0, "incl": 0.3}  # clusters sit at slightly different temperatures
+MOUNTS = {"+Z": np.eye(3), "-Z": r1(np.pi), "+Y": r1(np.pi / 2), "-Y": r1(-np.pi / 2),
+          "+X": r2(-np.pi / 2), "-X": r2(np.pi / 2)}  # M with M·[0,0,1] = the named IMU axis
+
+
+# ---------------------------------------------------------------- motion
+
+@dataclass(frozen=True)
+class Phase:
+    """One segment placed in time (s from the first sample); turns carry their profile."""
+
+    kind: str
+    start_s: float
+    end_s: float
+    up: str = "+Z"
+    angle_deg: float = 0.0
+    peak_rate_deg_s: float = 0.0
+    accel_deg_s2: float = 0.0
+    chi_start_deg: float = 0.0
+    cruise_start_s: float | None = None
+    cruise_end_s: float | None = None
+
+
+def schedule(scenario: Scenario) -> list[Phase]:
+    """Segments laid end to end; a turn's duration follows from its trapezoidal rate profile."""
+    phases, t, chi = [], 0.0, 0.0
+    for seg in scenario.segments:
+        if seg.kind == "turn":
+            angle, rate, accel = abs(seg.angle_deg), seg.peak_rate_deg_s, seg.accel_deg_s2
+            if angle < rate**2 / accel:  # never reaches the peak rate: triangular profile
+                rate = np.sqrt(angle * accel)
+            t_acc = rate / accel
+            t_cruise = (angle - rate * t_acc) / rate
+            end = t + 2 * t_acc + t_cruise
+            phases.append(Phase("turn", t, end, angle_deg=seg.angle_deg, peak_rate_deg_s=float(rate),
+                                accel_deg_s2=accel, chi_start_deg=chi, cruise_start_s=t + t_acc,
+                                cruise_end_s=t + t_acc + t_cruise))
+            chi += seg.angle_deg
+        else:
+            end = t + seg.duration_s
+            phases.append(Phase(seg.kind, t, end, up=seg.up, chi_start_deg=chi))
+        t = end
+    return phases
+
+
+def platform_angle(phases: list[Phase], t: np.ndarray) -> np.ndarray:
+    """chi(t) in degrees (exact trapezoidal profile), for any times t."""
+    chi = np.full(t.shape, phases[-1].chi_start_deg + (phases[-1].angle_deg if phases[-1].kind == "turn" else 0.0))
+    for p in reversed(phases):
+        inside = (t >= p.start_s) & (t < p.end_s) if p is not phases[-1] else t >= p.start_s
+        if p.kind != "turn":
+            chi[inside] = p.chi_start_deg
+            continue
+        tau = np.clip(t[inside] - p.start_s, 0.0, p.end_s - p.start_s)
+        a, w = p.accel_deg_s2, p.peak_rate_deg_s
+        t_acc, t_cruise = p.cruise_start_s - p.start_s, p.cruise_end_s - p.cruise_start_s
+        rise = 0.5 * a * np.minimum(tau, t_acc) ** 2
+        cruise = w * np.clip(tau - t_acc, 0.0, t_cruise)
+        down = np.clip(tau - t_acc - t_cruise, 0.0, t_acc)
+        fall = w * down - 0.5 * a * down**2
+        chi[inside] = p.chi_start_deg + np.sign(p.angle_deg) * (rise + cruise + fall)
+    return chi
+
+
+# ---------------------------------------------------------------- noise
+
+def gauss_markov(rng: np.random.Generator, n: int, dt: float, sigma: float, tau_s: float, axes: int = 3):
+    """First-order Gauss-Markov process, stationary from the first sample."""
+    a = np.exp(-dt / tau_s)
+    white = rng.standard_normal((axes, n)) * sigma * np.sqrt(1 - a * a)
+    start = rng.standard_normal((axes, 1)) * sigma
+    out, _ = lfilter([1.0], [1.0, -a], white, axis=1, zi=a * start)
+    return out.T
+
+
+FLICKER_TAUS_S = (3.0, 30.0, 300.0, 3000.0, 30000.0)  # Gauss-Markov time constants approximating flicker
+FLOOR_TAUS_S = np.logspace(0, 4, 400)  # where the instability floor is read: 1 s to about 3 h
+
+
+def _allan_gm(tau: np.ndarray, sigma: float, corr: float) -> np.ndarray:
+    """Allan variance of a Gauss-Markov process (IEEE 952 closed form)."""
+    x = tau / corr
+    return sigma**2 / x**2 * (2 * x - 3 + 4 * np.exp(-x) - np.exp(-2 * x))
+
+
+def flicker_sigma(white_density: float, instability: float) -> float:
+    """Sigma of each flicker component so that the minimum of the Allan deviation of white noise
+    (density `white_density`, unit·sqrt(s)) plus the components is `instability`, read over
+    1 s to 3 h (the datasheet's figure comes from a 20-hour record; beyond the longest time
+    constant the sum of Gauss-Markov processes would fall off, where flicker noise stays flat)."""
+    taus = FLOOR_TAUS_S
+    white = white_density**2 / taus
+
+    def minimum(sigma):
+        coloured = sum(_allan_gm(taus, sigma, c) for c in FLICKER_TAUS_S)
+        return np.sqrt(white + coloured).min()
+
+    lo, hi = 0.0, 10 * instability
+    if minimum(lo) >= instability:
+        return 0.0  # white noise alone already reaches the instability floor in range
+    for _ in range(60):  # bisection: the minimum grows with sigma
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if minimum(mid) < instability else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
+def sensor_noise(rng: np.random.Generator, n: int, rate_hz: float, density: float, instability: float):
+    """White noise of `density` (unit·sqrt(s)) as seen by averages over 1/rate, plus flicker-like
+    bias instability (minimum of the Allan deviation), for 3 axes."""
+    dt = 1.0 / rate_hz
+    noise = rng.standard_normal((n, 3)) * density * np.sqrt(rate_hz)
+    sigma = flicker_sigma(density, instability) if instability > 0 else 0.0
+    if sigma:
+        for corr in FLICKER_TAUS_S:
+            noise += gauss_markov(rng, n, dt, sigma, corr)
+    return noise
+
+
+# ---------------------------------------------------------------- the session
+
+@dataclass
+class Simulation:
+    """Samples (SAMPLE_DTYPE, physical units), their times, and the truth behind them."""
+
+    scenario: Scenario
+    samples: np.ndarray
+    time_s: np.ndarray
+    phases: list[Phase]
+    temperature_c: np.ndarray
+
+
+def _attitude_truth(scenario: Scenario) -> tuple[np.ndarray, np.ndarray, tuple[float, float, float]]:
+    """(R_int^IMU, R_NAV^int, gammas in deg) from the home attitude and the interface tilt."""
+    t = scenario.truth
+    r_int_imu = int_to_imu(t.alpha_deg * DEG, t.beta_deg * DEG)
+    r_nav_imu = nav_to_imu(t.yaw_deg * DEG, t.pitch_deg * DEG, t.roll_deg * DEG)
+    r_nav_int = r_int_imu.T @ r_nav_imu
+    g1, g2, g3 = euler_321(r_nav_int)
+    return r_int_imu, r_nav_int, (float(g1) / DEG, float(g2) / DEG, float(g3) / DEG)
+
+
+def simulate(scenario: Scenario) -> Simulation:
+    sensor, site, truth = scenario.sensor, scenario.site, scenario.truth
+    rate = sensor.sample_rate_hz
+    dt = 1.0 / rate
+    phases = schedule(scenario)
+    n = int(round(phases[-1].end_s * rate))
+    rng = np.random.default_rng(scenario.seed)
+    t_end = np.arange(1, n + 1) * dt  # sample k averages over [k dt, (k + 1) dt) and is sent at its end
+    t_mid = t_end - dt / 2
+
+    chi_edges = platform_angle(phases, np.arange(n + 1) * dt) * DEG
+    chi_rate = np.diff(chi_edges) / dt  # average rate over each interval: integrates exactly
+    chi_mid = platform_angle(phases, t_mid) * DEG
+    phase_index = np.searchsorted([p.end_s for p in phases], t_mid, side="right").clip(0, len(phases) - 1)
+    mounts = np.stack([MOUNTS[p.up] for p in phases])[phase_index]
+
+    r_int_imu, r_nav_int, _ = _attitude_truth(scenario)
+    body = mounts @ r_int_imu  # (n, 3, 3)
+    r_nav_imu = body @ r3(chi_mid) @ r_nav_int
+    omega = r_nav_imu @ site.earth_rate_nav + body[:, :, 2] * chi_rate[:, None]  # rad/s
+    force = r_nav_imu @ site.gravity_nav / STANDARD_GRAVITY  # g
+
+    w = scenario.warmup
+    since_power_on = t_mid + w.power_on_s
+    temperature = w.settled_c - (w.settled_c - w.ambient_c) * np.exp(-since_power_on / w.time_constant_s)
+    excess = (temperature - w.settled_c)[:, None]
+    gyro = omega / DEG + (np.asarray(truth.gyro_bias_deg_h) + excess * w.gyro_tempco_deg_h_per_c) / 3600
+    acc = force + (np.asarray(truth.acc_bias_mg) + excess * w.acc_tempco_mg_per_c) / 1000
+    incl = force + (np.asarray(truth.incl_bias_mg) + excess * w.incl_tempco_mg_per_c) / 1000
+
+    noise = scenario.noise
+    if noise.enabled:
+        mg = STANDARD_GRAVITY / 1000
+        gyro += sensor_noise(rng, n, rate, noise.gyro_arw_deg_sqrt_h * 60 / 3600,
+                             noise.gyro_bias_instability_deg_h / 3600)
+        acc += sensor_noise(rng, n, rate, noise.acc_vrw_m_s_sqrt_h / 60 / STANDARD_GRAVITY,
+                            noise.acc_bias_instability_mg * mg / STANDARD_GRAVITY)
+        incl += sensor_noise(rng, n, rate, noise.incl_vrw_m_s_sqrt_h / 60 / STANDARD_GRAVITY,
+                             noise.incl_bias_instability_mg * mg / STANDARD_GRAVITY)
+
+    lsb = sensor_format(scenario).scales()
+
+    def counts(values, block):  # round to the sensor's counts in float64, before float32 storage
+        return np.rint(values / lsb[block]) * lsb[block]
+
+    samples = np.zeros(n, SAMPLE_DTYPE)
+    samples["t_host"] = np.nan
+    samples["datagram_id"] = sensor.datagram_id
+    samples["gyro"] = counts(gyro * (dt if sensor.gyro_unit == "incremental" else 1.0), "gyro")
+    samples["acc"] = counts(acc * (dt * STANDARD_GRAVITY if sensor.acc_unit == "incremental" else 1.0), "acc")
+    samples["incl"] = counts(incl, "incl")
+    for cluster, offset in TEMP_OFFSETS_C.items():
+        jitter = rng.standard_normal((n, 3)) * noise.temperature_noise_c if noise.enabled else 0.0
+        samples["temp_" + cluster] = counts((temperature + offset)[:, None] + jitter, "temp")
+    starting = np.where(since_power_on < START_UP_S, 0x40, 0)
+    for cluster in ("gyro", "acc", "incl"):
+        samples["status_" + cluster] = starting
+    samples["aux"] = np.nan
+    step = 2000 // rate
+    samples["counter"] = (np.arange(n) * step) % 256
+    samples["latency_us"] = sensor.latency_us
+    return Simulation(scenario, samples, t_end, phases, temperature)
+
+
+def sensor_format(scenario: Scenario) -> Format:
+    s = scenario.sensor
+    return Format(datagram_id=s.datagram_id, crlf=s.crlf, sample_rate_hz=s.sample_rate_hz,
+                  gyro_unit={"rate": GyroUnit.RATE, "average": GyroUnit.AVERAGE_RATE,
+                             "incremental": GyroUnit.INCREMENTAL_ANGLE}[s.gyro_unit],
+                  acc_unit={"acceleration": AccUnit.ACCELERATION, "average": AccUnit.AVERAGE_ACCELERATION,
+                            "incremental": AccUnit.INCREMENTAL_VELOCITY}[s.acc_unit],
+                  acc_range_g=s.acc_range_g)
+
+
+def configuration(scenario: Scenario) -> Configuration:
+    """The configuration datagram that describes what the simulated sensor sends."""
+    s = scenario.sensor
+    fmt = sensor_format(scenario)
+    layout = NORMAL_LAYOUTS[s.datagram_id]
+    return Configuration.build(sample_rate_hz=s.sample_rate_hz, acc_range_g=s.acc_range_g, revision=s.revision,
+                               crlf=s.crlf, acc_included="acc" in layout.clusters,
+                               incl_included="incl" in layout.clusters, temp_included=bool(layout.temperatures),
+                               aux_in_datagram=layout.aux is not None, has_pps_input=layout.aux != "aux",
+                               gyro_unit=fmt.gyro_unit, acc_unit=fmt.acc_unit)
+
+
+def power_up_datagrams(scenario: Scenario) -> bytes:
+    s = scenario.sensor
+    return (encode_special(PartNumber(s.part_number, s.revision), s.crlf)
+            + encode_special(SerialNumber(s.serial_number), s.crlf)
+            + encode_special(configuration(scenario), s.crlf))
+
+
+def capture_bytes(sim: Simulation) -> tuple[bytes, dict]:
+    """The byte stream (power-up datagrams, then normal datagrams, with the scenario's faults)
+    and a record of the faults applied."""
+    scenario = sim.scenario
+    fmt = sensor_format(scenario)
+    samples = sim.samples.copy()
+    faults = scenario.faults
+    rng = np.random.default_rng(scenario.seed + 1)
+    restart = None
+    if faults.restart_at_s is not None and faults.restart_at_s < sim.time_s[-1]:
+        restart = int(np.searchsorted(sim.time_s, faults.restart_at_s))
+        after = np.arange(len(samples) - restart)
+        samples["counter"][restart:] = (after * (2000 // scenario.sensor.sample_rate_hz)) % 256
+        up = after * (1.0 / scenario.sensor.sample_rate_hz) < START_UP_S
+        for cluster in ("gyro", "acc", "incl"):
+            samples["status_" + cluster][restart:][up] = 0x40
+    frames = encode_samples(samples, scenario.sensor.datagram_id, fmt, scenario.sensor.crlf)
+    n, length = frames.shape
+    flipped = rng.choice(n, size=min(faults.bit_flips, n), replace=False)
+    for row in flipped:
+        frames[row, rng.integers(length)] ^= np.uint8(1 << rng.integers(8))
+    dropped = np.sort(rng.choice(n, size=min(faults.drop, n), replace=False))
+    bursts = sorted(rng.choice(np.arange(1, n), size=min(faults.garbage_bursts, n - 1), replace=False).tolist())
+    cuts = sorted({0, n, *bursts, *([restart] if restart else [])})
+    keep = np.ones(n, bool)
+    keep[dropped] = False
+    chunks = [power_up_datagrams(scenario)]
+    garbage_bytes = 0
+    for a, b in zip(cuts, cuts[1:]):
+        if a == restart:
+            chunks.append(power_up_datagrams(scenario))
+        if a in bursts:
+            size = int(rng.integers(1, faults.garbage_max_bytes + 1))
+            chunks.append(rng.integers(0, 256, size, dtype=np.uint8).tobytes())
+            garbage_bytes += size
+        chunks.append(frames[a:b][keep[a:b]].tobytes())
+    record = {"dropped_samples": dropped.tolist(), "bit_flipped_samples": sorted(flipped.tolist()),
+              "garbage_bursts_before_samples": bursts, "garbage_bytes": garbage_bytes,
+              "restart_at_sample": restart}
+    return b"".join(chunks), record
+
+
+def _bias_drift(scenario: Scenario, temperature: np.ndarray) -> dict:
+    """Biases the data actually carry (warm-up moves them): first sample, last sample, mean."""
+    w, t = scenario.warmup, scenario.truth
+    out = {}
+    for name, settled, tempco in (("gyro_bias_deg_h", t.gyro_bias_deg_h, w.gyro_tempco_deg_h_per_c),
+                                  ("acc_bias_mg", t.acc_bias_mg, w.acc_tempco_mg_per_c),
+                                  ("incl_bias_mg", t.incl_bias_mg, w.incl_tempco_mg_per_c)):
+        excess = np.array([temperature[0], temperature[-1], temperature.mean()]) - w.settled_c
+        values = np.asarray(settled) + excess[:, None] * np.asarray(tempco)
+        out[name] = {"first": values[0].tolist(), "last": values[1].tolist(), "mean": values[2].tolist()}
+    return out
+
+
+def truth_record(sim: Simulation, faults: dict) -> dict:
+    """Every parameter of the truth, for the truth file beside a capture."""
+    scenario = sim.scenario
+    _, _, gammas = _attitude_truth(scenario)
+    site = scenario.site
+    lat = np.radians(site.latitude_deg)
+    earth = EARTH_RATE / DEG * 3600 * np.array([np.cos(lat), np.sin(lat)])  # deg/h, horizontal and vertical
+    return {
+        "schema": "stim300-calib/truth/1",
+        "scenario": scenario.name,
+        "seed": scenario.seed,
+        "units": {"angles": "deg", "gyro_bias": "deg/h", "acc_bias": "mg", "incl_bias": "mg", "time": "s",
+                  "g0": "m/s^2", "rates": "deg/s"},
+        "sensor": asdict(scenario.sensor) | {"datagram_id": f"0x{scenario.sensor.datagram_id:02X}"},
+        "site": {"latitude_deg": site.latitude_deg, "height_m": site.height_m, "g0": site.gravity,
+                 "g0_given": site.g0 is not None, "earth_rate_horizontal_deg_h": float(earth[0]),
+                 "earth_rate_vertical_deg_h": float(earth[1])},
+        "truth": asdict(scenario.truth) | {"gamma1_deg": gammas[0], "gamma2_deg": gammas[1], "gamma3_deg": gammas[2]},
+        "bias_during_capture": _bias_drift(scenario, sim.temperature_c),
+        "noise": asdict(scenario.noise),
+        "warmup": asdict(scenario.warmup),
+        "samples": len(sim.samples),
+        "duration_s": float(sim.time_s[-1]),
+        "schedule": [asdict(p) | {"first_sample": int(np.searchsorted(sim.time_s - 0.5 / scenario.sensor.sample_rate_hz,
+                                                                        p.start_s)),
+                                  "end_sample": int(np.searchsorted(sim.time_s - 0.5 / scenario.sensor.sample_rate_hz,
+                                                                      p.end_s))}
+                     for p in sim.phases],
+        "faults": faults,
+    }
+
+
+def write_capture(scenario: Scenario, path) -> dict:
+    """Simulate, write CAPTURE and CAPTURE.truth.json (each renamed into place when complete)."""
+    sim = simulate(scenario)
+    data, faults = capture_bytes(sim)
+    record = truth_record(sim, faults)
+    write_atomic(path, data)
+    write_atomic(f"{path}.truth.json", (json.dumps(record, indent=1) + "\n").encode())
+    return record
