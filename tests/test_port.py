@@ -8,6 +8,7 @@ import threading
 import time
 import tty
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -334,3 +335,23 @@ def test_service_mode_enter_command_error_and_exit_back_to_datagrams(pty):
 def test_service_mode_timeout_names_what_was_awaited(pty):
     with open_serial(pty.path) as ser, pytest.raises(TimeoutError, match="prompt after 'i m'"):
         service_command(ser, "i m", timeout=0.1)
+
+
+FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
+
+
+@pytest.mark.parametrize("name", ["faults_125hz", "static_turn_2000hz"])
+def test_shipped_captures_replayed_through_a_pty_equal_the_bulk_decoder(pty, name):
+    """The end-to-end path the daemon uses: fixture bytes -> pty -> pyserial -> parser -> ring."""
+    data = (FIXTURES / f"{name}.bin").read_bytes()
+    truth, scanner = decode_capture(data)
+    ring = RingBuffer(len(truth) + 1, SAMPLE_DTYPE)
+    with PortReader(pty.path, ring, request_config=False, batch_s=0.0) as reader:
+        for start in range(0, len(data), 4096):
+            pty.write(data[start:start + 4096])
+        wait_for(lambda: ring.total == len(truth), f"{len(truth)} samples of {name}")
+    assert reader.error is None
+    assert same_samples(ring.latest_copy(ring.total), truth)
+    live, offline = reader.parser.stats.as_dict(), scanner.stats.as_dict()
+    live.pop("bytes_in"), offline.pop("bytes_in")
+    assert live == offline
