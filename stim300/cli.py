@@ -20,7 +20,8 @@ import numpy as np
 from .atomic import atomic_file
 from .bulk import decode_capture
 from .cliutil import CommandParser, UsageError, run_command
-from .protocol import ACC_RANGE_LSB_EXP, DEFAULT_BIT_RATE, NORMAL_LAYOUTS, SAMPLE_RATES_HZ, AccUnit, Format, GyroUnit
+from .protocol import (ACC_RANGE_LSB_EXP, DEFAULT_BIT_RATE, NORMAL_LAYOUTS, SAMPLE_RATES_HZ, AccUnit, Format, GyroUnit,
+                       Status)
 
 AXES = "xyz"
 GYRO_UNITS = {"rate": GyroUnit.RATE, "incremental": GyroUnit.INCREMENTAL_ANGLE,
@@ -145,15 +146,19 @@ def _output(path: str):
 
 
 def _write_csv(f, cols: dict[str, np.ndarray]) -> None:
+    """Text is slow (about 0.15 M rows/s), so long tables report progress on stderr."""
     names = list(cols)
     f.write((",".join(names) + "\n").encode())
-    formats = ["%d" if cols[n].dtype.kind in "ui" else "%.9g" for n in names]
-    rows = len(next(iter(cols.values())))
+    formats = ["%d" if cols[n].dtype.kind in "ui" else "%.9g" for n in names]  # 9 digits round-trip float32
+    rows = len(cols[names[0]])
     chunk = 100_000
+    next_report = time.monotonic() + 2.0
     for start in range(0, rows, chunk):
-        part = [cols[n][start:start + chunk] for n in names]
-        table = np.column_stack([p.astype(np.float64) for p in part])
+        table = np.column_stack([cols[n][start:start + chunk].astype(np.float64) for n in names])
         np.savetxt(f, table, fmt=formats, delimiter=",")
+        if time.monotonic() >= next_report:
+            print(f"csv: {min(start + chunk, rows)} of {rows} rows written", file=sys.stderr, flush=True)
+            next_report += 2.0
 
 
 def cmd_decode(args) -> int:
@@ -198,10 +203,20 @@ def capture_info(samples: np.ndarray, scanner) -> dict:
         "part_number": str(scanner.part_number) if scanner.part_number else None,
         "serial_number": str(scanner.serial_number) if scanner.serial_number else None,
         "configuration": scanner.configuration.as_dict() if scanner.configuration else None,
-        "status_flagged": int(np.count_nonzero(samples["status_gyro"] | samples["status_acc"]
-                                               | samples["status_incl"])),
+        "status_flags": status_counts(samples),
     }
     return info
+
+
+def status_counts(samples) -> dict[str, dict[str, int]]:
+    """Datagrams with each status flag set, per status byte the capture carries (flags unset: omitted)."""
+    present = [name for name in columns(samples) if name.startswith("status_")]
+    counts = {}
+    for name in present:
+        column = samples[name]
+        counts[name.removeprefix("status_")] = {flag.name: int(np.count_nonzero(column & flag)) for flag in Status
+                                                if np.any(column & flag)}
+    return counts
 
 
 def _describe(info: dict) -> str:
@@ -218,7 +233,8 @@ def _describe(info: dict) -> str:
         f"skipped_bytes    {info['skipped_bytes']} B",
         f"restarts         {info['restarts']}",
         f"config_changes   {info['config_changes']}",
-        f"status flagged   {info['status_flagged']} datagrams",
+        "status flags     " + ("; ".join(f"{block}: " + ", ".join(f"{flag} in {n} datagrams" for flag, n in flags.items())
+                                           for block, flags in info["status_flags"].items() if flags) or "none"),
         f"units            " + ", ".join(f"{k} {v}" for k, v in info["units"].items()),
         f"acc range        {info['acc_range_g']} g",
         f"part number      {value(info['part_number'])}",

@@ -71,7 +71,7 @@ def test_decode_without_configuration_takes_options(tmp_path, capsys):
 
 
 def test_info_json(capture_file, capsys):
-    path, _ = capture_file
+    path, truth = capture_file
     code, out, err = run(["info", path, "--json"], capsys)
     assert code == 0, err
     info = json.loads(out)
@@ -83,6 +83,10 @@ def test_info_json(capture_file, capsys):
     assert info["sample_rate_hz"] == 125
     assert info["duration_s"] == pytest.approx(300 / 125)
     assert info["configuration"]["sample_rate_hz"] == 125
+    flags = info["status_flags"]
+    assert flags["gyro"]["START_UP"] == np.count_nonzero(truth["status_gyro"] == 0x40)
+    assert flags["acc"]["OVERLOAD"] == flags["acc"]["X"] == np.count_nonzero(truth["status_acc"] == 0x11)
+    assert set(flags) == {"gyro", "acc", "incl", "temp_gyro", "temp_acc", "temp_incl"}
 
 
 def test_info_text_has_units(capture_file, capsys):
