@@ -1,0 +1,285 @@
+"""Find the segments of a calibration session (statics, turns) in decoded data.
+
+Pure numpy functions: no state, no per-sample Python loops, so the same code serves a capture
+file and a growing live buffer. Units at the interface: gyro in deg/s, acc in g, times in s,
+angles in degrees, counter-clockwise about Up positive (method.md §1).
+
+How a session is cut (each step exists because the protocols of method.md §3 need it):
+- moving = |gyro vector, moving average over `smooth_s`| > threshold. The norm, not one axis,
+  so a hand re-mounting the IMU is motion too; averaging keeps the STIM300 white noise
+  (0.03 deg/s per sample at 125 Hz, 0.11 at 2000 Hz) ~100 times below 1 deg/s.
+- quiet stretches are split where the mean acc vector jumps (a bench re-mount, instantaneous in
+  the simulator: gravity moves to another axis while the gyros see nothing), trimmed by
+  `settle_s` next to any motion or re-mount, and kept when at least `min_static_s` long.
+- the motion between two statics is one turn when it is mostly about the vertical (the unit mean
+  acc of the static before); otherwise it is handling and gives no segment.
+- a turn's angle integrates the gyro, with the neighbouring statics' mean removed (bias and Earth
+  rate), over everything between those statics (so the ramps' tails below the threshold count),
+  projected on the turn's own axis (the direction of the integrated vector: the platform axis in
+  IMU axes, which the interface tilt sets apart from gravity by ~0.5 deg).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from stim300.protocol import INTERNAL_RATE_HZ
+
+COUNTER_MODULUS = 256
+TURN_AXIS_SHARE = 0.9  # share of a motion's rotation about the vertical that makes it a turn (~25 deg cone)
+AXES = "XYZ"
+
+
+def sample_times(counter: np.ndarray, rate_hz: float) -> np.ndarray:
+    """Seconds from the first sample, from the datagram counter, so that lost datagrams leave gaps.
+
+    The counter counts the sensor's internal 2000 Hz samples (step 2000/rate per datagram) modulo
+    256: a step of k counts is k/step sample periods. It sees losses only modulo one counter cycle
+    (256 internal samples, 0.128 s at any rate): a step of 0 counts is read as a whole cycle (one
+    sample short of a cycle lost), and a loss of a cycle or more appears shorter by whole cycles.
+    A sensor restart (counter back to 0) looks like a loss too. Steps that are not whole periods
+    are rounded (at least one period).
+    """
+    counter = np.asarray(counter)
+    if counter.size == 0:
+        return np.zeros(0)
+    counts = np.diff(counter.astype(np.int64)) % COUNTER_MODULUS
+    counts[counts == 0] = COUNTER_MODULUS
+    periods = np.maximum(np.rint(counts * rate_hz / INTERNAL_RATE_HZ), 1.0)
+    return np.concatenate(([0.0], np.cumsum(periods))) / rate_hz
+
+
+@dataclass(frozen=True)
+class Segment:
+    """A static or a turn: samples [start, stop), times [start_s, end_s).
+
+    platform_angle_deg is chi (the platform angle about the vertical, relative to the first
+    static) during a static, or at the start of a turn. Turn-only fields (None for statics):
+    angle_deg (signed), rate_deg_s (signed mean over the constant-rate part), cruise_start /
+    cruise_stop (samples of the constant-rate part, ramps removed) and cruise_angle_deg
+    (rate x duration of that part). Static-only: up, the IMU axis the gravity reaction points
+    along ("+Z", "-X", ...)."""
+
+    kind: str
+    start: int
+    stop: int
+    start_s: float
+    end_s: float
+    platform_angle_deg: float
+    angle_deg: float | None = None
+    rate_deg_s: float | None = None
+    cruise_start: int | None = None
+    cruise_stop: int | None = None
+    cruise_angle_deg: float | None = None
+    up: str | None = None
+
+
+# ---------------------------------------------------------------- helpers
+
+def _runs(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Starts and stops (exclusive) of the runs of True."""
+    edges = np.diff(np.concatenate(([0], mask.astype(np.int8), [0])))
+    return np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+
+
+def _cumsum0(x: np.ndarray) -> np.ndarray:
+    return np.concatenate((np.zeros((1,) + x.shape[1:]), np.cumsum(x, axis=0)))
+
+
+def _window_mean(c: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Means over [lo, hi) from the cumulative sum c (0 where the window is empty)."""
+    count = (hi - lo).astype(float)[:, None]
+    return np.divide(c[hi] - c[lo], count, out=np.zeros((len(lo),) + c.shape[1:]), where=count > 0)
+
+
+def _moving_average(x: np.ndarray, half: int) -> np.ndarray:
+    """Centred moving average over 2*half+1 samples, shrinking at the ends."""
+    n, i = len(x), np.arange(len(x))
+    return _window_mean(_cumsum0(x), np.clip(i - half, 0, n), np.clip(i + half + 1, 0, n))
+
+
+def _step_size(x: np.ndarray, width: int) -> np.ndarray:
+    """|mean of the next `width` samples - mean of the previous `width`| at each sample."""
+    n, i = len(x), np.arange(len(x))
+    c = _cumsum0(x)
+    before = _window_mean(c, np.clip(i - width, 0, n), i)
+    after = _window_mean(c, i, np.clip(i + width, 0, n))
+    size = np.linalg.norm(after - before, axis=1)
+    size[:1] = 0.0  # nothing before the first sample: no step to see
+    return size
+
+
+def _weights(t: np.ndarray, dt: float) -> np.ndarray:
+    """Seconds each sample stands for (midpoint rule): a lost datagram's interval is shared
+    by its neighbours, so angles integrate across losses."""
+    ext = np.concatenate(([t[0] - dt], t, [t[-1] + dt]))
+    return (ext[2:] - ext[:-2]) / 2
+
+
+def _up_name(acc_mean: np.ndarray) -> str:
+    k = int(np.argmax(np.abs(acc_mean)))
+    return ("+" if acc_mean[k] >= 0 else "-") + AXES[k]
+
+
+def _static_pieces(moving, acc, half, settle_n, min_n, remount_g):
+    """(start, stop) of the statics: quiet runs split at re-mounts, trimmed, long enough."""
+    n = len(acc)
+    step = _step_size(acc, 2 * half)
+    jump = (step > remount_g) & ~moving
+    cuts = []  # (a, b): [a, b) is in no static; a == b is a split point
+    for a, b in zip(*_runs(jump)):
+        a2, b2 = a + 2 * half, b - 2 * half  # an instantaneous step shows over +-width: undo that blur
+        if a2 < b2:
+            cuts.append((a2, b2))
+        else:
+            j = a + int(np.argmax(step[a:b]))
+            cuts.append((j, j))
+    cut_starts = np.array([c[0] for c in cuts], dtype=int)
+    pieces = []
+    for qa, qb in zip(*_runs(~moving)):
+        inside = [cuts[k] for k in np.flatnonzero((cut_starts >= qa) & (cut_starts < qb))]
+        bounds = [qa] + [x for c in inside for x in c] + [qb]
+        for a, b in zip(bounds[::2], bounds[1::2]):
+            a2 = a + settle_n if a > 0 else a
+            b2 = b - settle_n if b < n else b
+            if b2 - a2 >= max(min_n, 1):
+                pieces.append((int(a2), int(b2)))
+    return pieces
+
+
+# ---------------------------------------------------------------- segments
+
+def find_segments(gyro: np.ndarray, acc: np.ndarray, rate_hz: float, time_s: np.ndarray | None = None, *,
+                  turn_threshold_deg_s: float = 1.0, min_static_s: float = 5.0, settle_s: float = 1.0,
+                  cruise_tolerance: float = 0.01, smooth_s: float = 0.2, remount_g: float = 0.05) -> list[Segment]:
+    """Statics and turns of a session, in time order.
+
+    gyro (N,3) deg/s and acc (N,3) g, finite; time_s as from `sample_times` (default: no losses).
+    A turn is motion above `turn_threshold_deg_s` (gyro averaged over `smooth_s`) mostly about
+    the vertical; statics lose `settle_s` at each end next to motion or a re-mount (an acc step
+    larger than `remount_g` between quiet stretches) and must keep `min_static_s`. A turn's
+    constant-rate part is the longest run of samples whose smoothed rate is within
+    `cruise_tolerance` (relative) of the median rate of the turn's central half.
+    """
+    gyro = np.asarray(gyro, dtype=np.float64)
+    acc = np.asarray(acc, dtype=np.float64)
+    n = len(gyro)
+    if n == 0:
+        return []
+    if not (np.isfinite(gyro).all() and np.isfinite(acc).all()):
+        raise ValueError("find_segments needs finite gyro and acc samples (a datagram without accelerometers "
+                         "cannot show gravity)")
+    dt = 1.0 / rate_hz
+    t = np.arange(n) * dt if time_s is None else np.asarray(time_s, dtype=np.float64)
+    w = _weights(t, dt)
+    half = max(int(round(smooth_s * rate_hz / 2)), 1)
+    gyro_s = _moving_average(gyro, half)
+    moving = np.linalg.norm(gyro_s, axis=1) > turn_threshold_deg_s
+    settle_n, min_n = int(round(settle_s * rate_hz)), int(round(min_static_s * rate_hz))
+    pieces = _static_pieces(moving, acc, half, settle_n, min_n, remount_g)
+
+    def span(a, b):
+        return float(t[a]), float(t[b - 1] + dt)
+
+    statics = [{"start": a, "stop": b, "gyro": gyro[a:b].mean(0), "acc": acc[a:b].mean(0)} for a, b in pieces]
+    gaps = zip([0] + [s["stop"] for s in statics], [s["start"] for s in statics] + [n])
+    out, chi = [], 0.0  # chi: platform angle, from the start of the data
+    for k, (a, b) in enumerate(gaps):
+        prev = statics[k - 1] if k > 0 else None
+        nxt = statics[k] if k < len(statics) else None
+        turn = _turn(gyro, gyro_s, acc, moving, w, a, b, prev, nxt, cruise_tolerance)
+        if turn is not None:
+            start, stop, angle, rate, cs, ce = turn
+            cruise_s = span(cs, ce)
+            out.append(Segment("turn", start, stop, *span(start, stop), chi, angle_deg=angle, rate_deg_s=rate,
+                               cruise_start=cs, cruise_stop=ce,
+                               cruise_angle_deg=rate * (cruise_s[1] - cruise_s[0])))
+            chi += angle
+        if nxt is not None:
+            out.append(Segment("static", nxt["start"], nxt["stop"], *span(nxt["start"], nxt["stop"]), chi,
+                               up=_up_name(nxt["acc"])))
+    origin = next((s.platform_angle_deg for s in out if s.kind == "static"), 0.0)  # relative to the first static
+    return [replace(s, platform_angle_deg=s.platform_angle_deg - origin) for s in out]
+
+
+def _turn(gyro, gyro_s, acc, moving, w, a, b, prev, nxt, tolerance):
+    """The turn between two statics (samples [a, b) between them; either may be None at the
+    session's ends) as (start, stop, angle, rate, cruise_start, cruise_stop), or None when
+    nothing moved there (a re-mount, a dropped short static) or the motion was handling."""
+    moved = np.flatnonzero(moving[a:b])
+    if not len(moved):
+        return None
+    start, stop = a + int(moved[0]), a + int(moved[-1]) + 1
+    ref = prev or nxt  # the vertical from the static before (after, at the session's start)
+    gravity = ref["acc"] if ref else acc.mean(0)
+    up = gravity / np.linalg.norm(gravity)
+    near = [s for s in (prev, nxt) if s is not None and _up_name(s["acc"]) == _up_name(gravity)]
+    level = np.mean([s["gyro"] for s in near], axis=0) if near else np.zeros(3)  # no static: bias kept
+    rel_s = gyro_s[start:stop] - level
+    if np.abs(rel_s @ up).sum() < TURN_AXIS_SHARE * np.linalg.norm(rel_s, axis=1).sum():
+        return None  # handling: not a rotation about the vertical
+    rel = gyro[a:b] - level  # everything between the statics: the ramps' tails below the threshold count
+    vector = (rel * w[a:b, None]).sum(0)
+    axis = vector / np.linalg.norm(vector) if np.linalg.norm(vector) > 1.0 else up
+    axis = axis if axis @ up >= 0 else -axis  # counter-clockwise about Up positive
+    rate = rel @ axis
+    angle = float((rate * w[a:b]).sum())
+    cs, ce = _cruise(rel_s @ axis, tolerance)
+    cs, ce = start + cs, start + ce
+    mean_rate = float((rate[cs - a:ce - a] * w[cs:ce]).sum() / w[cs:ce].sum())
+    return start, stop, angle, mean_rate, cs, ce
+
+
+def _cruise(rate_s: np.ndarray, tolerance: float) -> tuple[int, int]:
+    """Longest run within `tolerance` (relative) of the median of the central half."""
+    m = len(rate_s)
+    centre = rate_s[m // 4: m - m // 4] if m >= 4 else rate_s
+    peak = float(np.median(centre))
+    starts, stops = _runs(np.abs(rate_s - peak) <= tolerance * abs(peak))
+    if not len(starts):
+        return m // 4, max(m - m // 4, m // 4 + 1)
+    k = int(np.argmax(stops - starts))
+    return int(starts[k]), int(stops[k])
+
+
+# ---------------------------------------------------------------- the protocol's segments
+
+def level_static(segments: list[Segment]) -> Segment:
+    """The first static: the home position (platform angle 0) of the real-case protocol."""
+    for s in segments:
+        if s.kind == "static":
+            return s
+    raise ValueError("no static segment: the session needs a level static first")
+
+
+def index_positions(segments: list[Segment], tolerance_deg: float = 5.0) -> list[Segment]:
+    """The four index positions (thesis eqs. 6.8-6.11): after the level static, the first static
+    at each of the four platform orientations 90 deg apart (chi a multiple of 90 within
+    `tolerance_deg`, modulo 360), in time order. Averaging over the four cancels the tilt terms."""
+    level = level_static(segments)
+    chosen: dict[int, Segment] = {}
+    for s in segments:
+        if s.kind != "static" or s.start <= level.start:
+            continue
+        quarter = round(s.platform_angle_deg / 90.0)
+        if abs(s.platform_angle_deg - 90.0 * quarter) <= tolerance_deg:
+            chosen.setdefault(quarter % 4, s)
+        if len(chosen) == 4:
+            break
+    if len(chosen) < 4:
+        missing = [f"{90 * q}" for q in range(4) if q not in chosen]
+        seen = ", ".join(f"{s.platform_angle_deg:.1f}" for s in segments if s.kind == "static" and s is not level)
+        raise ValueError(f"need statics at four platform orientations 90 deg apart after the level static; "
+                         f"none at {', '.join(missing)} deg (mod 360); statics seen at [{seen}] deg")
+    return sorted(chosen.values(), key=lambda s: s.start)
+
+
+def full_turns(segments: list[Segment], min_cruise_deg: float = 350.0) -> list[Segment]:
+    """Turns whose constant-rate part alone covers at least `min_cruise_deg`, in time order.
+
+    Judged on the constant-rate part, not the total angle: the thesis averages the gyros over one
+    whole period at constant rate (eq. 6.31), and a 360 deg turn with ramps has only ~334 deg of
+    it at 27.93 deg/s and 30 deg/s^2. Consumers take one period from cruise_start."""
+    return [s for s in segments if s.kind == "turn" and abs(s.cruise_angle_deg) >= min_cruise_deg]

@@ -1,0 +1,186 @@
+"""Segment detection: every static and turn of simulated sessions is found where the simulator put
+it (statics trimmed by the settling time), turn angles, rates and constant-rate parts match the
+commanded profile, the index positions and full turns are picked for either turn sense, and
+sample times follow the counter across lost datagrams and its wrap."""
+
+import json
+from dataclasses import asdict, replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from calibd import detect
+from calibd.frames import r1
+from calibd.scenario import load_scenario
+from calibd.sim import simulate
+from stim300.bulk import decode_capture
+
+FIXTURES = Path(__file__).resolve().parent.parent / "fixtures"
+SETTLE_S = 1.0
+EDGE_S = 0.1  # detected edges vs the truth: the turn threshold is crossed within a smoothing half-window
+
+
+def counter_sense(scenario):
+    """The same session turning the other way."""
+    flipped = tuple(replace(s, angle_deg=-s.angle_deg) if s.kind == "turn" else s for s in scenario.segments)
+    return replace(scenario, name=scenario.name + "-ccw", seed=scenario.seed + 1, segments=flipped)
+
+
+def quiet(scenario):
+    return replace(scenario, noise=replace(scenario.noise, enabled=False))
+
+
+@pytest.fixture(scope="module")
+def real():
+    return simulate(load_scenario("thesis-real"))
+
+
+@pytest.fixture(scope="module")
+def real_ccw():
+    return simulate(counter_sense(load_scenario("thesis-real")))
+
+
+@pytest.fixture(scope="module")
+def bench():
+    return simulate(load_scenario("thesis-bench"))
+
+
+def found(sim, **options):
+    s = sim.samples
+    return detect.find_segments(s["gyro"], s["acc"], sim.scenario.sensor.sample_rate_hz, **options)
+
+
+def check_against_truth(segments, schedule, rate_hz, *, angle_tol=0.1, rate_tol=0.01, chi_tol=0.2):
+    """Each truth phase (dicts as in a truth file) has its segment, in order, where it should be."""
+    assert [s.kind for s in segments] == ["turn" if p["kind"] == "turn" else "static" for p in schedule]
+    for k, (seg, p) in enumerate(zip(segments, schedule)):
+        assert seg.platform_angle_deg == pytest.approx(p["chi_start_deg"], abs=chi_tol)
+        if p["kind"] == "turn":
+            assert seg.start_s == pytest.approx(p["start_s"], abs=EDGE_S)
+            assert seg.end_s == pytest.approx(p["end_s"], abs=EDGE_S)
+            assert seg.angle_deg == pytest.approx(p["angle_deg"], abs=angle_tol)
+            assert seg.rate_deg_s == pytest.approx(np.sign(p["angle_deg"]) * p["peak_rate_deg_s"], abs=rate_tol)
+            cruise_start, cruise_end = seg.cruise_start / rate_hz, seg.cruise_stop / rate_hz
+            assert p["cruise_start_s"] - 1e-9 <= cruise_start < cruise_end <= p["cruise_end_s"] + 1e-9
+            assert cruise_end - cruise_start >= 0.9 * (p["cruise_end_s"] - p["cruise_start_s"])
+            assert seg.up is None
+        else:
+            start = p["start_s"] + (SETTLE_S if k > 0 else 0.0)
+            end = p["end_s"] - (SETTLE_S if k < len(schedule) - 1 else 0.0)
+            assert seg.start_s == pytest.approx(start, abs=EDGE_S)
+            assert seg.end_s == pytest.approx(end, abs=EDGE_S)
+            assert seg.up == p["up"]
+            assert seg.angle_deg is seg.rate_deg_s is seg.cruise_start is None
+        assert seg.start_s == pytest.approx(seg.start / rate_hz) and seg.end_s == pytest.approx(seg.stop / rate_hz)
+
+
+@pytest.mark.parametrize("session", ["real", "real_ccw", "bench"])
+def test_simulated_sessions_are_cut_where_the_simulator_put_them(session, request):
+    sim = request.getfixturevalue(session)
+    check_against_truth(found(sim), [asdict(p) for p in sim.phases], 125)
+
+
+def test_noise_free_session_gives_the_commanded_profile_exactly():
+    sim = simulate(quiet(load_scenario("thesis-real")))
+    check_against_truth(found(sim), [asdict(p) for p in sim.phases], 125, angle_tol=1e-3, rate_tol=1e-4,
+                        chi_tol=1e-3)
+
+
+@pytest.mark.parametrize("sim_name,sense", [("real", -1), ("real_ccw", +1)])
+def test_index_positions_are_the_statics_after_the_90_deg_turns(sim_name, sense, request):
+    sim = request.getfixturevalue(sim_name)
+    segments = found(sim)
+    statics = [s for s in segments if s.kind == "static"]
+    index = detect.index_positions(segments)
+    assert index == statics[1:5]  # the level static, then one after each 90 deg turn
+    assert [s.platform_angle_deg for s in index] == pytest.approx([sense * 90 * k for k in (1, 2, 3, 4)], abs=0.2)
+    assert detect.level_static(segments) == statics[0]
+    turns = detect.full_turns(segments)
+    assert len(turns) == 1 and turns[0] == segments[-2]  # the full turn, not the 90 deg ones
+    assert abs(turns[0].cruise_angle_deg) >= 360.0
+
+
+def test_bench_positions_come_out_as_separate_statics(bench):
+    segments = found(bench)
+    ups = [s.up for s in segments if s.kind == "static"]
+    assert ups[:7] == ["+Z", "-Z", "-Y", "+Y", "-X", "+X", "+Z"]
+    assert len(detect.full_turns(segments)) == 3
+    with pytest.raises(ValueError, match=r"none at .*180, 270 deg \(mod 360\)"):
+        detect.index_positions(segments)  # no 90 deg turns on the bench
+
+
+@pytest.mark.parametrize("rotation,up", [(np.diag([1.0, -1.0, -1.0]), "-Z"), (r1(np.radians(60)), "+Y")])
+def test_a_tilted_or_upside_down_imu_gives_the_same_turns(real, rotation, up):
+    """The turn axis is the gravity direction of the static before, not the IMU Z axis."""
+    s = real.samples
+    plain = found(real)
+    turned = detect.find_segments(s["gyro"].astype(float) @ rotation.T, s["acc"].astype(float) @ rotation.T, 125)
+    assert [(t.kind, t.start, t.stop) for t in turned] == [(t.kind, t.start, t.stop) for t in plain]
+    assert [t.platform_angle_deg for t in turned] == pytest.approx([t.platform_angle_deg for t in plain], abs=1e-6)
+    assert {t.up for t in turned if t.kind == "static"} == {up}
+
+
+def test_2000hz_capture():
+    data = (FIXTURES / "static_turn_2000hz.bin").read_bytes()
+    truth = json.loads((FIXTURES / "static_turn_2000hz.bin.truth.json").read_text())
+    samples, scanner = decode_capture(data)
+    rate = scanner.format.sample_rate_hz
+    assert rate == 2000
+    time_s = detect.sample_times(samples["counter"], rate)
+    segments = detect.find_segments(samples["gyro"], samples["acc"], rate, time_s, min_static_s=3.0)
+    check_against_truth(segments, truth["schedule"], rate)
+
+
+def test_capture_with_lost_datagrams_is_one_static():
+    data = (FIXTURES / "faults_125hz.bin").read_bytes()
+    truth = json.loads((FIXTURES / "faults_125hz.bin.truth.json").read_text())
+    samples, scanner = decode_capture(data)
+    rate = scanner.format.sample_rate_hz
+    time_s = detect.sample_times(samples["counter"], rate)
+    faults = truth["faults"]
+    lost = set(faults["dropped_samples"]) | set(faults["bit_flipped_samples"])
+    kept = np.array([k for k in range(truth["samples"]) if k not in lost])
+    assert len(samples) == len(kept)
+    before = kept < faults["restart_at_sample"]  # the restart resets the counter: a constant offset after it
+    assert np.allclose(time_s[before], kept[before] / rate)
+    offset = time_s[~before] - kept[~before] / rate
+    assert np.allclose(offset, offset[0])
+    segments = detect.find_segments(samples["gyro"], samples["acc"], rate, time_s)
+    assert len(segments) == 1 and segments[0].kind == "static"
+    assert (segments[0].start, segments[0].stop) == (0, len(samples))
+    assert segments[0].end_s == pytest.approx(time_s[-1] + 1 / rate)
+
+
+@pytest.mark.parametrize("rate", [125, 2000])
+def test_sample_times_follow_the_counter_across_losses_and_the_wrap(rate):
+    step = 2000 // rate
+    cycle = 256 // step  # sample periods in one counter cycle
+    rng = np.random.default_rng(rate)
+    gaps = rng.choice([1, 1, 1, 2, 3, cycle - 1, cycle], 30 * cycle)  # periods between received samples
+    index = 7 + np.concatenate(([0], np.cumsum(gaps)))  # up to a cycle minus one sample lost, many wraps
+    times = detect.sample_times(((index * step) % 256).astype(np.uint8), rate)
+    assert np.allclose(times, (index - index[0]) / rate)
+    assert np.diff(times).max() == pytest.approx(cycle / rate)
+    # a whole cycle lost cannot be seen (documented): it reads as no loss
+    aliased = detect.sample_times(np.array([0, (cycle + 1) * step]) % 256, rate)
+    assert np.allclose(aliased, [0, 1 / rate])
+    assert len(detect.sample_times(np.zeros(0, np.uint8), rate)) == 0
+
+
+def test_no_static_no_level():
+    with pytest.raises(ValueError, match="no static"):
+        detect.level_static([])
+
+
+def test_handling_is_no_turn_and_splits_the_statics():
+    """A 90 deg tilt by hand (rotation about a horizontal axis) is motion, not a turn."""
+    rate, n = 125, 125 * 30
+    gyro = np.zeros((n, 3))
+    acc = np.tile([0.0, 0.0, 1.0], (n, 1))
+    gyro[1500:1750, 0] = -45.0  # 2 s about X: Z up becomes Y up
+    acc[1625:] = [0.0, 1.0, 0.0]
+    segments = detect.find_segments(gyro, acc, rate)
+    assert [(s.kind, s.up) for s in segments] == [("static", "+Z"), ("static", "+Y")]
+    assert segments[0].stop < 1500 - 125 + 10 and segments[1].start > 1750 + 125 - 10
+    assert segments[1].platform_angle_deg == 0.0
