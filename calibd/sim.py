@@ -51,9 +51,12 @@ class Phase:
 
 
 def schedule(scenario: Scenario) -> list[Phase]:
-    """Segments laid end to end; a turn's duration follows from its trapezoidal rate profile."""
-    phases, t, chi = [], 0.0, 0.0
+    """Segments laid end to end; a turn's duration follows from its trapezoidal rate profile.
+    Every phase carries the mount of the last `position` segment (+Z up before any)."""
+    phases, t, chi, mount = [], 0.0, 0.0, "+Z"
     for seg in scenario.segments:
+        if seg.kind == "position":
+            mount = seg.up  # the IMU stays mounted so until the next position segment
         if seg.kind == "turn":
             angle, rate, accel = abs(seg.angle_deg), seg.peak_rate_deg_s, seg.accel_deg_s2
             if angle < rate**2 / accel:  # never reaches the peak rate: triangular profile
@@ -61,13 +64,13 @@ def schedule(scenario: Scenario) -> list[Phase]:
             t_acc = rate / accel
             t_cruise = (angle - rate * t_acc) / rate
             end = t + 2 * t_acc + t_cruise
-            phases.append(Phase("turn", t, end, angle_deg=seg.angle_deg, peak_rate_deg_s=float(rate),
+            phases.append(Phase("turn", t, end, up=mount, angle_deg=seg.angle_deg, peak_rate_deg_s=float(rate),
                                 accel_deg_s2=accel, chi_start_deg=chi, cruise_start_s=t + t_acc,
                                 cruise_end_s=t + t_acc + t_cruise))
             chi += seg.angle_deg
         else:
             end = t + seg.duration_s
-            phases.append(Phase(seg.kind, t, end, up=seg.up, chi_start_deg=chi))
+            phases.append(Phase(seg.kind, t, end, up=mount, chi_start_deg=chi))
         t = end
     return phases
 
