@@ -1,4 +1,4 @@
-"""`calibd simulate`: make a capture with known truth from a scenario.
+"""`calibd calibrate | simulate`: calibrate a capture; make a capture with known truth.
 
 Errors in files, scenarios or arguments end with one line on stderr and exit status 2.
 """
@@ -11,6 +11,9 @@ import time
 
 from stim300.cliutil import CommandParser, UsageError, run_command
 
+from .calibrate import CalibrationError, load_session, thesis_bench, thesis_real_case
+from .frames import Site
+from .results import write_result
 from .scenario import READY_MADE, ScenarioError, load_scenario
 from .sim import write_capture
 
@@ -31,9 +34,80 @@ def cmd_simulate(args) -> int:
     return 0
 
 
+def _number(low: float, high: float, unit: str):
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+        if not (low <= value <= high):
+            raise argparse.ArgumentTypeError(f"{text} is outside [{low:g}, {high:g}] {unit}")
+        return value
+    return parse
+
+
+def _site(args) -> Site:
+    try:
+        return Site(args.latitude, args.height, args.g0)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+
+
+def _summary(result: dict) -> str:
+    lines = [f"{result['method']}: {result['stream']['capture']}"]
+    for name, e in result["estimates"].items():
+        sigma = "" if e["sigma"] is None else f" +- {e['sigma']:.4g}"
+        lines.append(f"  {name:12s} {e['value']:12.5f}{sigma} {e['unit']}")
+    lines += [f"  warning: {w}" for w in result["warnings"]]
+    return "\n".join(lines)
+
+
+def cmd_calibrate(args) -> int:
+    if (args.alpha is None) != (args.beta is None):
+        raise UsageError("calibrate: give both --alpha and --beta (the nominal run) or neither (the linear run)")
+    if args.bench and args.alpha is not None:
+        raise UsageError("calibrate: --bench estimates alpha and beta itself; drop --alpha/--beta")
+    site = _site(args)
+    try:
+        session = load_session(args.capture, args.start)
+        if args.bench:
+            result = thesis_bench(session, site)
+        else:
+            tilt = None if args.alpha is None else (args.alpha, args.beta)
+            result = thesis_real_case(session, site, tilt, args.platform_rate)
+    except FileNotFoundError:
+        raise UsageError(f"{args.capture}: no such file") from None
+    except IsADirectoryError:
+        raise UsageError(f"{args.capture}: is a directory, expected a capture file") from None
+    except OSError as exc:
+        raise UsageError(f"{args.capture}: cannot read: {(exc.strerror or str(exc)).lower()}") from None
+    except CalibrationError as exc:
+        raise UsageError(f"{args.capture}: {exc}") from None
+    try:
+        write_result(args.output, result)
+    except OSError as exc:
+        raise UsageError(f"{args.output}: cannot write: {(exc.strerror or str(exc)).lower()}") from None
+    print(_summary(result))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = CommandParser(prog="calibd", description="STIM300 calibration: simulated sessions with known truth.")
+    parser = CommandParser(prog="calibd", description="STIM300 calibration: calibrate captures, simulate sessions.")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=CommandParser)
+    p = sub.add_parser("calibrate", help="capture -> biases and alignment (result JSON)")
+    p.add_argument("capture")
+    p.add_argument("-o", "--output", required=True, help="RESULT.json (replaced atomically)")
+    p.add_argument("--method", choices=("thesis",), default="thesis", help="estimator (default thesis)")
+    p.add_argument("--latitude", type=_number(-90, 90, "deg"), required=True, help="site latitude, deg")
+    p.add_argument("--height", type=_number(-500, 9000, "m"), default=0.0, help="site height, m (default 0)")
+    p.add_argument("--g0", type=_number(9.7, 9.9, "m/s^2"), help="measured gravity, m/s^2 (default: normal gravity)")
+    p.add_argument("--alpha", type=_number(-10, 10, "deg"), help="a-priori interface tilt alpha, deg (nominal run)")
+    p.add_argument("--beta", type=_number(-10, 10, "deg"), help="a-priori interface tilt beta, deg (nominal run)")
+    p.add_argument("--platform-rate", type=_number(-1000, 1000, "deg/s"),
+                   help="platform rate of the full turn from telemetry, deg/s, signed (default: from the gyros)")
+    p.add_argument("--bench", action="store_true", help="a bench session: six-position biases and alpha/beta")
+    p.add_argument("--start", type=_number(0, 1e9, "s"), default=0.0, help="skip the first S seconds (warm-up)")
+    p.set_defaults(func=cmd_calibrate)
     p = sub.add_parser("simulate", help="scenario -> capture file and CAPTURE.truth.json")
     p.add_argument("scenario", help=f"scenario TOML file, or one of: {', '.join(READY_MADE)}")
     p.add_argument("-o", "--output", required=True, help="capture file to write")

@@ -55,6 +55,15 @@ class Truth:
     acc_bias_mg: tuple[float, float, float] = (0.0, 0.0, 0.0)
     incl_bias_mg: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
+    def estimates(self) -> dict[str, float]:
+        """The truth under the result schema's estimate names and units (deg, deg/h, mg)."""
+        out = {"pitch": self.pitch_deg, "roll": self.roll_deg, "yaw": self.yaw_deg, "alpha": self.alpha_deg,
+               "beta": self.beta_deg}
+        for name, values in (("gyro_bias", self.gyro_bias_deg_h), ("acc_bias", self.acc_bias_mg),
+                             ("incl_bias", self.incl_bias_mg)):
+            out |= {f"{name}_{axis}": value for axis, value in zip("xyz", values)}
+        return out
+
 
 @dataclass(frozen=True)
 class Noise:

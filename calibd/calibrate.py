@@ -1,0 +1,188 @@
+"""One-shot calibration of a capture: decode, find the segments, run a method, build the result.
+
+The same functions serve `calibd calibrate` and, later, the daemon on live data: they take
+decoded samples, never bytes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from stim300.bulk import decode_capture
+
+from . import detect
+from .estimators import thesis
+from .frames import STANDARD_GRAVITY, Site
+from .results import make_result
+
+DEG = np.pi / 180
+WARM_SLOPE_C_PER_H = 1.0  # a temperature trend above this says the IMU is still warming up
+
+
+class CalibrationError(ValueError):
+    """The data cannot give this calibration (missing segments, wrong protocol); one line."""
+
+
+@dataclass
+class Session:
+    """Decoded data in SI, with what is known of the sensor and the stream."""
+
+    time_s: np.ndarray
+    gyro: np.ndarray  # rad/s
+    acc: np.ndarray  # m/s^2
+    incl: np.ndarray  # m/s^2
+    temperature_c: np.ndarray | None  # mean of the gyro temperatures, when the datagram has them
+    rate_hz: int
+    sensor: dict
+    stream: dict
+
+
+def load_session(path: str, start_s: float = 0.0) -> Session:
+    """Decode a capture; drop what comes before `start_s` (e.g. a warm-up)."""
+    with open(path, "rb") as f:
+        data = f.read()
+    samples, scanner = decode_capture(data)
+    if not len(samples):
+        raise CalibrationError(f"{path}: no STIM300 datagram found")
+    fmt = scanner.format
+    if fmt.gyro_unit.is_angle or fmt.acc_unit.is_velocity:
+        raise CalibrationError(f"{path}: calibration needs rate and acceleration outputs, "
+                               f"not {fmt.gyro_unit.name} / {fmt.acc_unit.name}")
+    if np.isnan(samples["acc"][0, 0]) or np.isnan(samples["incl"][0, 0]):
+        raise CalibrationError(f"{path}: datagram 0x{fmt.datagram_id:02X} lacks accelerometers or inclinometers")
+    rate = fmt.sample_rate_hz or 2000 // scanner.stats.counter_step
+    time_s = detect.sample_times(samples["counter"], rate)
+    keep = time_s >= start_s
+    temps = samples["temp_gyro"][keep].mean(axis=1)
+    stats = scanner.stats
+    return Session(
+        time_s=time_s[keep], gyro=samples["gyro"][keep].astype(np.float64) * DEG,
+        acc=samples["acc"][keep].astype(np.float64) * STANDARD_GRAVITY,
+        incl=samples["incl"][keep].astype(np.float64) * STANDARD_GRAVITY,
+        temperature_c=None if np.isnan(temps).all() else temps.astype(np.float64), rate_hz=rate,
+        sensor={"serial_number": scanner.serial_number.text if scanner.serial_number else None,
+                "part_number": str(scanner.part_number) if scanner.part_number else None,
+                "datagram_id": f"0x{fmt.datagram_id:02X}", "sample_rate_hz": rate},
+        stream={"capture": str(path), "datagrams": stats.datagrams, "lost_samples": stats.lost_samples,
+                "crc_errors": stats.crc_errors, "restarts": stats.restarts})
+
+
+def _warm_up_warning(session: Session) -> list[str]:
+    t = session.temperature_c
+    if t is None or len(t) < 2:
+        return ["no temperatures in the datagram: warm-up cannot be checked"]
+    slope = np.polyfit(session.time_s, t, 1)[0] * 3600
+    if abs(slope) > WARM_SLOPE_C_PER_H:
+        return [f"temperature still moving {slope:+.1f} degC/h over the data: the IMU is not warmed up, biases "
+                "drift (use --start to skip the warm-up)"]
+    return []
+
+
+def _segment_record(seg: detect.Segment, role: str) -> dict:
+    record = {"kind": seg.kind, "role": role, "start_s": round(seg.start_s, 3), "end_s": round(seg.end_s, 3),
+              "platform_angle_deg": round(seg.platform_angle_deg, 3)}
+    if seg.kind == "turn":
+        record |= {"angle_deg": round(seg.angle_deg, 3), "rate_deg_s": round(seg.rate_deg_s, 4)}
+    elif seg.up:
+        record["up"] = seg.up
+    return record
+
+
+def _one_period(session: Session, turn: detect.Segment) -> tuple[slice, list[str]]:
+    """The first whole revolution of the turn's constant-rate part (eq. 6.31 integrates over
+    one period); the whole constant-rate part, with a warning, when it is shorter."""
+    period = int(round(360.0 / abs(turn.rate_deg_s) * session.rate_hz))
+    have = turn.cruise_stop - turn.cruise_start
+    if have >= period:
+        return slice(turn.cruise_start, turn.cruise_start + period), []
+    covered = have / session.rate_hz * abs(turn.rate_deg_s)
+    return slice(turn.cruise_start, turn.cruise_stop), [
+        f"the full turn's constant-rate part covers {covered:.0f} deg, not a whole revolution: the Earth-rate "
+        f"term does not average out of the gyro Y bias (eq. 6.31)"]
+
+
+def _static_mean(values: np.ndarray, seg: detect.Segment) -> np.ndarray:
+    return values[seg.start:seg.stop].mean(axis=0)
+
+
+def thesis_real_case(session: Session, site: Site, alpha_beta_deg: tuple[float, float] | None = None,
+                     platform_rate_deg_s: float | None = None) -> dict:
+    """The thesis's real-case chain on a session: nominal with alpha/beta given, else linear."""
+    segments = detect.find_segments(session.gyro / DEG, session.acc / STANDARD_GRAVITY, session.rate_hz,
+                                    session.time_s)
+    try:
+        level = detect.level_static(segments)
+        index = detect.index_positions(segments)
+        turns = [t for t in detect.full_turns(segments) if t.start >= level.stop]
+    except ValueError as exc:
+        raise CalibrationError(f"not the thesis real-case protocol: {exc}") from None
+    if not turns:
+        raise CalibrationError("not the thesis real-case protocol: no full turn (a constant-rate part of at "
+                               "least 350 deg) after the level static")
+    turn = turns[0]
+    window, warnings = _one_period(session, turn)
+    data = thesis.RealCaseData(
+        level_gyro=_static_mean(session.gyro, level), level_acc=_static_mean(session.acc, level),
+        level_incl=_static_mean(session.incl, level),
+        index_incl=np.array([_static_mean(session.incl, s) for s in index]),
+        turn_gyro=session.gyro[window])
+    alpha_beta = None if alpha_beta_deg is None else (alpha_beta_deg[0] * DEG, alpha_beta_deg[1] * DEG)
+    rate = None if platform_rate_deg_s is None else platform_rate_deg_s * DEG
+    est = thesis.real_case(data, site, alpha_beta, rate)
+    warnings += _warm_up_warning(session)
+    warnings.append("incl_bias_z is assumed 0: rotations about the vertical cannot observe it (thesis 6.1)")
+    if alpha_beta is not None:
+        warnings.append("alpha and beta are a-priori values given by the user, not estimates")
+    else:
+        warnings.append("yaw is not observable with same-dataset (linear) alpha and beta: eq. 7.3 folds the "
+                        "level static's Earth-rate term into alpha, so eq. 6.32 returns 0 up to platform-rate "
+                        "errors; this yaw is not an estimate")
+    if rate is None:
+        warnings.append("platform rate taken from the gyros (no telemetry given)")
+    estimates = {"pitch": (est["pitch"], None), "roll": (est["roll"], None), "yaw": (est["yaw"], None),
+                 "alpha": (est["alpha"], None), "beta": (est["beta"], None)}
+    for name in ("gyro_bias", "acc_bias", "incl_bias"):
+        estimates |= {f"{name}_{a}": (est[name][k], None) for k, a in enumerate("xyz")}
+    records = ([_segment_record(level, "level static")]
+               + [_segment_record(s, f"index position {k + 1}") for k, s in enumerate(index)]
+               + [_segment_record(turn, "full turn")])
+    return make_result(est["method"], site, estimates, records, warnings, session.sensor,
+                       stream=session.stream, platform_rate_deg_s=est["platform_rate"] / DEG)
+
+
+def thesis_bench(session: Session, site: Site) -> dict:
+    """The bench campaign: six-position biases of every channel (eq. 5.3) and alpha/beta from
+    every full turn (eqs. 5.6-5.8), averaged."""
+    segments = detect.find_segments(session.gyro / DEG, session.acc / STANDARD_GRAVITY, session.rate_hz,
+                                    session.time_s)
+    statics = [s for s in segments if s.kind == "static"]
+    positions = {}
+    for s in statics:  # the first static with each axis up
+        positions.setdefault(s.up, s)
+    missing = [axis for axis in thesis.UP_AXES if axis not in positions]
+    if missing:
+        raise CalibrationError(f"not the bench protocol: no static with {', '.join(missing)} up")
+    biases = {name: thesis.six_position_biases({axis: _static_mean(values, seg) for axis, seg in positions.items()})
+              for name, values in (("gyro", session.gyro), ("acc", session.acc), ("incl", session.incl))}
+    turns = detect.full_turns(segments)
+    if not turns:
+        raise CalibrationError("not the bench protocol: no full turn for alpha and beta")
+    warnings, tilts = _warm_up_warning(session), []
+    for turn in turns:
+        before = [s for s in statics if s.stop <= turn.start and s.up == "+Z"]
+        level = before[-1] if before else positions["+Z"]
+        pitch, roll = thesis.pitch_roll(_static_mean(session.incl, level) - biases["incl"])
+        window, notes = _one_period(session, turn)
+        warnings += notes
+        rate = thesis.bench_platform_rate(session.gyro[window].mean(axis=0), biases["gyro"], pitch, roll, site)
+        tilts.append(thesis.interface_tilt(rate))
+    alpha, beta = np.mean(tilts, axis=0)
+    estimates = {"alpha": (alpha, None), "beta": (beta, None)}
+    for name, values in biases.items():
+        estimates |= {f"{name}_bias_{a}": (values[k], None) for k, a in enumerate("xyz")}
+    records = ([_segment_record(positions[axis], f"{axis} up") for axis in thesis.UP_AXES]
+               + [_segment_record(t, "full turn") for t in turns])
+    return make_result("thesis-bench", site, estimates, records, warnings, session.sensor, stream=session.stream,
+                       turns_alpha_beta_deg=[[a / DEG, b / DEG] for a, b in tilts])
