@@ -148,8 +148,21 @@ def thesis_real_case(session: Session, site: Site, alpha_beta_deg: tuple[float, 
     records = ([_segment_record(level, "level static")]
                + [_segment_record(s, f"index position {k + 1}") for k, s in enumerate(index)]
                + [_segment_record(turn, "full turn")])
+    diagnostics = {role: _earth_rate_report(values, session.rate_hz, site)
+                   for role, values in (("level static", session.gyro[level.start:level.stop]),
+                                        ("full turn", session.gyro[window]))}
     return make_result(est["method"], site, estimates, records, warnings, session.sensor,
-                       stream=session.stream, platform_rate_deg_s=est["platform_rate"] / DEG)
+                       stream=session.stream, platform_rate_deg_s=est["platform_rate"] / DEG,
+                       earth_rate_diagnostic=diagnostics)
+
+
+def _earth_rate_report(gyro: np.ndarray, rate_hz: int, site: Site) -> dict:
+    """The section 6.3 diagnostic in display units (deg/h, Hz), without the spectra."""
+    report = thesis.earth_rate_diagnostic(gyro, rate_hz, site)
+    to_deg_h = 3600 / DEG
+    return {"expected_amplitude_deg_h": report["expected_amplitude"] * to_deg_h,
+            "peak_amplitude_deg_h": [a * to_deg_h for a in report["peak_amplitude"]],
+            "peak_frequency_hz": report["peak_frequency_hz"], "visible": report["visible"]}
 
 
 def thesis_bench(session: Session, site: Site) -> dict:

@@ -1,4 +1,5 @@
-"""`calibd calibrate | simulate`: calibrate a capture; make a capture with known truth.
+"""`calibd calibrate | sensitivity | simulate`: calibrate a capture; what alpha/beta errors cost;
+make a capture with known truth.
 
 Errors in files, scenarios or arguments end with one line on stderr and exit status 2.
 """
@@ -6,15 +7,19 @@ Errors in files, scenarios or arguments end with one line on stderr and exit sta
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 
 from stim300.cliutil import CommandParser, UsageError, run_command
 
 from .calibrate import CalibrationError, load_session, thesis_bench, thesis_real_case
-from .frames import Site
+from .estimators.thesis import sensitivity
+from .frames import STANDARD_GRAVITY, Site
 from .results import write_result
 from .scenario import READY_MADE, ScenarioError, load_scenario
+
+DEG = math.pi / 180
 from .sim import write_capture
 
 
@@ -91,6 +96,17 @@ def cmd_calibrate(args) -> int:
     return 0
 
 
+def cmd_sensitivity(args) -> int:
+    site = _site(args)
+    s = sensitivity(args.alpha_error * DEG, args.beta_error * DEG, args.platform_rate * DEG, site)
+    print(f"interface-tilt errors d_alpha {args.alpha_error:g} deg, d_beta {args.beta_error:g} deg at a platform "
+          f"rate of {args.platform_rate:g} deg/s, latitude {site.latitude_deg:g} deg (thesis section 7.1):")
+    print(f"  inclinometer X bias error  {s['incl_bias_x'] / STANDARD_GRAVITY * 1000:.4f} mg  (g0 sin d_beta)")
+    print(f"  gyro Y bias error          {s['gyro_bias_y'] / DEG * 3600:.3f} deg/h  (rate x d_alpha)")
+    print(f"  yaw error                  {s['yaw'] / DEG:.2f} deg  (gyro Y error / Omega_E cos(lat))")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = CommandParser(prog="calibd", description="STIM300 calibration: calibrate captures, simulate sessions.")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=CommandParser)
@@ -108,6 +124,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--bench", action="store_true", help="a bench session: six-position biases and alpha/beta")
     p.add_argument("--start", type=_number(0, 1e9, "s"), default=0.0, help="skip the first S seconds (warm-up)")
     p.set_defaults(func=cmd_calibrate)
+    p = sub.add_parser("sensitivity", help="what alpha/beta errors do to the thesis's estimates (section 7.1)")
+    p.add_argument("--alpha-error", type=_number(-10, 10, "deg"), required=True, help="d_alpha, deg")
+    p.add_argument("--beta-error", type=_number(-10, 10, "deg"), required=True, help="d_beta, deg")
+    p.add_argument("--platform-rate", type=_number(-1000, 1000, "deg/s"), required=True, help="deg/s")
+    p.add_argument("--latitude", type=_number(-90, 90, "deg"), required=True, help="site latitude, deg")
+    p.add_argument("--height", type=_number(-500, 9000, "m"), default=0.0, help="site height, m (default 0)")
+    p.add_argument("--g0", type=_number(9.7, 9.9, "m/s^2"), help="measured gravity, m/s^2 (default: normal gravity)")
+    p.set_defaults(func=cmd_sensitivity)
     p = sub.add_parser("simulate", help="scenario -> capture file and CAPTURE.truth.json")
     p.add_argument("scenario", help=f"scenario TOML file, or one of: {', '.join(READY_MADE)}")
     p.add_argument("-o", "--output", required=True, help="capture file to write")

@@ -243,3 +243,18 @@ def test_calibrate_errors_are_one_line(argv, message, tmp_path, capsys, monkeypa
     err = capsys.readouterr().err
     assert message in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "r.json").exists()
+
+
+def test_sensitivity_report(capsys):
+    assert calibd_main(["sensitivity", "--alpha-error", "0.0030", "--beta-error", "0.0071", "--platform-rate",
+                        "27.9295", "--latitude", "40.59129", "--g0", "9.79956"]) == 0
+    out = capsys.readouterr().out
+    assert "0.1238 mg" in out and "5.265 deg/h" in out and "26.41 deg" in out
+
+
+def test_result_carries_the_earth_rate_diagnostic(session):
+    _, data, _ = session
+    report = thesis_real_case(data, SITE)["earth_rate_diagnostic"]["full turn"]
+    assert report["peak_frequency_hz"][0] == pytest.approx(27.93 / 360, rel=0.05)
+    assert report["expected_amplitude_deg_h"] == pytest.approx(11.4217, abs=1e-3)
+    assert report["visible"]
