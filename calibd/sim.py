@@ -138,14 +138,15 @@ def flicker_sigma(white_density: float, instability: float) -> float:
 
 def sensor_noise(rng: np.random.Generator, n: int, rate_hz: float, density: float, instability: float):
     """White noise of `density` (unit·sqrt(s)) as seen by averages over 1/rate, plus flicker-like
-    bias instability (minimum of the Allan deviation), for 3 axes."""
+    bias instability (minimum of the Allan deviation), for 3 axes: (total, coloured part)."""
     dt = 1.0 / rate_hz
-    noise = rng.standard_normal((n, 3)) * density * np.sqrt(rate_hz)
+    white = rng.standard_normal((n, 3)) * density * np.sqrt(rate_hz)
+    coloured = np.zeros((n, 3))
     sigma = flicker_sigma(density, instability) if instability > 0 else 0.0
     if sigma:
         for corr in FLICKER_TAUS_S:
-            noise += gauss_markov(rng, n, dt, sigma, corr)
-    return noise
+            coloured += gauss_markov(rng, n, dt, sigma, corr)
+    return white + coloured, coloured
 
 
 # ---------------------------------------------------------------- the session
@@ -159,6 +160,8 @@ class Simulation:
     time_s: np.ndarray
     phases: list[Phase]
     temperature_c: np.ndarray
+    exact: dict[str, np.ndarray]  # gyro (deg/s), acc, incl (g) in float64 before quantisation: for model tests
+    wander: dict[str, np.ndarray]  # session mean of the bias-instability noise (deg/s, g): part of the bias now
 
 
 def _attitude_truth(scenario: Scenario) -> tuple[np.ndarray, np.ndarray, tuple[float, float, float]]:
@@ -202,14 +205,18 @@ def simulate(scenario: Scenario) -> Simulation:
     incl = force + (np.asarray(truth.incl_bias_mg) + excess * w.incl_tempco_mg_per_c) / 1000
 
     noise = scenario.noise
+    wander = {"gyro": np.zeros(3), "acc": np.zeros(3), "incl": np.zeros(3)}  # coloured noise, session mean
     if noise.enabled:
         mg = STANDARD_GRAVITY / 1000
-        gyro += sensor_noise(rng, n, rate, noise.gyro_arw_deg_sqrt_h * 60 / 3600,
-                             noise.gyro_bias_instability_deg_h / 3600)
-        acc += sensor_noise(rng, n, rate, noise.acc_vrw_m_s_sqrt_h / 60 / STANDARD_GRAVITY,
-                            noise.acc_bias_instability_mg * mg / STANDARD_GRAVITY)
-        incl += sensor_noise(rng, n, rate, noise.incl_vrw_m_s_sqrt_h / 60 / STANDARD_GRAVITY,
-                             noise.incl_bias_instability_mg * mg / STANDARD_GRAVITY)
+        for name, values, density, instability in (
+                ("gyro", gyro, noise.gyro_arw_deg_sqrt_h * 60 / 3600, noise.gyro_bias_instability_deg_h / 3600),
+                ("acc", acc, noise.acc_vrw_m_s_sqrt_h / 60 / STANDARD_GRAVITY,
+                 noise.acc_bias_instability_mg * mg / STANDARD_GRAVITY),
+                ("incl", incl, noise.incl_vrw_m_s_sqrt_h / 60 / STANDARD_GRAVITY,
+                 noise.incl_bias_instability_mg * mg / STANDARD_GRAVITY)):
+            total, coloured = sensor_noise(rng, n, rate, density, instability)
+            values += total
+            wander[name] = coloured.mean(axis=0)
 
     lsb = sensor_format(scenario).scales()
 
@@ -232,7 +239,8 @@ def simulate(scenario: Scenario) -> Simulation:
     step = 2000 // rate
     samples["counter"] = (np.arange(n) * step) % 256
     samples["latency_us"] = sensor.latency_us
-    return Simulation(scenario, samples, t_end, phases, temperature)
+    return Simulation(scenario, samples, t_end, phases, temperature, {"gyro": gyro, "acc": acc, "incl": incl},
+                      wander)
 
 
 def sensor_format(scenario: Scenario) -> Format:
@@ -306,16 +314,22 @@ def capture_bytes(sim: Simulation) -> tuple[bytes, dict]:
     return b"".join(chunks), record
 
 
-def _bias_drift(scenario: Scenario, temperature: np.ndarray) -> dict:
-    """Biases the data actually carry (warm-up moves them): first sample, last sample, mean."""
+def _bias_drift(sim: Simulation) -> dict:
+    """Biases the data actually carry: warm-up moves them (first sample, last sample, mean), and
+    bias instability adds a slow wander whose session mean no estimator can tell from the bias
+    (`session` = mean + that wander: the bias a calibration of this capture should find)."""
+    scenario, temperature = sim.scenario, sim.temperature_c
     w, t = scenario.warmup, scenario.truth
     out = {}
-    for name, settled, tempco in (("gyro_bias_deg_h", t.gyro_bias_deg_h, w.gyro_tempco_deg_h_per_c),
-                                  ("acc_bias_mg", t.acc_bias_mg, w.acc_tempco_mg_per_c),
-                                  ("incl_bias_mg", t.incl_bias_mg, w.incl_tempco_mg_per_c)):
+    for name, key, settled, tempco, unit in (
+            ("gyro_bias_deg_h", "gyro", t.gyro_bias_deg_h, w.gyro_tempco_deg_h_per_c, 3600.0),
+            ("acc_bias_mg", "acc", t.acc_bias_mg, w.acc_tempco_mg_per_c, 1000.0),
+            ("incl_bias_mg", "incl", t.incl_bias_mg, w.incl_tempco_mg_per_c, 1000.0)):
         excess = np.array([temperature[0], temperature[-1], temperature.mean()]) - w.settled_c
         values = np.asarray(settled) + excess[:, None] * np.asarray(tempco)
-        out[name] = {"first": values[0].tolist(), "last": values[1].tolist(), "mean": values[2].tolist()}
+        wander = sim.wander[key] * unit
+        out[name] = {"first": values[0].tolist(), "last": values[1].tolist(), "mean": values[2].tolist(),
+                     "wander_mean": wander.tolist(), "session": (values[2] + wander).tolist()}
     return out
 
 
@@ -337,7 +351,7 @@ def truth_record(sim: Simulation, faults: dict) -> dict:
                  "g0_given": site.g0 is not None, "earth_rate_horizontal_deg_h": float(earth[0]),
                  "earth_rate_vertical_deg_h": float(earth[1])},
         "truth": asdict(scenario.truth) | {"gamma1_deg": gammas[0], "gamma2_deg": gammas[1], "gamma3_deg": gammas[2]},
-        "bias_during_capture": _bias_drift(scenario, sim.temperature_c),
+        "bias_during_capture": _bias_drift(sim),
         "noise": asdict(scenario.noise),
         "warmup": asdict(scenario.warmup),
         "samples": len(sim.samples),

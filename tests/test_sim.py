@@ -107,7 +107,7 @@ def test_noise_matches_the_configured_allan_deviation():
     density, instability = 0.15 * 60 / 3600, 0.3 / 3600  # deg/s*sqrt(s), deg/s
     rng = np.random.default_rng(11)
     rate_hz = 4.0
-    noise = sensor_noise(rng, int(30 * 3600 * rate_hz), rate_hz, density, instability)
+    noise, _ = sensor_noise(rng, int(30 * 3600 * rate_hz), rate_hz, density, instability)
     taus, adev = allan_deviation(noise, rate_hz, [1, 10, 100, 1000, 3000])
     assert adev[0] == pytest.approx(np.full(3, 9.0 / 3600), rel=0.05)  # ARW: 9 deg/h at 1 s
     expected = np.sqrt(density**2 / taus + sum(_allan_gm(taus, flicker_sigma(density, instability), c)
