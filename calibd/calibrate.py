@@ -13,7 +13,7 @@ import numpy as np
 from stim300.bulk import decode_capture
 
 from . import detect
-from .estimators import thesis
+from .estimators import joint, thesis
 from .frames import STANDARD_GRAVITY, Site
 from .results import make_result
 
@@ -199,3 +199,76 @@ def thesis_bench(session: Session, site: Site) -> dict:
                + [_segment_record(t, "full turn") for t in turns])
     return make_result("thesis-bench", site, estimates, records, warnings, session.sensor, stream=session.stream,
                        turns_alpha_beta_deg=[[a / DEG, b / DEG] for a, b in tilts])
+
+
+YAW_SIGMA_POOR_DEG = 5.0  # a yaw with a larger 1-sigma is flagged, not presented as usable
+
+
+def joint_real_case(session: Session, site: Site, options: joint.JointOptions = joint.JointOptions()) -> dict:
+    """The joint estimator (method.md §6) on every static and turning sample from the level
+    static to the last static of the same mounting."""
+    segments = detect.find_segments(session.gyro / DEG, session.acc / STANDARD_GRAVITY, session.rate_hz,
+                                    session.time_s)
+    try:
+        level = detect.level_static(segments)
+    except ValueError as exc:
+        raise CalibrationError(str(exc)) from None
+    used = [s for s in segments if s.start >= level.start]
+    moved = next((k for k, s in enumerate(used) if s.kind == "static" and s.up != level.up), len(used))
+    used = used[:moved]  # a re-mounting ends the single-axis model
+    while used and used[-1].kind != "static":
+        used.pop()
+    statics = [s for s in used if s.kind == "static"]
+    if not any(s.kind == "turn" for s in used):
+        raise CalibrationError("no turn after the level static: yaw needs the platform to turn")
+    first, stop = level.start, used[-1].stop
+    inp = joint.JointInput(
+        time_s=session.time_s[first:stop] - session.time_s[first], gyro=session.gyro[first:stop],
+        acc=session.acc[first:stop], incl=session.incl[first:stop],
+        statics=tuple((s.start - first, s.stop - first) for s in statics), rate_hz=session.rate_hz)
+    try:
+        fit = joint.solve(inp, site, options)
+    except ValueError as exc:
+        raise CalibrationError(str(exc)) from None
+    except np.linalg.LinAlgError:
+        raise CalibrationError("the segments do not determine every parameter (too few platform angles)") from None
+    warnings = _warm_up_warning(session) + _joint_warnings(fit, site)
+    estimates = {name: (fit.estimates[name], fit.sigmas[name]) for name in joint.ESTIMATE_NAMES}
+    result = make_result("joint", site, estimates, [_segment_record(s, s.kind) for s in used], warnings,
+                         session.sensor, stream=session.stream,
+                         options={"fixed_amplitude": options.fixed_amplitude, "drift": options.drift},
+                         checks=_joint_checks(fit, site))
+    if fit.sigmas["yaw"] / DEG > YAW_SIGMA_POOR_DEG:
+        result["estimates"]["yaw"]["quality"] = "poor"
+    return result
+
+
+def _joint_checks(fit: joint.JointResult, site: Site) -> dict:
+    fitted, sigma = fit.gyro.amplitude_check
+    expected = joint.EARTH_RATE * np.cos(np.radians(site.latitude_deg))
+    to_deg_h = 3600 / DEG
+    return {"earth_rate_horizontal_deg_h": {"fitted": fitted * to_deg_h, "sigma": sigma * to_deg_h,
+                                            "expected": expected * to_deg_h},
+            "gyro_residual_rms_deg_s": (fit.gyro.residual_rms / DEG).tolist(),
+            "noise_excess_over_white": {"gyro": fit.gyro.noise_scale, "acc": fit.acc.noise_scale,
+                                        "incl": fit.incl.noise_scale}}
+
+
+def _joint_warnings(fit: joint.JointResult, site: Site) -> list[str]:
+    warnings = ["biases are those of this session: the slow part of bias instability cannot be told "
+                "from the bias and is included",
+                "horizontal accelerometer and inclinometer biases rest on the gyro-derived alpha and beta "
+                "(a single rotation axis cannot separate them from the IMU tilt otherwise): an error "
+                "d_beta moves the X biases by g0 d_beta",
+                "Z accelerometer and inclinometer biases rest on g0; the normal-gravity formula can be off "
+                "by about 0.1 mg where the local anomaly is large (give --g0 when it is measured)"]
+    if fit.sigmas["yaw"] / DEG > YAW_SIGMA_POOR_DEG:
+        warnings.append(f"yaw is too poor to use: 1-sigma {fit.sigmas['yaw'] / DEG:.1f} deg (more static time "
+                        "at several headings, or more turning, would help)")
+    fitted, sigma = fit.gyro.amplitude_check
+    expected = joint.EARTH_RATE * np.cos(np.radians(site.latitude_deg))
+    if abs(fitted - expected) > 3 * sigma + 0.05 * expected:
+        warnings.append(f"the gyros see a horizontal Earth rate of {fitted / DEG * 3600:.2f} +- "
+                        f"{sigma / DEG * 3600:.2f} deg/h where {expected / DEG * 3600:.2f} deg/h is expected: "
+                        "model mismatch (platform disturbed, wrong latitude, scale error?)")
+    return warnings

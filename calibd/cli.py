@@ -13,7 +13,8 @@ import time
 
 from stim300.cliutil import CommandParser, UsageError, run_command
 
-from .calibrate import CalibrationError, load_session, thesis_bench, thesis_real_case
+from .calibrate import CalibrationError, joint_real_case, load_session, thesis_bench, thesis_real_case
+from .estimators.joint import JointOptions
 from .estimators.thesis import sensitivity
 from .frames import STANDARD_GRAVITY, Site
 from .results import write_result
@@ -61,8 +62,9 @@ def _site(args) -> Site:
 def _summary(result: dict) -> str:
     lines = [f"{result['method']}: {result['stream']['capture']}"]
     for name, e in result["estimates"].items():
-        sigma = "" if e["sigma"] is None else f" +- {e['sigma']:.4g}"
-        lines.append(f"  {name:12s} {e['value']:12.5f}{sigma} {e['unit']}")
+        sigma = "" if e["sigma"] is None else f" +- {e['sigma']:.3g}"
+        poor = "  (poor)" if e.get("quality") == "poor" else ""
+        lines.append(f"  {name:12s} {e['value']:12.5f}{sigma} {e['unit']}{poor}")
     lines += [f"  warning: {w}" for w in result["warnings"]]
     return "\n".join(lines)
 
@@ -72,10 +74,17 @@ def cmd_calibrate(args) -> int:
         raise UsageError("calibrate: give both --alpha and --beta (the nominal run) or neither (the linear run)")
     if args.bench and args.alpha is not None:
         raise UsageError("calibrate: --bench estimates alpha and beta itself; drop --alpha/--beta")
+    if args.method == "joint" and (args.alpha is not None or args.platform_rate is not None or args.bench):
+        raise UsageError("calibrate: --alpha/--beta, --platform-rate and --bench belong to --method thesis; the "
+                         "joint method estimates alpha and beta itself")
+    if args.method == "thesis" and (args.fixed_amplitude or args.drift):
+        raise UsageError("calibrate: --fixed-amplitude and --drift belong to --method joint")
     site = _site(args)
     try:
         session = load_session(args.capture, args.start)
-        if args.bench:
+        if args.method == "joint":
+            result = joint_real_case(session, site, JointOptions(args.fixed_amplitude, args.drift))
+        elif args.bench:
             result = thesis_bench(session, site)
         else:
             tilt = None if args.alpha is None else (args.alpha, args.beta)
@@ -113,7 +122,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("calibrate", help="capture -> biases and alignment (result JSON)")
     p.add_argument("capture")
     p.add_argument("-o", "--output", required=True, help="RESULT.json (replaced atomically)")
-    p.add_argument("--method", choices=("thesis",), default="thesis", help="estimator (default thesis)")
+    p.add_argument("--method", choices=("joint", "thesis"), default="joint",
+                   help="joint: every segment in one fit, with 1-sigma (default); thesis: the thesis's chain")
     p.add_argument("--latitude", type=_number(-90, 90, "deg"), required=True, help="site latitude, deg")
     p.add_argument("--height", type=_number(-500, 9000, "m"), default=0.0, help="site height, m (default 0)")
     p.add_argument("--g0", type=_number(9.7, 9.9, "m/s^2"), help="measured gravity, m/s^2 (default: normal gravity)")
@@ -123,6 +133,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="platform rate of the full turn from telemetry, deg/s, signed (default: from the gyros)")
     p.add_argument("--bench", action="store_true", help="a bench session: six-position biases and alpha/beta")
     p.add_argument("--start", type=_number(0, 1e9, "s"), default=0.0, help="skip the first S seconds (warm-up)")
+    p.add_argument("--fixed-amplitude", action="store_true",
+                   help="joint: fix the horizontal Earth rate to Omega_E cos(lat) (better yaw on short data; "
+                        "loses the check that the Earth rate is really seen)")
+    p.add_argument("--drift", action="store_true",
+                   help="joint: fit a linear gyro drift per channel (thermal ramps); costs precision")
     p.set_defaults(func=cmd_calibrate)
     p = sub.add_parser("sensitivity", help="what alpha/beta errors do to the thesis's estimates (section 7.1)")
     p.add_argument("--alpha-error", type=_number(-10, 10, "deg"), required=True, help="d_alpha, deg")

@@ -22,7 +22,8 @@ from stim300.codec import SAMPLE_DTYPE, encode_samples
 from stim300.protocol import NORMAL_LAYOUTS, AccUnit, Format, GyroUnit
 from stim300.special import Configuration, PartNumber, SerialNumber, encode_special
 
-from .frames import EARTH_RATE, STANDARD_GRAVITY, euler_321, int_to_imu, nav_to_imu, nav_to_int, r1, r2, r3
+from .frames import EARTH_RATE, STANDARD_GRAVITY, euler_321, int_to_imu, nav_to_imu, r1, r2, r3
+from .noise import FLICKER_TAUS_S, allan_gm
 from .scenario import Scenario
 
 START_UP_S = 0.7  # gyro start-up period after power-on: status bit 6 set (DS §7.5.2.1)
@@ -105,14 +106,7 @@ def gauss_markov(rng: np.random.Generator, n: int, dt: float, sigma: float, tau_
     return out.T
 
 
-FLICKER_TAUS_S = (3.0, 30.0, 300.0, 3000.0, 30000.0)  # Gauss-Markov time constants approximating flicker
 FLOOR_TAUS_S = np.logspace(0, 4, 400)  # where the instability floor is read: 1 s to about 3 h
-
-
-def _allan_gm(tau: np.ndarray, sigma: float, corr: float) -> np.ndarray:
-    """Allan variance of a Gauss-Markov process (IEEE 952 closed form)."""
-    x = tau / corr
-    return sigma**2 / x**2 * (2 * x - 3 + 4 * np.exp(-x) - np.exp(-2 * x))
 
 
 def flicker_sigma(white_density: float, instability: float) -> float:
@@ -124,7 +118,7 @@ def flicker_sigma(white_density: float, instability: float) -> float:
     white = white_density**2 / taus
 
     def minimum(sigma):
-        coloured = sum(_allan_gm(taus, sigma, c) for c in FLICKER_TAUS_S)
+        coloured = sum(allan_gm(taus, sigma, c) for c in FLICKER_TAUS_S)
         return np.sqrt(white + coloured).min()
 
     lo, hi = 0.0, 10 * instability

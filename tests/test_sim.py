@@ -11,8 +11,8 @@ from calibd.cli import main as calibd_main
 from calibd.frames import EARTH_RATE, STANDARD_GRAVITY, Site, euler_321, int_to_imu, nav_to_imu, nav_to_int
 from calibd.noise import allan_deviation
 from calibd.scenario import ScenarioError, Segment, load_scenario, parse_scenario
-from calibd.sim import (FLICKER_TAUS_S, _allan_gm, capture_bytes, flicker_sigma, sensor_noise, simulate,
-                        truth_record)
+from calibd.noise import FLICKER_TAUS_S, allan_gm
+from calibd.sim import capture_bytes, flicker_sigma, sensor_noise, simulate, truth_record
 from stim300.bulk import decode_capture
 
 DEG = np.pi / 180
@@ -110,7 +110,7 @@ def test_noise_matches_the_configured_allan_deviation():
     noise, _ = sensor_noise(rng, int(30 * 3600 * rate_hz), rate_hz, density, instability)
     taus, adev = allan_deviation(noise, rate_hz, [1, 10, 100, 1000, 3000])
     assert adev[0] == pytest.approx(np.full(3, 9.0 / 3600), rel=0.05)  # ARW: 9 deg/h at 1 s
-    expected = np.sqrt(density**2 / taus + sum(_allan_gm(taus, flicker_sigma(density, instability), c)
+    expected = np.sqrt(density**2 / taus + sum(allan_gm(taus, flicker_sigma(density, instability), c)
                                                for c in FLICKER_TAUS_S))
     assert np.allclose(adev, expected[:, None], rtol=0.3)
     assert adev[-2:].min() * 3600 == pytest.approx(0.3, rel=0.35)  # the floor is the bias instability

@@ -208,7 +208,7 @@ FIXTURE = "fixtures/thesis_real_cw_125hz.bin"
 
 def test_calibrate_command_writes_the_result_schema(tmp_path, capsys):
     out = tmp_path / "result.json"
-    code = calibd_main(["calibrate", FIXTURE, "--latitude", "40.59129", "--g0", "9.79956", "--alpha", "0.5934",
+    code = calibd_main(["calibrate", FIXTURE, "--method", "thesis", "--latitude", "40.59129", "--g0", "9.79956", "--alpha", "0.5934",
                         "--beta", "-0.1196", "-o", str(out)])
     assert code == 0, capsys.readouterr().err
     result = json.loads(out.read_text())
@@ -228,11 +228,13 @@ def test_calibrate_command_writes_the_result_schema(tmp_path, capsys):
 
 @pytest.mark.parametrize("argv,message", [
     (["calibrate", FIXTURE, "-o", "r.json"], "required: --latitude"),
-    (["calibrate", FIXTURE, "--latitude", "40", "--alpha", "0.5", "-o", "r.json"], "both --alpha and --beta"),
+    (["calibrate", FIXTURE, "--method", "thesis", "--latitude", "40", "--alpha", "0.5", "-o", "r.json"],
+     "both --alpha and --beta"),
     (["calibrate", FIXTURE, "--latitude", "91", "-o", "r.json"], "outside [-90, 90] deg"),
-    (["calibrate", "fixtures/faults_125hz.bin", "--latitude", "40", "-o", "r.json"], "not the thesis real-case"),
-    (["calibrate", "fixtures/thesis_real_cw_125hz.bin", "--bench", "--latitude", "40", "-o", "r.json"],
-     "not the bench protocol"),
+    (["calibrate", "fixtures/faults_125hz.bin", "--method", "thesis", "--latitude", "40", "-o", "r.json"],
+     "not the thesis real-case"),
+    (["calibrate", "fixtures/thesis_real_cw_125hz.bin", "--method", "thesis", "--bench", "--latitude", "40", "-o",
+      "r.json"], "not the bench protocol"),
     (["calibrate", "nope.bin", "--latitude", "40", "-o", "r.json"], "nope.bin: no such file"),
 ])
 def test_calibrate_errors_are_one_line(argv, message, tmp_path, capsys, monkeypatch):

@@ -1,0 +1,342 @@
+"""The joint estimator (method.md §6): every static and turning sample in one fit, with 1-sigma.
+
+With R_NAV^IMU(t) = A · R3(chi(t)) · R_NAV^int (A = R_int^IMU), the gyros read, exactly,
+
+    w(t) = A R3(chi) v + A[:, 2] chi' + b,      v = R_NAV^int Omega_NAV (the Earth rate in the
+                                                interface frame, |v| = Omega_E)
+         = v1 (A0 cos chi - A1 sin chi) + v2 (A0 sin chi + A1 cos chi) + k chi' + c
+
+with A0, A1 the first columns of A, k = A[:, 2] the platform axis in IMU axes and
+c = v3 k + b. Given the platform angle chi(t) (the integral of the gyro about the platform axis,
+its static level removed) this is linear in (v1, v2, k, c): one least-squares fit over all
+three channels and all samples, static and turning, any heading, sense, rate profile or number
+of turns. alpha and beta come from k, yaw from (v1, v2) with the gravity direction, the biases
+from c. The accelerometers and inclinometers see f = g0 A R3(chi) u + b at every static, with
+u = R_NAV^int Up the platform axis's tilt: linear in (u1, u2, b) for the gyro-derived A.
+No small-angle approximation is made anywhere.
+
+Uncertainty: the fits' covariances are scaled by the measured noise: the residual variance per
+sample, inflated by how much the Allan deviation of the static residuals exceeds white noise at
+long averaging times (bias instability correlates the errors), then propagated to every
+estimate through the numerical Jacobian of the chain.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..frames import EARTH_RATE, Site, euler_321, int_to_imu
+from ..noise import FLICKER_TAUS_S, allan_deviation, correlate, fit_noise_model
+
+ESTIMATE_NAMES = ("pitch", "roll", "yaw", "alpha", "beta", "gyro_bias_x", "gyro_bias_y", "gyro_bias_z",
+                  "acc_bias_x", "acc_bias_y", "acc_bias_z", "incl_bias_x", "incl_bias_y", "incl_bias_z")
+MAX_ITERATIONS = 20  # chi depends on the fitted axis and Earth terms: iterate to a fixed point
+CHI_TOLERANCE = 1e-13  # rad: the largest change of chi between passes that counts as converged
+
+
+@dataclass(frozen=True)
+class JointInput:
+    """A session in SI: samples from the level static (chi = 0 there) to the end of the protocol."""
+
+    time_s: np.ndarray  # (N,) s, gaps where datagrams were lost
+    gyro: np.ndarray  # (N, 3) rad/s
+    acc: np.ndarray  # (N, 3) m/s^2
+    incl: np.ndarray  # (N, 3) m/s^2
+    statics: tuple[tuple[int, int], ...]  # [start, stop) sample ranges of the static segments
+    rate_hz: float
+
+
+@dataclass(frozen=True)
+class JointOptions:
+    fixed_amplitude: bool = False  # horizontal Earth rate amplitude fixed to its known value
+    drift: bool = False  # a linear gyro drift per channel (thermal ramps); costs precision
+
+
+@dataclass
+class GyroFit:
+    params: np.ndarray  # v1, v2, k (3), c (3), [drift (3)]
+    cov: np.ndarray
+    chi: np.ndarray  # platform angle at each sample's mid-interval, rad
+    chi_rate: np.ndarray
+    residual_rms: np.ndarray  # per channel, rad/s
+    noise_scale: float
+    amplitude_check: tuple[float, float]  # fitted horizontal Earth rate and its 1-sigma, rad/s
+
+
+# ---------------------------------------------------------------- gyro fit
+
+def _platform_angle(inp: JointInput, axis: np.ndarray, offset: np.ndarray,
+                    static: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """chi at each sample's mid-interval and chi' (the sample's average rate): the gyro minus its
+    non-rotational part (`offset`), projected on the platform axis, integrated over time (lost
+    datagrams leave gaps in time_s). The platform does not turn in a static: chi' = 0 there,
+    which also anchors the vertical offset (else it trades with a drift of chi)."""
+    rate = (inp.gyro - offset) @ axis
+    rate[static] = 0.0
+    dt = 1.0 / inp.rate_hz
+    dt_next = np.diff(inp.time_s, append=inp.time_s[-1] + dt)
+    start = np.concatenate(([0.0], np.cumsum(rate * dt_next)[:-1]))
+    # half an interval at a linearly changing rate: r dt/2 less slope dt^2/8 (matters in ramps)
+    slope_term = np.gradient(rate) * dt / 8
+    return start + rate * dt / 2 - slope_term, rate
+
+
+def _gyro_designs(chi, chi_rate, tau, a, drift: bool) -> list[np.ndarray]:
+    """Per channel, the N x P regressors of (v1, v2, k_xyz, c_xyz[, d_xyz])."""
+    cos, sin = np.cos(chi), np.sin(chi)
+    zeros, ones = np.zeros(len(chi)), np.ones(len(chi))
+    designs = []
+    for i in range(3):
+        cols = [a[i, 0] * cos - a[i, 1] * sin, a[i, 0] * sin + a[i, 1] * cos]
+        cols += [chi_rate if j == i else zeros for j in range(3)]
+        cols += [ones if j == i else zeros for j in range(3)]
+        if drift:
+            cols += [tau if j == i else zeros for j in range(3)]
+        designs.append(np.column_stack(cols))
+    return designs
+
+
+def _normal_equations(designs, data, weights) -> tuple[np.ndarray, np.ndarray]:
+    gram = sum(w * d.T @ d for d, w in zip(designs, weights))
+    rhs = sum(w * d.T @ data[:, i] for i, (d, w) in enumerate(zip(designs, weights)))
+    return gram, rhs
+
+
+def _free(gram, rhs) -> tuple[np.ndarray, np.ndarray]:
+    cov = np.linalg.inv(gram)
+    return cov @ rhs, cov
+
+
+def _on_circle(gram, rhs, amplitude: float) -> tuple[np.ndarray, np.ndarray]:
+    """Best fit with (v1, v2) = amplitude (cos phi, sin phi): a 1-D search over phi with the other
+    parameters linear; the covariance is that of (phi, rest) mapped back to (v1, v2, rest)."""
+    p = len(rhs)
+
+    def mapping(phi, tangent=False):
+        t = np.zeros((p, p - 1))
+        t[0, 0], t[1, 0] = (-np.sin(phi), np.cos(phi)) if tangent else (np.cos(phi), np.sin(phi))
+        t[:2, 0] *= amplitude
+        t[2:, 1:] = np.eye(p - 2)
+        return t
+
+    def explained(phi):  # the cost is minus the explained sum of squares
+        t = mapping(phi)
+        h = t.T @ rhs
+        return h @ np.linalg.solve(t.T @ gram @ t, h)
+
+    best = max(np.linspace(-np.pi, np.pi, 721), key=explained)
+    for half_width in (1e-2, 1e-4, 1e-6, 1e-8):
+        best = max(best + np.linspace(-half_width, half_width, 41), key=explained)
+    t = mapping(best)
+    x = np.linalg.solve(t.T @ gram @ t, t.T @ rhs)
+    tangent = mapping(best, tangent=True)
+    return t @ x, tangent @ np.linalg.inv(tangent.T @ gram @ tangent) @ tangent.T
+
+
+def fit_gyros(inp: JointInput, site: Site, options: JointOptions = JointOptions()) -> GyroFit:
+    """The gyro fit, iterated: chi needs the platform axis and the Earth terms the fit gives."""
+    static = np.concatenate([np.arange(a, b) for a, b in inp.statics])
+    axis = np.array([0.0, 0.0, 1.0])
+    offset = inp.gyro[static].mean(axis=0)
+    tau = inp.time_s - inp.time_s.mean()
+    weights = np.ones(3)  # one noise spec for the three gyros (per-channel residual weights would let
+    # a noise-free channel with tiny residuals dictate v1, v2 through its small tilt coefficients)
+    amplitude = EARTH_RATE * np.cos(np.radians(site.latitude_deg))
+    chi = np.zeros(len(inp.time_s))
+    for _ in range(MAX_ITERATIONS):
+        previous = chi
+        chi, chi_rate = _platform_angle(inp, axis, offset, static)
+        designs = _gyro_designs(chi, chi_rate, tau, int_to_imu(*alpha_beta(axis)), options.drift)
+        gram, rhs = _normal_equations(designs, inp.gyro, weights)
+        params, cov = _on_circle(gram, rhs, amplitude) if options.fixed_amplitude else _free(gram, rhs)
+        residuals = np.column_stack([inp.gyro[:, i] - designs[i] @ params for i in range(3)])
+        k = params[2:5]
+        axis = k / np.linalg.norm(k)
+        offset = inp.gyro - residuals - np.outer(chi_rate, k)  # the fitted non-rotational part
+        if np.max(np.abs(chi - previous)) < CHI_TOLERANCE:
+            break
+    cov = _covariance(designs, residuals, np.arange(len(inp.time_s)), inp)
+    scale = _noise_scale(residuals, inp)
+    fitted = float(np.hypot(*params[:2]))
+    radial = params[:2] / fitted
+    return GyroFit(params, cov, chi, chi_rate, residuals.std(axis=0), scale,
+                   (fitted, float(np.sqrt(radial @ cov[:2, :2] @ radial))))
+
+
+def _covariance(designs, residuals: np.ndarray, rows: np.ndarray, inp: JointInput) -> np.ndarray:
+    """Parameter covariance under the noise the data show: white plus flicker (a sum of
+    Gauss-Markov processes), fitted to the Allan deviation of the longest static's residuals.
+    Flicker correlates the errors over minutes; a white-noise covariance would be optimistic for
+    everything that compares segments far apart. Components much longer than a session (here
+    above 3000 s) act as part of the bias during it, not as noise."""
+    a, b = max(inp.statics, key=lambda s: s[1] - s[0])
+    in_static = (rows >= a) & (rows < b)
+    white, flicker = fit_noise_model(residuals[in_static], inp.rate_hz)
+    gram = sum(d.T @ d for d in designs)
+    meat = white * gram
+    if flicker > 0:
+        n = inp.time_s.shape[0]
+        for d in designs:
+            full = np.zeros((n, d.shape[1]))
+            full[rows] = d
+            for corr in FLICKER_TAUS_S[:4]:
+                meat += flicker * d.T @ correlate(full, inp.rate_hz, corr)[rows]
+    bread = np.linalg.inv(gram)
+    return bread @ meat @ bread
+
+
+def alpha_beta(axis: np.ndarray) -> tuple[float, float]:
+    """alpha, beta of the platform axis k ~ [-sin b, sin a cos b, cos a cos b], exactly (the
+    thesis's beta = -atan(k_x / k_z) is off by beta (1 - cos alpha)). k is the axis, not the
+    rate, so either turn sense gives the same angles."""
+    return float(np.arctan2(axis[1], axis[2])), float(-np.arcsin(axis[0] / np.linalg.norm(axis)))
+
+
+def _noise_scale(residuals: np.ndarray, inp: JointInput) -> float:
+    """How much the static residuals' Allan deviation exceeds white noise at long averaging
+    times (an eighth and a quarter of the longest static): 1 for white noise, more when bias
+    instability correlates the errors."""
+    a, b = max(inp.statics, key=lambda s: s[1] - s[0])
+    r = residuals[a:b]
+    taus = np.array([1 / 8, 1 / 4]) * (b - a) / inp.rate_hz
+    taus = taus[taus * inp.rate_hz >= 2]
+    if not len(taus):
+        return 1.0
+    used, adev = allan_deviation(r, inp.rate_hz, taus)
+    white = r.std(axis=0) / np.sqrt(used[:, None] * inp.rate_hz)
+    ratio = np.divide(adev, white, out=np.ones_like(adev), where=white > 0)
+    return float(max(1.0, np.max(ratio)))
+
+
+# ---------------------------------------------------------------- accelerometers, inclinometers
+
+@dataclass
+class ForceFit:
+    params: np.ndarray  # u1, u2 (platform axis tilt in the interface frame), b (3), m/s^2 for b
+    cov: np.ndarray
+    noise_scale: float
+
+
+def fit_force(force: np.ndarray, chi: np.ndarray, inp: JointInput, a: np.ndarray, g0: float) -> ForceFit:
+    """f = g0 A R3(chi) u + b at every static sample, u = (u1, u2, sqrt(1 - u1^2 - u2^2)):
+    linear in (u1, u2, b) once u3 is taken from the previous pass."""
+    rows = np.concatenate([np.arange(s, e) for s, e in inp.statics])
+    chis = np.array([chi[s:e].mean() for s, e in inp.statics])
+    if np.ptp(np.exp(1j * chis).real) < 0.5 and np.ptp(np.exp(1j * chis).imag) < 0.5:
+        raise ValueError("the statics cover too few platform angles to separate the tilt from the biases "
+                         "(index positions about 90 deg apart are needed)")
+    cos, sin = np.cos(chi[rows]), np.sin(chi[rows])
+    n = len(rows)
+    u3 = 1.0
+    for _ in range(3):
+        designs = [np.column_stack([g0 * (a[i, 0] * cos - a[i, 1] * sin), g0 * (a[i, 0] * sin + a[i, 1] * cos)]
+                                   + [np.ones(n) if j == i else np.zeros(n) for j in range(3)]) for i in range(3)]
+        data = force[rows] - g0 * u3 * a[:, 2]
+        gram, rhs = _normal_equations(designs, data, np.ones(3))  # one noise spec per sensor
+        params = np.linalg.solve(gram, rhs)
+        residuals = np.column_stack([data[:, i] - designs[i] @ params for i in range(3)])
+        u3 = np.sqrt(1.0 - params[0] ** 2 - params[1] ** 2)
+    full = np.zeros_like(force)
+    full[rows] = residuals
+    cov = _covariance(designs, residuals, rows, inp)
+    return ForceFit(params, cov, _noise_scale(full, inp))
+
+
+# ---------------------------------------------------------------- from fits to estimates
+
+def _triad(primary_a, secondary_a, primary_b, secondary_b) -> np.ndarray:
+    """The rotation R with R primary_b = primary_a exactly and R secondary_b close to secondary_a."""
+    def frame(p, s):
+        t1 = p / np.linalg.norm(p)
+        t2 = np.cross(t1, s)
+        t2 /= np.linalg.norm(t2)
+        return np.column_stack([t1, t2, np.cross(t1, t2)])
+    return frame(primary_a, secondary_a) @ frame(primary_b, secondary_b).T
+
+
+def estimates_from(gyro_params: np.ndarray, incl_params: np.ndarray, acc_params: np.ndarray, site: Site) -> dict:
+    """Every estimate (SI) from the fitted parameters: a pure function, so its Jacobian carries the
+    fits' covariances to the estimates."""
+    k = gyro_params[2:5]
+    alpha, beta = alpha_beta(k)
+    a = int_to_imu(alpha, beta)
+    omega, up = site.earth_rate_nav, np.array([0.0, 0.0, 1.0])
+    u1, u2 = incl_params[:2]
+    u = np.array([u1, u2, np.sqrt(1 - u1**2 - u2**2)])  # Up in the interface frame
+    horizontal = omega - (omega @ up) * up
+    # v = R_NAV^int Omega. The fit gives v1, v2; v3 (along the interface z axis) hides in c and
+    # follows from the attitude, which needs v across u: a fixed point, reached in a few passes.
+    v3 = omega @ up
+    for _ in range(4):
+        v = np.array([gyro_params[0], gyro_params[1], v3])
+        r_nav_int = _triad(u, v - (v @ u) * u, up, horizontal)
+        v3 = (r_nav_int @ omega)[2]
+    yaw, pitch, roll = euler_321(a @ r_nav_int)
+    gyro_bias = gyro_params[5:8] - v3 * a[:, 2]
+    return {"pitch": float(pitch), "roll": float(roll), "yaw": float(yaw), "alpha": alpha, "beta": beta,
+            **{f"gyro_bias_{x}": float(b) for x, b in zip("xyz", gyro_bias)},
+            **{f"acc_bias_{x}": float(b) for x, b in zip("xyz", acc_params[2:5])},
+            **{f"incl_bias_{x}": float(b) for x, b in zip("xyz", incl_params[2:5])}}
+
+
+def _jacobian(f, x: np.ndarray, steps: np.ndarray) -> np.ndarray:
+    columns = []
+    for i, h in enumerate(steps):
+        up, down = x.copy(), x.copy()
+        up[i] += h
+        down[i] -= h
+        columns.append((np.array(list(f(up).values())) - np.array(list(f(down).values()))) / (2 * h))
+    return np.column_stack(columns)
+
+
+@dataclass
+class JointResult:
+    estimates: dict[str, float]  # SI
+    sigmas: dict[str, float]  # SI, 1-sigma
+    gyro: GyroFit
+    incl: ForceFit
+    acc: ForceFit
+    jacobian: np.ndarray  # d estimates / d (gyro, incl, acc params)
+
+
+def solve(inp: JointInput, site: Site, options: JointOptions = JointOptions()) -> JointResult:
+    gyro = fit_gyros(inp, site, options)
+    a = int_to_imu(*alpha_beta(gyro.params[2:5]))
+    incl = fit_force(inp.incl, gyro.chi, inp, a, site.gravity)
+    acc = fit_force(inp.acc, gyro.chi, inp, a, site.gravity)
+    sizes = (len(gyro.params), len(incl.params))
+    x = np.concatenate([gyro.params, incl.params, acc.params])
+
+    def chain(p):
+        return estimates_from(p[:sizes[0]], p[sizes[0]:sum(sizes)], p[sum(sizes):], site)
+
+    cov = _block_diag(gyro.cov, incl.cov, acc.cov)
+    steps = np.sqrt(np.diag(cov)) * 1e-3 + 1e-15
+    jac = _jacobian(chain, x, steps)
+    sigma = np.sqrt(np.diag(jac @ cov @ jac.T))
+    values = chain(x)
+    return JointResult(values, dict(zip(values, sigma.tolist())), gyro, incl, acc, jac)
+
+
+def _block_diag(*blocks) -> np.ndarray:
+    n = sum(len(b) for b in blocks)
+    out = np.zeros((n, n))
+    i = 0
+    for b in blocks:
+        out[i:i + len(b), i:i + len(b)] = b
+        i += len(b)
+    return out
+
+
+def white_noise_bound(inp: JointInput, result: JointResult, site: Site, gyro_arw_rad_sqrt_s: float) -> dict:
+    """Cramer-Rao bound of every gyro-driven estimate for white gyro noise of the given density
+    (angle random walk, rad/sqrt(s)) on this session's samples: the covariance an efficient
+    estimator reaches when the noise is white and the accelerometers are perfect."""
+    p = len(result.gyro.params)
+    designs = _gyro_designs(result.gyro.chi, result.gyro.chi_rate, inp.time_s - inp.time_s.mean(),
+                            int_to_imu(*alpha_beta(result.gyro.params[2:5])), p == 11)
+    cov = np.linalg.inv(sum(d.T @ d for d in designs)) * gyro_arw_rad_sqrt_s**2 * inp.rate_hz
+    jac = result.jacobian[:, :p]
+    return dict(zip(result.estimates, np.sqrt(np.diag(jac @ cov @ jac.T)).tolist()))

@@ -1,0 +1,185 @@
+"""The joint estimator: exact on noise-free sessions of any heading, sense and latitude; unmoved
+by turn overshoot and platform tilt; honest 1-sigma on a small Monte Carlo; the command."""
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from calibd import detect
+from calibd.calibrate import joint_real_case, load_session
+from calibd.cli import main as calibd_main
+from calibd.estimators.joint import JointInput, JointOptions, solve, white_noise_bound
+from calibd.frames import EARTH_RATE, STANDARD_GRAVITY, Site
+from calibd.scenario import Segment, load_scenario
+from calibd.sim import simulate, truth_record, write_capture
+
+DEG = np.pi / 180
+DISPLAY = {"pitch": 1 / DEG, "roll": 1 / DEG, "yaw": 1 / DEG, "alpha": 1 / DEG, "beta": 1 / DEG}
+
+
+def display(name: str) -> float:
+    if name in DISPLAY:
+        return DISPLAY[name]
+    return 3600 / DEG if name.startswith("gyro") else 1000 / STANDARD_GRAVITY
+
+
+def exact_input(sim) -> JointInput:
+    """The simulator's float64 samples before quantisation, from the level static on."""
+    rate = sim.scenario.sensor.sample_rate_hz
+    gyro, acc, incl = (sim.exact[k] for k in ("gyro", "acc", "incl"))
+    t = np.arange(len(gyro)) / rate
+    segments = detect.find_segments(gyro, acc, rate, t)
+    statics = [(s.start, s.stop) for s in segments if s.kind == "static"]
+    first = statics[0][0]
+    return JointInput(t[first:] - t[first], gyro[first:] * DEG, acc[first:] * STANDARD_GRAVITY,
+                      incl[first:] * STANDARD_GRAVITY, tuple((a - first, b - first) for a, b in statics), rate)
+
+
+def errors(estimates: dict, truth: dict) -> dict:
+    out = {}
+    for name, value in estimates.items():
+        e = value * display(name) - truth[name]
+        out[name] = (e + 180) % 360 - 180 if name == "yaw" else e
+    return out
+
+
+def quiet(scenario, **truth):
+    return replace(scenario, noise=replace(scenario.noise, enabled=False),
+                   warmup=replace(scenario.warmup, power_on_s=1e7), truth=replace(scenario.truth, **truth))
+
+
+def with_sense(scenario, sense):
+    return replace(scenario, segments=tuple(replace(s, angle_deg=abs(s.angle_deg) * sense) if s.kind == "turn"
+                                            else s for s in scenario.segments))
+
+
+THESIS = load_scenario("thesis-real")
+
+
+@pytest.mark.parametrize("yaw,latitude,sense", [(-3.036, 40.59129, -1), (-3.036, 40.59129, 1), (179.5, -33.9, 1),
+                                                (-120.0, 60.0, -1), (60.0, 75.0, 1), (0.0, 0.0, -1)])
+def test_noise_free_truth_to_1e6_deg(yaw, latitude, sense):
+    """The model is exact, so float64 data give the truth to numerical precision, whatever the
+    heading, the turn sense or the latitude (cos(lat) > 0.2)."""
+    scenario = with_sense(replace(quiet(THESIS, yaw_deg=yaw), site=Site(latitude)), sense)
+    result = solve(exact_input(simulate(scenario)), scenario.site)
+    e = errors(result.estimates, scenario.truth.estimates())
+    for name in ("pitch", "roll", "yaw", "alpha", "beta"):
+        assert abs(e[name]) < 1e-6, (name, e[name])
+    for name in ("gyro_bias_x", "gyro_bias_y", "gyro_bias_z"):
+        assert abs(e[name]) < 1e-3, (name, e[name])
+    for name in ("acc_bias_x", "acc_bias_y", "acc_bias_z", "incl_bias_x", "incl_bias_y", "incl_bias_z"):
+        assert abs(e[name]) < 1e-4, (name, e[name])  # mg
+
+
+def test_continuous_rotation_and_several_turns():
+    """No index positions: ten turns at 10 deg/s without stopping also determine everything."""
+    scenario = quiet(load_scenario("continuous"), yaw_deg=77.0)
+    scenario = replace(scenario, segments=(Segment("static", duration_s=60),) + scenario.segments[1:2]
+                       + (Segment("static", duration_s=30),))
+    sim = simulate(scenario)
+    inp = exact_input(sim)
+    # statics at one platform angle only: the accelerometer tilt needs several, so give the fit the
+    # turning samples' angles through a second static after a quarter turn
+    with pytest.raises(ValueError, match="too few platform angles"):
+        solve(inp, scenario.site)
+    more = replace(scenario, segments=scenario.segments + (
+        Segment("turn", angle_deg=90, peak_rate_deg_s=10, accel_deg_s2=5), Segment("static", duration_s=30),
+        Segment("turn", angle_deg=90, peak_rate_deg_s=10, accel_deg_s2=5), Segment("static", duration_s=30)))
+    result = solve(exact_input(simulate(more)), more.site)
+    e = errors(result.estimates, more.truth.estimates())
+    assert abs(e["yaw"]) < 1e-6 and abs(e["gyro_bias_y"]) < 1e-3
+
+
+def test_overshoot_and_platform_tilt_leave_yaw_unbiased():
+    """Index turns of 91 deg (overshoot) and a platform axis tilted 1 mrad: chi comes from the
+    gyros and the tilt is part of the model, so neither biases yaw."""
+    tilted = quiet(THESIS, pitch_deg=THESIS.truth.pitch_deg + np.degrees(1e-3))
+    segments = tuple(replace(s, angle_deg=-91.0) if s.kind == "turn" and abs(s.angle_deg) == 90 else s
+                     for s in tilted.segments)
+    scenario = replace(tilted, segments=segments)
+    result = solve(exact_input(simulate(scenario)), scenario.site)
+    e = errors(result.estimates, scenario.truth.estimates())
+    assert abs(e["yaw"]) < 1e-6 and abs(e["gyro_bias_y"]) < 1e-3
+
+
+def test_quantised_capture_through_the_whole_path(tmp_path):
+    """Through bytes: quantisation is the only error. A constant static rate is off by up to half a
+    count (0.11 deg/h), which moves yaw by up to 0.11 / 11.42 rad = 0.55 deg."""
+    scenario = quiet(THESIS)
+    write_capture(scenario, tmp_path / "s.bin")
+    result = joint_real_case(load_session(str(tmp_path / "s.bin")), scenario.site)
+    e = {k: v["value"] - scenario.truth.estimates()[k] for k, v in result["estimates"].items()}
+    assert abs(e["yaw"]) < 0.55 and abs(e["pitch"]) < 1e-4 and abs(e["gyro_bias_y"]) < 0.11
+    assert result["method"] == "joint"
+    assert all(v["sigma"] is not None for v in result["estimates"].values())
+
+
+def test_fixed_amplitude_agrees_with_free():
+    scenario = replace(THESIS, seed=5)
+    sim = simulate(scenario)
+    inp = exact_input(sim)
+    free = solve(inp, scenario.site)
+    fixed = solve(inp, scenario.site, JointOptions(fixed_amplitude=True))
+    assert abs(free.estimates["yaw"] - fixed.estimates["yaw"]) < 2 * free.sigmas["yaw"]
+    assert fixed.sigmas["yaw"] <= free.sigmas["yaw"] * 1.05
+    amplitude, sigma = free.gyro.amplitude_check
+    assert amplitude == pytest.approx(EARTH_RATE * np.cos(np.radians(scenario.site.latitude_deg)), abs=4 * sigma)
+
+
+def test_sigma_is_honest_on_a_small_monte_carlo():
+    """Eight noisy thesis sessions: errors against the bias the data carry (bias-instability wander
+    included), over the reported 1-sigma, pooled over every estimate. The 200-session check is
+    benchmarks/accuracy.py."""
+    z, yaw_errors, bounds = [], [], []
+    for seed in range(1, 9):
+        scenario = replace(THESIS, seed=seed)
+        sim = simulate(scenario)
+        inp = exact_input(sim)
+        result = solve(inp, scenario.site)
+        truth = scenario.truth.estimates()
+        carried = truth_record(sim, {})["bias_during_capture"]
+        for name, key in (("gyro_bias", "gyro_bias_deg_h"), ("acc_bias", "acc_bias_mg"), ("incl_bias", "incl_bias_mg")):
+            truth |= {f"{name}_{a}": v for a, v in zip("xyz", carried[key]["session"])}
+        e = errors(result.estimates, truth)
+        z += [e[n] / (result.sigmas[n] * display(n)) for n in e]
+        yaw_errors.append(e["yaw"])
+        bounds.append(white_noise_bound(inp, result, scenario.site, 0.15 / 60 * DEG)["yaw"] / DEG)
+    z = np.abs(np.array(z))
+    assert 0.8 <= np.mean(z <= 2) <= 1.0
+    assert np.sqrt(np.mean(np.square(yaw_errors))) < 2.5 * np.mean(bounds)  # near the noise limit (about 2 deg)
+    assert np.mean(bounds) == pytest.approx(2.0, abs=0.6)
+
+
+FIXTURE = "fixtures/thesis_real_cw_125hz.bin"
+
+
+def test_calibrate_defaults_to_joint(tmp_path, capsys):
+    out = tmp_path / "r.json"
+    assert calibd_main(["calibrate", FIXTURE, "--latitude", "40.59129", "--g0", "9.79956", "-o", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert result["method"] == "joint"
+    yaw = result["estimates"]["yaw"]
+    assert abs(yaw["value"] - -3.036) < 3 * yaw["sigma"] and yaw["unit"] == "deg"
+    assert result["checks"]["earth_rate_horizontal_deg_h"]["expected"] == pytest.approx(11.4217, abs=1e-3)
+    printed = capsys.readouterr().out
+    assert "+-" in printed and "deg/h" in printed
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["--alpha", "0.5", "--beta", "0.1"], "belong to --method thesis"),
+    (["--method", "thesis", "--drift"], "belong to --method joint"),
+])
+def test_calibrate_option_mixups_are_one_line(argv, message, tmp_path, capsys):
+    code = calibd_main(["calibrate", FIXTURE, "--latitude", "40", "-o", str(tmp_path / "r.json"), *argv])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1
+
+
+def test_capture_without_turns_is_refused(tmp_path, capsys):
+    code = calibd_main(["calibrate", "fixtures/faults_125hz.bin", "--latitude", "40", "-o", str(tmp_path / "r.json")])
+    assert code == 2
+    assert "no turn after the level static" in capsys.readouterr().err
