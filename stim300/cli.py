@@ -235,7 +235,7 @@ def _describe(info: dict) -> str:
         f"config_changes   {info['config_changes']}",
         "status flags     " + ("; ".join(f"{block}: " + ", ".join(f"{flag} in {n} datagrams" for flag, n in flags.items())
                                            for block, flags in info["status_flags"].items() if flags) or "none"),
-        f"units            " + ", ".join(f"{k} {v}" for k, v in info["units"].items()),
+        "units            " + ", ".join(f"{k} {v}" for k, v in info["units"].items()),
         f"acc range        {info['acc_range_g']} g",
         f"part number      {value(info['part_number'])}",
         f"serial number    {value(info['serial_number'])}",
