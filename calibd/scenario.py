@@ -112,6 +112,7 @@ class Segment:
     peak_rate_deg_s: float = 0.0
     accel_deg_s2: float = 0.0
     up: str = "+Z"
+    ripple: float = 0.0  # turn: relative once-per-revolution rate ripple (0.01 = 1 %)
 
 
 @dataclass(frozen=True)
@@ -242,7 +243,8 @@ def _segment(t: _Table) -> Segment:
     if kind == "turn":
         seg = Segment(kind, angle_deg=t.get("angle_deg", None, float, lambda a: a != 0, "a non-zero angle"),
                       peak_rate_deg_s=t.get("peak_rate_deg_s", None, float, _positive, "a positive rate in deg/s"),
-                      accel_deg_s2=t.get("accel_deg_s2", None, float, _positive, "a positive acceleration"))
+                      accel_deg_s2=t.get("accel_deg_s2", None, float, _positive, "a positive acceleration"),
+                      ripple=t.get("ripple", 0.0, float, lambda r: 0 <= r < 0.5, "a relative ripple in [0, 0.5)"))
         for key in ("angle_deg", "peak_rate_deg_s", "accel_deg_s2"):
             if getattr(seg, key) is None:
                 t.fail(key, "missing for a turn")

@@ -49,6 +49,18 @@ class Phase:
     chi_start_deg: float = 0.0
     cruise_start_s: float | None = None
     cruise_end_s: float | None = None
+    ripple: float = 0.0
+
+    @property
+    def turned_deg(self) -> float:
+        """The whole angle of a turn, ripple included (0 for statics)."""
+        return 0.0 if self.kind != "turn" else np.sign(self.angle_deg) * _rippled(abs(self.angle_deg), self.ripple)
+
+
+def _rippled(theta_deg, ripple: float):
+    """Angle turned when the rate is the profile's times (1 + ripple sin(angle)): the profile's
+    angle plus ripple (1 - cos(angle)), in closed form (d/dt of it is the rippled rate)."""
+    return theta_deg + np.degrees(ripple * (1 - np.cos(np.radians(theta_deg))))
 
 
 def schedule(scenario: Scenario) -> list[Phase]:
@@ -65,10 +77,11 @@ def schedule(scenario: Scenario) -> list[Phase]:
             t_acc = rate / accel
             t_cruise = (angle - rate * t_acc) / rate
             end = t + 2 * t_acc + t_cruise
-            phases.append(Phase("turn", t, end, up=mount, angle_deg=seg.angle_deg, peak_rate_deg_s=float(rate),
-                                accel_deg_s2=accel, chi_start_deg=chi, cruise_start_s=t + t_acc,
-                                cruise_end_s=t + t_acc + t_cruise))
-            chi += seg.angle_deg
+            phase = Phase("turn", t, end, up=mount, angle_deg=seg.angle_deg, peak_rate_deg_s=float(rate),
+                          accel_deg_s2=accel, chi_start_deg=chi, cruise_start_s=t + t_acc,
+                          cruise_end_s=t + t_acc + t_cruise, ripple=seg.ripple)
+            phases.append(phase)
+            chi += phase.turned_deg
         else:
             end = t + seg.duration_s
             phases.append(Phase(seg.kind, t, end, up=mount, chi_start_deg=chi))
@@ -77,8 +90,8 @@ def schedule(scenario: Scenario) -> list[Phase]:
 
 
 def platform_angle(phases: list[Phase], t: np.ndarray) -> np.ndarray:
-    """chi(t) in degrees (exact trapezoidal profile), for any times t."""
-    chi = np.full(t.shape, phases[-1].chi_start_deg + (phases[-1].angle_deg if phases[-1].kind == "turn" else 0.0))
+    """chi(t) in degrees (exact trapezoidal profile, with its ripple), for any times t."""
+    chi = np.full(t.shape, phases[-1].chi_start_deg + phases[-1].turned_deg)
     for p in reversed(phases):
         inside = (t >= p.start_s) & (t < p.end_s) if p is not phases[-1] else t >= p.start_s
         if p.kind != "turn":
@@ -91,7 +104,7 @@ def platform_angle(phases: list[Phase], t: np.ndarray) -> np.ndarray:
         cruise = w * np.clip(tau - t_acc, 0.0, t_cruise)
         down = np.clip(tau - t_acc - t_cruise, 0.0, t_acc)
         fall = w * down - 0.5 * a * down**2
-        chi[inside] = p.chi_start_deg + np.sign(p.angle_deg) * (rise + cruise + fall)
+        chi[inside] = p.chi_start_deg + np.sign(p.angle_deg) * _rippled(rise + cruise + fall, p.ripple)
     return chi
 
 

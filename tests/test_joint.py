@@ -105,6 +105,22 @@ def test_overshoot_and_platform_tilt_leave_yaw_unbiased():
     assert abs(e["yaw"]) < 1e-6 and abs(e["gyro_bias_y"]) < 1e-3
 
 
+def test_rate_ripple_leaves_yaw_unbiased():
+    """A 1 % once-per-revolution ripple of the platform rate: chi is integrated from the gyros,
+    so the fit sees the rate the platform really had."""
+    scenario = quiet(THESIS)
+    scenario = replace(scenario, segments=tuple(replace(s, ripple=0.01) if s.kind == "turn" else s
+                                                for s in scenario.segments))
+    sim = simulate(scenario)
+    full = [p for p in sim.phases if p.kind == "turn"][-1]
+    cruise = (sim.time_s > full.cruise_start_s + 0.1) & (sim.time_s < full.cruise_end_s - 0.1)
+    rate = sim.exact["gyro"][cruise, 2]
+    assert np.ptp(rate) / np.mean(np.abs(rate)) == pytest.approx(0.02, rel=0.1)  # +-1 % really there
+    result = solve(exact_input(sim), scenario.site)
+    e = errors(result.estimates, scenario.truth.estimates())
+    assert abs(e["yaw"]) < 1e-6 and abs(e["gyro_bias_y"]) < 1e-3
+
+
 def test_quantised_capture_through_the_whole_path(tmp_path):
     """Through bytes: quantisation is the only error. A constant static rate is off by up to half a
     count (0.11 deg/h), which moves yaw by up to 0.11 / 11.42 rad = 0.55 deg."""
