@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.stats import chi2
 
 from stim300.bulk import decode_capture
 
@@ -249,9 +250,18 @@ def _joint_checks(fit: joint.JointResult, site: Site) -> dict:
     to_deg_h = 3600 / DEG
     return {"earth_rate_horizontal_deg_h": {"fitted": fitted * to_deg_h, "sigma": sigma * to_deg_h,
                                             "expected": expected * to_deg_h},
+            "static_chi2": _chi2_record(fit),
             "gyro_residual_rms_deg_s": (fit.gyro.residual_rms / DEG).tolist(),
             "noise_excess_over_white": {"gyro": fit.gyro.noise_scale, "acc": fit.acc.noise_scale,
                                         "incl": fit.incl.noise_scale}}
+
+
+CHI2_ALARM_P = 1e-3  # p-value below which the statics' residuals say the model does not hold
+
+
+def _chi2_record(fit: joint.JointResult) -> dict:
+    value, dof = fit.gyro.static_chi2
+    return {"chi2": value, "dof": dof, "p_value": float(chi2.sf(value, dof))}
 
 
 def _joint_warnings(fit: joint.JointResult, site: Site) -> list[str]:
@@ -265,6 +275,11 @@ def _joint_warnings(fit: joint.JointResult, site: Site) -> list[str]:
     if fit.sigmas["yaw"] / DEG > YAW_SIGMA_POOR_DEG:
         warnings.append(f"yaw is too poor to use: 1-sigma {fit.sigmas['yaw'] / DEG:.1f} deg (more static time "
                         "at several headings, or more turning, would help)")
+    chi2_check = _chi2_record(fit)
+    if chi2_check["p_value"] < CHI2_ALARM_P:
+        warnings.append(f"the static segments' gyro means do not fit the model (chi-square {chi2_check['chi2']:.0f} "
+                        f"for {chi2_check['dof']} degrees of freedom): a bias jump, a platform that moved during a "
+                        "static, or warm-up drift; the estimates and their sigma are not to be trusted")
     fitted, sigma = fit.gyro.amplitude_check
     expected = joint.EARTH_RATE * np.cos(np.radians(site.latitude_deg))
     if abs(fitted - expected) > 3 * sigma + 0.05 * expected:

@@ -169,6 +169,18 @@ def test_sigma_is_honest_on_a_small_monte_carlo():
     assert np.mean(bounds) == pytest.approx(2.0, abs=0.6)
 
 
+def test_a_bias_jump_fails_the_residual_check():
+    scenario = replace(THESIS, seed=3)
+    inp = exact_input(simulate(scenario))
+    clean = solve(inp, scenario.site).gyro.static_chi2
+    start, stop = inp.statics[2]  # the second index position
+    jumped = inp.gyro.copy()
+    jumped[start:stop, 0] += 8 / 3600 * DEG  # +8 deg/h on gyro X for those 120 s (about 10 sigma of its mean)
+    bad = solve(replace(inp, gyro=jumped), scenario.site).gyro.static_chi2
+    from scipy.stats import chi2
+    assert chi2.sf(*clean) > 1e-3 and chi2.sf(*bad) < 1e-3
+
+
 FIXTURE = "fixtures/thesis_real_cw_125hz.bin"
 
 
@@ -180,6 +192,8 @@ def test_calibrate_defaults_to_joint(tmp_path, capsys):
     yaw = result["estimates"]["yaw"]
     assert abs(yaw["value"] - -3.036) < 3 * yaw["sigma"] and yaw["unit"] == "deg"
     assert result["checks"]["earth_rate_horizontal_deg_h"]["expected"] == pytest.approx(11.4217, abs=1e-3)
+    assert result["checks"]["static_chi2"]["p_value"] > 1e-3
+    assert not any("do not fit the model" in w for w in result["warnings"])
     printed = capsys.readouterr().out
     assert "+-" in printed and "deg/h" in printed
 

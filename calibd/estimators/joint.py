@@ -63,6 +63,7 @@ class GyroFit:
     residual_rms: np.ndarray  # per channel, rad/s
     noise_scale: float
     amplitude_check: tuple[float, float]  # fitted horizontal Earth rate and its 1-sigma, rad/s
+    static_chi2: tuple[float, int]  # chi-square of the statics' mean residuals and its degrees of freedom
 
 
 # ---------------------------------------------------------------- gyro fit
@@ -162,7 +163,30 @@ def fit_gyros(inp: JointInput, site: Site, options: JointOptions = JointOptions(
     fitted = float(np.hypot(*params[:2]))
     radial = params[:2] / fitted
     return GyroFit(params, cov, chi, chi_rate, residuals.std(axis=0), scale,
-                   (fitted, float(np.sqrt(radial @ cov[:2, :2] @ radial))))
+                   (fitted, float(np.sqrt(radial @ cov[:2, :2] @ radial))),
+                   _static_chi2(residuals, inp, len(params) - 3))
+
+
+def _static_chi2(residuals: np.ndarray, inp: JointInput, fitted: int) -> tuple[float, int]:
+    """Chi-square of each static's mean residual (per channel) against what the fitted noise
+    model lets a mean over that long scatter: large when a bias jumped, the platform moved
+    during a 'static', or the model does not hold."""
+    a, b = max(inp.statics, key=lambda s: s[1] - s[0])
+    white, flicker = fit_noise_model(residuals[a:b], inp.rate_hz)
+    total, count = 0.0, 0
+    for start, stop in inp.statics:
+        n = stop - start
+        tau = n / inp.rate_hz
+        var = white / n + flicker * sum(_gm_mean_variance(tau, c) for c in FLICKER_TAUS_S[:4])
+        total += float(np.sum(residuals[start:stop].mean(axis=0) ** 2) / var)
+        count += 3
+    return total, max(count - fitted, 1)
+
+
+def _gm_mean_variance(tau: float, corr: float) -> float:
+    """Variance of the mean over tau of a unit Gauss-Markov process of correlation time corr."""
+    x = tau / corr
+    return 2 / x * (1 - (1 - np.exp(-x)) / x)
 
 
 def _covariance(designs, residuals: np.ndarray, rows: np.ndarray, inp: JointInput) -> np.ndarray:
