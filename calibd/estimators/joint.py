@@ -99,20 +99,25 @@ def _gyro_designs(chi, chi_rate, tau, a, drift: bool) -> list[np.ndarray]:
     return designs
 
 
-def _normal_equations(designs, data, weights) -> tuple[np.ndarray, np.ndarray]:
-    gram = sum(w * d.T @ d for d, w in zip(designs, weights))
-    rhs = sum(w * d.T @ data[:, i] for i, (d, w) in enumerate(zip(designs, weights)))
+def _normal_equations(designs, data) -> tuple[np.ndarray, np.ndarray]:
+    """Channels weighted equally: the three axes of a sensor share one noise spec (weights from
+    per-channel residuals would let a noise-free channel with tiny residuals dictate v1, v2
+    through its small tilt coefficients)."""
+    gram = sum(d.T @ d for d in designs)
+    rhs = sum(d.T @ data[:, i] for i, d in enumerate(designs))
     return gram, rhs
 
 
 def _free(gram, rhs) -> tuple[np.ndarray, np.ndarray]:
-    cov = np.linalg.inv(gram)
-    return cov @ rhs, cov
+    """Unconstrained least squares: parameters and the inverse information."""
+    bread = np.linalg.inv(gram)
+    return bread @ rhs, bread
 
 
 def _on_circle(gram, rhs, amplitude: float) -> tuple[np.ndarray, np.ndarray]:
     """Best fit with (v1, v2) = amplitude (cos phi, sin phi): a 1-D search over phi with the other
-    parameters linear; the covariance is that of (phi, rest) mapped back to (v1, v2, rest)."""
+    parameters linear; the inverse information is that of (phi, rest) mapped back to
+    (v1, v2, rest) through the tangent of the circle."""
     p = len(rhs)
 
     def mapping(phi, tangent=False):
@@ -142,23 +147,21 @@ def fit_gyros(inp: JointInput, site: Site, options: JointOptions = JointOptions(
     axis = np.array([0.0, 0.0, 1.0])
     offset = inp.gyro[static].mean(axis=0)
     tau = inp.time_s - inp.time_s.mean()
-    weights = np.ones(3)  # one noise spec for the three gyros (per-channel residual weights would let
-    # a noise-free channel with tiny residuals dictate v1, v2 through its small tilt coefficients)
     amplitude = EARTH_RATE * np.cos(np.radians(site.latitude_deg))
     chi = np.zeros(len(inp.time_s))
     for _ in range(MAX_ITERATIONS):
         previous = chi
         chi, chi_rate = _platform_angle(inp, axis, offset, static)
         designs = _gyro_designs(chi, chi_rate, tau, int_to_imu(*alpha_beta(axis)), options.drift)
-        gram, rhs = _normal_equations(designs, inp.gyro, weights)
-        params, cov = _on_circle(gram, rhs, amplitude) if options.fixed_amplitude else _free(gram, rhs)
+        gram, rhs = _normal_equations(designs, inp.gyro)
+        params, bread = _on_circle(gram, rhs, amplitude) if options.fixed_amplitude else _free(gram, rhs)
         residuals = np.column_stack([inp.gyro[:, i] - designs[i] @ params for i in range(3)])
         k = params[2:5]
         axis = k / np.linalg.norm(k)
         offset = inp.gyro - residuals - np.outer(chi_rate, k)  # the fitted non-rotational part
         if np.max(np.abs(chi - previous)) < CHI_TOLERANCE:
             break
-    cov = _covariance(designs, residuals, np.arange(len(inp.time_s)), inp)
+    cov = _covariance(designs, residuals, np.arange(len(inp.time_s)), inp, bread)
     scale = _noise_scale(residuals, inp)
     fitted = float(np.hypot(*params[:2]))
     radial = params[:2] / fitted
@@ -189,17 +192,17 @@ def _gm_mean_variance(tau: float, corr: float) -> float:
     return 2 / x * (1 - (1 - np.exp(-x)) / x)
 
 
-def _covariance(designs, residuals: np.ndarray, rows: np.ndarray, inp: JointInput) -> np.ndarray:
+def _covariance(designs, residuals: np.ndarray, rows: np.ndarray, inp: JointInput, bread: np.ndarray) -> np.ndarray:
     """Parameter covariance under the noise the data show: white plus flicker (a sum of
     Gauss-Markov processes), fitted to the Allan deviation of the longest static's residuals.
     Flicker correlates the errors over minutes; a white-noise covariance would be optimistic for
     everything that compares segments far apart. Components much longer than a session (here
-    above 3000 s) act as part of the bias during it, not as noise."""
+    above 3000 s) act as part of the bias during it, not as noise. `bread` is the inverse
+    information of the (possibly constrained) fit: cov = bread . (H' Sigma H) . bread."""
     a, b = max(inp.statics, key=lambda s: s[1] - s[0])
     in_static = (rows >= a) & (rows < b)
     white, flicker = fit_noise_model(residuals[in_static], inp.rate_hz)
-    gram = sum(d.T @ d for d in designs)
-    meat = white * gram
+    meat = white * sum(d.T @ d for d in designs)
     if flicker > 0:
         n = inp.time_s.shape[0]
         for d in designs:
@@ -207,7 +210,6 @@ def _covariance(designs, residuals: np.ndarray, rows: np.ndarray, inp: JointInpu
             full[rows] = d
             for corr in FLICKER_TAUS_S[:4]:
                 meat += flicker * d.T @ correlate(full, inp.rate_hz, corr)[rows]
-    bread = np.linalg.inv(gram)
     return bread @ meat @ bread
 
 
@@ -258,13 +260,13 @@ def fit_force(force: np.ndarray, chi: np.ndarray, inp: JointInput, a: np.ndarray
         designs = [np.column_stack([g0 * (a[i, 0] * cos - a[i, 1] * sin), g0 * (a[i, 0] * sin + a[i, 1] * cos)]
                                    + [np.ones(n) if j == i else np.zeros(n) for j in range(3)]) for i in range(3)]
         data = force[rows] - g0 * u3 * a[:, 2]
-        gram, rhs = _normal_equations(designs, data, np.ones(3))  # one noise spec per sensor
+        gram, rhs = _normal_equations(designs, data)
         params = np.linalg.solve(gram, rhs)
         residuals = np.column_stack([data[:, i] - designs[i] @ params for i in range(3)])
         u3 = np.sqrt(1.0 - params[0] ** 2 - params[1] ** 2)
     full = np.zeros_like(force)
     full[rows] = residuals
-    cov = _covariance(designs, residuals, rows, inp)
+    cov = _covariance(designs, residuals, rows, inp, np.linalg.inv(gram))
     return ForceFit(params, cov, _noise_scale(full, inp))
 
 
