@@ -1,0 +1,182 @@
+"""The daemon's configuration: a TOML file -> a validated, frozen `DaemonConfig`.
+
+A daemon finds its mistakes in the journal, long after it was started; so everything is checked
+at start-up, unknown tables and keys included (a misspelt key would otherwise silently keep its
+default), and each error is one line naming the file, the table, the key, the value and what
+was expected.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+from stim300.protocol import DEFAULT_BIT_RATE
+
+from .frames import Site
+from .scenario import _Table
+
+METHODS = ("joint", "thesis")
+TABLES = ("serial", "site", "output", "warmup", "method")
+JOINT_ONLY = ("fixed_amplitude", "drift")
+THESIS_ONLY = ("alpha_deg", "beta_deg")
+
+
+class ConfigError(ValueError):
+    """A configuration the daemon cannot run with; the message says where and why in one line."""
+
+
+@dataclass(frozen=True)
+class SerialConfig:
+    port: str  # device path or pyserial URL
+    baudrate: int = DEFAULT_BIT_RATE
+
+
+@dataclass(frozen=True)
+class WarmupConfig:
+    """When the IMU counts as warmed up: biases follow temperature, so calibrating on a thermal
+    ramp gives biases that are wrong by the time they are used."""
+
+    max_slope_c_per_h: float = 1.0  # temperature trend over the window below which it is warm
+    window_s: float = 600.0  # the window the trend is fitted over
+    min_time_s: float = 0.0  # and at least this long since power-up
+
+
+@dataclass(frozen=True)
+class MethodConfig:
+    """The estimator and its options (see `calibd calibrate --help` for what they mean)."""
+
+    name: str = "joint"
+    fixed_amplitude: bool = False  # joint only
+    drift: bool = False  # joint only
+    alpha_deg: float | None = None  # thesis only, with beta_deg: a-priori interface tilt (nominal run)
+    beta_deg: float | None = None
+    resolve_every_s: float = 60.0  # how often the estimate is recomputed from the data so far
+
+
+@dataclass(frozen=True)
+class DaemonConfig:
+    serial: SerialConfig
+    site: Site
+    state_dir: Path
+    warmup: WarmupConfig
+    method: MethodConfig
+
+    def with_port(self, port: str) -> DaemonConfig:
+        """A copy on another serial port: one file serves every instance of the systemd
+        template unit, which passes `--port /dev/%i`."""
+        return replace(self, serial=replace(self.serial, port=port))
+
+
+class _ConfigTable(_Table):
+    """scenario's `_Table`, raising ConfigError, with required keys."""
+
+    def fail(self, key: str, message: str):
+        raise ConfigError(f"{self.where} {key}: {message}")
+
+    def require(self, key: str, kind, check, expect: str):
+        value = self.get(key, None, kind, check, expect)
+        if value is None:  # TOML has no null: None means the key is absent
+            self.fail(key, f"missing: expected {expect}")
+        return value
+
+
+def _nonempty(s: str) -> bool:
+    return s.strip() != ""
+
+
+def _positive(x) -> bool:
+    return x > 0
+
+
+def _serial(t: _ConfigTable) -> SerialConfig:
+    serial = SerialConfig(
+        port=t.require("port", str, _nonempty, "a device path such as \"/dev/ttyUSB0\" or a pyserial URL"),
+        baudrate=t.get("baudrate", DEFAULT_BIT_RATE, int, _positive, "a positive bit rate"))
+    t.finish()
+    return serial
+
+
+def _site(t: _ConfigTable) -> Site:
+    site = Site(t.require("latitude_deg", float, lambda v: -90 <= v <= 90, "a latitude in [-90, 90] deg"),
+                t.get("height_m", 0.0, float, lambda v: -500 <= v <= 9000, "a height in [-500, 9000] m"),
+                t.get("g0", None, float, lambda g: 9.7 <= g <= 9.9, "an Earth gravity in [9.7, 9.9] m/s^2"))
+    t.finish()
+    return site
+
+
+def _state_dir(t: _ConfigTable) -> Path:
+    state_dir = Path(t.require("state_dir", str, _nonempty, "a directory path for the daemon's state"))
+    t.finish()
+    return state_dir
+
+
+def _warmup(t: _ConfigTable) -> WarmupConfig:
+    d = WarmupConfig()
+    warmup = WarmupConfig(
+        max_slope_c_per_h=t.get("max_slope_c_per_h", d.max_slope_c_per_h, float, _positive,
+                                "a positive temperature slope in degC/h"),
+        window_s=t.get("window_s", d.window_s, float, _positive, "a positive duration in s"),
+        min_time_s=t.get("min_time_s", d.min_time_s, float, lambda v: v >= 0, "a duration >= 0 s"))
+    t.finish()
+    return warmup
+
+
+def _method(t: _ConfigTable) -> MethodConfig:
+    d = MethodConfig()
+    name = t.get("name", d.name, str, lambda n: n in METHODS, " or ".join(f'"{m}"' for m in METHODS))
+    flags = {key: t.get(key, getattr(d, key), bool) for key in JOINT_ONLY}
+    tilt = {key: t.get(key, None, float, lambda a: -10 <= a <= 10, "an interface tilt in [-10, 10] deg")
+            for key in THESIS_ONLY}
+    resolve_every_s = t.get("resolve_every_s", d.resolve_every_s, float, _positive, "a positive interval in s")
+    t.finish()
+    for key in JOINT_ONLY if name == "thesis" else THESIS_ONLY:
+        if key in t.data:
+            why = "the joint method estimates alpha and beta itself" if name == "joint" \
+                else "fixed_amplitude and drift are options of the joint method"
+            t.fail(key, f"{t.data[key]!r} is not allowed with name = \"{name}\": {why}")
+    if (tilt["alpha_deg"] is None) != (tilt["beta_deg"] is None):
+        given, other = THESIS_ONLY if tilt["beta_deg"] is None else THESIS_ONLY[::-1]
+        t.fail(given, f"{tilt[given]!r} given without {other}: give both (a-priori tilt) or neither "
+                      "(tilt estimated from the data)")
+    return MethodConfig(name, resolve_every_s=resolve_every_s, **flags, **tilt)
+
+
+def parse_config(data: dict, where: str) -> DaemonConfig:
+    """Build a DaemonConfig from TOML data; `where` names the source in error messages."""
+    known = ", ".join(f"[{name}]" for name in sorted(TABLES))
+    for key, value in data.items():
+        if key not in TABLES and isinstance(value, dict):
+            raise ConfigError(f"{where} [{key}]: unknown table (known: {known})")
+        if key not in TABLES:
+            raise ConfigError(f"{where} {key}: {value!r} is outside the tables; keys belong in one of {known}")
+        if not isinstance(value, dict):
+            raise ConfigError(f"{where} [{key}]: {value!r} is not a table")
+
+    def table(name: str) -> _ConfigTable:
+        return _ConfigTable(data.get(name, {}), f"{where} [{name}]")
+
+    return DaemonConfig(serial=_serial(table("serial")), site=_site(table("site")),
+                        state_dir=_state_dir(table("output")), warmup=_warmup(table("warmup")),
+                        method=_method(table("method")))
+
+
+def load_config(path: str | Path) -> DaemonConfig:
+    """Read and validate the configuration file at `path`; any problem is a one-line ConfigError."""
+    where = str(path)
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"{where}: no such configuration file") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{where}: is a directory, expected a TOML configuration file") from None
+    except OSError as exc:
+        raise ConfigError(f"{where}: cannot read: {(exc.strerror or str(exc)).lower()}") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"{where}: cannot read: not UTF-8 text") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{where}: not valid TOML: {exc}") from None
+    return parse_config(data, where)

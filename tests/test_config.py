@@ -1,0 +1,189 @@
+"""calibd.config: the daemon's TOML configuration and its one-line errors."""
+
+import os
+from pathlib import Path
+
+import pytest
+
+from calibd.config import ConfigError, DaemonConfig, MethodConfig, SerialConfig, WarmupConfig, load_config
+from calibd.frames import Site
+
+EXAMPLE = Path(__file__).resolve().parent.parent / "systemd" / "calibd.example.toml"
+
+FULL = """
+[serial]
+port = "/dev/ttyUSB0"
+baudrate = 460800
+
+[site]
+latitude_deg = 40.59129
+height_m = 12.5
+g0 = 9.79956
+
+[output]
+state_dir = "/var/lib/calibd/ttyUSB0"
+
+[warmup]
+max_slope_c_per_h = 0.5
+window_s = 900
+min_time_s = 3600
+
+[method]
+name = "thesis"
+alpha_deg = 0.5964
+beta_deg = -0.1125
+resolve_every_s = 30
+"""
+
+MINIMAL = """
+[serial]
+port = "/dev/ttyUSB1"
+[site]
+latitude_deg = -33.9
+[output]
+state_dir = "state"
+"""
+
+
+def write(tmp_path, text: str) -> Path:
+    path = tmp_path / "calibd.toml"
+    path.write_text(text)
+    return path
+
+
+def error(path) -> str:
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    message = str(info.value)
+    assert "\n" not in message and "calibd.toml" in message
+    return message
+
+
+def test_full_config_round_trips(tmp_path):
+    config = load_config(write(tmp_path, FULL))
+    assert config == DaemonConfig(
+        serial=SerialConfig("/dev/ttyUSB0", 460800),
+        site=Site(40.59129, 12.5, 9.79956),
+        state_dir=Path("/var/lib/calibd/ttyUSB0"),
+        warmup=WarmupConfig(0.5, 900.0, 3600.0),
+        method=MethodConfig("thesis", alpha_deg=0.5964, beta_deg=-0.1125, resolve_every_s=30.0))
+    assert isinstance(config.warmup.window_s, float)
+
+
+def test_joint_options(tmp_path):
+    path = write(tmp_path, MINIMAL + '[method]\nname = "joint"\nfixed_amplitude = true\ndrift = true\n')
+    assert load_config(path).method == MethodConfig("joint", fixed_amplitude=True, drift=True)
+
+
+def test_defaults_apply(tmp_path):
+    config = load_config(str(write(tmp_path, MINIMAL)))
+    assert config.serial == SerialConfig("/dev/ttyUSB1", 921600)
+    assert config.site == Site(-33.9) and config.site.g0 is None
+    assert config.state_dir == Path("state")
+    assert config.warmup == WarmupConfig(1.0, 600.0, 0.0)
+    assert config.method == MethodConfig("joint", False, False, None, None, 60.0)
+
+
+def test_empty_optional_tables_give_defaults(tmp_path):
+    config = load_config(write(tmp_path, MINIMAL + "[warmup]\n[method]\n"))
+    assert config.warmup == WarmupConfig() and config.method == MethodConfig()
+
+
+def test_with_port_changes_only_the_port(tmp_path):
+    config = load_config(write(tmp_path, FULL))
+    other = config.with_port("/dev/ttyUSB3")
+    assert other.serial == SerialConfig("/dev/ttyUSB3", 460800)
+    assert other.site == config.site and other.method == config.method and other.state_dir == config.state_dir
+    assert config.serial.port == "/dev/ttyUSB0"
+
+
+def replace_line(text: str, old: str, new: str) -> str:
+    assert old in text
+    return text.replace(old, new)
+
+
+@pytest.mark.parametrize("old, new, table, key, words", [
+    # missing required keys (and a missing required table)
+    ('port = "/dev/ttyUSB0"\n', "", "[serial]", "port", ["missing"]),
+    ("latitude_deg = 40.59129\n", "", "[site]", "latitude_deg", ["missing"]),
+    ('[output]\nstate_dir = "/var/lib/calibd/ttyUSB0"\n', "", "[output]", "state_dir", ["missing"]),
+    # wrong types
+    ("baudrate = 460800", 'baudrate = "fast"', "[serial]", "baudrate", ["'fast'", "integer"]),
+    ("baudrate = 460800", "baudrate = 460800.0", "[serial]", "baudrate", ["460800.0", "integer"]),
+    ('port = "/dev/ttyUSB0"', "port = 3", "[serial]", "port", ["3", "string"]),
+    ("height_m = 12.5", "height_m = true", "[site]", "height_m", ["True", "number"]),
+    ("latitude_deg = 40.59129", 'latitude_deg = "40N"', "[site]", "latitude_deg", ["'40N'", "number"]),
+    ('state_dir = "/var/lib/calibd/ttyUSB0"', "state_dir = []", "[output]", "state_dir", ["[]", "string"]),
+    ('name = "thesis"', "name = 1", "[method]", "name", ["1", "string"]),
+    # out of range
+    ("latitude_deg = 40.59129", "latitude_deg = 95.0", "[site]", "latitude_deg",
+     ["95.0 is not a latitude in [-90, 90] deg"]),
+    ("height_m = 12.5", "height_m = 9500", "[site]", "height_m", ["9500", "[-500, 9000]"]),
+    ("g0 = 9.79956", "g0 = 9.5", "[site]", "g0", ["9.5", "9.7"]),
+    ("baudrate = 460800", "baudrate = 0", "[serial]", "baudrate", ["0", "positive"]),
+    ('port = "/dev/ttyUSB0"', 'port = " "', "[serial]", "port", ["' '", "device path"]),
+    ('state_dir = "/var/lib/calibd/ttyUSB0"', 'state_dir = ""', "[output]", "state_dir", ["''", "directory"]),
+    ("max_slope_c_per_h = 0.5", "max_slope_c_per_h = 0", "[warmup]", "max_slope_c_per_h", ["0", "positive"]),
+    ("window_s = 900", "window_s = -1", "[warmup]", "window_s", ["-1", "positive"]),
+    ("min_time_s = 3600", "min_time_s = -5", "[warmup]", "min_time_s", ["-5", ">= 0"]),
+    ("resolve_every_s = 30", "resolve_every_s = 0", "[method]", "resolve_every_s", ["0", "positive"]),
+    ('name = "thesis"', 'name = "kalman"', "[method]", "name", ["'kalman'", '"joint" or "thesis"']),
+    ("alpha_deg = 0.5964", "alpha_deg = 12", "[method]", "alpha_deg", ["12", "[-10, 10]"]),
+    # unknown keys and tables
+    ("baudrate = 460800", "baud = 460800", "[serial]", "baud", ["unknown key", "baudrate", "port"]),
+    ("g0 = 9.79956", "latitude = 40.6", "[site]", "latitude", ["unknown key", "latitude_deg"]),
+    ("[output]", "[outputs]", "[outputs]", "outputs", ["unknown table", "[output]", "[warmup]"]),
+    ("[serial]\n", "", "port", "port", ["'/dev/ttyUSB0'", "[serial]"]),  # keys outside any table
+    # method-option mixups
+    ("beta_deg = -0.1125\n", "", "[method]", "alpha_deg", ["0.5964", "without beta_deg"]),
+    ("alpha_deg = 0.5964\n", "", "[method]", "beta_deg", ["-0.1125", "without alpha_deg"]),
+    ('name = "thesis"', 'name = "joint"', "[method]", "alpha_deg", ["0.5964", '"joint"', "estimates alpha"]),
+    ('name = "thesis"', 'name = "thesis"\ndrift = false', "[method]", "drift", ["False", '"thesis"', "joint"]),
+    ('name = "thesis"', 'name = "thesis"\nfixed_amplitude = true', "[method]", "fixed_amplitude",
+     ["True", '"thesis"']),
+])
+def test_errors_name_file_table_and_key(tmp_path, old, new, table, key, words):
+    message = error(write(tmp_path, replace_line(FULL, old, new)))
+    assert table in message and key in message
+    for word in words:
+        assert word in message
+
+
+def test_table_given_as_a_value(tmp_path):
+    message = error(write(tmp_path, 'method = "joint"\n' + MINIMAL))
+    assert "[method]" in message and "'joint' is not a table" in message
+
+
+def test_missing_file(tmp_path):
+    assert "no such" in error(tmp_path / "calibd.toml")
+
+
+def test_directory(tmp_path):
+    (tmp_path / "calibd.toml").mkdir()
+    assert "is a directory" in error(tmp_path / "calibd.toml")
+
+
+def test_bad_toml(tmp_path):
+    assert "not valid TOML" in error(write(tmp_path, "[serial]\nport = /dev/ttyUSB0\n"))
+
+
+def test_not_utf8(tmp_path):
+    path = tmp_path / "calibd.toml"
+    path.write_bytes(b'[serial]\nport = "\xff"\n')
+    assert "cannot read" in error(path)
+
+
+@pytest.mark.skipif(not hasattr(os, "geteuid") or os.geteuid() == 0, reason="root reads any file")
+def test_unreadable(tmp_path):
+    path = write(tmp_path, FULL)
+    path.chmod(0)
+    try:
+        assert "cannot read: permission denied" in error(path)
+    finally:
+        path.chmod(0o600)
+
+
+@pytest.mark.skipif(not EXAMPLE.exists(), reason="systemd/calibd.example.toml not written yet")
+def test_example_config_loads():
+    config = load_config(EXAMPLE)
+    assert config.with_port("/dev/ttyUSB9").serial.port == "/dev/ttyUSB9"
