@@ -168,7 +168,7 @@ class _Table:
                 raise TypeError
         except TypeError:
             names = {float: "a number", int: "an integer", bool: "true or false", str: "a string",
-                     tuple: "a list of 3 numbers"}
+                     tuple: "a list of 3 numbers", dict: "a table", list: "a list"}
             self.fail(key, f"{value!r} is not {names[kind]}")
         if check is not None and not check(value):
             self.fail(key, f"{value!r} is not {expect}")
