@@ -40,10 +40,12 @@ class Session:
     stream: dict
 
 
-def load_session(path: str, start_s: float = 0.0) -> Session:
-    """Decode a capture; drop what comes before `start_s` (e.g. a warm-up)."""
-    with open(path, "rb") as f:
-        data = f.read()
+def load_session(path: str, start_s: float = 0.0, data: bytes | None = None) -> Session:
+    """Decode a capture (the file at `path`, or its bytes already read); drop what comes before
+    `start_s` (e.g. a warm-up)."""
+    if data is None:
+        with open(path, "rb") as f:
+            data = f.read()
     samples, scanner = decode_capture(data)
     if not len(samples):
         raise CalibrationError(f"{path}: no STIM300 datagram found")

@@ -1,5 +1,5 @@
-"""`calibd calibrate | sensitivity | simulate`: calibrate a capture; what alpha/beta errors cost;
-make a capture with known truth.
+"""`calibd run | replay | status | calibrate | sensitivity | simulate`: the daemon, its pipeline on
+a capture, its state; one-shot calibration; what alpha/beta errors cost; captures with known truth.
 
 Errors in files, scenarios or arguments end with one line on stderr and exit status 2.
 """
@@ -7,17 +7,24 @@ Errors in files, scenarios or arguments end with one line on stderr and exit sta
 from __future__ import annotations
 
 import argparse
+import json
+import logging
 import math
 import sys
 import time
+from dataclasses import replace
+from pathlib import Path
 
-from stim300.cliutil import CommandParser, UsageError, run_command
+from stim300.cliutil import CommandParser, UsageError, read_input, run_command
 
 from .calibrate import CalibrationError, joint_real_case, load_session, thesis_bench, thesis_real_case
+from .config import ConfigError, MethodConfig, WarmupConfig, load_config
+from .daemon import Calibrator, ResultStore
 from .estimators.joint import JointOptions
 from .estimators.thesis import sensitivity
 from .frames import STANDARD_GRAVITY, Site
-from .results import write_result
+from .live import configure_logging, replay, run
+from .results import ResultError, load_result, write_result
 from .scenario import READY_MADE, ScenarioError, load_scenario
 
 DEG = math.pi / 180
@@ -81,7 +88,7 @@ def cmd_calibrate(args) -> int:
         raise UsageError("calibrate: --fixed-amplitude and --drift belong to --method joint")
     site = _site(args)
     try:
-        session = load_session(args.capture, args.start)
+        session = load_session(args.capture, args.start, read_input(args.capture))
         if args.method == "joint":
             result = joint_real_case(session, site, JointOptions(args.fixed_amplitude, args.drift))
         elif args.bench:
@@ -89,12 +96,6 @@ def cmd_calibrate(args) -> int:
         else:
             tilt = None if args.alpha is None else (args.alpha, args.beta)
             result = thesis_real_case(session, site, tilt, args.platform_rate)
-    except FileNotFoundError:
-        raise UsageError(f"{args.capture}: no such file") from None
-    except IsADirectoryError:
-        raise UsageError(f"{args.capture}: is a directory, expected a capture file") from None
-    except OSError as exc:
-        raise UsageError(f"{args.capture}: cannot read: {(exc.strerror or str(exc)).lower()}") from None
     except CalibrationError as exc:
         raise UsageError(f"{args.capture}: {exc}") from None
     try:
@@ -114,6 +115,93 @@ def cmd_sensitivity(args) -> int:
     print(f"  gyro Y bias error          {s['gyro_bias_y'] / DEG * 3600:.3f} deg/h  (rate x d_alpha)")
     print(f"  yaw error                  {s['yaw'] / DEG:.2f} deg  (gyro Y error / Omega_E cos(lat))")
     return 0
+
+
+def _config(path: str, port: str | None):
+    try:
+        config = load_config(path)
+    except ConfigError as exc:
+        raise UsageError(str(exc)) from None
+    return config.with_port(port) if port else config
+
+
+def cmd_run(args) -> int:
+    config = _config(args.config, args.port)
+    configure_logging()
+    return run(config, lambda: _config(args.config, args.port))
+
+
+def cmd_replay(args) -> int:
+    if args.config:
+        config = _config(args.config, None)
+        site, warmup, method = config.site, config.warmup, config.method
+    elif args.latitude is not None:
+        site, warmup, method = _site(args), WarmupConfig(), MethodConfig()
+    else:
+        raise UsageError("replay: give --config FILE or --latitude DEG")
+    if args.warmup_window is not None:
+        warmup = replace(warmup, window_s=args.warmup_window)
+    data = read_input(args.capture)
+    store = ResultStore(args.state_dir) if args.state_dir else None
+
+    last = [None]
+
+    def on_state(state, detail):
+        if state != last[0] or detail.startswith("solved"):
+            print(f"[{state.value}] {detail}", flush=True)
+            last[0] = state
+        if store:
+            store.write_state(state, detail, {"capture": args.capture})
+
+    def on_result(result):
+        if store:
+            store.write_result(result)
+
+    configure_logging(logging.WARNING)
+    calibrator = Calibrator(site, warmup, method, on_result=on_result, on_state=on_state, source=args.capture)
+    shown = [0.0]
+
+    def progress(done, total):
+        if sys.stderr.isatty() and (done == total or time.monotonic() - shown[0] > 0.5):
+            shown[0] = time.monotonic()
+            print(f"\rreplay: {done / total:6.1%} of {total} B", end="" if done < total else "\n",
+                  file=sys.stderr, flush=True)
+
+    speed = None if args.speed == "max" else float(args.speed)
+    replay(data, calibrator, speed, progress=progress)
+    if calibrator.result is None:
+        print(f"no result: {calibrator.detail}")
+        return 1
+    print(_summary(calibrator.result))
+    return 0
+
+
+def cmd_status(args) -> int:
+    directory = Path(args.state_dir)
+    state_file = directory / "state.json"
+    if not state_file.exists():
+        raise UsageError(f"{directory}: no state.json (is calibd running with this state directory?)")
+    state = json.loads(state_file.read_text())
+    age = time.time() - state.get("updated", time.time())
+    print(f"state: {state['state']} ({state['detail']}), updated {age:.0f} s ago")
+    try:
+        result = load_result(directory / "result.json")
+    except ResultError:
+        print("no result yet")
+        return 0
+    print(_summary(result))
+    return 0
+
+
+def _speed(text: str) -> str:
+    if text == "max":
+        return text
+    try:
+        if float(text) > 0:
+            return text
+    except ValueError:
+        pass
+    raise argparse.ArgumentTypeError(f"{text!r} is not 'max' or a positive factor of real time")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -139,6 +227,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--drift", action="store_true",
                    help="joint: fit a linear gyro drift per channel (thermal ramps); costs precision")
     p.set_defaults(func=cmd_calibrate)
+    p = sub.add_parser("run", help="the daemon: read the port, calibrate after every power-up")
+    p.add_argument("--config", required=True, help="TOML configuration (see systemd/calibd.example.toml)")
+    p.add_argument("--port", help="serial port overriding the configuration's (the systemd unit passes /dev/%%i)")
+    p.set_defaults(func=cmd_run)
+    p = sub.add_parser("replay", help="the daemon's pipeline on a capture, printing states and results")
+    p.add_argument("capture")
+    p.add_argument("--config", help="TOML configuration (site, warm-up, method)")
+    p.add_argument("--latitude", type=_number(-90, 90, "deg"), help="site latitude, deg (without --config)")
+    p.add_argument("--height", type=_number(-500, 9000, "m"), default=0.0, help="site height, m (default 0)")
+    p.add_argument("--g0", type=_number(9.7, 9.9, "m/s^2"), help="measured gravity, m/s^2")
+    p.add_argument("--speed", type=_speed, default="max", help="N times real time, or max (default)")
+    p.add_argument("--warmup-window", type=_number(1, 1e6, "s"),
+                   help="seconds of settled temperature that end the warm-up (default 600)")
+    p.add_argument("--state-dir", help="also write result.json, history/ and state.json there")
+    p.set_defaults(func=cmd_replay)
+    p = sub.add_parser("status", help="the daemon's state and last result")
+    p.add_argument("--state-dir", required=True)
+    p.set_defaults(func=cmd_status)
     p = sub.add_parser("sensitivity", help="what alpha/beta errors do to the thesis's estimates (section 7.1)")
     p.add_argument("--alpha-error", type=_number(-10, 10, "deg"), required=True, help="d_alpha, deg")
     p.add_argument("--beta-error", type=_number(-10, 10, "deg"), required=True, help="d_beta, deg")

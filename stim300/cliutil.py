@@ -15,6 +15,19 @@ class CommandParser(argparse.ArgumentParser):
         raise UsageError(f"{self.prog}: {message}")
 
 
+def read_input(path: str, what: str = "capture file") -> bytes:
+    """The bytes of an input file, or a UsageError saying in one line why not."""
+    try:
+        with open(path, "rb") as f:
+            return f.read()
+    except FileNotFoundError:
+        raise UsageError(f"{path}: no such file") from None
+    except IsADirectoryError:
+        raise UsageError(f"{path}: is a directory, expected a {what}") from None
+    except OSError as exc:
+        raise UsageError(f"{path}: cannot read: {(exc.strerror or str(exc)).lower()}") from None
+
+
 def run_command(parser: argparse.ArgumentParser, argv=None) -> int:
     """Parse, dispatch to the subcommand's `func`, and turn UsageError into one stderr line."""
     prog = parser.prog

@@ -1,0 +1,269 @@
+"""The calibration daemon's logic: decoded samples in, states and results out.
+
+`Calibrator` holds no I/O: the live loop (`calibd run`), the replay of a capture and the tests
+feed it the same batches of samples. States: STARTING -> WARMING_UP -> COLLECTING -> SOLVED,
+with RESTARTED (the sensor power-cycled: turn-on biases changed, a new session starts) and FAULT
+(no data). Once warmed up, every `resolve_every_s` of new data it finds the segments of the
+session so far and solves as soon as the method has what it needs, then again as data grows.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from enum import Enum
+from pathlib import Path
+
+import numpy as np
+import structlog
+
+from stim300.atomic import write_atomic
+from stim300.protocol import INTERNAL_RATE_HZ
+
+from .calibrate import CalibrationError, Session, joint_real_case, thesis_real_case
+from .config import MethodConfig, WarmupConfig
+from .estimators.joint import JointOptions
+from .frames import STANDARD_GRAVITY, Site
+
+log = structlog.get_logger("calibd")
+DEG = np.pi / 180
+STORE_RATE_HZ = 250  # faster data is block-averaged to this: averages of averages keep the model exact
+MAX_SESSION_S = 3 * 3600  # beyond this a session stops growing (memory stays bounded)
+WARM_CHECK_EVERY_S = 10.0  # how often (data time) the warm-up rule is evaluated
+
+
+class State(str, Enum):
+    STARTING = "STARTING"
+    WARMING_UP = "WARMING_UP"
+    COLLECTING = "COLLECTING"
+    SOLVED = "SOLVED"
+    RESTARTED = "RESTARTED"
+    FAULT = "FAULT"
+
+
+@dataclass
+class _Buffer:
+    """A growing, block-averaged record of the session (SI units)."""
+
+    time_s: list = field(default_factory=list)
+    gyro: list = field(default_factory=list)
+    acc: list = field(default_factory=list)
+    incl: list = field(default_factory=list)
+    temp: list = field(default_factory=list)
+
+    def add(self, t, gyro, acc, incl, temp) -> None:
+        for name, values in (("time_s", t), ("gyro", gyro), ("acc", acc), ("incl", incl), ("temp", temp)):
+            getattr(self, name).append(values)
+
+    def arrays(self, since_s: float = -np.inf) -> dict[str, np.ndarray]:
+        out = {name: np.concatenate(getattr(self, name)) for name in ("time_s", "gyro", "acc", "incl", "temp")}
+        keep = out["time_s"] >= since_s
+        return {name: values[keep] for name, values in out.items()}
+
+    @property
+    def end_s(self) -> float:
+        return float(self.time_s[-1][-1]) if self.time_s else 0.0
+
+    def trim(self, before_s: float) -> None:
+        """Forget whole chunks that end before `before_s` (warm-up data nobody will use)."""
+        while self.time_s and self.time_s[0][-1] < before_s:
+            for name in ("time_s", "gyro", "acc", "incl", "temp"):
+                getattr(self, name).pop(0)
+
+
+class Calibrator:
+    """The daemon's state machine and online estimation; `on_result(result)` and
+    `on_state(state, detail)` are called as things happen."""
+
+    def __init__(self, site: Site, warmup: WarmupConfig = WarmupConfig(), method: MethodConfig = MethodConfig(),
+                 on_result=None, on_state=None, source: str = "live"):
+        self.site, self.warmup, self.method = site, warmup, method
+        self.source = source  # the port or capture, named in results
+        self.on_result = on_result or (lambda result: None)
+        self.on_state = on_state or (lambda state, detail: None)
+        self.state = State.STARTING
+        self.detail = "waiting for data"
+        self.result: dict | None = None
+        self.sessions = 0
+        self.sensor: dict = {}
+        self._restarts_seen = 0
+        self._reset_time()
+
+    # ------------------------------------------------------------------ feeding
+    def configure(self, site: Site, warmup: WarmupConfig, method: MethodConfig) -> None:
+        """New settings (SIGHUP): they apply from the next solution on."""
+        self.site, self.warmup, self.method = site, warmup, method
+
+    def feed(self, samples: np.ndarray, rate_hz: int, restarts: int = 0) -> None:
+        """A batch of decoded samples (stim300.codec.SAMPLE_DTYPE) in stream order; `restarts` is
+        the stream parser's running count of sensor restarts."""
+        if restarts > self._restarts_seen:
+            self._restarts_seen = restarts
+            self._set(State.RESTARTED, "sensor restarted: turn-on biases changed, starting a new session")
+            self._reset_time()
+        if not len(samples):
+            return
+        if np.isnan(samples["acc"][0, 0]) or np.isnan(samples["incl"][0, 0]):
+            self._set(State.FAULT, f"datagram 0x{samples['datagram_id'][0]:02X} has no accelerometers or "
+                                   "inclinometers: nothing to calibrate with")
+            return
+        self.rate_hz = rate_hz
+        t = self._times(samples["counter"], rate_hz)
+        if self.state in (State.STARTING, State.RESTARTED, State.FAULT):
+            self._set(State.WARMING_UP if self._session_start is None else State.COLLECTING,
+                      "waiting for the temperature to settle" if self._session_start is None else "data again")
+        if self._session_start is not None and t[-1] - self._session_start > MAX_SESSION_S:
+            return  # a session this long has said what it can: memory stays bounded
+        self._store(samples, t)
+        now = self._buffer.end_s
+        if self.state == State.WARMING_UP and now >= self._next_check:
+            self._next_check = now + WARM_CHECK_EVERY_S
+            self._check_warm_up()
+        elif self.state in (State.COLLECTING, State.SOLVED) and now >= self._next_solve:
+            self._next_solve = now + self.method.resolve_every_s
+            self._solve()
+
+    def data_lost(self, seconds: float) -> None:
+        """The live loop saw no data for `seconds`: a fault until data flows again."""
+        self._set(State.FAULT, f"no data for {seconds:.0f} s (port lost or sensor off)")
+
+    # ------------------------------------------------------------------ internals
+    def _reset_time(self) -> None:
+        self._buffer = _Buffer()
+        self._pending: list[np.ndarray] = []
+        self._last_counter: int | None = None
+        self._t_last: float | None = None
+        self._session_start: float | None = None
+        self._next_solve = 0.0
+        self._next_check = 0.0
+        self.rate_hz = 0
+
+    def _times(self, counter: np.ndarray, rate_hz: int) -> np.ndarray:
+        """Seconds since the first sample after power-up, from the counter: lost datagrams, within
+        a batch or between batches, leave gaps (modulo a counter cycle, as detect.sample_times)."""
+        step = INTERNAL_RATE_HZ // rate_hz
+        first = self._last_counter if self._last_counter is not None else int(counter[0]) - step
+        counts = np.diff(counter.astype(np.int64), prepend=first) % 256
+        counts[counts == 0] = 256
+        periods = np.maximum(np.rint(counts / step), 1.0)
+        start = self._t_last if self._t_last is not None else -1.0 / rate_hz
+        t = start + np.cumsum(periods) / rate_hz
+        self._last_counter, self._t_last = int(counter[-1]), float(t[-1])
+        return t
+
+    def _store(self, samples: np.ndarray, t: np.ndarray) -> None:
+        """Keep the session block-averaged to at most STORE_RATE_HZ (bounded memory at 2000 Hz)."""
+        k = max(1, self.rate_hz // STORE_RATE_HZ)
+        temp = np.nanmean(samples["temp_gyro"], axis=1) if not np.isnan(samples["temp_gyro"][0, 0]) \
+            else np.full(len(samples), np.nan)
+        block = np.column_stack([t, samples["gyro"] * DEG, samples["acc"] * STANDARD_GRAVITY,
+                                 samples["incl"] * STANDARD_GRAVITY, temp])
+        if self._pending:
+            block = np.concatenate([self._pending.pop(), block])
+        whole = len(block) // k * k
+        if whole < len(block):
+            self._pending.append(block[whole:])
+        if not whole:
+            return
+        mean = block[:whole].reshape(-1, k, block.shape[1]).mean(axis=1)
+        mean[:, 0] = block[:whole:k, 0]  # a block's time is its first sample's
+        self._buffer.add(mean[:, 0], mean[:, 1:4], mean[:, 4:7], mean[:, 7:10], mean[:, 10])
+
+    @property
+    def _stored_rate(self) -> int:
+        return self.rate_hz // max(1, self.rate_hz // STORE_RATE_HZ)
+
+    def _check_warm_up(self) -> None:
+        rule, data = self.warmup, self._buffer
+        elapsed = data.end_s
+        data.trim(elapsed - rule.window_s - 1.0)
+        if elapsed < max(rule.window_s, rule.min_time_s):
+            self._set(State.WARMING_UP, f"warming up: {elapsed:.0f} s since power-up")
+            return
+        recent = data.arrays(since_s=elapsed - rule.window_s)
+        if np.isnan(recent["temp"]).all():
+            slope, note = 0.0, " (no temperatures in the datagram: time since power-up only)"
+        else:
+            slope, note = np.polyfit(recent["time_s"], recent["temp"], 1)[0] * 3600, ""
+        if abs(slope) > rule.max_slope_c_per_h:
+            self.detail = f"warming up: temperature moving {slope:+.2f} degC/h"
+            self._set(State.WARMING_UP, self.detail)
+            return
+        self._session_start = self._warm_since(recent)
+        self._next_solve = elapsed
+        self.sessions += 1
+        self._set(State.COLLECTING, f"warmed up ({slope:+.2f} degC/h over {rule.window_s:.0f} s){note}")
+        self._solve()
+
+    def _warm_since(self, recent: dict) -> float:
+        """Where the session starts: the earliest point of the window from which the temperature
+        trend to now is below the limit (a settled sensor: the window's start; a sensor still
+        creeping: later, as its early part was warmer-going than the whole window's average)."""
+        t, temp = recent["time_s"], recent["temp"]
+        if np.isnan(temp).all():
+            return float(t[0])
+        for t0 in np.linspace(t[0], t[-1] - (t[-1] - t[0]) / 4, 8):
+            keep = t >= t0
+            if abs(np.polyfit(t[keep], temp[keep], 1)[0] * 3600) <= self.warmup.max_slope_c_per_h:
+                return float(t0)
+        return float(t[-1] - (t[-1] - t[0]) / 4)
+
+    def _session(self) -> Session:
+        d = self._buffer.arrays(since_s=self._session_start)
+        return Session(time_s=d["time_s"] - d["time_s"][0], gyro=d["gyro"], acc=d["acc"], incl=d["incl"],
+                       temperature_c=None if np.isnan(d["temp"]).all() else d["temp"], rate_hz=self._stored_rate,
+                       sensor=self.sensor, stream={"capture": self.source, "session": self.sessions})
+
+    def _solve(self) -> None:
+        session = self._session()
+        m = self.method
+        try:
+            if m.name == "joint":
+                result = joint_real_case(session, self.site, JointOptions(m.fixed_amplitude, m.drift))
+            else:
+                tilt = None if m.alpha_deg is None else (m.alpha_deg, m.beta_deg)
+                result = thesis_real_case(session, self.site, tilt)
+        except CalibrationError as exc:
+            detail = f"collecting: {session.time_s[-1]:.0f} s of data; {exc}"
+            if self.state != State.SOLVED:
+                self._set(State.COLLECTING, detail)
+            return
+        result["session"] = {"number": self.sessions, "duration_s": float(session.time_s[-1]),
+                             "solved_at": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+        self.result = result
+        yaw = result["estimates"]["yaw"]
+        sigma = f" +- {yaw['sigma']:.2f}" if yaw["sigma"] is not None else ""
+        self._set(State.SOLVED, f"solved on {session.time_s[-1]:.0f} s: yaw {yaw['value']:.2f}{sigma} deg")
+        log.info("solved", **{name: round(e["value"], 6) for name, e in result["estimates"].items()},
+                 units={name: e["unit"] for name, e in result["estimates"].items()})
+        self.on_result(result)
+
+    def _set(self, state: State, detail: str) -> None:
+        changed = state != self.state
+        self.state, self.detail = state, detail
+        if changed:
+            log.info("state", state=state.value, detail=detail)
+        self.on_state(state, detail)
+
+
+class ResultStore:
+    """The state directory: result.json (the last good result, replaced atomically and synced,
+    so a crash at any moment leaves it readable), history/ (every result, timestamped) and
+    state.json (what `calibd status` shows)."""
+
+    def __init__(self, state_dir):
+        self.dir = Path(state_dir)
+        (self.dir / "history").mkdir(parents=True, exist_ok=True)
+
+    def write_result(self, result: dict) -> Path:
+        text = (json.dumps(result, indent=1, allow_nan=False) + "\n").encode()
+        stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S.%fZ")
+        write_atomic(self.dir / "history" / f"result-{stamp}.json", text)
+        write_atomic(self.dir / "result.json", text)
+        return self.dir / "result.json"
+
+    def write_state(self, state: State, detail: str, extra: dict | None = None) -> None:
+        record = {"state": state.value, "detail": detail, "updated": time.time(), **(extra or {})}
+        write_atomic(self.dir / "state.json", (json.dumps(record) + "\n").encode(), durable=False)

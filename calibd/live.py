@@ -1,0 +1,158 @@
+"""The daemon's I/O: the serial port or a capture in, the state directory, systemd and logs out.
+
+`run` is `calibd run`: a PortReader fills a ring, this loop drains it into the Calibrator,
+reports to systemd (READY, STATUS, WATCHDOG over $NOTIFY_SOCKET) and stops cleanly on SIGTERM;
+SIGHUP reloads the configuration. `replay` runs the same Calibrator on a capture file, through
+the same StreamParser, as fast as possible or paced.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import socket
+import sys
+import time
+
+import structlog
+
+from stim300.codec import SAMPLE_DTYPE
+from stim300.port import PortError, PortReader
+from stim300.ringbuffer import RingBuffer
+from stim300.stream import StreamParser
+
+from .daemon import Calibrator, ResultStore, State
+
+log = structlog.get_logger("calibd")
+POLL_S = 0.2  # how often the loop drains the ring
+NO_DATA_S = 3.0  # silence that counts as a fault
+RING_S = 30  # seconds of samples the ring holds at 2000 Hz
+
+
+class _Stderr:
+    """Whatever sys.stderr is at the time of writing (it may be replaced after configuration)."""
+
+    def write(self, text: str) -> int:
+        return sys.stderr.write(text)
+
+    def flush(self) -> None:
+        sys.stderr.flush()
+
+
+def configure_logging(level: int = logging.INFO) -> None:
+    """JSON lines on stderr for journald when not on a terminal, readable lines on one."""
+    renderer = structlog.dev.ConsoleRenderer() if sys.stderr.isatty() else structlog.processors.JSONRenderer()
+    structlog.configure(processors=[structlog.processors.add_log_level, structlog.processors.TimeStamper("iso"),
+                                    renderer],
+                        wrapper_class=structlog.make_filtering_bound_logger(level),
+                        logger_factory=structlog.PrintLoggerFactory(_Stderr()))
+
+
+def sd_notify(message: str) -> bool:
+    """Tell systemd (Type=notify) something; a no-op outside systemd."""
+    address = os.environ.get("NOTIFY_SOCKET")
+    if not address:
+        return False
+    if address.startswith("@"):
+        address = "\0" + address[1:]
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as sock:
+        try:
+            sock.sendto(message.encode(), address)
+        except OSError:
+            return False
+    return True
+
+
+def _rate(parser: StreamParser) -> int | None:
+    step = parser.stats.counter_step
+    return parser.format.sample_rate_hz or (2000 // step if step else None)
+
+
+def _sensor(parser: StreamParser) -> dict:
+    s = parser.scanner
+    fmt = parser.format
+    return {"serial_number": s.serial_number.text if s.serial_number else None,
+            "part_number": str(s.part_number) if s.part_number else None,
+            "datagram_id": f"0x{fmt.datagram_id:02X}" if fmt.datagram_id is not None else None,
+            "sample_rate_hz": _rate(parser)}
+
+
+def replay(data: bytes, calibrator: Calibrator, speed: float | None = None, chunk_bytes: int = 65536,
+           progress=None) -> None:
+    """Feed a capture's bytes through a StreamParser into the calibrator, as the live loop does;
+    `speed` N paces it at N times real time (None: as fast as possible)."""
+    parser = StreamParser()
+    started = time.monotonic()
+    data_time = 0.0
+    for offset in range(0, len(data) + 1, chunk_bytes):
+        chunk = data[offset:offset + chunk_bytes]
+        samples = parser.feed(chunk) if chunk else parser.finish()
+        rate = _rate(parser)
+        if len(samples) and rate:
+            calibrator.sensor = _sensor(parser)
+            calibrator.feed(samples, rate, parser.stats.restarts)
+            data_time += len(samples) / rate
+        if speed:
+            time.sleep(max(0.0, started + data_time / speed - time.monotonic()))
+        if progress:
+            progress(min(offset + chunk_bytes, len(data)), len(data))
+
+
+def run(config, reload_config) -> int:
+    """`calibd run`: until SIGTERM. `reload_config()` returns a fresh config (SIGHUP)."""
+    store = ResultStore(config.state_dir)
+    calibrator = Calibrator(config.site, config.warmup, config.method, on_result=store.write_result,
+                            source=config.serial.port)
+
+    def on_state(state: State, detail: str) -> None:
+        store.write_state(state, detail, {"port": config.serial.port})
+        sd_notify(f"STATUS={state.value.lower()}: {detail}")
+
+    calibrator.on_state = on_state
+    stopping = []
+    signal.signal(signal.SIGTERM, lambda *_: stopping.append("SIGTERM"))
+    signal.signal(signal.SIGINT, lambda *_: stopping.append("SIGINT"))
+    reload_requested = []
+    signal.signal(signal.SIGHUP, lambda *_: reload_requested.append(True))
+    ring = RingBuffer(2000 * RING_S, SAMPLE_DTYPE)
+    reader = PortReader(config.serial.port, ring, baudrate=config.serial.baudrate)
+    try:
+        reader.start()
+    except PortError as exc:
+        log.error("port_error", error=str(exc))
+        print(f"calibd: {exc}", file=sys.stderr)
+        return 1
+    sd_notify("READY=1")
+    log.info("started", port=config.serial.port, state_dir=str(config.state_dir))
+    cursor, last_data = 0, time.monotonic()
+    try:
+        while not stopping:
+            time.sleep(POLL_S)
+            if reload_requested:
+                reload_requested.clear()
+                try:
+                    fresh = reload_config()
+                    calibrator.configure(fresh.site, fresh.warmup, fresh.method)
+                    log.info("reloaded")
+                except ValueError as exc:
+                    log.error("reload_failed", error=str(exc))
+            samples, cursor, lost = ring.read_since(cursor)
+            if lost:
+                log.warning("overrun", lost_samples=lost)
+            rate = _rate(reader.parser)
+            if len(samples) and rate:
+                last_data = time.monotonic()
+                calibrator.sensor = _sensor(reader.parser)
+                calibrator.feed(samples, rate, reader.parser.stats.restarts)
+                sd_notify("WATCHDOG=1")
+            elif time.monotonic() - last_data > NO_DATA_S and calibrator.state != State.FAULT:
+                calibrator.data_lost(time.monotonic() - last_data)
+            if reader.error is not None:
+                log.error("reader_failed", error=str(reader.error))
+                return 1
+    finally:
+        reader.stop()
+        sd_notify("STOPPING=1")
+        log.info("stopped", reason=stopping[0] if stopping else "error")
+    return 0

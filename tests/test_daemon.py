@@ -1,0 +1,144 @@
+"""The daemon: its state machine on replayed captures, safe result storage, and `calibd run` as a
+subprocess fed through a real pty, stopped by SIGTERM."""
+
+import json
+import os
+import select
+import signal
+import subprocess
+import sys
+import time
+import tty
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import stim300.atomic
+from calibd.cli import main as calibd_main
+from calibd.config import WarmupConfig
+from calibd.daemon import Calibrator, ResultStore, State
+from calibd.frames import Site
+from calibd.live import replay
+from stim300.bulk import decode_capture
+
+FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
+SITE = Site(40.59129, g0=9.79956)
+
+
+def run_replay(name: str, warmup: WarmupConfig = WarmupConfig()):
+    states, results = [], []
+    calibrator = Calibrator(SITE, warmup, on_result=results.append,
+                            on_state=lambda state, detail: states.append(state))
+    replay((FIXTURES / f"{name}.bin").read_bytes(), calibrator)
+    changes = [s for k, s in enumerate(states) if k == 0 or s != states[k - 1]]
+    return calibrator, changes, results
+
+
+def test_warm_up_then_protocol_gives_a_result_near_the_truth():
+    truth = json.loads((FIXTURES / "warmup_then_protocol_125hz.bin.truth.json").read_text())["truth"]
+    calibrator, changes, results = run_replay("warmup_then_protocol_125hz", WarmupConfig(window_s=100.0))
+    assert changes == [State.WARMING_UP, State.COLLECTING, State.SOLVED]
+    last = results[-1]["estimates"]
+    assert abs(last["yaw"]["value"] - truth["yaw_deg"]) < 3 * last["yaw"]["sigma"]
+    assert abs(last["pitch"]["value"] - truth["pitch_deg"]) < 0.01
+    # the solution improves as data arrives: the last yaw sigma is the smallest
+    assert last["yaw"]["sigma"] == min(r["estimates"]["yaw"]["sigma"] for r in results)
+
+
+@pytest.mark.parametrize("window_s", [100.0, 600.0])
+def test_no_session_starts_during_the_steep_part_of_the_warm_up(window_s):
+    """The fixture's temperature rises with a 100 s time constant from power-up: whatever the
+    window, the session must leave out at least the first three time constants."""
+    truth = json.loads((FIXTURES / "warmup_then_protocol_125hz.bin.truth.json").read_text())
+    _, _, results = run_replay("warmup_then_protocol_125hz", WarmupConfig(window_s=window_s))
+    started = truth["duration_s"] - results[-1]["session"]["duration_s"]
+    assert started >= 3 * truth["warmup"]["time_constant_s"]
+
+
+def test_sensor_restart_starts_a_new_session():
+    calibrator, changes, results = run_replay("faults_125hz")
+    assert State.RESTARTED in changes and changes[-1] == State.WARMING_UP and not results
+
+
+def test_2000_hz_is_stored_block_averaged_at_250_hz():
+    data = (FIXTURES / "static_turn_2000hz.bin").read_bytes()
+    samples, _ = decode_capture(data)
+    calibrator = Calibrator(SITE)
+    calibrator.feed(samples[:4003], 2000)
+    calibrator.feed(samples[4003:8000], 2000)
+    stored = calibrator._buffer.arrays()
+    assert calibrator._stored_rate == 250 and len(stored["time_s"]) == 1000
+    assert stored["gyro"][:, 2].mean() == pytest.approx(np.radians(samples["gyro"][:8000, 2].astype(float)).mean())
+    assert np.allclose(np.diff(stored["time_s"]), 1 / 250)
+
+
+def test_a_crash_while_writing_keeps_the_last_good_result(tmp_path, monkeypatch):
+    store = ResultStore(tmp_path)
+    store.write_result({"schema": "calibd.result/1", "n": 1})
+
+    def crash(*args):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(stim300.atomic.os, "replace", crash)
+    with pytest.raises(OSError):
+        store.write_result({"schema": "calibd.result/1", "n": 2})
+    assert json.loads((tmp_path / "result.json").read_text())["n"] == 1
+    assert not [p for p in tmp_path.rglob("*.part")]
+
+
+def test_replay_command_and_status(tmp_path, capsys):
+    code = calibd_main(["replay", str(FIXTURES / "warmup_then_protocol_125hz.bin"), "--latitude", "40.59129",
+                        "--g0", "9.79956", "--warmup-window", "100", "--state-dir", str(tmp_path)])
+    out = capsys.readouterr().out
+    assert code == 0 and "[SOLVED]" in out and "yaw" in out
+    assert len(list((tmp_path / "history").iterdir())) >= 2
+    assert calibd_main(["status", "--state-dir", str(tmp_path)]) == 0
+    assert "state: SOLVED" in capsys.readouterr().out
+    assert calibd_main(["replay", str(FIXTURES / "faults_125hz.bin"), "--latitude", "40"]) == 1
+
+
+def test_calibd_run_through_a_pty_until_sigterm(tmp_path):
+    """The daemon as systemd runs it: a subprocess reading a pty through pyserial; the thesis
+    capture is written into the pty at 50 times real time; a result appears; SIGTERM stops it."""
+    master, slave = os.openpty()
+    tty.setraw(master)
+    tty.setraw(slave)
+    config = tmp_path / "calibd.toml"
+    state_dir = tmp_path / "state"
+    config.write_text(f'[serial]\nport = "{os.ttyname(slave)}"\n[site]\nlatitude_deg = 40.59129\ng0 = 9.79956\n'
+                      f'[output]\nstate_dir = "{state_dir}"\n[method]\nresolve_every_s = 300\n')
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    daemon = subprocess.Popen([sys.executable, "-m", "calibd.cli", "run", "--config", str(config)],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
+    try:
+        data = (FIXTURES / "thesis_real_cw_125hz.bin").read_bytes()
+        per_second = 125 * 59 * 50  # bytes per second at 50 times real time
+        deadline = time.monotonic() + 120
+        start = time.monotonic()
+        for offset in range(0, len(data), 8192):
+            time.sleep(max(0.0, start + offset / per_second - time.monotonic()))
+            view = memoryview(data)[offset:offset + 8192]
+            while view:
+                assert time.monotonic() < deadline, "the daemon stopped reading"
+                if select.select([], [master], [], 1.0)[1]:
+                    view = view[os.write(master, view):]
+        result_file = state_dir / "result.json"
+        while not result_file.exists():
+            assert time.monotonic() < deadline and daemon.poll() is None, daemon.stderr.read().decode()[-2000:]
+            time.sleep(0.2)
+        time.sleep(1.0)
+        daemon.send_signal(signal.SIGTERM)
+        assert daemon.wait(timeout=20) == 0
+    finally:
+        if daemon.poll() is None:
+            daemon.kill()
+        os.close(master)
+        os.close(slave)
+    result = json.loads(result_file.read_text())
+    assert result["method"] == "joint"
+    yaw = result["estimates"]["yaw"]
+    assert abs(yaw["value"] - -3.036) < 3 * yaw["sigma"]
+    assert json.loads((state_dir / "state.json").read_text())["state"] in ("SOLVED", "FAULT")
+    log = daemon.stderr.read().decode()
+    assert '"event": "solved"' in log and '"event": "stopped"' in log  # JSON lines off a terminal
