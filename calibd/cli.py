@@ -28,7 +28,6 @@ from .results import ResultError, load_result, write_result
 from .scenario import READY_MADE, ScenarioError, load_scenario
 
 DEG = math.pi / 180
-from .sim import write_capture
 
 
 def cmd_simulate(args) -> int:
@@ -36,6 +35,8 @@ def cmd_simulate(args) -> int:
         scenario = load_scenario(args.scenario)
     except ScenarioError as exc:
         raise UsageError(str(exc)) from None
+    from .sim import write_capture  # the simulator (and scipy.signal) only when simulating
+
     started = time.perf_counter()
     try:
         record = write_capture(scenario, args.output)

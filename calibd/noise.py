@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.optimize import nnls
-from scipy.signal import lfilter
 
 FLICKER_TAUS_S = (3.0, 30.0, 300.0, 3000.0, 30000.0)  # Gauss-Markov time constants approximating flicker
 
@@ -53,10 +52,18 @@ def fit_noise_model(residuals: np.ndarray, rate_hz: float, corr_taus=FLICKER_TAU
     return float(coef[0]), float(coef[1])
 
 
-def correlate(columns: np.ndarray, rate_hz: float, corr: float) -> np.ndarray:
-    """K @ columns for the unit Gauss-Markov correlation K_ij = exp(-|i - j| / (corr rate_hz)):
-    one forward and one backward recursive pass instead of an N x N matrix."""
-    a = np.exp(-1.0 / (corr * rate_hz))
-    forward = lfilter([1.0], [1.0, -a], columns, axis=0)
-    backward = lfilter([1.0], [1.0, -a], columns[::-1], axis=0)[::-1]
-    return forward + backward - columns
+def correlate(columns: np.ndarray, rate_hz: float, corrs) -> list[np.ndarray]:
+    """K @ columns for each unit Gauss-Markov correlation K_ij = exp(-|i - j| / (corr rate_hz)),
+    one per time constant in `corrs`: convolutions with the two-sided exponential, by FFT
+    (no N x N matrix; the columns are transformed once for all time constants)."""
+    n = len(columns)
+    size = 1 << int(np.ceil(np.log2(2 * n)))
+    lags = np.arange(size)
+    lags = np.minimum(lags, size - lags)  # circular distance: wraps only beyond n, which is cut off
+    spectrum = np.fft.rfft(columns, size, axis=0)
+    out = []
+    for corr in corrs:
+        kernel = np.exp(-lags / (corr * rate_hz))
+        kernel[n:size - n + 1] = 0.0
+        out.append(np.fft.irfft(np.fft.rfft(kernel)[:, None] * spectrum, size, axis=0)[:n])
+    return out
