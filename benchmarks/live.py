@@ -1,0 +1,134 @@
+"""Live cost of the daemon: `calibd run` fed at 2000 Hz in real time through a pty.
+
+Targets (daemon issue): <= 5% of one core, memory flat over a 10-minute run, and `calibd
+calibrate` on the 125 Hz thesis fixture in <= 2 s wall. Baselines measured in the same run: a
+bare pyserial reader on the same stream (what reading alone costs), and `stim300 info` on the
+fixture (what decoding alone costs).
+
+    python benchmarks/live.py [--seconds 600]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import select
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+import tty
+from dataclasses import replace
+from pathlib import Path
+
+from calibd.scenario import Segment, load_scenario
+from calibd.sim import capture_bytes, simulate
+
+ROOT = Path(__file__).resolve().parents[1]
+ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
+BARE_READER = ("import serial, sys, time\n"
+               "s = serial.Serial(sys.argv[1], 921600, timeout=0.05)\n"
+               "end = time.monotonic() + float(sys.argv[2])\n"
+               "while time.monotonic() < end:\n"
+               "    s.read(max(1, s.in_waiting)); time.sleep(0.004)\n")
+
+
+def cpu_seconds(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def capture_2000hz(seconds: float) -> bytes:
+    base = load_scenario("thesis-real")
+    turns = int(seconds // 60)
+    segments = [Segment("static", duration_s=30)]
+    for _ in range(turns):
+        segments += [Segment("turn", angle_deg=90, peak_rate_deg_s=20, accel_deg_s2=20),
+                     Segment("static", duration_s=54.5)]
+    scenario = replace(base, sensor=replace(base.sensor, sample_rate_hz=2000), segments=tuple(segments))
+    data, _ = capture_bytes(simulate(scenario))
+    return data
+
+
+def feed(master: int, data: bytes, rate_bytes_s: float, process, samples: list) -> None:
+    """Write `data` paced in real time; every 10 s record (wall, cpu, rss) of `process`."""
+    start = time.monotonic()
+    next_sample = start
+    for offset in range(0, len(data), 4096):
+        time.sleep(max(0.0, start + offset / rate_bytes_s - time.monotonic()))
+        view = memoryview(data)[offset:offset + 4096]
+        while view:
+            if select.select([], [master], [], 1.0)[1]:
+                view = view[os.write(master, view):]
+        if time.monotonic() >= next_sample:
+            samples.append((time.monotonic(), cpu_seconds(process.pid), rss_mb(process.pid)))
+            next_sample += 10.0
+
+
+def measure(command: list[str], data: bytes, seconds: float) -> list:
+    master, slave = os.openpty()
+    tty.setraw(master)
+    tty.setraw(slave)
+    path = os.ttyname(slave)
+    with tempfile.TemporaryDirectory() as tmp:
+        config = Path(tmp) / "calibd.toml"
+        config.write_text(f'[serial]\nport = "{path}"\n[site]\nlatitude_deg = 40.59129\n'
+                          f'[output]\nstate_dir = "{tmp}/state"\n')
+        argv = [a.replace("{port}", path).replace("{config}", str(config)).replace("{seconds}", str(seconds + 5))
+                for a in command]
+        process = subprocess.Popen(argv, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        time.sleep(2.0)  # imports, port open
+        samples = []
+        try:
+            feed(master, data, len(data) / seconds, process, samples)
+            samples.append((time.monotonic(), cpu_seconds(process.pid), rss_mb(process.pid)))
+        finally:
+            process.send_signal(signal.SIGTERM)
+            process.wait(timeout=30)
+            os.close(master)
+            os.close(slave)
+    return samples
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=600.0, help="real-time feed length (default 600 s)")
+    args = ap.parse_args()
+    data = capture_2000hz(args.seconds)
+    print(f"2000 Hz 0xA7 stream, {args.seconds:.0f} s, {len(data) / 1e6:.1f} MB, fed in real time through a pty")
+    runs = {"bare pyserial reader": [sys.executable, "-c", BARE_READER, "{port}", "{seconds}"],
+            "calibd run": [sys.executable, "-m", "calibd.cli", "run", "--config", "{config}"]}
+    cpu = {}
+    for name, command in runs.items():
+        samples = measure(command, data, args.seconds)
+        (t0, c0, m0), (t1, c1, m1) = samples[0], samples[-1]
+        cpu[name] = 100 * (c1 - c0) / (t1 - t0)
+        print(f"{name}: {cpu[name]:.1f}% of one core; RSS {m0:.0f} MB -> {m1:.0f} MB "
+              f"(max {max(s[2] for s in samples):.0f} MB)")
+    print(f"calibd run / bare reader CPU: {cpu['calibd run'] / max(cpu['bare pyserial reader'], 0.01):.1f}x "
+          f"(target: calibd run <= 5% of one core)")
+    fixture = ROOT / "fixtures" / "thesis_real_cw_125hz.bin"
+    times = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for name, command in (("stim300 info", [sys.executable, "-m", "stim300.cli", "info", str(fixture)]),
+                              ("calibd calibrate", [sys.executable, "-m", "calibd.cli", "calibrate", str(fixture),
+                                                    "--latitude", "40.59129", "-o", f"{tmp}/r.json"])):
+            t = time.perf_counter()
+            subprocess.run(command, env=ENV, check=True, stdout=subprocess.DEVNULL)
+            times[name] = time.perf_counter() - t
+    print(f"calibd calibrate on the 125 Hz thesis fixture: {times['calibd calibrate']:.2f} s wall "
+          f"(target <= 2 s); stim300 info on it {times['stim300 info']:.2f} s; ratio "
+          f"{times['calibd calibrate'] / times['stim300 info']:.1f}x")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
