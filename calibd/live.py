@@ -15,6 +15,7 @@ import socket
 import sys
 import time
 
+import numpy as np
 import structlog
 
 from stim300.codec import SAMPLE_DTYPE
@@ -78,6 +79,21 @@ def _sensor(parser: StreamParser) -> dict:
             "sample_rate_hz": _rate(parser)}
 
 
+FLAG_BITS = 0xBF  # every status bit but START_UP (bit 6): the sensor's own fault report
+
+
+def stream_faults(stats, before: dict, samples) -> tuple[dict, dict]:
+    """What went wrong on the stream since `before` (CRC errors, lost samples, skipped bytes, and
+    datagrams whose status bytes flag a fault): (counts now, increases)."""
+    now = {"crc_errors": stats.crc_errors, "lost_samples": stats.lost_samples, "skipped_bytes": stats.skipped_bytes}
+    increases = {k: v - before.get(k, 0) for k, v in now.items() if v > before.get(k, 0)}
+    if len(samples):
+        flagged = (samples["status_gyro"] | samples["status_acc"] | samples["status_incl"]) & FLAG_BITS
+        if np.any(flagged):
+            increases["flagged_datagrams"] = int(np.count_nonzero(flagged))
+    return now, increases
+
+
 def replay(data: bytes, calibrator: Calibrator, speed: float | None = None, chunk_bytes: int = 65536,
            progress=None) -> None:
     """Feed a capture's bytes through a StreamParser into the calibrator, as the live loop does;
@@ -125,7 +141,7 @@ def run(config, reload_config) -> int:
         return 1
     sd_notify("READY=1")
     log.info("started", port=config.serial.port, state_dir=str(config.state_dir))
-    cursor, last_data = 0, time.monotonic()
+    cursor, last_data, counts = 0, time.monotonic(), {}
     try:
         while not stopping:
             time.sleep(POLL_S)
@@ -140,6 +156,9 @@ def run(config, reload_config) -> int:
             samples, cursor, lost = ring.read_since(cursor)
             if lost:
                 log.warning("overrun", lost_samples=lost)
+            counts, faults = stream_faults(reader.parser.stats, counts, samples)
+            if faults:
+                log.warning("stream_faults", **faults)
             rate = _rate(reader.parser)
             if len(samples) and rate:
                 last_data = time.monotonic()

@@ -19,7 +19,7 @@ from calibd.cli import main as calibd_main
 from calibd.config import WarmupConfig
 from calibd.daemon import Calibrator, ResultStore, State
 from calibd.frames import Site
-from calibd.live import replay
+from calibd.live import replay, stream_faults
 from stim300.bulk import decode_capture
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
@@ -71,6 +71,19 @@ def test_2000_hz_is_stored_block_averaged_at_250_hz():
     assert calibrator._stored_rate == 250 and len(stored["time_s"]) == 1000
     assert stored["gyro"][:, 2].mean() == pytest.approx(np.radians(samples["gyro"][:8000, 2].astype(float)).mean())
     assert np.allclose(np.diff(stored["time_s"]), 1 / 250)
+
+
+def test_stream_faults_are_reported_as_they_grow():
+    from stim300.stream import StreamParser
+    parser = StreamParser()
+    data = (FIXTURES / "faults_125hz.bin").read_bytes()
+    samples = parser.feed(data)
+    counts, faults = stream_faults(parser.stats, {}, samples)
+    assert faults["crc_errors"] > 0 and faults["lost_samples"] > 0 and faults["skipped_bytes"] > 0
+    assert "flagged_datagrams" not in faults  # only START_UP is set in this capture: not a fault
+    samples["status_acc"][5] = 0x11  # overload on X
+    again, more = stream_faults(parser.stats, counts, samples)
+    assert more == {"flagged_datagrams": 1} and again == counts
 
 
 def test_a_crash_while_writing_keeps_the_last_good_result(tmp_path, monkeypatch):
