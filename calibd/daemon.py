@@ -22,6 +22,7 @@ import structlog
 from stim300.atomic import write_atomic
 from stim300.protocol import INTERNAL_RATE_HZ
 
+from . import detect
 from .calibrate import CalibrationError, Session, joint_real_case, thesis_real_case
 from .config import MethodConfig, WarmupConfig
 from .estimators.joint import JointOptions
@@ -228,7 +229,7 @@ class Calibrator:
                 tilt = None if m.alpha_deg is None else (m.alpha_deg, m.beta_deg)
                 result = thesis_real_case(session, self.site, tilt)
         except CalibrationError as exc:
-            detail = f"collecting: {session.time_s[-1]:.0f} s of data; {exc}"
+            detail = f"collecting: {session.time_s[-1]:.0f} s of data, {self._progress(session)}; {exc}"
             if self.state != State.SOLVED:
                 self._set(State.COLLECTING, detail)
             return
@@ -241,6 +242,12 @@ class Calibrator:
         log.info("solved", **{name: round(e["value"], 6) for name, e in result["estimates"].items()},
                  units={name: e["unit"] for name, e in result["estimates"].items()})
         self.on_result(result)
+
+    @staticmethod
+    def _progress(session: Session) -> str:
+        segments = detect.find_segments(session.gyro / DEG, session.acc / STANDARD_GRAVITY, session.rate_hz,
+                                        session.time_s)
+        return detect.protocol_progress(segments)
 
     def _set(self, state: State, detail: str) -> None:
         changed = state != self.state

@@ -283,3 +283,16 @@ def full_turns(segments: list[Segment], min_cruise_deg: float = 350.0) -> list[S
     whole period at constant rate (eq. 6.31), and a 360 deg turn with ramps has only ~334 deg of
     it at 27.93 deg/s and 30 deg/s^2. Consumers take one period from cruise_start."""
     return [s for s in segments if s.kind == "turn" and abs(s.cruise_angle_deg) >= min_cruise_deg]
+
+
+def protocol_progress(segments: list[Segment]) -> str:
+    """What a session has so far, in the protocol's words: statics and the platform headings
+    they cover, turns by kind (index ~90 deg, full >= 350 deg at constant rate, other)."""
+    statics = [s for s in segments if s.kind == "static"]
+    turns = [s for s in segments if s.kind == "turn"]
+    headings = {round((s.platform_angle_deg % 360) / 90) % 4 for s in statics
+                if abs(s.platform_angle_deg / 90 - round(s.platform_angle_deg / 90)) * 90 <= 5}
+    full = len(full_turns(segments))
+    index = sum(1 for t in turns if abs(abs(t.angle_deg) - 90) <= 5)
+    return (f"{len(statics)} statics at {len(headings)}/4 index headings, {index} index turns, "
+            f"{full} full turns, {len(turns) - index - full} other turns")

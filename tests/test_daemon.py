@@ -100,6 +100,30 @@ def test_a_crash_while_writing_keeps_the_last_good_result(tmp_path, monkeypatch)
     assert not [p for p in tmp_path.rglob("*.part")]
 
 
+def test_kill_9_while_writing_leaves_a_readable_result(tmp_path):
+    """A writer killed at random moments: result.json is always a whole result."""
+    root = str(Path(__file__).resolve().parents[1])
+    script = (f"import sys; sys.path.insert(0, {root!r})\n"
+              "from calibd.daemon import ResultStore\n"
+              f"store = ResultStore({str(tmp_path)!r})\n"
+              "n = 0\n"
+              "while True:\n"
+              "    n += 1\n"
+              "    store.write_result({'schema': 'calibd.result/1', 'n': n, 'pad': ['x' * 1000] * 200})\n")
+    rng = np.random.default_rng(7)
+    for _ in range(5):
+        writer = subprocess.Popen([sys.executable, "-c", script])
+        deadline = time.monotonic() + 20
+        while not (tmp_path / "result.json").exists():
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        time.sleep(rng.uniform(0.05, 0.3))
+        writer.kill()
+        writer.wait()
+        result = json.loads((tmp_path / "result.json").read_text())
+        assert result["schema"] == "calibd.result/1" and len(result["pad"]) == 200
+
+
 def test_replay_command_and_status(tmp_path, capsys):
     code = calibd_main(["replay", str(FIXTURES / "warmup_then_protocol_125hz.bin"), "--latitude", "40.59129",
                         "--g0", "9.79956", "--warmup-window", "100", "--state-dir", str(tmp_path)])

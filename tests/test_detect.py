@@ -184,3 +184,12 @@ def test_handling_is_no_turn_and_splits_the_statics():
     assert [(s.kind, s.up) for s in segments] == [("static", "+Z"), ("static", "+Y")]
     assert segments[0].stop < 1500 - 125 + 10 and segments[1].start > 1750 + 125 - 10
     assert segments[1].platform_angle_deg == 0.0
+
+
+def test_protocol_progress_counts_the_protocol():
+    from calibd.detect import protocol_progress
+    sim = simulate(load_scenario("thesis-real"))
+    s = sim.samples
+    segments = detect.find_segments(s["gyro"].astype(float), s["acc"].astype(float), 125)
+    assert protocol_progress(segments) == "6 statics at 4/4 index headings, 4 index turns, 1 full turns, 0 other turns"
+    assert protocol_progress(segments[:3]).startswith("2 statics at 2/4 index headings, 1 index turns")
