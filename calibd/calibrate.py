@@ -14,12 +14,13 @@ from scipy.special import gammaincc
 from stim300.bulk import decode_capture
 
 from . import detect
+from .config import WarmupConfig
 from .estimators import joint, thesis
 from .frames import STANDARD_GRAVITY, Site
 from .results import make_result
 
 DEG = np.pi / 180
-WARM_SLOPE_C_PER_H = 1.0  # a temperature trend above this says the IMU is still warming up
+WARM_SLOPE_C_PER_H = WarmupConfig().max_slope_c_per_h  # the daemon's default warm-up criterion
 
 
 class CalibrationError(ValueError):
@@ -76,7 +77,7 @@ def _warm_up_warning(session: Session) -> list[str]:
     t = session.temperature_c
     if t is None or len(t) < 2:
         return ["no temperatures in the datagram: warm-up cannot be checked"]
-    slope = np.polyfit(session.time_s, t, 1)[0] * 3600
+    slope = detect.temperature_trend_c_per_h(session.time_s, t)
     if abs(slope) > WARM_SLOPE_C_PER_H:
         return [f"temperature still moving {slope:+.1f} degC/h over the data: the IMU is not warmed up, biases "
                 "drift (use --start to skip the warm-up)"]

@@ -60,6 +60,13 @@ def _number(low: float, high: float, unit: str):
     return parse
 
 
+def _add_site_options(p: argparse.ArgumentParser, required: bool) -> None:
+    p.add_argument("--latitude", type=_number(-90, 90, "deg"), required=required,
+                   help="site latitude, deg" + ("" if required else " (without --config)"))
+    p.add_argument("--height", type=_number(-500, 9000, "m"), default=0.0, help="site height, m (default 0)")
+    p.add_argument("--g0", type=_number(9.7, 9.9, "m/s^2"), help="measured gravity, m/s^2 (default: normal gravity)")
+
+
 def _site(args) -> Site:
     try:
         return Site(args.latitude, args.height, args.g0)
@@ -213,9 +220,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, help="RESULT.json (replaced atomically)")
     p.add_argument("--method", choices=("joint", "thesis"), default="joint",
                    help="joint: every segment in one fit, with 1-sigma (default); thesis: the thesis's chain")
-    p.add_argument("--latitude", type=_number(-90, 90, "deg"), required=True, help="site latitude, deg")
-    p.add_argument("--height", type=_number(-500, 9000, "m"), default=0.0, help="site height, m (default 0)")
-    p.add_argument("--g0", type=_number(9.7, 9.9, "m/s^2"), help="measured gravity, m/s^2 (default: normal gravity)")
+    _add_site_options(p, required=True)
     p.add_argument("--alpha", type=_number(-10, 10, "deg"), help="a-priori interface tilt alpha, deg (nominal run)")
     p.add_argument("--beta", type=_number(-10, 10, "deg"), help="a-priori interface tilt beta, deg (nominal run)")
     p.add_argument("--platform-rate", type=_number(-1000, 1000, "deg/s"),
@@ -235,9 +240,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("replay", help="the daemon's pipeline on a capture, printing states and results")
     p.add_argument("capture")
     p.add_argument("--config", help="TOML configuration (site, warm-up, method)")
-    p.add_argument("--latitude", type=_number(-90, 90, "deg"), help="site latitude, deg (without --config)")
-    p.add_argument("--height", type=_number(-500, 9000, "m"), default=0.0, help="site height, m (default 0)")
-    p.add_argument("--g0", type=_number(9.7, 9.9, "m/s^2"), help="measured gravity, m/s^2")
+    _add_site_options(p, required=False)
     p.add_argument("--speed", type=_speed, default="max", help="N times real time, or max (default)")
     p.add_argument("--warmup-window", type=_number(1, 1e6, "s"),
                    help="seconds of settled temperature that end the warm-up (default 600)")
@@ -250,9 +253,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--alpha-error", type=_number(-10, 10, "deg"), required=True, help="d_alpha, deg")
     p.add_argument("--beta-error", type=_number(-10, 10, "deg"), required=True, help="d_beta, deg")
     p.add_argument("--platform-rate", type=_number(-1000, 1000, "deg/s"), required=True, help="deg/s")
-    p.add_argument("--latitude", type=_number(-90, 90, "deg"), required=True, help="site latitude, deg")
-    p.add_argument("--height", type=_number(-500, 9000, "m"), default=0.0, help="site height, m (default 0)")
-    p.add_argument("--g0", type=_number(9.7, 9.9, "m/s^2"), help="measured gravity, m/s^2 (default: normal gravity)")
+    _add_site_options(p, required=True)
     p.set_defaults(func=cmd_sensitivity)
     p = sub.add_parser("simulate", help="scenario -> capture file and CAPTURE.truth.json")
     p.add_argument("scenario", help=f"scenario TOML file, or one of: {', '.join(READY_MADE)}")

@@ -190,7 +190,7 @@ class Calibrator:
         if np.isnan(recent["temp"]).all():
             slope, note = 0.0, " (no temperatures in the datagram: time since power-up only)"
         else:
-            slope, note = np.polyfit(recent["time_s"], recent["temp"], 1)[0] * 3600, ""
+            slope, note = detect.temperature_trend_c_per_h(recent["time_s"], recent["temp"]), ""
         if abs(slope) > rule.max_slope_c_per_h:
             self.detail = f"warming up: temperature moving {slope:+.2f} degC/h"
             self._set(State.WARMING_UP, self.detail)
@@ -210,7 +210,7 @@ class Calibrator:
             return float(t[0])
         for t0 in np.linspace(t[0], t[-1] - (t[-1] - t[0]) / 4, 8):
             keep = t >= t0
-            if abs(np.polyfit(t[keep], temp[keep], 1)[0] * 3600) <= self.warmup.max_slope_c_per_h:
+            if abs(detect.temperature_trend_c_per_h(t[keep], temp[keep])) <= self.warmup.max_slope_c_per_h:
                 return float(t0)
         return float(t[-1] - (t[-1] - t[0]) / 4)
 

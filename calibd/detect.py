@@ -32,6 +32,11 @@ TURN_AXIS_SHARE = 0.9  # share of a motion's rotation about the vertical that ma
 AXES = "XYZ"
 
 
+def temperature_trend_c_per_h(time_s: np.ndarray, temperature_c: np.ndarray) -> float:
+    """Least-squares slope of a temperature record, degC/h: the warm-up criterion."""
+    return float(np.polyfit(time_s, temperature_c, 1)[0] * 3600)
+
+
 def sample_times(counter: np.ndarray, rate_hz: float) -> np.ndarray:
     """Seconds from the first sample, from the datagram counter, so that lost datagrams leave gaps.
 
