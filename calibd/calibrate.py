@@ -27,6 +27,14 @@ class CalibrationError(ValueError):
     """The data cannot give this calibration (missing segments, wrong protocol); one line."""
 
 
+class ProtocolIncomplete(CalibrationError):
+    """The session lacks segments a method needs: why (`reason`) and what it has (`found`)."""
+
+    def __init__(self, reason: str, found: str):
+        super().__init__(f"{reason}; found {found}")
+        self.reason, self.found = reason, found
+
+
 @dataclass
 class Session:
     """Decoded data in SI, with what is known of the sensor and the stream."""
@@ -73,6 +81,15 @@ def load_session(path: str, start_s: float = 0.0, data: bytes | None = None) -> 
                 "crc_errors": stats.crc_errors, "restarts": stats.restarts})
 
 
+def session_segments(session: Session) -> list[detect.Segment]:
+    """The statics and turns of a whole session (the daemon tracks them incrementally instead)."""
+    return detect.find_segments(session.gyro / DEG, session.acc / STANDARD_GRAVITY, session.rate_hz, session.time_s)
+
+
+def _lacking(what: str, segments: list[detect.Segment]) -> ProtocolIncomplete:
+    return ProtocolIncomplete(what, detect.protocol_progress(segments))
+
+
 def _warm_up_warning(session: Session) -> list[str]:
     t = session.temperature_c
     if t is None or len(t) < 2:
@@ -112,19 +129,19 @@ def _static_mean(values: np.ndarray, seg: detect.Segment) -> np.ndarray:
 
 
 def thesis_real_case(session: Session, site: Site, alpha_beta_deg: tuple[float, float] | None = None,
-                     platform_rate_deg_s: float | None = None) -> dict:
-    """The thesis's real-case chain on a session: nominal with alpha/beta given, else linear."""
-    segments = detect.find_segments(session.gyro / DEG, session.acc / STANDARD_GRAVITY, session.rate_hz,
-                                    session.time_s)
+                     platform_rate_deg_s: float | None = None, segments: list[detect.Segment] | None = None) -> dict:
+    """The thesis's real-case chain on a session: nominal with alpha/beta given, else linear.
+    `segments`: the session's, when already found."""
+    segments = session_segments(session) if segments is None else segments
     try:
         level = detect.level_static(segments)
         index = detect.index_positions(segments)
         turns = [t for t in detect.full_turns(segments) if t.start >= level.stop]
     except ValueError as exc:
-        raise CalibrationError(f"not the thesis real-case protocol: {exc}") from None
+        raise _lacking(f"not the thesis real-case protocol: {exc}", segments) from None
     if not turns:
-        raise CalibrationError("not the thesis real-case protocol: no full turn (a constant-rate part of at "
-                               "least 350 deg) after the level static")
+        raise _lacking("not the thesis real-case protocol: no full turn (a constant-rate part of at "
+                       "least 350 deg) after the level static", segments)
     turn = turns[0]
     window, warnings = _one_period(session, turn)
     data = thesis.RealCaseData(
@@ -172,8 +189,7 @@ def _earth_rate_report(gyro: np.ndarray, rate_hz: int, site: Site) -> dict:
 def thesis_bench(session: Session, site: Site) -> dict:
     """The bench campaign: six-position biases of every channel (eq. 5.3) and alpha/beta from
     every full turn (eqs. 5.6-5.8), averaged."""
-    segments = detect.find_segments(session.gyro / DEG, session.acc / STANDARD_GRAVITY, session.rate_hz,
-                                    session.time_s)
+    segments = session_segments(session)
     statics = [s for s in segments if s.kind == "static"]
     positions = {}
     for s in statics:  # the first static with each axis up
@@ -185,7 +201,7 @@ def thesis_bench(session: Session, site: Site) -> dict:
               for name, values in (("gyro", session.gyro), ("acc", session.acc), ("incl", session.incl))}
     turns = detect.full_turns(segments)
     if not turns:
-        raise CalibrationError("not the bench protocol: no full turn for alpha and beta")
+        raise _lacking("not the bench protocol: no full turn for alpha and beta", segments)
     warnings, tilts = _warm_up_warning(session), []
     for turn in turns:
         before = [s for s in statics if s.stop <= turn.start and s.up == "+Z"]
@@ -208,15 +224,26 @@ def thesis_bench(session: Session, site: Site) -> dict:
 YAW_SIGMA_POOR_DEG = 5.0  # a yaw with a larger 1-sigma is flagged, not presented as usable
 
 
-def joint_real_case(session: Session, site: Site, options: joint.JointOptions = joint.JointOptions()) -> dict:
-    """The joint estimator (method.md §6) on every static and turning sample from the level
-    static to the last static of the same mounting."""
-    segments = detect.find_segments(session.gyro / DEG, session.acc / STANDARD_GRAVITY, session.rate_hz,
-                                    session.time_s)
+@dataclass
+class JointFit:
+    """The joint estimator's input and fit on a session, kept for figures that show how the
+    estimates came about (the Earth-rate sinusoid against the platform angle)."""
+
+    segments: list[detect.Segment]  # those used: from the level static to the last static of its mounting
+    first: int  # the session sample where the fit's input starts (the level static's first)
+    inp: joint.JointInput
+    fit: joint.JointResult
+
+
+def joint_fit(session: Session, site: Site, options: joint.JointOptions = joint.JointOptions(),
+              segments: list[detect.Segment] | None = None) -> JointFit:
+    """The joint estimator's fit on every static and turning sample from the level static to the
+    last static of the same mounting. `segments`: the session's, when already found."""
+    segments = session_segments(session) if segments is None else segments
     try:
         level = detect.level_static(segments)
     except ValueError as exc:
-        raise CalibrationError(str(exc)) from None
+        raise _lacking(str(exc), segments) from None
     used = [s for s in segments if s.start >= level.start]
     moved = next((k for k, s in enumerate(used) if s.kind == "static" and s.up != level.up), len(used))
     used = used[:moved]  # a re-mounting ends the single-axis model
@@ -224,7 +251,7 @@ def joint_real_case(session: Session, site: Site, options: joint.JointOptions = 
         used.pop()
     statics = [s for s in used if s.kind == "static"]
     if not any(s.kind == "turn" for s in used):
-        raise CalibrationError("no turn after the level static: yaw needs the platform to turn")
+        raise _lacking("no turn after the level static: yaw needs the platform to turn", segments)
     first, stop = level.start, used[-1].stop
     inp = joint.JointInput(
         time_s=session.time_s[first:stop] - session.time_s[first], gyro=session.gyro[first:stop],
@@ -233,9 +260,18 @@ def joint_real_case(session: Session, site: Site, options: joint.JointOptions = 
     try:
         fit = joint.solve(inp, site, options)
     except ValueError as exc:
-        raise CalibrationError(str(exc)) from None
+        raise _lacking(str(exc), segments) from None
     except np.linalg.LinAlgError:
-        raise CalibrationError("the segments do not determine every parameter (too few platform angles)") from None
+        raise _lacking("the segments do not determine every parameter (too few platform angles)", segments) from None
+    return JointFit(used, first, inp, fit)
+
+
+def joint_real_case(session: Session, site: Site, options: joint.JointOptions = joint.JointOptions(),
+                    segments: list[detect.Segment] | None = None) -> dict:
+    """The joint estimator (method.md §6) on every static and turning sample from the level
+    static to the last static of the same mounting. `segments`: the session's, when already found."""
+    fitted = joint_fit(session, site, options, segments)
+    used, fit = fitted.segments, fitted.fit
     warnings = _warm_up_warning(session) + _joint_warnings(fit, site)
     estimates = {name: (fit.estimates[name], fit.sigmas[name]) for name in joint.ESTIMATE_NAMES}
     result = make_result("joint", site, estimates, [_segment_record(s, s.kind) for s in used], warnings,

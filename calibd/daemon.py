@@ -23,7 +23,7 @@ from stim300.atomic import write_atomic
 from stim300.protocol import INTERNAL_RATE_HZ
 
 from . import detect
-from .calibrate import CalibrationError, Session, joint_real_case, thesis_real_case
+from .calibrate import CalibrationError, ProtocolIncomplete, Session, joint_real_case, thesis_real_case
 from .config import MethodConfig, WarmupConfig
 from .estimators.joint import JointOptions
 from .frames import STANDARD_GRAVITY, Site
@@ -114,9 +114,13 @@ class Calibrator:
             return
         self.rate_hz = rate_hz
         t = self._times(samples["counter"], rate_hz)
-        if self.state in (State.STARTING, State.RESTARTED, State.FAULT):
+        if self._gap and self._session_start is not None:
+            self._start_session(float(t[0]), "data again after a gap: the platform angle was lost, "
+                                             "collecting a new session (warm-up stands)")
+        elif self.state in (State.STARTING, State.RESTARTED, State.FAULT):
             self._set(State.WARMING_UP if self._session_start is None else State.COLLECTING,
                       "waiting for the temperature to settle" if self._session_start is None else "data again")
+        self._gap = False
         if self._session_start is not None and t[-1] - self._session_start > MAX_SESSION_S:
             return  # a session this long has said what it can: memory stays bounded
         self._store(samples, t)
@@ -129,8 +133,11 @@ class Calibrator:
             self._solve()
 
     def data_lost(self, seconds: float) -> None:
-        """The live loop saw no data for `seconds`: a fault until data flows again."""
+        """The live loop saw no data for `seconds`: a fault until data flows again. The platform
+        may have turned meanwhile, so the platform angle is lost: a session being collected
+        starts again when data returns (the warm-up stands unless the sensor restarted)."""
         self._set(State.FAULT, f"no data for {seconds:.0f} s (port lost or sensor off)")
+        self._gap = True
 
     # ------------------------------------------------------------------ internals
     def _reset_time(self) -> None:
@@ -139,6 +146,8 @@ class Calibrator:
         self._last_counter: int | None = None
         self._t_last: float | None = None
         self._session_start: float | None = None
+        self._tracker: detect.SegmentTracker | None = None
+        self._gap = False
         self._next_solve = 0.0
         self._next_check = 0.0
         self.rate_hz = 0
@@ -195,11 +204,17 @@ class Calibrator:
             self.detail = f"warming up: temperature moving {slope:+.2f} degC/h"
             self._set(State.WARMING_UP, self.detail)
             return
-        self._session_start = self._warm_since(recent)
-        self._next_solve = elapsed
-        self.sessions += 1
-        self._set(State.COLLECTING, f"warmed up ({slope:+.2f} degC/h over {rule.window_s:.0f} s){note}")
+        self._start_session(self._warm_since(recent),
+                            f"warmed up ({slope:+.2f} degC/h over {rule.window_s:.0f} s){note}")
         self._solve()
+
+    def _start_session(self, start_s: float, detail: str) -> None:
+        self._buffer.trim(start_s)
+        self._session_start = start_s
+        self._tracker = detect.SegmentTracker(self._stored_rate)
+        self._next_solve = self._buffer.end_s + self.method.resolve_every_s
+        self.sessions += 1
+        self._set(State.COLLECTING, detail)
 
     def _warm_since(self, recent: dict) -> float:
         """Where the session starts: the earliest point of the window from which the temperature
@@ -222,17 +237,22 @@ class Calibrator:
 
     def _solve(self) -> None:
         session = self._session()
+        segments = self._tracker.update(session.gyro / DEG, session.acc / STANDARD_GRAVITY, session.time_s)
         m = self.method
         try:
             if m.name == "joint":
-                result = joint_real_case(session, self.site, JointOptions(m.fixed_amplitude, m.drift))
+                result = joint_real_case(session, self.site, JointOptions(m.fixed_amplitude, m.drift), segments)
             else:
                 tilt = None if m.alpha_deg is None else (m.alpha_deg, m.beta_deg)
-                result = thesis_real_case(session, self.site, tilt)
-        except CalibrationError as exc:
-            detail = f"collecting: {session.time_s[-1]:.0f} s of data, {self._progress(session)}; {exc}"
+                result = thesis_real_case(session, self.site, tilt, segments=segments)
+        except ProtocolIncomplete as exc:
             if self.state != State.SOLVED:
-                self._set(State.COLLECTING, detail)
+                self._set(State.COLLECTING, f"collecting: {session.time_s[-1]:.0f} s of data, {exc.found}; "
+                                            f"waiting for: {exc.reason}")
+            return
+        except CalibrationError as exc:
+            if self.state != State.SOLVED:
+                self._set(State.COLLECTING, f"collecting: {session.time_s[-1]:.0f} s of data; {exc}")
             return
         result["session"] = {"number": self.sessions, "duration_s": float(session.time_s[-1]),
                              "solved_at": datetime.now(timezone.utc).isoformat(timespec="seconds")}
@@ -243,12 +263,6 @@ class Calibrator:
         log.info("solved", **{name: round(e["value"], 6) for name, e in result["estimates"].items()},
                  units={name: e["unit"] for name, e in result["estimates"].items()})
         self.on_result(result)
-
-    @staticmethod
-    def _progress(session: Session) -> str:
-        segments = detect.find_segments(session.gyro / DEG, session.acc / STANDARD_GRAVITY, session.rate_hz,
-                                        session.time_s)
-        return detect.protocol_progress(segments)
 
     def _set(self, state: State, detail: str) -> None:
         changed = state != self.state

@@ -6,10 +6,14 @@ angles in degrees, counter-clockwise about Up positive (method.md §1).
 
 How a session is cut (each step exists because the protocols of method.md §3 need it):
 - moving = |gyro vector, moving average over `smooth_s`| > threshold. The norm, not one axis,
-  so a hand re-mounting the IMU is motion too; averaging keeps the STIM300 white noise
-  (0.03 deg/s per sample at 125 Hz, 0.11 at 2000 Hz) ~100 times below 1 deg/s.
+  so a hand re-mounting the IMU is motion too. The threshold adapts to the sensor: ten times the
+  noise of that average, estimated from the data (`motion_thresholds`), and never below
+  0.5 deg/s, which stays far above any gyro bias plus the Earth rate (STIM300: ~0.03 deg/s). For
+  the STIM300 the floor rules (its white noise averages to ~0.006 deg/s); a noisier sensor, or a
+  static on a running vehicle, raises it.
 - quiet stretches are split where the mean acc vector jumps (a bench re-mount, instantaneous in
-  the simulator: gravity moves to another axis while the gyros see nothing), trimmed by
+  the simulator: gravity moves to another axis while the gyros see nothing; the jump threshold
+  adapts to the accelerometer noise the same way), trimmed by
   `settle_s` next to any motion or re-mount, and kept when at least `min_static_s` long.
 - the motion between two statics is one turn when it is mostly about the vertical (the unit mean
   acc of the static before); otherwise it is handling and gives no segment.
@@ -30,6 +34,9 @@ from stim300.protocol import INTERNAL_RATE_HZ
 COUNTER_MODULUS = 256
 TURN_AXIS_SHARE = 0.9  # share of a motion's rotation about the vertical that makes it a turn (~25 deg cone)
 AXES = "XYZ"
+NOISE_MULTIPLE = 10.0  # thresholds sit this many noise sigmas above a quiet sensor's averaged output
+MIN_TURN_THRESHOLD_DEG_S = 0.5  # above gyro bias + Earth rate of any navigation-grade gyro
+MIN_REMOUNT_G = 0.05  # a re-mount moves gravity by ~1 g between axes
 
 
 def temperature_trend_c_per_h(time_s: np.ndarray, temperature_c: np.ndarray) -> float:
@@ -156,9 +163,30 @@ def _static_pieces(moving, acc, half, settle_n, min_n, remount_g):
 
 # ---------------------------------------------------------------- segments
 
+def _white_sigma(x: np.ndarray) -> np.ndarray:
+    """Per-column white-noise sigma per sample, robustly: the median absolute deviation of the
+    first differences, which turns at constant rate, slow drifts and biases do not inflate."""
+    d = np.diff(x, axis=0)
+    if len(d) < 2:
+        return np.zeros(x.shape[1:])
+    mad = np.median(np.abs(d - np.median(d, axis=0)), axis=0)
+    return 1.4826 * mad / np.sqrt(2.0)
+
+
+def motion_thresholds(gyro: np.ndarray, acc: np.ndarray, rate_hz: float, smooth_s: float = 0.2) -> tuple[float, float]:
+    """(turn threshold in deg/s, re-mount threshold in g) for this sensor and this data: NOISE_MULTIPLE
+    times the noise of the averages they are compared with, at least the floors."""
+    half = max(int(round(smooth_s * rate_hz / 2)), 1)
+    gyro_noise = np.linalg.norm(_white_sigma(np.asarray(gyro, float))) / np.sqrt(2 * half + 1)
+    acc_noise = np.linalg.norm(_white_sigma(np.asarray(acc, float))) * np.sqrt(2.0 / (2 * half))  # step of two means
+    return (max(MIN_TURN_THRESHOLD_DEG_S, NOISE_MULTIPLE * float(gyro_noise)),
+            max(MIN_REMOUNT_G, NOISE_MULTIPLE * float(acc_noise)))
+
+
 def find_segments(gyro: np.ndarray, acc: np.ndarray, rate_hz: float, time_s: np.ndarray | None = None, *,
-                  turn_threshold_deg_s: float = 1.0, min_static_s: float = 5.0, settle_s: float = 1.0,
-                  cruise_tolerance: float = 0.01, smooth_s: float = 0.2, remount_g: float = 0.05) -> list[Segment]:
+                  turn_threshold_deg_s: float | None = None, min_static_s: float = 5.0, settle_s: float = 1.0,
+                  cruise_tolerance: float = 0.01, smooth_s: float = 0.2,
+                  remount_g: float | None = None) -> list[Segment]:
     """Statics and turns of a session, in time order.
 
     gyro (N,3) deg/s and acc (N,3) g, finite; time_s as from `sample_times` (default: no losses).
@@ -166,7 +194,8 @@ def find_segments(gyro: np.ndarray, acc: np.ndarray, rate_hz: float, time_s: np.
     the vertical; statics lose `settle_s` at each end next to motion or a re-mount (an acc step
     larger than `remount_g` between quiet stretches) and must keep `min_static_s`. A turn's
     constant-rate part is the longest run of samples whose smoothed rate is within
-    `cruise_tolerance` (relative) of the median rate of the turn's central half.
+    `cruise_tolerance` (relative) of the median rate of the turn's central half. Thresholds left
+    None come from the data's own noise (`motion_thresholds`).
     """
     gyro = np.asarray(gyro, dtype=np.float64)
     acc = np.asarray(acc, dtype=np.float64)
@@ -176,6 +205,10 @@ def find_segments(gyro: np.ndarray, acc: np.ndarray, rate_hz: float, time_s: np.
     if not (np.isfinite(gyro).all() and np.isfinite(acc).all()):
         raise ValueError("find_segments needs finite gyro and acc samples (a datagram without accelerometers "
                          "cannot show gravity)")
+    if turn_threshold_deg_s is None or remount_g is None:
+        turn, remount = motion_thresholds(gyro, acc, rate_hz, smooth_s)
+        turn_threshold_deg_s = turn if turn_threshold_deg_s is None else turn_threshold_deg_s
+        remount_g = remount if remount_g is None else remount_g
     dt = 1.0 / rate_hz
     t = np.arange(n) * dt if time_s is None else np.asarray(time_s, dtype=np.float64)
     w = _weights(t, dt)
@@ -207,6 +240,52 @@ def find_segments(gyro: np.ndarray, acc: np.ndarray, rate_hz: float, time_s: np.
                                up=_up_name(nxt["acc"])))
     origin = next((s.platform_angle_deg for s in out if s.kind == "static"), 0.0)  # relative to the first static
     return [replace(s, platform_angle_deg=s.platform_angle_deg - origin) for s in out]
+
+
+class SegmentTracker:
+    """The segments of a growing session without re-scanning all of it at every update.
+
+    Everything before the second-to-last static is final: a static ends where motion starts, and
+    a turn depends only on the statics on either side of it. So each update runs `find_segments`
+    from that static on, and shifts what it finds into the session's samples and platform angle.
+    The thresholds are set from the data of the first update (the sensor's noise does not change
+    within a session), so every pass cuts alike.
+    """
+
+    def __init__(self, rate_hz: float, **options):
+        self.rate_hz, self.options = rate_hz, options
+        self.final: list[Segment] = []
+        self._tail_start = 0  # first sample of the part still re-scanned
+        self._tail_chi = 0.0  # platform angle there, relative to the session's first static
+        self._thresholds: dict | None = None
+
+    def update(self, gyro: np.ndarray, acc: np.ndarray, time_s: np.ndarray | None = None) -> list[Segment]:
+        """All segments so far. gyro (N,3) deg/s, acc (N,3) g, time_s: the whole session, which
+        only grows (earlier samples never change)."""
+        n = len(gyro)
+        if n == 0:
+            return list(self.final)
+        t = np.arange(n) / self.rate_hz if time_s is None else np.asarray(time_s, dtype=np.float64)
+        if self._thresholds is None:
+            turn, remount = motion_thresholds(gyro, acc, self.rate_hz, self.options.get("smooth_s", 0.2))
+            self._thresholds = {"turn_threshold_deg_s": turn, "remount_g": remount}
+        a = self._tail_start
+        tail = find_segments(gyro[a:], acc[a:], self.rate_hz, t[a:], **self._thresholds, **self.options)
+        shifted = [_shifted(s, a, self._tail_chi) for s in tail]
+        segments = self.final + shifted
+        statics = [s for s in segments if s.kind == "static"]
+        if len(statics) >= 2 and statics[-2].start > self._tail_start:
+            keep = statics[-2]
+            self.final = [s for s in segments if s.start < keep.start]
+            self._tail_start, self._tail_chi = keep.start, keep.platform_angle_deg
+        return segments
+
+
+def _shifted(s: Segment, samples: int, chi_deg: float) -> Segment:
+    def move(i):
+        return None if i is None else i + samples
+    return replace(s, start=s.start + samples, stop=s.stop + samples, cruise_start=move(s.cruise_start),
+                   cruise_stop=move(s.cruise_stop), platform_angle_deg=s.platform_angle_deg + chi_deg)
 
 
 def _turn(gyro, gyro_s, acc, moving, w, a, b, prev, nxt, tolerance):
@@ -299,5 +378,7 @@ def protocol_progress(segments: list[Segment]) -> str:
                 if abs(s.platform_angle_deg / 90 - round(s.platform_angle_deg / 90)) * 90 <= 5}
     full = len(full_turns(segments))
     index = sum(1 for t in turns if abs(abs(t.angle_deg) - 90) <= 5)
-    return (f"{len(statics)} statics at {len(headings)}/4 index headings, {index} index turns, "
-            f"{full} full turns, {len(turns) - index - full} other turns")
+    def count(n: int, what: str) -> str:
+        return f"{n} {what}" + ("" if n == 1 else "s")
+    return (f"{count(len(statics), 'static')} at {len(headings)}/4 index headings, {count(index, 'index turn')}, "
+            f"{count(full, 'full turn')}, {count(len(turns) - index - full, 'other turn')}")

@@ -3,6 +3,7 @@ subprocess fed through a real pty, stopped by SIGTERM."""
 
 import json
 import os
+import re
 import select
 import signal
 import subprocess
@@ -59,6 +60,33 @@ def test_no_session_starts_during_the_steep_part_of_the_warm_up(window_s):
 def test_sensor_restart_starts_a_new_session():
     calibrator, changes, results = run_replay("faults_125hz")
     assert State.RESTARTED in changes and changes[-1] == State.WARMING_UP and not results
+
+
+def test_a_data_gap_starts_a_new_session_and_keeps_the_warm_up():
+    """The platform may turn while the port is gone, so the session restarts when data returns;
+    the sensor stayed powered (no restart datagrams), so there is no second warm-up. While
+    collecting, the status says what the session has and what it still waits for."""
+    samples, _ = decode_capture((FIXTURES / "warmup_then_protocol_125hz.bin").read_bytes())
+    events, results = [], []
+    calibrator = Calibrator(SITE, WarmupConfig(window_s=100.0), on_result=results.append,
+                            on_state=lambda state, detail: events.append((state, detail)))
+    chunks = iter(np.array_split(samples, len(samples) // 125))
+    for chunk in chunks:
+        calibrator.feed(chunk, 125)
+        if calibrator.state == State.COLLECTING:
+            break
+    for _ in range(90):
+        calibrator.feed(next(chunks), 125)
+    before = len(events)
+    calibrator.data_lost(12.0)
+    for chunk in chunks:
+        calibrator.feed(chunk, 125)
+    after = events[before:]
+    assert after[0][0] == State.FAULT and after[1][0] == State.COLLECTING and "gap" in after[1][1]
+    assert State.WARMING_UP not in [state for state, _ in after]
+    assert calibrator.sessions == 2 and results and results[-1]["session"]["number"] == 2
+    waiting = [d for state, d in events if state == State.COLLECTING and "waiting for:" in d]
+    assert waiting and re.match(r"collecting: \d+ s of data, \d+ static(s)? at \d/4 index headings", waiting[0])
 
 
 def test_2000_hz_is_stored_block_averaged_at_125_hz():

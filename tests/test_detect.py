@@ -191,5 +191,53 @@ def test_protocol_progress_counts_the_protocol():
     sim = simulate(load_scenario("thesis-real"))
     s = sim.samples
     segments = detect.find_segments(s["gyro"].astype(float), s["acc"].astype(float), 125)
-    assert protocol_progress(segments) == "6 statics at 4/4 index headings, 4 index turns, 1 full turns, 0 other turns"
-    assert protocol_progress(segments[:3]).startswith("2 statics at 2/4 index headings, 1 index turns")
+    assert protocol_progress(segments) == "6 statics at 4/4 index headings, 4 index turns, 1 full turn, 0 other turns"
+    assert protocol_progress(segments[:3]).startswith("2 statics at 2/4 index headings, 1 index turn")
+
+
+def test_thresholds_follow_the_sensor_noise(real):
+    """A sensor 30x noisier than the STIM300 (1 deg/s and 40 mg per sample at 125 Hz): the
+    thresholds rise with its noise and the same segments are found; at the STIM300's own floor
+    the noise alone reads as motion and no static is left."""
+    s = real.samples
+    rng = np.random.default_rng(7)
+    gyro = s["gyro"].astype(float) + rng.normal(0.0, 1.0, s["gyro"].shape)
+    acc = s["acc"].astype(float) + rng.normal(0.0, 0.04, s["acc"].shape)
+    turn, remount = detect.motion_thresholds(gyro, acc, 125)
+    expected_turn = detect.NOISE_MULTIPLE * np.sqrt(3) / np.sqrt(25)  # 3 axes of 1 deg/s, averaged over 25 samples
+    assert turn == pytest.approx(expected_turn, rel=0.05)
+    assert remount == pytest.approx(detect.NOISE_MULTIPLE * 0.04 * np.sqrt(3) * np.sqrt(2 / 24), rel=0.05)
+    clean = found(real)
+    noisy = detect.find_segments(gyro, acc, 125)
+    assert [x.kind for x in noisy] == [x.kind for x in clean]
+    for a, b in zip(noisy, clean):  # turn angles integrate the noise: ~0.5 deg per 30 s turn
+        assert a.platform_angle_deg == pytest.approx(b.platform_angle_deg, abs=2.0)
+    floor = detect.find_segments(gyro, acc, 125, turn_threshold_deg_s=detect.MIN_TURN_THRESHOLD_DEG_S)
+    assert not [x for x in floor if x.kind == "static"]
+
+
+def test_quiet_sensor_keeps_the_floor(real):
+    s = real.samples
+    assert detect.motion_thresholds(s["gyro"], s["acc"], 125) == (detect.MIN_TURN_THRESHOLD_DEG_S,
+                                                                  detect.MIN_REMOUNT_G)
+
+
+@pytest.mark.parametrize("minutes", [0.5, 1.0, 3.7])
+def test_tracker_finds_what_a_whole_pass_finds(real, minutes):
+    """Fed a growing session in steps, the incremental tracker ends with the segments of one pass
+    over the whole session, though it re-scans only the part after the second-to-last static."""
+    s = real.samples
+    gyro, acc = s["gyro"].astype(float), s["acc"].astype(float)
+    whole = detect.find_segments(gyro, acc, 125)
+    tracker = detect.SegmentTracker(125)
+    step = int(minutes * 60 * 125)
+    for n in range(step, len(gyro) + step, step):
+        segments = tracker.update(gyro[:n], acc[:n])
+    assert tracker._tail_start > len(gyro) // 2  # most of the session was final before the last update
+    assert [(x.kind, x.start, x.stop, x.cruise_start, x.cruise_stop) for x in segments] == \
+        [(x.kind, x.start, x.stop, x.cruise_start, x.cruise_stop) for x in whole]
+    for a, b in zip(segments, whole):
+        assert a.platform_angle_deg == pytest.approx(b.platform_angle_deg, abs=1e-9)
+        assert a.start_s == pytest.approx(b.start_s, abs=1e-9)
+        if a.kind == "turn":
+            assert a.angle_deg == pytest.approx(b.angle_deg, abs=1e-9)
