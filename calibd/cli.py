@@ -16,6 +16,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from stim300.cliutil import CommandParser, UsageError, read_input, run_command
+from stim300.progress import Progress
 
 from .calibrate import CalibrationError, joint_real_case, load_session, thesis_bench, thesis_real_case
 from .config import ConfigError, MethodConfig, WarmupConfig, load_config
@@ -23,7 +24,7 @@ from .daemon import Calibrator, ResultStore
 from .estimators.joint import JointOptions
 from .estimators.thesis import sensitivity
 from .frames import STANDARD_GRAVITY, Site
-from .live import configure_logging, replay, run
+from .live import configure_logging, replay, replay_pty, run
 from .results import ResultError, load_result, write_result
 from .scenario import READY_MADE, ScenarioError, load_scenario
 
@@ -167,16 +168,9 @@ def cmd_replay(args) -> int:
 
     configure_logging(logging.WARNING)
     calibrator = Calibrator(site, warmup, method, on_result=on_result, on_state=on_state, source=args.capture)
-    shown = [0.0]
-
-    def progress(done, total):
-        if sys.stderr.isatty() and (done == total or time.monotonic() - shown[0] > 0.5):
-            shown[0] = time.monotonic()
-            print(f"\rreplay: {done / total:6.1%} of {total} B", end="" if done < total else "\n",
-                  file=sys.stderr, flush=True)
-
     speed = None if args.speed == "max" else float(args.speed)
-    replay(data, calibrator, speed, progress=progress)
+    with Progress("replay", len(data), "B") as bar:
+        (replay_pty if args.pty else replay)(data, calibrator, speed, progress=lambda done, total: bar.update(done))
     if calibrator.result is None:
         print(f"no result: {calibrator.detail}")
         return 1
@@ -242,6 +236,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", help="TOML configuration (site, warm-up, method)")
     _add_site_options(p, required=False)
     p.add_argument("--speed", type=_speed, default="max", help="N times real time, or max (default)")
+    p.add_argument("--pty", action="store_true",
+                   help="write the capture into a pseudo-terminal read by the daemon's own port reader")
     p.add_argument("--warmup-window", type=_number(1, 1e6, "s"),
                    help="seconds of settled temperature that end the warm-up (default 600)")
     p.add_argument("--state-dir", help="also write result.json, history/ and state.json there")

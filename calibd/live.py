@@ -3,7 +3,8 @@
 `run` is `calibd run`: a PortReader fills a ring, this loop drains it into the Calibrator,
 reports to systemd (READY, STATUS, WATCHDOG over $NOTIFY_SOCKET) and stops cleanly on SIGTERM;
 SIGHUP reloads the configuration. `replay` runs the same Calibrator on a capture file, through
-the same StreamParser, as fast as possible or paced.
+the same StreamParser, as fast as possible or paced; `replay_pty` goes through a pseudo-terminal
+and the daemon's own port reader and loop instead.
 """
 
 from __future__ import annotations
@@ -13,7 +14,9 @@ import os
 import signal
 import socket
 import sys
+import threading
 import time
+import tty
 
 import numpy as np
 import structlog
@@ -115,6 +118,94 @@ def replay(data: bytes, calibrator: Calibrator, speed: float | None = None, chun
             progress(min(offset + chunk_bytes, len(data)), len(data))
 
 
+class _Pump:
+    """Ring -> calibrator, with the bookkeeping the live loop and the pty replay share: stream
+    faults logged as they grow, overruns, and silence reported as a fault."""
+
+    def __init__(self, reader: PortReader, ring: RingBuffer, calibrator: Calibrator):
+        self.reader, self.ring, self.calibrator = reader, ring, calibrator
+        self.cursor, self.last_data, self.counts = 0, time.monotonic(), {}
+
+    def step(self) -> bool:
+        """Feed what arrived since the last step; True if there were samples."""
+        samples, self.cursor, lost = self.ring.read_since(self.cursor)
+        if lost:
+            log.warning("overrun", lost_samples=lost)
+        parser = self.reader.parser
+        self.counts, faults = stream_faults(parser.stats, self.counts, samples)
+        if faults:
+            log.warning("stream_faults", **faults)
+        rate = _rate(parser)
+        if len(samples) and rate:
+            self.last_data = time.monotonic()
+            self.calibrator.sensor = _sensor(parser)
+            self.calibrator.feed(samples, rate, parser.stats.restarts)
+            return True
+        silent = time.monotonic() - self.last_data
+        if silent > NO_DATA_S and self.calibrator.state != State.FAULT:
+            self.calibrator.data_lost(silent)
+        return False
+
+
+def _new_ring() -> RingBuffer:
+    return RingBuffer(2000 * RING_S, SAMPLE_DTYPE)
+
+
+def replay_pty(data: bytes, calibrator: Calibrator, speed: float | None = None, progress=None,
+               chunk_bytes: int = 4096) -> None:
+    """`replay --pty`: the capture written into a pseudo-terminal and read back by the daemon's own
+    PortReader (pyserial, framing thread, ring), paced at `speed` times real time or as fast as
+    the daemon keeps up: the writer waits while the ring is more than half unread, so nothing
+    is lost even when a solve holds the loop."""
+    master, slave = os.openpty()
+    tty.setraw(master)
+    tty.setraw(slave)
+    ring = _new_ring()
+    reader = PortReader(os.ttyname(slave), ring, request_config=False)
+    pump = _Pump(reader, ring, calibrator)
+    written = [0]
+
+    def write() -> None:
+        rate = None
+        started = time.monotonic()
+        for offset in range(0, len(data), chunk_bytes):
+            while ring.total - pump.cursor > ring.capacity // 2:
+                time.sleep(0.01)
+            if speed:
+                rate = rate or _bytes_per_second(reader.parser)
+                if rate:
+                    time.sleep(max(0.0, started + offset / (rate * speed) - time.monotonic()))
+            view = memoryview(data)[offset:offset + chunk_bytes]
+            while view:
+                view = view[os.write(master, view):]
+            written[0] = offset + min(chunk_bytes, len(data) - offset)
+
+    writer = threading.Thread(target=write, name="pty replay writer", daemon=True)
+    reader.start()
+    try:
+        writer.start()
+        idle = 0
+        while writer.is_alive() or idle < 3:  # three quiet polls after the last byte: all read
+            time.sleep(POLL_S)
+            idle = 0 if pump.step() else idle + 1
+            if progress:
+                progress(written[0], len(data))
+            if reader.error is not None:
+                raise reader.error
+    finally:
+        reader.stop()
+        os.close(master)
+        os.close(slave)
+
+
+def _bytes_per_second(parser: StreamParser) -> float | None:
+    """The stream's byte rate once the parser knows the datagram length and the sample rate."""
+    rate, stats = _rate(parser), parser.stats
+    if not rate or not stats.datagrams:
+        return None
+    return rate * stats.bytes_in / max(stats.datagrams + stats.lost_samples, 1)
+
+
 def run(config, reload_config) -> int:
     """`calibd run`: until SIGTERM. `reload_config()` returns a fresh config (SIGHUP)."""
     store = ResultStore(config.state_dir)
@@ -131,7 +222,7 @@ def run(config, reload_config) -> int:
     signal.signal(signal.SIGINT, lambda *_: stopping.append("SIGINT"))
     reload_requested = []
     signal.signal(signal.SIGHUP, lambda *_: reload_requested.append(True))
-    ring = RingBuffer(2000 * RING_S, SAMPLE_DTYPE)
+    ring = _new_ring()
     reader = PortReader(config.serial.port, ring, baudrate=config.serial.baudrate)
     try:
         reader.start()
@@ -141,7 +232,7 @@ def run(config, reload_config) -> int:
         return 1
     sd_notify("READY=1")
     log.info("started", port=config.serial.port, state_dir=str(config.state_dir))
-    cursor, last_data, counts = 0, time.monotonic(), {}
+    pump = _Pump(reader, ring, calibrator)
     try:
         while not stopping:
             time.sleep(POLL_S)
@@ -153,20 +244,8 @@ def run(config, reload_config) -> int:
                     log.info("reloaded")
                 except ValueError as exc:
                     log.error("reload_failed", error=str(exc))
-            samples, cursor, lost = ring.read_since(cursor)
-            if lost:
-                log.warning("overrun", lost_samples=lost)
-            counts, faults = stream_faults(reader.parser.stats, counts, samples)
-            if faults:
-                log.warning("stream_faults", **faults)
-            rate = _rate(reader.parser)
-            if len(samples) and rate:
-                last_data = time.monotonic()
-                calibrator.sensor = _sensor(reader.parser)
-                calibrator.feed(samples, rate, reader.parser.stats.restarts)
+            if pump.step():
                 sd_notify("WATCHDOG=1")
-            elif time.monotonic() - last_data > NO_DATA_S and calibrator.state != State.FAULT:
-                calibrator.data_lost(time.monotonic() - last_data)
             if reader.error is not None:
                 log.error("reader_failed", error=str(reader.error))
                 return 1

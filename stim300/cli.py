@@ -20,6 +20,7 @@ import numpy as np
 from .atomic import atomic_file
 from .bulk import decode_capture
 from .cliutil import CommandParser, UsageError, run_command
+from .progress import Progress
 from .protocol import (ACC_RANGE_LSB_EXP, DEFAULT_BIT_RATE, NORMAL_LAYOUTS, SAMPLE_RATES_HZ, AccUnit, Format, GyroUnit,
                        Status)
 
@@ -152,13 +153,11 @@ def _write_csv(f, cols: dict[str, np.ndarray]) -> None:
     formats = ["%d" if cols[n].dtype.kind in "ui" else "%.9g" for n in names]  # 9 digits round-trip float32
     rows = len(cols[names[0]])
     chunk = 100_000
-    next_report = time.monotonic() + 2.0
-    for start in range(0, rows, chunk):
-        table = np.column_stack([cols[n][start:start + chunk].astype(np.float64) for n in names])
-        np.savetxt(f, table, fmt=formats, delimiter=",")
-        if time.monotonic() >= next_report:
-            print(f"csv: {min(start + chunk, rows)} of {rows} rows written", file=sys.stderr, flush=True)
-            next_report += 2.0
+    with Progress("decode: csv", rows, "rows") as bar:
+        for start in range(0, rows, chunk):
+            table = np.column_stack([cols[n][start:start + chunk].astype(np.float64) for n in names])
+            np.savetxt(f, table, fmt=formats, delimiter=",")
+            bar.update(min(start + chunk, rows))
 
 
 def cmd_decode(args) -> int:

@@ -163,6 +163,23 @@ def test_replay_command_and_status(tmp_path, capsys):
     assert calibd_main(["replay", str(FIXTURES / "faults_125hz.bin"), "--latitude", "40"]) == 1
 
 
+def test_replay_through_a_pty_gives_the_direct_replays_result(capsys):
+    """--pty: the capture goes through a pseudo-terminal into the daemon's port reader, as fast as
+    the daemon keeps up (the writer waits on the ring): no sample lost, the same final solution
+    up to where the batches fall."""
+    args = [str(FIXTURES / "warmup_then_protocol_125hz.bin"), "--latitude", "40.59129", "--g0", "9.79956",
+            "--warmup-window", "100"]
+    assert calibd_main(["replay", *args]) == 0
+    direct = capsys.readouterr().out
+    assert calibd_main(["replay", *args, "--pty"]) == 0
+    through_pty = capsys.readouterr().out
+
+    def pitch(out):
+        return float(re.search(r"pitch +(-?[\d.]+) \+- ([\d.]+)", out).group(1))
+    assert "[COLLECTING]" in through_pty and "[SOLVED]" in through_pty
+    assert pitch(through_pty) == pytest.approx(pitch(direct), abs=0.002)
+
+
 def test_calibd_run_through_a_pty_until_sigterm(tmp_path):
     """The daemon as systemd runs it: a subprocess reading a pty through pyserial; the thesis
     capture is written into the pty at 50 times real time; a result appears; SIGTERM stops it."""
@@ -207,3 +224,73 @@ def test_calibd_run_through_a_pty_until_sigterm(tmp_path):
     assert json.loads((state_dir / "state.json").read_text())["state"] in ("SOLVED", "FAULT")
     log = daemon.stderr.read().decode()
     assert '"event": "solved"' in log and '"event": "stopped"' in log  # JSON lines off a terminal
+
+
+def _write_paced(master: int, data: bytes, bytes_per_s: float, deadline: float) -> None:
+    start = time.monotonic()
+    for offset in range(0, len(data), 8192):
+        time.sleep(max(0.0, start + offset / bytes_per_s - time.monotonic()))
+        view = memoryview(data)[offset:offset + 8192]
+        while view:
+            assert time.monotonic() < deadline, "the daemon stopped reading"
+            if select.select([], [master], [], 1.0)[1]:
+                view = view[os.write(master, view):]
+
+
+def _plug(link: Path) -> tuple[int, int]:
+    """A new pty behind `link`, as udev re-creates /dev/stim300 when the adapter comes back."""
+    master, slave = os.openpty()
+    tty.setraw(master)
+    tty.setraw(slave)
+    tmp = link.with_suffix(".new")
+    tmp.symlink_to(os.ttyname(slave))
+    os.replace(tmp, link)
+    return master, slave
+
+
+def test_calibd_run_survives_unplug_and_replug(tmp_path):
+    """The adapter goes away after the warm-up, in the first static, and 5 s of data are lost:
+    the daemon reports the fault, reopens the port when it comes back, and, as the platform angle
+    was lost, collects a second session (no second warm-up) that it solves."""
+    samples, _ = decode_capture((FIXTURES / "warmup_then_protocol_125hz.bin").read_bytes())
+    data = (FIXTURES / "warmup_then_protocol_125hz.bin").read_bytes()
+    per_sample = len(data) // len(samples)  # 0x97 datagrams, no garbage in this capture
+    link = tmp_path / "ttySTIM"
+    master, slave = _plug(link)
+    state_dir = tmp_path / "state"
+    config = tmp_path / "calibd.toml"
+    config.write_text(f'[serial]\nport = "{link}"\n[site]\nlatitude_deg = 40.59129\ng0 = 9.79956\n'
+                      f'[output]\nstate_dir = "{state_dir}"\n[warmup]\nwindow_s = 100\n'
+                      '[method]\nresolve_every_s = 120\n')
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    daemon = subprocess.Popen([sys.executable, "-m", "calibd.cli", "run", "--config", str(config)],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
+    speed = 100 * 125 * per_sample  # bytes per second at 100 times real time
+    deadline = time.monotonic() + 120
+    try:
+        _write_paced(master, data[:790 * 125 * per_sample], speed, deadline)
+        time.sleep(1.0)  # let the daemon read what is in flight
+        os.close(master)
+        os.close(slave)
+        time.sleep(4.0)  # silence beyond calibd's 3 s: a fault
+        master, slave = _plug(link)
+        _write_paced(master, data[795 * 125 * per_sample:], speed, deadline)
+        result_file = state_dir / "result.json"
+        while not result_file.exists():
+            assert time.monotonic() < deadline and daemon.poll() is None, daemon.stderr.read().decode()[-2000:]
+            time.sleep(0.2)
+        daemon.send_signal(signal.SIGTERM)
+        assert daemon.wait(timeout=20) == 0
+    finally:
+        if daemon.poll() is None:
+            daemon.kill()
+        os.close(master)
+        os.close(slave)
+    events = [json.loads(line) for line in daemon.stderr.read().decode().splitlines() if line.startswith("{")]
+    states = [e["state"] for e in events if e["event"] == "state"]
+    assert states == ["WARMING_UP", "COLLECTING", "FAULT", "COLLECTING", "SOLVED"]
+    assert any(e["event"] == "port_reopened" for e in events)
+    result = json.loads(result_file.read_text())
+    assert result["session"]["number"] == 2 and result["session"]["duration_s"] < 1066.9 - 795 + 1
+    yaw = result["estimates"]["yaw"]
+    assert abs(yaw["value"] - -3.036) < 3 * yaw["sigma"]
