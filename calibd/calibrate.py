@@ -12,6 +12,8 @@ import numpy as np
 from scipy.special import gammaincc
 
 from stim300.bulk import decode_capture
+from stim300.codec import fault_bits
+from stim300.protocol import status_names
 
 from . import detect
 from .config import WarmupConfig
@@ -78,7 +80,18 @@ def load_session(path: str, start_s: float = 0.0, data: bytes | None = None) -> 
                 "part_number": str(scanner.part_number) if scanner.part_number else None,
                 "datagram_id": f"0x{fmt.datagram_id:02X}", "sample_rate_hz": rate},
         stream={"capture": str(path), "datagrams": stats.datagrams, "lost_samples": stats.lost_samples,
-                "crc_errors": stats.crc_errors, "restarts": stats.restarts})
+                "crc_errors": stats.crc_errors, "restarts": stats.restarts,
+                **fault_record(*fault_summary(samples[keep]))})
+
+
+def fault_summary(samples: np.ndarray) -> tuple[int, int]:
+    """(samples the sensor flagged as faulty, the union of their fault bits)."""
+    bits = fault_bits(samples)
+    return int(np.count_nonzero(bits)), int(np.bitwise_or.reduce(bits)) if len(bits) else 0
+
+
+def fault_record(count: int, bits: int) -> dict:
+    return {"flagged_datagrams": count, "fault_flags": status_names(bits)}
 
 
 def session_segments(session: Session) -> list[detect.Segment]:
@@ -88,6 +101,14 @@ def session_segments(session: Session) -> list[detect.Segment]:
 
 def _lacking(what: str, segments: list[detect.Segment]) -> ProtocolIncomplete:
     return ProtocolIncomplete(what, detect.protocol_progress(segments))
+
+
+def _session_warnings(session: Session) -> list[str]:
+    """What is wrong with the data itself: faults the sensor flagged, a warm-up not over."""
+    flagged = session.stream.get("flagged_datagrams", 0)
+    faults = [f"{flagged} datagrams carry fault flags ({', '.join(session.stream['fault_flags'])}): their samples "
+              "are in the fit; an overload or channel error biases the statics they fall in"] if flagged else []
+    return faults + _warm_up_warning(session)
 
 
 def _warm_up_warning(session: Session) -> list[str]:
@@ -152,7 +173,7 @@ def thesis_real_case(session: Session, site: Site, alpha_beta_deg: tuple[float, 
     alpha_beta = None if alpha_beta_deg is None else (alpha_beta_deg[0] * DEG, alpha_beta_deg[1] * DEG)
     rate = None if platform_rate_deg_s is None else platform_rate_deg_s * DEG
     est = thesis.real_case(data, site, alpha_beta, rate)
-    warnings += _warm_up_warning(session)
+    warnings += _session_warnings(session)
     warnings.append("incl_bias_z is assumed 0: rotations about the vertical cannot observe it (thesis 6.1)")
     if alpha_beta is not None:
         warnings.append("alpha and beta are a-priori values given by the user, not estimates")
@@ -202,7 +223,7 @@ def thesis_bench(session: Session, site: Site) -> dict:
     turns = detect.full_turns(segments)
     if not turns:
         raise _lacking("not the bench protocol: no full turn for alpha and beta", segments)
-    warnings, tilts = _warm_up_warning(session), []
+    warnings, tilts = _session_warnings(session), []
     for turn in turns:
         before = [s for s in statics if s.stop <= turn.start and s.up == "+Z"]
         level = before[-1] if before else positions["+Z"]
@@ -272,7 +293,7 @@ def joint_real_case(session: Session, site: Site, options: joint.JointOptions = 
     static to the last static of the same mounting. `segments`: the session's, when already found."""
     fitted = joint_fit(session, site, options, segments)
     used, fit = fitted.segments, fitted.fit
-    warnings = _warm_up_warning(session) + _joint_warnings(fit, site)
+    warnings = _session_warnings(session) + _joint_warnings(fit, site)
     estimates = {name: (fit.estimates[name], fit.sigmas[name]) for name in joint.ESTIMATE_NAMES}
     result = make_result("joint", site, estimates, [_segment_record(s, s.kind) for s in used], warnings,
                          session.sensor, stream=session.stream,

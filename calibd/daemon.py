@@ -23,7 +23,8 @@ from stim300.atomic import write_atomic
 from stim300.protocol import INTERNAL_RATE_HZ
 
 from . import detect
-from .calibrate import CalibrationError, ProtocolIncomplete, Session, joint_real_case, thesis_real_case
+from .calibrate import (CalibrationError, ProtocolIncomplete, Session, fault_record, fault_summary, joint_real_case,
+                        thesis_real_case)
 from .config import MethodConfig, WarmupConfig
 from .estimators.joint import JointOptions
 from .frames import STANDARD_GRAVITY, Site
@@ -124,6 +125,9 @@ class Calibrator:
         if self._session_start is not None and t[-1] - self._session_start > MAX_SESSION_S:
             return  # a session this long has said what it can: memory stays bounded
         self._store(samples, t)
+        count, bits = fault_summary(samples)
+        if count:
+            self._flagged.append((float(t[0]), count, bits))
         now = self._buffer.end_s
         if self.state == State.WARMING_UP and now >= self._next_check:
             self._next_check = now + WARM_CHECK_EVERY_S
@@ -148,6 +152,7 @@ class Calibrator:
         self._session_start: float | None = None
         self._tracker: detect.SegmentTracker | None = None
         self._gap = False
+        self._flagged: list[tuple[float, int, int]] = []  # per batch with faults: (time, samples flagged, bits)
         self._next_solve = 0.0
         self._next_check = 0.0
         self.rate_hz = 0
@@ -210,6 +215,7 @@ class Calibrator:
 
     def _start_session(self, start_s: float, detail: str) -> None:
         self._buffer.trim(start_s)
+        self._flagged = [f for f in self._flagged if f[0] >= start_s]
         self._session_start = start_s
         self._tracker = detect.SegmentTracker(self._stored_rate)
         self._next_solve = self._buffer.end_s + self.method.resolve_every_s
@@ -233,7 +239,12 @@ class Calibrator:
         d = self._buffer.arrays(since_s=self._session_start)
         return Session(time_s=d["time_s"] - d["time_s"][0], gyro=d["gyro"], acc=d["acc"], incl=d["incl"],
                        temperature_c=None if np.isnan(d["temp"]).all() else d["temp"], rate_hz=self._stored_rate,
-                       sensor=self.sensor, stream={"capture": self.source, "session": self.sessions})
+                       sensor=self.sensor, stream={"capture": self.source, "session": self.sessions,
+                                                   **self._fault_record()})
+
+    def _fault_record(self) -> dict:
+        batches = [(count, bits) for t, count, bits in self._flagged if t >= self._session_start]
+        return fault_record(sum(c for c, _ in batches), int(np.bitwise_or.reduce([b for _, b in batches] or [0])))
 
     def _solve(self) -> None:
         session = self._session()

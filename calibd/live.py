@@ -21,7 +21,7 @@ import tty
 import numpy as np
 import structlog
 
-from stim300.codec import SAMPLE_DTYPE
+from stim300.codec import SAMPLE_DTYPE, fault_bits
 from stim300.port import PortError, PortReader
 from stim300.ringbuffer import RingBuffer
 from stim300.stream import StreamParser
@@ -82,16 +82,13 @@ def _sensor(parser: StreamParser) -> dict:
             "sample_rate_hz": _rate(parser)}
 
 
-FLAG_BITS = 0xBF  # every status bit but START_UP (bit 6): the sensor's own fault report
-
-
 def stream_faults(stats, before: dict, samples) -> tuple[dict, dict]:
     """What went wrong on the stream since `before` (CRC errors, lost samples, skipped bytes, and
     datagrams whose status bytes flag a fault): (counts now, increases)."""
     now = {"crc_errors": stats.crc_errors, "lost_samples": stats.lost_samples, "skipped_bytes": stats.skipped_bytes}
     increases = {k: v - before.get(k, 0) for k, v in now.items() if v > before.get(k, 0)}
     if len(samples):
-        flagged = (samples["status_gyro"] | samples["status_acc"] | samples["status_incl"]) & FLAG_BITS
+        flagged = fault_bits(samples)
         if np.any(flagged):
             increases["flagged_datagrams"] = int(np.count_nonzero(flagged))
     return now, increases

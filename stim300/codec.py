@@ -39,6 +39,15 @@ SAMPLE_DTYPE = np.dtype([
 ])
 
 
+FAULT_BITS = 0xBF  # every status bit but START_UP (0x40): the sensor's own report of a bad measurement
+
+
+def fault_bits(samples: np.ndarray) -> np.ndarray:
+    """Per sample, the fault bits set in any of its gyro, accelerometer or inclinometer status
+    bytes (0: a clean measurement)."""
+    return (samples["status_gyro"] | samples["status_acc"] | samples["status_incl"]) & FAULT_BITS
+
+
 def empty_columns(n: int) -> dict[str, np.ndarray]:
     """Column-major storage for n samples: SAMPLE_DTYPE's fields as separate arrays, every axis of
     a vector field contiguous (field[:, k] is a contiguous view). Bulk output to files wants this."""

@@ -294,3 +294,25 @@ def test_calibd_run_survives_unplug_and_replug(tmp_path):
     assert result["session"]["number"] == 2 and result["session"]["duration_s"] < 1066.9 - 795 + 1
     yaw = result["estimates"]["yaw"]
     assert abs(yaw["value"] - -3.036) < 3 * yaw["sigma"]
+
+
+def test_datagrams_the_sensor_flags_are_counted_and_warned_about(tmp_path):
+    """An overload on the X accelerometer in ten datagrams of the session: calibrate and the
+    daemon both count them, name the flags and warn; START_UP alone is no fault."""
+    from calibd.calibrate import joint_real_case, load_session
+    from stim300.codec import encode_samples
+
+    samples, scanner = decode_capture((FIXTURES / "thesis_real_cw_125hz.bin").read_bytes())
+    samples["status_acc"][20000:20010] = 0x11  # OVERLOAD on X
+    samples["status_gyro"][:50] = 0x40  # START_UP only
+    capture = tmp_path / "flagged.bin"
+    capture.write_bytes(encode_samples(samples, 0xA7, scanner.format, False).tobytes())
+    result = joint_real_case(load_session(str(capture)), SITE)
+    assert result["stream"]["flagged_datagrams"] == 10 and result["stream"]["fault_flags"] == ["X", "OVERLOAD"]
+    assert any(w.startswith("10 datagrams carry fault flags (X, OVERLOAD)") for w in result["warnings"])
+
+    results = []
+    calibrator = Calibrator(SITE, WarmupConfig(window_s=10.0), on_result=results.append)
+    replay(capture.read_bytes(), calibrator)
+    assert results[-1]["stream"]["flagged_datagrams"] == 10
+    assert any("fault flags (X, OVERLOAD)" in w for w in results[-1]["warnings"])
