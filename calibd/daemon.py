@@ -248,7 +248,10 @@ class Calibrator:
 
     def _solve(self) -> None:
         session = self._session()
+        logged = len(self._tracker.final)
         segments = self._tracker.update(session.gyro / DEG, session.acc / STANDARD_GRAVITY, session.time_s)
+        for seg in self._tracker.final[logged:]:  # final: no later data changes them
+            _log_segment(seg)
         m = self.method
         try:
             if m.name == "joint":
@@ -281,6 +284,18 @@ class Calibrator:
         if changed:
             log.info("state", state=state.value, detail=detail)
         self.on_state(state, detail)
+
+
+def _log_segment(seg: detect.Segment) -> None:
+    """One event per segment of the session, in the session's time and platform angle."""
+    fields = {"kind": seg.kind, "start_s": round(seg.start_s, 2), "duration_s": round(seg.end_s - seg.start_s, 2),
+              "platform_angle_deg": round(seg.platform_angle_deg, 2)}
+    if seg.kind == "turn":
+        fields.update(angle_deg=round(seg.angle_deg, 2), rate_deg_s=round(seg.rate_deg_s, 3),
+                      cruise_angle_deg=round(seg.cruise_angle_deg, 1))
+    else:
+        fields.update(up=seg.up)
+    log.info("segment", **fields)
 
 
 class ResultStore:

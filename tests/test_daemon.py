@@ -316,3 +316,17 @@ def test_datagrams_the_sensor_flags_are_counted_and_warned_about(tmp_path):
     replay(capture.read_bytes(), calibrator)
     assert results[-1]["stream"]["flagged_datagrams"] == 10
     assert any("fault flags (X, OVERLOAD)" in w for w in results[-1]["warnings"])
+
+
+def test_segments_are_logged_once_each_when_final():
+    from structlog.testing import capture_logs
+
+    truth = json.loads((FIXTURES / "warmup_then_protocol_125hz.bin.truth.json").read_text())
+    with capture_logs() as logs:
+        run_replay("warmup_then_protocol_125hz", WarmupConfig(window_s=100.0))
+    segments = [e for e in logs if e["event"] == "segment"]
+    turns = [e for e in segments if e["kind"] == "turn"]
+    assert [e["kind"] for e in segments[:4]] == ["static", "turn", "static", "turn"]
+    assert len({(e["kind"], e["start_s"]) for e in segments}) == len(segments)  # no segment twice
+    commanded = [p["angle_deg"] for p in truth["schedule"] if p["kind"] == "turn"]
+    assert [round(e["angle_deg"]) for e in turns] == commanded[:len(turns)]
