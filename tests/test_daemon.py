@@ -20,7 +20,7 @@ from calibd.cli import main as calibd_main
 from calibd.config import WarmupConfig
 from calibd.daemon import Calibrator, ResultStore, State
 from calibd.frames import Site
-from calibd.live import replay, stream_faults
+from calibd.live import configure_logging, replay, stream_faults
 from stim300.bulk import decode_capture
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
@@ -321,6 +321,7 @@ def test_datagrams_the_sensor_flags_are_counted_and_warned_about(tmp_path):
 def test_segments_are_logged_once_each_when_final():
     from structlog.testing import capture_logs
 
+    configure_logging()  # info level: other tests (replay) leave warnings only
     truth = json.loads((FIXTURES / "warmup_then_protocol_125hz.bin.truth.json").read_text())
     with capture_logs() as logs:
         run_replay("warmup_then_protocol_125hz", WarmupConfig(window_s=100.0))
