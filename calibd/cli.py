@@ -195,6 +195,35 @@ def cmd_status(args) -> int:
     return 0
 
 
+PLAN_NOISE_OPTIONS = {  # calibd plan option -> (calibd.scenario.Noise field, unit, what)
+    "--arw": ("gyro_arw_deg_sqrt_h", "deg/sqrt(h)", "gyro angle random walk"),
+    "--bias-instability": ("gyro_bias_instability_deg_h", "deg/h", "gyro bias instability"),
+    "--vrw": ("acc_vrw_m_s_sqrt_h", "m/s/sqrt(h)", "accelerometer velocity random walk"),
+    "--acc-bias-instability": ("acc_bias_instability_mg", "mg", "accelerometer bias instability"),
+    "--incl-vrw": ("incl_vrw_m_s_sqrt_h", "m/s/sqrt(h)", "inclinometer velocity random walk"),
+    "--incl-bias-instability": ("incl_bias_instability_mg", "mg", "inclinometer bias instability"),
+}
+
+
+def cmd_plan(args) -> int:
+    from .planner import PlanError, noise_from_json, report, time_to_target  # the simulator only here
+    from .scenario import Noise
+
+    given = {field: getattr(args, field) for field, _, _ in PLAN_NOISE_OPTIONS.values()
+             if getattr(args, field) is not None}
+    if args.noise and given:
+        raise UsageError("plan: give --noise FILE or noise figures (--arw, ...), not both")
+    site = _site(args)
+    try:
+        figures = noise_from_json(read_input(args.noise, "noise file"), args.noise) if args.noise \
+            else replace(Noise(), **given)
+        reach = time_to_target(args.protocol, site, figures, args.target_yaw_deg * DEG)
+    except PlanError as exc:
+        raise UsageError(str(exc)) from None
+    print(report(reach, figures))
+    return 0
+
+
 def _speed(text: str) -> str:
     if text == "max":
         return text
@@ -251,6 +280,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--platform-rate", type=_number(-1000, 1000, "deg/s"), required=True, help="deg/s")
     _add_site_options(p, required=True)
     p.set_defaults(func=cmd_sensitivity)
+    p = sub.add_parser("plan", help="protocol + site + noise -> expected 1-sigma of every estimate, time to a "
+                                    "target yaw 1-sigma")
+    _add_site_options(p, required=True)
+    p.add_argument("--protocol", required=True, help="thesis, continuous or index (docs/planner.md)")
+    p.add_argument("--target-yaw-deg", type=_number(0.001, 90, "deg"), default=1.0,
+                   help="yaw 1-sigma to reach, deg (default 1)")
+    p.add_argument("--noise", help="NOISE.json (calibd.noise/1, from calibd noise) instead of the figures below")
+    for option, (field, unit, what) in PLAN_NOISE_OPTIONS.items():
+        p.add_argument(option, dest=field, type=_number(0, 1000, unit), metavar=unit.upper(),
+                       help=f"{what}, {unit} (default: the STIM300's, calibd/scenario.py)")
+    p.set_defaults(func=cmd_plan)
     p = sub.add_parser("simulate", help="scenario -> capture file and CAPTURE.truth.json")
     p.add_argument("scenario", help=f"scenario TOML file, or one of: {', '.join(READY_MADE)}")
     p.add_argument("-o", "--output", required=True, help="capture file to write")

@@ -15,10 +15,11 @@ from c. The accelerometers and inclinometers see f = g0 A R3(chi) u + b at every
 u = R_NAV^int Up the platform axis's tilt: linear in (u1, u2, b) for the gyro-derived A.
 No small-angle approximation is made anywhere.
 
-Uncertainty: the fits' covariances are scaled by the measured noise: the residual variance per
-sample, inflated by how much the Allan deviation of the static residuals exceeds white noise at
-long averaging times (bias instability correlates the errors), then propagated to every
-estimate through the numerical Jacobian of the chain.
+Uncertainty: each fit's covariance is that of its least squares under a white + flicker noise
+model per sensor (bias instability correlates the errors over minutes), propagated to every
+estimate through the numerical Jacobian of the chain. The model is fitted to the Allan
+deviation of the longest static's residuals, or given (`SensorNoise`: the protocol planner
+gives a datasheet's figures to a noise-free session of the protocol).
 """
 
 from __future__ import annotations
@@ -50,6 +51,23 @@ class JointInput:
 
 
 @dataclass(frozen=True)
+class NoiseModel:
+    """One sensor's noise as the covariance sees it, the same for its three channels."""
+
+    white: float  # white-noise variance per sample at the session's rate, SI unit^2
+    flicker: float  # variance of each Gauss-Markov component of FLICKER_TAUS_S[:4], SI unit^2
+
+
+@dataclass(frozen=True)
+class SensorNoise:
+    """A noise model for every sensor: used instead of fitting it to the residuals."""
+
+    gyro: NoiseModel  # rad/s
+    acc: NoiseModel  # m/s^2
+    incl: NoiseModel  # m/s^2
+
+
+@dataclass(frozen=True)
 class JointOptions:
     fixed_amplitude: bool = False  # horizontal Earth rate amplitude fixed to its known value
     drift: bool = False  # a linear gyro drift per channel (thermal ramps); costs precision
@@ -63,6 +81,7 @@ class GyroFit:
     chi_rate: np.ndarray
     residual_rms: np.ndarray  # per channel, rad/s
     noise_scale: float
+    noise: NoiseModel  # the model the covariance assumes: fitted to the residuals, or given
     amplitude_check: tuple[float, float]  # fitted horizontal Earth rate and its 1-sigma, rad/s
     static_chi2: tuple[float, int]  # chi-square of the statics' mean residuals and its degrees of freedom
 
@@ -142,8 +161,10 @@ def _on_circle(gram, rhs, amplitude: float) -> tuple[np.ndarray, np.ndarray]:
     return t @ x, tangent @ np.linalg.inv(tangent.T @ gram @ tangent) @ tangent.T
 
 
-def fit_gyros(inp: JointInput, site: Site, options: JointOptions = JointOptions()) -> GyroFit:
-    """The gyro fit, iterated: chi needs the platform axis and the Earth terms the fit gives."""
+def fit_gyros(inp: JointInput, site: Site, options: JointOptions = JointOptions(),
+              noise: NoiseModel | None = None) -> GyroFit:
+    """The gyro fit, iterated: chi needs the platform axis and the Earth terms the fit gives.
+    `noise`: the noise model of the covariance (default: fitted to the static residuals)."""
     static = np.concatenate([np.arange(a, b) for a, b in inp.statics])
     axis = np.array([0.0, 0.0, 1.0])
     offset = inp.gyro[static].mean(axis=0)
@@ -162,27 +183,33 @@ def fit_gyros(inp: JointInput, site: Site, options: JointOptions = JointOptions(
         offset = inp.gyro - residuals - np.outer(chi_rate, k)  # the fitted non-rotational part
         if np.max(np.abs(chi - previous)) < CHI_TOLERANCE:
             break
-    cov = _covariance(designs, residuals, np.arange(len(inp.time_s)), inp, bread)
+    noise = noise or _fitted_noise(residuals, inp)
+    cov = _covariance(designs, np.arange(len(inp.time_s)), inp, bread, noise)
     scale = _noise_scale(residuals, inp)
     fitted = float(np.hypot(*params[:2]))
     radial = params[:2] / fitted
-    return GyroFit(params, cov, chi, chi_rate, residuals.std(axis=0), scale,
-                   (fitted, float(np.sqrt(radial @ cov[:2, :2] @ radial))),
-                   _static_chi2(residuals, inp, len(params) - 3))
+    return GyroFit(params, cov, chi, chi_rate, residuals.std(axis=0), scale, noise,
+                   (fitted, float(np.sqrt(max(radial @ cov[:2, :2] @ radial, 0.0)))),  # 0 when the amplitude is fixed
+                   _static_chi2(residuals, inp, len(params) - 3, noise))
 
 
-def _static_chi2(residuals: np.ndarray, inp: JointInput, fitted: int) -> tuple[float, int]:
-    """Chi-square of each static's mean residual (per channel) against what the fitted noise
-    model lets a mean over that long scatter: large when a bias jumped, the platform moved
-    during a 'static', or the model does not hold."""
+def _fitted_noise(residuals: np.ndarray, inp: JointInput) -> NoiseModel:
+    """White + flicker fitted to the Allan deviation of the longest static's residuals."""
     a, b = max(inp.statics, key=lambda s: s[1] - s[0])
-    white, flicker = fit_noise_model(residuals[a:b], inp.rate_hz)
+    return NoiseModel(*fit_noise_model(residuals[a:b], inp.rate_hz))
+
+
+def _static_chi2(residuals: np.ndarray, inp: JointInput, fitted: int, noise: NoiseModel) -> tuple[float, int]:
+    """Chi-square of each static's mean residual (per channel) against what the noise model
+    lets a mean over that long scatter: large when a bias jumped, the platform moved during a
+    'static', or the model does not hold."""
     total, count = 0.0, 0
     for start, stop in inp.statics:
         n = stop - start
         tau = n / inp.rate_hz
-        var = white / n + flicker * sum(_gm_mean_variance(tau, c) for c in FLICKER_TAUS_S[:4])
-        total += float(np.sum(residuals[start:stop].mean(axis=0) ** 2) / var)
+        var = noise.white / n + noise.flicker * sum(_gm_mean_variance(tau, c) for c in FLICKER_TAUS_S[:4])
+        if var > 0:  # a given noise-free model (planning a protocol) leaves nothing to compare with
+            total += float(np.sum(residuals[start:stop].mean(axis=0) ** 2) / var)
         count += 3
     return total, max(count - fitted, 1)
 
@@ -193,18 +220,14 @@ def _gm_mean_variance(tau: float, corr: float) -> float:
     return 2 / x * (1 - (1 - np.exp(-x)) / x)
 
 
-def _covariance(designs, residuals: np.ndarray, rows: np.ndarray, inp: JointInput, bread: np.ndarray) -> np.ndarray:
-    """Parameter covariance under the noise the data show: white plus flicker (a sum of
-    Gauss-Markov processes), fitted to the Allan deviation of the longest static's residuals.
-    Flicker correlates the errors over minutes; a white-noise covariance would be optimistic for
-    everything that compares segments far apart. Components much longer than a session (here
-    above 3000 s) act as part of the bias during it, not as noise. `bread` is the inverse
-    information of the (possibly constrained) fit: cov = bread . (H' Sigma H) . bread."""
-    a, b = max(inp.statics, key=lambda s: s[1] - s[0])
-    in_static = (rows >= a) & (rows < b)
-    white, flicker = fit_noise_model(residuals[in_static], inp.rate_hz)
-    meat = white * sum(d.T @ d for d in designs)
-    if flicker > 0:
+def _covariance(designs, rows: np.ndarray, inp: JointInput, bread: np.ndarray, noise: NoiseModel) -> np.ndarray:
+    """Parameter covariance under white noise plus flicker (a sum of Gauss-Markov processes) on
+    the samples `rows`. Flicker correlates the errors over minutes; a white-noise covariance
+    would be optimistic for everything that compares segments far apart. Components much longer
+    than a session (here above 3000 s) act as part of the bias during it, not as noise. `bread`
+    is the inverse information of the (possibly constrained) fit: cov = bread . (H' Sigma H) . bread."""
+    meat = noise.white * sum(d.T @ d for d in designs)
+    if noise.flicker > 0:
         # Flicker varies over seconds at the fastest, so its quadratic form is taken on sums over
         # FLICKER_BIN_S bins of every channel's non-zero columns, laid on a uniform bin grid.
         used = [np.flatnonzero(np.any(d != 0, axis=0)) for d in designs]
@@ -216,7 +239,7 @@ def _covariance(designs, residuals: np.ndarray, rows: np.ndarray, inp: JointInpu
             start = 0
             for u in used:
                 cols = slice(start, start + len(u))
-                meat[np.ix_(u, u)] += flicker * grid[:, cols].T @ correlated[:, cols]
+                meat[np.ix_(u, u)] += noise.flicker * grid[:, cols].T @ correlated[:, cols]
                 start += len(u)
     return bread @ meat @ bread
 
@@ -251,11 +274,13 @@ class ForceFit:
     params: np.ndarray  # u1, u2 (platform axis tilt in the interface frame), b (3), m/s^2 for b
     cov: np.ndarray
     noise_scale: float
+    noise: NoiseModel  # the model the covariance assumes: fitted to the residuals, or given
 
 
-def fit_force(force: np.ndarray, chi: np.ndarray, inp: JointInput, a: np.ndarray, g0: float) -> ForceFit:
+def fit_force(force: np.ndarray, chi: np.ndarray, inp: JointInput, a: np.ndarray, g0: float,
+              noise: NoiseModel | None = None) -> ForceFit:
     """f = g0 A R3(chi) u + b at every static sample, u = (u1, u2, sqrt(1 - u1^2 - u2^2)):
-    linear in (u1, u2, b) once u3 is taken from the previous pass."""
+    linear in (u1, u2, b) once u3 is taken from the previous pass. `noise` as in fit_gyros."""
     rows = np.concatenate([np.arange(s, e) for s, e in inp.statics])
     chis = np.array([chi[s:e].mean() for s, e in inp.statics])
     if np.ptp(np.exp(1j * chis).real) < 0.5 and np.ptp(np.exp(1j * chis).imag) < 0.5:
@@ -274,8 +299,9 @@ def fit_force(force: np.ndarray, chi: np.ndarray, inp: JointInput, a: np.ndarray
         u3 = np.sqrt(1.0 - params[0] ** 2 - params[1] ** 2)
     full = np.zeros_like(force)
     full[rows] = residuals
-    cov = _covariance(designs, residuals, rows, inp, np.linalg.inv(gram))
-    return ForceFit(params, cov, _noise_scale(full, inp))
+    noise = noise or _fitted_noise(full, inp)
+    cov = _covariance(designs, rows, inp, np.linalg.inv(gram), noise)
+    return ForceFit(params, cov, _noise_scale(full, inp), noise)
 
 
 # ---------------------------------------------------------------- from fits to estimates
@@ -335,11 +361,13 @@ class JointResult:
     jacobian: np.ndarray  # d estimates / d (gyro, incl, acc params)
 
 
-def solve(inp: JointInput, site: Site, options: JointOptions = JointOptions()) -> JointResult:
-    gyro = fit_gyros(inp, site, options)
+def solve(inp: JointInput, site: Site, options: JointOptions = JointOptions(),
+          noise: SensorNoise | None = None) -> JointResult:
+    """Every estimate and its 1-sigma; `noise` replaces the noise models fitted to the residuals."""
+    gyro = fit_gyros(inp, site, options, noise and noise.gyro)
     a = int_to_imu(*alpha_beta(gyro.params[2:5]))
-    incl = fit_force(inp.incl, gyro.chi, inp, a, site.gravity)
-    acc = fit_force(inp.acc, gyro.chi, inp, a, site.gravity)
+    incl = fit_force(inp.incl, gyro.chi, inp, a, site.gravity, noise and noise.incl)
+    acc = fit_force(inp.acc, gyro.chi, inp, a, site.gravity, noise and noise.acc)
     sizes = (len(gyro.params), len(incl.params))
     x = np.concatenate([gyro.params, incl.params, acc.params])
 

@@ -1,0 +1,322 @@
+"""Protocol planner: the 1-sigma every joint estimate will have for a protocol, a site and a noise
+model, and the data time a target yaw 1-sigma needs.
+
+The sigmas come from the joint estimator itself, not from a formula beside it: the protocol's
+session is simulated without noise (`calibd.sim`, the scenario machinery), block-averaged to
+PLAN_RATE_HZ, and solved by `estimators.joint.solve` with the noise model it would fit to the
+residuals replaced by the given figures (white + flicker per sensor). Its design, its white +
+flicker covariance and the Jacobian of its chain then give every sigma. For a given noise density
+the sigmas do not depend on the sample rate (white variance per sample = density^2 x rate; flicker
+is binned at 0.1 s), so planning at 5 Hz gives the 125 Hz sigmas to 1e-4 at a tenth of the cost.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from .estimators.joint import JointInput, NoiseModel, SensorNoise, solve
+from .frames import STANDARD_GRAVITY, Site
+from .results import ESTIMATES
+from .scenario import Noise, Segment, load_scenario
+from .sim import flicker_sigma, schedule, simulate
+
+DEG = math.pi / 180
+MG = STANDARD_GRAVITY / 1000
+PROTOCOLS = ("thesis", "continuous", "index")
+WHAT_SCALES = {"thesis": "static durations scaled, turns kept", "index": "static durations scaled, turns kept",
+               "continuous": "number of whole turns scaled, statics kept"}
+PLAN_RATE_HZ = 5  # the sigmas match 125 Hz to 1e-4 (see the module docstring)
+MAX_SESSION_S = 7200.0  # beyond 2 h the 30000 s flicker component, which the estimator counts as bias, adds > 3 %
+MIN_SCALE = 0.1  # shortest layout searched: a tenth of the nominal statics (1 min level static), or one turn
+TIME_TOLERANCE = 0.01  # the time to a target is found to 1 % of itself
+MIN_COS_LATITUDE = 0.01  # nearer the poles the horizontal Earth rate that yaw comes from vanishes
+NOISE_SCHEMA = "calibd.noise/1"
+NOISE_FILE_FIGURES = {  # sensor -> (random walk field, its unit, bias instability field, its unit)
+    "gyro": ("gyro_arw_deg_sqrt_h", "deg/sqrt(h)", "gyro_bias_instability_deg_h", "deg/h"),
+    "acc": ("acc_vrw_m_s_sqrt_h", "m/s/sqrt(h)", "acc_bias_instability_mg", "mg"),
+    "incl": ("incl_vrw_m_s_sqrt_h", "m/s/sqrt(h)", "incl_bias_instability_mg", "mg"),
+}
+
+
+class PlanError(ValueError):
+    """Input the planner cannot use; the message says what and where in one line."""
+
+
+# ---------------------------------------------------------------- protocols
+
+def protocol_segments(protocol: str, scale: float) -> tuple[Segment, ...]:
+    """The protocol's segments with its scalable part times `scale` (1 = nominal).
+
+    thesis: the thesis-real scenario (10 min level static, four -90 deg index turns each followed
+    by 2 min static, a full turn of -390 deg, 30 s static); `scale` multiplies every static.
+    index: the same without the full turn and its static. continuous: the continuous scenario
+    (2 min static, ten turns at 10 deg/s, 1 min static) with the turn a quarter turn longer, so
+    the last static is 90 deg from the first: the estimator separates the accelerometer tilt
+    from the biases only with statics at platform angles about 90 deg apart (the ready-made
+    scenario ends where it began and `calibd calibrate` refuses it); `scale` multiplies the
+    number of whole turns (at least one)."""
+    if protocol not in PROTOCOLS:
+        raise PlanError(f"unknown protocol {protocol!r} (known: {', '.join(PROTOCOLS)})")
+    if protocol == "continuous":
+        first, turn, last = load_scenario("continuous").segments
+        turns = max(1, round(abs(turn.angle_deg) / 360 * scale))
+        return first, replace(turn, angle_deg=math.copysign(360 * turns + 90, turn.angle_deg)), last
+    segments = load_scenario("thesis-real").segments
+    if protocol == "index":
+        segments = segments[:9]
+    return tuple(replace(s, duration_s=s.duration_s * scale) if s.kind == "static" else s for s in segments)
+
+
+def _scenario(protocol: str, scale: float, site: Site):
+    """The protocol's scenario without noise, warm-up or temperature drift, at `site`."""
+    base = load_scenario("continuous" if protocol == "continuous" else "thesis-real")
+    return replace(base, site=site, segments=protocol_segments(protocol, scale),
+                   noise=replace(base.noise, enabled=False), warmup=replace(base.warmup, power_on_s=1e9))
+
+
+def duration_s(protocol: str, scale: float) -> float:
+    """Data time of the scaled protocol, from the level static to the end (no simulation)."""
+    return schedule(_scenario(protocol, scale, Site(0.0)))[-1].end_s
+
+
+def _resolution_s(protocol: str) -> float:
+    """The smallest step the protocol's data time takes as its scale changes (one revolution
+    for whole turns; statics scale continuously)."""
+    if protocol != "continuous":
+        return 0.0
+    return 360.0 / load_scenario("continuous").segments[1].peak_rate_deg_s
+
+
+def describe(segments: tuple[Segment, ...]) -> str:
+    """The layout in words, repeated (turn, static) pairs counted: 'static 10.0 min,
+    4 x (turn -90 deg, static 2.0 min), ...'."""
+    def one(s: Segment) -> str:
+        if s.kind == "static":
+            return f"static {s.duration_s / 60:.1f} min"
+        turns = f" ({abs(s.angle_deg) / 360:g} turns)" if abs(s.angle_deg) >= 720 else ""
+        return f"turn {s.angle_deg:+g} deg{turns} at {s.peak_rate_deg_s:g} deg/s"
+
+    parts, i = [], 0
+    while i < len(segments):
+        pair = segments[i:i + 2]
+        repeats = 1
+        while len(pair) == 2 and segments[i + 2 * repeats:i + 2 * repeats + 2] == pair:
+            repeats += 1
+        if repeats > 1:
+            parts.append(f"{repeats} x ({one(pair[0])}, {one(pair[1])})")
+            i += 2 * repeats
+        else:
+            parts.append(one(segments[i]))
+            i += 1
+    return ", ".join(parts)
+
+
+# ---------------------------------------------------------------- noise
+
+def sensor_noise(figures: Noise, rate_hz: float) -> SensorNoise:
+    """The joint estimator's noise models for datasheet figures, at `rate_hz`: white variance per
+    sample from the random walk, and the flicker components the simulator uses for the bias
+    instability (Allan deviation minimum = the figure)."""
+    def model(density: float, instability: float) -> NoiseModel:
+        flicker = flicker_sigma(density, instability) ** 2 if instability > 0 else 0.0
+        return NoiseModel(density**2 * rate_hz, flicker)
+
+    gyro = model(figures.gyro_arw_deg_sqrt_h / 60 * DEG, figures.gyro_bias_instability_deg_h / 3600 * DEG)
+    return SensorNoise(gyro=gyro, acc=model(figures.acc_vrw_m_s_sqrt_h / 60, figures.acc_bias_instability_mg * MG),
+                       incl=model(figures.incl_vrw_m_s_sqrt_h / 60, figures.incl_bias_instability_mg * MG))
+
+
+def noise_from_json(data: bytes, where: str) -> Noise:
+    """Figures from a `calibd.noise/1` file (written by `calibd noise`). The three axes of a
+    sensor share one noise model in the estimator, which pools their Allan variances: each
+    figure is the root mean square of the three axes'."""
+    try:
+        doc = json.loads(data)
+    except ValueError as exc:
+        raise PlanError(f"{where}: not a JSON noise file: {exc}") from None
+    if not isinstance(doc, dict) or doc.get("schema") != NOISE_SCHEMA:
+        found = doc.get("schema") if isinstance(doc, dict) else None
+        raise PlanError(f"{where}: schema: {found!r} is not {NOISE_SCHEMA!r}")
+    channels = doc.get("channels")
+    if not isinstance(channels, dict):
+        raise PlanError(f"{where}: channels: missing or not an object")
+    figures = {}
+    for sensor, (walk_field, walk_unit, instability_field, instability_unit) in NOISE_FILE_FIGURES.items():
+        for name, field, unit in (("random_walk", walk_field, walk_unit),
+                                  ("bias_instability", instability_field, instability_unit)):
+            values = [_figure(channels, f"{sensor}_{axis}", name, unit, where) for axis in "xyz"]
+            figures[field] = math.sqrt(sum(v * v for v in values) / 3)
+    return Noise(**figures)
+
+
+def _figure(channels: dict, channel: str, name: str, unit: str, where: str) -> float:
+    entry = channels.get(channel)
+    if not isinstance(entry, dict):
+        raise PlanError(f"{where}: channels.{channel}: missing")
+    figure = entry.get(name)
+    key = f"channels.{channel}.{name}"
+    if not isinstance(figure, dict):
+        raise PlanError(f"{where}: {key}: missing")
+    if figure.get("unit") != unit:
+        raise PlanError(f"{where}: {key}.unit: {figure.get('unit')!r} where {unit!r} is expected")
+    value = figure.get("value")
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+        raise PlanError(f"{where}: {key}.value: {value!r} is not a non-negative number")
+    return float(value)
+
+
+# ---------------------------------------------------------------- the plan
+
+@dataclass
+class Plan:
+    protocol: str
+    scale: float
+    segments: tuple[Segment, ...]
+    duration_s: float
+    sigmas: dict[str, float]  # SI (rad, rad/s, m/s^2), 1-sigma of every joint estimate
+    site: Site
+    session: JointInput  # the noise-free session the sigmas come from, at PLAN_RATE_HZ
+    noise: SensorNoise
+
+    def flicker_yaw(self) -> float:
+        """The yaw 1-sigma bias instability alone leaves (white noise removed), rad: the floor
+        that more data of this layout barely lowers."""
+        flicker = SensorNoise(*(replace(m, white=0.0) for m in (self.noise.gyro, self.noise.acc, self.noise.incl)))
+        return solve(self.session, self.site, noise=flicker).sigmas["yaw"]
+
+
+def _session(protocol: str, scale: float, site: Site) -> tuple[JointInput, float]:
+    """The scaled protocol's noise-free session as the joint estimator takes it, block-averaged
+    to PLAN_RATE_HZ (averages of interval averages: the model stays exact); statics are the
+    whole blocks inside the scheduled static segments."""
+    sim = simulate(_scenario(protocol, scale, site))
+    rate = sim.scenario.sensor.sample_rate_hz
+    block = max(1, round(rate / PLAN_RATE_HZ))
+    n = len(sim.time_s) // block
+
+    def averaged(values):
+        return values[:n * block].reshape(n, block, 3).mean(axis=1)
+
+    statics = tuple((math.ceil(p.start_s * rate / block), math.floor(p.end_s * rate / block))
+                    for p in sim.phases if p.kind == "static")
+    plan_rate = rate / block
+    inp = JointInput(time_s=np.arange(n) / plan_rate, gyro=averaged(sim.exact["gyro"]) * DEG,
+                     acc=averaged(sim.exact["acc"]) * STANDARD_GRAVITY,
+                     incl=averaged(sim.exact["incl"]) * STANDARD_GRAVITY,
+                     statics=tuple(s for s in statics if s[1] > s[0]), rate_hz=plan_rate)
+    return inp, sim.phases[-1].end_s
+
+
+def check_site(site: Site) -> None:
+    """Yaw comes from the horizontal Earth rate, Omega_E cos(lat): refuse where it vanishes."""
+    if math.cos(math.radians(site.latitude_deg)) < MIN_COS_LATITUDE:
+        raise PlanError(f"latitude {site.latitude_deg:g} deg: the horizontal Earth rate yaw comes from is "
+                        f"(nearly) zero there; the planner needs |latitude| <= "
+                        f"{math.degrees(math.acos(MIN_COS_LATITUDE)):.1f} deg")
+
+
+def plan(protocol: str, site: Site, figures: Noise, scale: float = 1.0) -> Plan:
+    """Every estimate's expected 1-sigma for the protocol at `scale`, from the joint estimator."""
+    check_site(site)
+    segments = protocol_segments(protocol, scale)
+    inp, seconds = _session(protocol, scale, site)
+    noise = sensor_noise(figures, inp.rate_hz)
+    return Plan(protocol, scale, segments, seconds, solve(inp, site, noise=noise).sigmas, site, inp, noise)
+
+
+@dataclass
+class Reach:
+    """The search for a target yaw 1-sigma: the nominal layout it starts from, the shortest
+    layout found to meet the target (None: not reachable within the longest session searched)
+    and the longest found not to (None: the shortest layout searched meets it already)."""
+
+    target_yaw: float  # rad
+    nominal: Plan
+    reached: Plan | None
+    short_of_it: Plan | None
+
+
+def scale_for_duration(protocol: str, seconds: float) -> float:
+    """The largest scale whose data time is at most `seconds` (bisection on the schedule)."""
+    lo, hi = MIN_SCALE, MIN_SCALE
+    while duration_s(protocol, hi) <= seconds:
+        lo, hi = hi, 2 * hi
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if duration_s(protocol, mid) <= seconds else (lo, mid)
+    return lo
+
+
+def time_to_target(protocol: str, site: Site, figures: Noise, target_yaw: float,
+                   max_session_s: float = MAX_SESSION_S) -> Reach:
+    """The shortest scaled protocol (WHAT_SCALES) whose yaw 1-sigma is at most `target_yaw` (rad).
+    From the nominal layout the scale halves down to MIN_SCALE or doubles up to the longest
+    layout within `max_session_s` until the target is bracketed, then bisection narrows the
+    bracket to TIME_TOLERANCE of the data time (one revolution for whole turns; the data time is
+    an increasing affine function of the scale). More data of the same layout never raises the
+    sigma here, so the search is monotone."""
+    nominal = plan(protocol, site, figures)
+    longest_scale = scale_for_duration(protocol, max_session_s)
+    if nominal.sigmas["yaw"] <= target_yaw:
+        low, high = plan(protocol, site, figures, MIN_SCALE), nominal
+        if low.sigmas["yaw"] <= target_yaw:
+            return Reach(target_yaw, nominal, low, None)
+    else:
+        low = nominal if nominal.scale <= longest_scale else plan(protocol, site, figures, longest_scale)
+        high = None
+        while high is None and low.scale < longest_scale:
+            longer = plan(protocol, site, figures, min(2 * low.scale, longest_scale))
+            low, high = (low, longer) if longer.sigmas["yaw"] <= target_yaw else (longer, None)
+        if high is None:
+            return Reach(target_yaw, nominal, None, low)
+    step = _resolution_s(protocol)
+    while high.duration_s - low.duration_s > max(TIME_TOLERANCE * high.duration_s, step * 1.001):
+        mid = plan(protocol, site, figures, 0.5 * (low.scale + high.scale))
+        low, high = (low, mid) if mid.sigmas["yaw"] <= target_yaw else (mid, high)
+    return Reach(target_yaw, nominal, high, low)
+
+
+# ---------------------------------------------------------------- the report
+
+def _figures_text(figures: Noise) -> str:
+    return (f"gyro {figures.gyro_arw_deg_sqrt_h:.3g} deg/sqrt(h), {figures.gyro_bias_instability_deg_h:.3g} deg/h; "
+            f"acc {figures.acc_vrw_m_s_sqrt_h:.3g} m/s/sqrt(h), {figures.acc_bias_instability_mg:.3g} mg; "
+            f"incl {figures.incl_vrw_m_s_sqrt_h:.3g} m/s/sqrt(h), {figures.incl_bias_instability_mg:.3g} mg "
+            "(random walk, bias instability)")
+
+
+def report(reach: Reach, figures: Noise) -> str:
+    """What `calibd plan` prints: the nominal layout and its sigmas, then the time to the target."""
+    nominal, site = reach.nominal, reach.nominal.site
+    lines = [f"{nominal.protocol} protocol at latitude {site.latitude_deg:g} deg, g0 {site.gravity:.5f} m/s^2",
+             f"noise: {_figures_text(figures)}",
+             f"nominal: {nominal.duration_s / 60:.1f} min of data: {describe(nominal.segments)}",
+             "expected 1-sigma of the joint estimates:"]
+    for name, sigma in nominal.sigmas.items():
+        factor, unit = ESTIMATES[name]
+        lines.append(f"  {name:12s} {sigma * factor:10.3g} {unit}")
+    target = reach.target_yaw / DEG
+    lines.append(f"time to a yaw 1-sigma of {target:g} deg ({WHAT_SCALES[nominal.protocol]}):")
+    if reach.reached is None:
+        longest = reach.short_of_it
+        floor, there, minutes = longest.flicker_yaw() / DEG, longest.sigmas["yaw"] / DEG, longest.duration_s / 60
+        if floor >= target:
+            lines.append(f"  not reachable: bias instability alone leaves {floor:.4g} deg at {minutes:.1f} min, the "
+                         f"floor more data barely lowers ({there:.4g} deg with the white noise too)")
+        else:
+            lines.append(f"  not reachable within {minutes:.1f} min, the longest searched: {there:.4g} deg there; "
+                         f"bias instability alone would leave {floor:.4g} deg")
+        if nominal.protocol != "continuous":
+            lines.append("  (continuous rotation averages bias instability away: --protocol continuous)")
+    else:
+        got = reach.reached
+        lines.append(f"  {got.duration_s / 60:.1f} min of data: {describe(got.segments)}")
+        short = reach.short_of_it
+        shorter = ("; the shortest layout searched" if short is None else
+                   f"; {short.duration_s / 60:.1f} min gives {short.sigmas['yaw'] / DEG:.4g} deg")
+        lines.append(f"  (yaw 1-sigma {got.sigmas['yaw'] / DEG:.4g} deg{shorter})")
+    return "\n".join(lines)
