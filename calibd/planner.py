@@ -54,16 +54,14 @@ def protocol_segments(protocol: str, scale: float) -> tuple[Segment, ...]:
     thesis: the thesis-real scenario (10 min level static, four -90 deg index turns each followed
     by 2 min static, a full turn of -390 deg, 30 s static); `scale` multiplies every static.
     index: the same without the full turn and its static. continuous: the continuous scenario
-    (2 min static, ten turns at 10 deg/s, 1 min static) with the turn a quarter turn longer, so
-    the last static is 90 deg from the first: the estimator separates the accelerometer tilt
-    from the biases only with statics at platform angles about 90 deg apart (the ready-made
-    scenario ends where it began and `calibd calibrate` refuses it); `scale` multiplies the
-    number of whole turns (at least one)."""
+    (2 min static, ten and a quarter turns at 10 deg/s, 1 min static: the last static 90 deg from
+    the first, as the estimator separates the accelerometer tilt from the biases only with statics
+    at platform angles apart); `scale` multiplies the number of whole turns (at least one)."""
     if protocol not in PROTOCOLS:
         raise PlanError(f"unknown protocol {protocol!r} (known: {', '.join(PROTOCOLS)})")
     if protocol == "continuous":
         first, turn, last = load_scenario("continuous").segments
-        turns = max(1, round(abs(turn.angle_deg) / 360 * scale))
+        turns = max(1, round((abs(turn.angle_deg) - 90) / 360 * scale))
         return first, replace(turn, angle_deg=math.copysign(360 * turns + 90, turn.angle_deg)), last
     segments = load_scenario("thesis-real").segments
     if protocol == "index":

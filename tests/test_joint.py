@@ -77,8 +77,9 @@ def test_noise_free_truth_to_1e6_deg(yaw, latitude, sense):
 def test_continuous_rotation_and_several_turns():
     """No index positions: ten turns at 10 deg/s without stopping also determine everything."""
     scenario = quiet(load_scenario("continuous"), yaw_deg=77.0)
-    scenario = replace(scenario, segments=(Segment("static", duration_s=60),) + scenario.segments[1:2]
-                       + (Segment("static", duration_s=30),))
+    ten_turns = replace(scenario.segments[1], angle_deg=3600.0)
+    scenario = replace(scenario, segments=(Segment("static", duration_s=60), ten_turns,
+                                           Segment("static", duration_s=30)))
     sim = simulate(scenario)
     inp = exact_input(sim)
     # statics at one platform angle only: the accelerometer tilt needs several, so give the fit the

@@ -129,11 +129,12 @@ def test_a_target_below_the_flicker_floor_is_not_reachable():
     assert 0.8 * DEG < longest.flicker_yaw() < longest.sigmas["yaw"]
 
 
-def test_continuous_protocol_is_solvable_where_the_ready_made_scenario_is_not():
-    """The shipped continuous scenario ends at its start angle: the estimator cannot separate
-    the accelerometer tilt from the biases; the planner's variant ends a quarter turn on."""
-    assert load_scenario("continuous").segments[1].angle_deg % 360 == 0
+def test_continuous_protocol_ends_a_quarter_turn_on():
+    """Statics at one platform angle cannot separate the accelerometer tilt from the biases: the
+    continuous scenario, and the planner's scaled versions of it, end a quarter turn on."""
+    assert load_scenario("continuous").segments[1].angle_deg == 3690
     assert planner.protocol_segments("continuous", 1.0)[1].angle_deg == 3690
+    assert planner.protocol_segments("continuous", 2.0)[1].angle_deg == 20 * 360 + 90
 
 
 def noise_file(tmp_path, drop=None, **change) -> Path:
