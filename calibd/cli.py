@@ -224,6 +224,29 @@ def cmd_plan(args) -> int:
     return 0
 
 
+def cmd_noise(args) -> int:
+    from stim300.atomic import write_atomic
+
+    from .noise import NoiseError, characterise, noise_record, noise_table
+
+    try:
+        session = load_session(args.capture, args.start, read_input(args.capture))
+    except CalibrationError as exc:
+        raise UsageError(str(exc)) from None  # it names the capture
+    try:
+        channels = characterise(session)
+    except NoiseError as exc:
+        raise UsageError(f"{args.capture}: {exc}") from None
+    print(f"{args.capture}: {noise_table(channels)}")
+    if args.output:
+        document = json.dumps(noise_record(session, channels, args.capture), indent=1) + "\n"
+        try:
+            write_atomic(args.output, document.encode())
+        except OSError as exc:
+            raise UsageError(f"{args.output}: cannot write: {(exc.strerror or str(exc)).lower()}") from None
+    return 0
+
+
 def _speed(text: str) -> str:
     if text == "max":
         return text
@@ -291,6 +314,11 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument(option, dest=field, type=_number(0, 1000, unit), metavar=unit.upper(),
                        help=f"{what}, {unit} (default: the STIM300's, calibd/scenario.py)")
     p.set_defaults(func=cmd_plan)
+    p = sub.add_parser("noise", help="capture -> Allan deviation of every channel from its statics, noise figures")
+    p.add_argument("capture")
+    p.add_argument("-o", "--output", help="NOISE.json (calibd.noise/1, replaced atomically)")
+    p.add_argument("--start", type=_number(0, 1e9, "s"), default=0.0, help="skip the first S seconds (warm-up)")
+    p.set_defaults(func=cmd_noise)
     p = sub.add_parser("simulate", help="scenario -> capture file and CAPTURE.truth.json")
     p.add_argument("scenario", help=f"scenario TOML file, or one of: {', '.join(READY_MADE)}")
     p.add_argument("-o", "--output", required=True, help="capture file to write")
