@@ -79,7 +79,8 @@ def load_session(path: str, start_s: float = 0.0, data: bytes | None = None) -> 
         sensor={"serial_number": scanner.serial_number.text if scanner.serial_number else None,
                 "part_number": str(scanner.part_number) if scanner.part_number else None,
                 "datagram_id": f"0x{fmt.datagram_id:02X}", "sample_rate_hz": rate},
-        stream={"capture": str(path), "datagrams": stats.datagrams, "lost_samples": stats.lost_samples,
+        stream={"capture": str(path), "start_s": float(start_s), "datagrams": stats.datagrams,
+                "lost_samples": stats.lost_samples,
                 "crc_errors": stats.crc_errors, "restarts": stats.restarts,
                 **fault_record(*fault_summary(samples[keep]))})
 

@@ -1,5 +1,7 @@
-"""`calibd run | replay | status | calibrate | sensitivity | simulate`: the daemon, its pipeline on
-a capture, its state; one-shot calibration; what alpha/beta errors cost; captures with known truth.
+"""`calibd run | replay | status | calibrate | sensitivity | plan | noise | report | simulate`: the
+daemon, its pipeline on a capture, its state; one-shot calibration; what alpha/beta errors cost;
+what a protocol will give before it is run; the noise of a capture; a report people can look at;
+captures with known truth.
 
 Errors in files, scenarios or arguments end with one line on stderr and exit status 2.
 """
@@ -98,6 +100,9 @@ def cmd_calibrate(args) -> int:
     site = _site(args)
     try:
         session = load_session(args.capture, args.start, read_input(args.capture))
+    except CalibrationError as exc:
+        raise UsageError(str(exc)) from None  # it names the capture
+    try:
         if args.method == "joint":
             result = joint_real_case(session, site, JointOptions(args.fixed_amplitude, args.drift))
         elif args.bench:
@@ -192,6 +197,18 @@ def cmd_status(args) -> int:
         print("no result yet")
         return 0
     print(_summary(result))
+    return 0
+
+
+def cmd_report(args) -> int:
+    from .report import ReportError, figures_dir, write_report  # matplotlib only for this command
+
+    data = read_input(args.capture)
+    try:
+        written = write_report(args.result, args.capture, args.output, data)
+    except (ResultError, ReportError, CalibrationError) as exc:
+        raise UsageError(str(exc)) from None
+    print(f"report: {written[0]}; figures: {', '.join(p.name for p in written[1:])} in {figures_dir(written[0])}/")
     return 0
 
 
@@ -303,6 +320,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--platform-rate", type=_number(-1000, 1000, "deg/s"), required=True, help="deg/s")
     _add_site_options(p, required=True)
     p.set_defaults(func=cmd_sensitivity)
+    p = sub.add_parser("report", help="result + its capture -> HTML report with figures (needs matplotlib)")
+    p.add_argument("result", help="RESULT.json written by calibd calibrate")
+    p.add_argument("capture", help="the capture the result was made from")
+    p.add_argument("-o", "--output", required=True,
+                   help="report.html (self-contained); the figures also go to report_files/*.png beside it")
+    p.set_defaults(func=cmd_report)
     p = sub.add_parser("plan", help="protocol + site + noise -> expected 1-sigma of every estimate, time to a "
                                     "target yaw 1-sigma")
     _add_site_options(p, required=True)

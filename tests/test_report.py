@@ -1,0 +1,273 @@
+"""`calibd report`: the HTML embeds every figure and tables exactly the result's numbers, beside the
+thesis method's and the truth; the figures' decomposition is the joint fit's; one-line errors."""
+
+import base64
+import io
+import json
+import re
+import shutil
+import sys
+from html.parser import HTMLParser
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from calibd.calibrate import joint_fit, joint_real_case, load_session, thesis_real_case
+from calibd.cli import main as calibd_main
+from calibd.estimators.joint import JointOptions
+from calibd.frames import Site
+from calibd.noise import characterise
+from calibd.report import (MATPLOTLIB_MISSING, analysis_start_s, earth_rate_seen, earth_term, guide_points,
+                           warm_up_end_s, write_report)
+from calibd.results import write_result
+
+FIXTURES = Path(__file__).resolve().parent.parent / "fixtures"
+CAPTURE = str(FIXTURES / "thesis_real_cw_125hz.bin")
+SITE = Site(40.59129, 0.0, 9.79956)  # the thesis's (method.md §2)
+FIGURES = ("timeline", "earth_rate", "allan")
+
+
+class FakeTerminal(io.StringIO):
+    def isatty(self):
+        return True
+
+
+class Cells(HTMLParser):
+    """Every <td data-name> cell of the rows of one table, and every src/href/alt attribute."""
+
+    def __init__(self, table_id: str):
+        super().__init__()
+        self.table_id, self.inside, self.rows, self.cell = table_id, False, {}, None
+        self.row = None
+        self.attributes = []
+
+    def handle_starttag(self, tag, attrs):
+        a = dict(attrs)
+        self.attributes += [(tag, k, v) for k, v in attrs if k in ("src", "href", "alt", "title")]
+        if tag == "table":
+            self.inside = a.get("id") == self.table_id
+        elif self.inside and tag == "tr" and "data-estimate" in a:
+            self.row = self.rows.setdefault(a["data-estimate"], {})
+        elif self.inside and tag == "td" and "data-name" in a and self.row is not None:
+            self.cell = [a["data-name"], a.get("data-value"), ""]
+
+    def handle_data(self, data):
+        if self.cell is not None:
+            self.cell[2] += data
+
+    def handle_endtag(self, tag):
+        if tag == "td" and self.cell is not None:
+            name, value, text = self.cell
+            self.row[name] = (None if value is None else float(value), text)
+            self.cell = None
+        elif tag == "table":
+            self.inside = False
+
+
+def parse(page: str, table_id: str = "estimates") -> Cells:
+    cells = Cells(table_id)
+    cells.feed(page)
+    return cells
+
+
+@pytest.fixture(scope="module")
+def made(tmp_path_factory):
+    """The joint result of the thesis fixture, by the library (faster than the command)."""
+    directory = tmp_path_factory.mktemp("report")
+    session = load_session(CAPTURE)
+    result = joint_real_case(session, SITE)
+    write_result(directory / "result.json", result)
+    return {"dir": directory, "result": result, "session": session, "path": directory / "result.json"}
+
+
+@pytest.fixture(scope="module")
+def rendered(made):
+    terminal = FakeTerminal()
+    written = write_report(made["path"], CAPTURE, made["dir"] / "report.html", stream=terminal)
+    return made | {"written": written, "bar": terminal.getvalue(), "page": (made["dir"] / "report.html").read_text()}
+
+
+def test_files_exist_and_are_pngs(rendered):
+    d = rendered["dir"]
+    assert rendered["written"] == [d / "report.html"] + [d / "report_files" / f"{f}.png" for f in FIGURES]
+    for name in FIGURES:
+        data = (d / "report_files" / f"{name}.png").read_bytes()
+        assert data.startswith(b"\x89PNG\r\n\x1a\n")
+        image = Image.open(io.BytesIO(data))
+        image.verify()
+        assert image.size[0] >= 800 and image.size[1] >= 400
+    assert not list(d.glob(".*part")) and not list((d / "report_files").glob(".*part"))  # no temporaries left
+
+
+def test_html_embeds_and_names_every_figure_and_loads_nothing(rendered):
+    page, d = rendered["page"], rendered["dir"]
+    for name in FIGURES:
+        data = base64.b64encode((d / "report_files" / f"{name}.png").read_bytes()).decode()
+        assert f'src="data:image/png;base64,{data}"' in page  # the very bytes of the PNG file
+        named = {(tag, key) for tag, key, value in parse(page).attributes if value == f"report_files/{name}.png"}
+        assert {("img", "alt"), ("a", "href")} <= named
+    sources = [v for tag, k, v in parse(page).attributes if k == "src"]
+    assert len(sources) == len(FIGURES) and all(v.startswith("data:image/png;base64,") for v in sources)
+    assert "<link" not in page and "<script" not in page and "url(" not in page and "@import" not in page
+
+
+def test_table_numbers_equal_the_result_file(rendered):
+    saved = json.loads((rendered["dir"] / "result.json").read_text())
+    rows = parse(rendered["page"]).rows
+    assert list(rows) == list(saved["estimates"])
+    for name, e in saved["estimates"].items():
+        for column in ("value", "sigma"):
+            exact, shown = rows[name][column]
+            assert exact == e[column]
+            assert float(shown) == pytest.approx(e[column], rel=5e-3, abs=5e-6)  # what is shown rounds it
+
+
+def test_thesis_and_truth_columns(rendered):
+    rows = parse(rendered["page"]).rows
+    thesis = thesis_real_case(rendered["session"], SITE)["estimates"]
+    record = json.loads(Path(CAPTURE + ".truth.json").read_text())
+    truth, carried = record["truth"], record["bias_during_capture"]
+    expected = {"pitch": (truth["pitch_deg"],) * 2, "yaw": (truth["yaw_deg"],) * 2, "beta": (truth["beta_deg"],) * 2,
+                "gyro_bias_y": (truth["gyro_bias_deg_h"][1], carried["gyro_bias_deg_h"]["session"][1]),
+                "acc_bias_z": (truth["acc_bias_mg"][2], carried["acc_bias_mg"]["session"][2]),
+                "incl_bias_x": (truth["incl_bias_mg"][0], carried["incl_bias_mg"]["session"][0])}
+    for name, (scenario, in_data) in expected.items():
+        assert rows[name]["truth"][0] == scenario
+        assert rows[name]["carried"][0] == in_data
+        assert rows[name]["error"][0] == pytest.approx(rendered["result"]["estimates"][name]["value"] - in_data)
+        assert abs(rows[name]["error"][0]) < 3 * rows[name]["sigma"][0]  # the joint 1-sigma is honest here
+    for name, e in thesis.items():
+        assert rows[name]["thesis"][0] == pytest.approx(e["value"], rel=1e-12, abs=1e-12)
+    assert "thesis-linear" in rendered["page"]
+
+
+def test_segments_are_the_protocols(rendered):
+    roles = re.findall(r"<tr><td>\d+</td><td>([a-z ]+)</td>", rendered["page"].split('id="segments"')[1])
+    assert roles == ["static", "index turn"] * 4 + ["static", "full turn", "static"]
+
+
+def test_progress_bar_on_a_terminal_only(rendered):
+    bar = rendered["bar"]
+    assert bar.startswith("\rreport [") and "100.0%" in bar and bar.endswith("\n")
+
+
+@pytest.mark.parametrize("drift", [False, True])
+def test_earth_rate_decomposition_is_the_joint_fit(made, drift):
+    """What the Earth-rate figure plots, seen minus fitted term, must be the fit's own residuals:
+    a sign or axis slip in the report's reading of the model shows here."""
+    fitted = joint_fit(made["session"], SITE, JointOptions(drift=drift))
+    g = fitted.fit.gyro
+    residual = earth_rate_seen(fitted) - earth_term(g.params, g.chi)
+    assert np.allclose(residual.std(axis=0), g.residual_rms, rtol=1e-9)
+    assert np.abs(residual.mean(axis=0)).max() < 1e-3 * g.residual_rms.min()
+    amplitude = np.hypot(*earth_term(g.params, np.array([0.0, np.pi / 2]))[:, 0])
+    assert amplitude == pytest.approx(g.amplitude_check[0], rel=1e-3)  # X sees the whole horizontal rate
+
+
+def test_allan_guides_pass_through_the_values_read(made):
+    """The readings come in their own units (deg/sqrt(h), m/s/sqrt(h)): the guides must land back
+    on the curve they were read from (white noise rules at 1 s, so the -1/2 line meets the curve)."""
+    for noise in characterise(made["session"]).values():
+        (tau_rw, at_rw), (tau_bi, at_bi), rising = guide_points(noise)
+        curve_at_1s = np.exp(np.interp(0.0, np.log(noise.taus_s), np.log(noise.adev)))
+        assert tau_rw == 1.0 and at_rw == pytest.approx(curve_at_1s, rel=0.03), noise.name
+        assert at_bi == noise.adev.min() and tau_bi == noise.taus_s[np.argmin(noise.adev)]
+        if rising is not None:
+            assert noise.adev_low.min() < rising[1] < noise.adev_high.max()
+
+
+def test_analysis_starts_where_the_result_did():
+    """A `calibd calibrate --start` result records its offset; without it (older results) its first
+    segment says where its data began, and the segments found from there are the result's (an
+    off-by-one-sample start would move them)."""
+    capture = str(FIXTURES / "warmup_then_protocol_125hz.bin")
+    result = joint_real_case(load_session(capture, 450.0), SITE)
+    assert analysis_start_s(result) == 450.0
+    del result["stream"]["start_s"]
+    start = analysis_start_s(result)
+    assert start == pytest.approx(450.0, abs=1e-5)
+    again = joint_real_case(load_session(capture, start), SITE)
+    del again["stream"]["start_s"]
+    assert again["segments"] == result["segments"] and again["estimates"] == result["estimates"]
+
+
+def test_warm_up_end_is_where_the_forward_trend_settles():
+    """Oracle: a least-squares line through the raw samples of each 600 s window."""
+    session = load_session(str(FIXTURES / "warmup_then_protocol_125hz.bin"))
+    t, temp = session.time_s, session.temperature_c
+    end = warm_up_end_s(t, temp)
+
+    def trend(start):
+        keep = (t >= start) & (t < start + 600)
+        return abs(np.polyfit(t[keep], temp[keep], 1)[0] * 3600)
+
+    assert trend(end) <= 1.0 < trend(end - 2)
+    assert 300 < end < 600  # 22 -> 38 degC with a 100 s time constant
+    assert warm_up_end_s(t[t > 700], temp[t > 700]) == pytest.approx(t[t > 700][0], abs=1.0)  # settled: none
+    assert warm_up_end_s(t, None) == 0.0
+
+
+def run(argv, capsys):
+    code = calibd_main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_command_without_truth_file(rendered, tmp_path, capsys):
+    capture = tmp_path / "copy.bin"
+    shutil.copy(CAPTURE, capture)
+    code, out, err = run(["report", rendered["dir"] / "result.json", capture, "-o", tmp_path / "r.html"], capsys)
+    assert code == 0, err
+    assert err == ""  # no bar when stderr is not a terminal
+    assert f"report: {tmp_path / 'r.html'}" in out and "timeline.png" in out
+    assert (tmp_path / "r_files" / "earth_rate.png").exists()
+    rows = parse((tmp_path / "r.html").read_text()).rows
+    assert all(r["truth"] == r["carried"] == r["error"] == (None, "n/a") for r in rows.values())
+    assert rows["yaw"]["value"][0] == rendered["result"]["estimates"]["yaw"]["value"]
+
+
+def test_matplotlib_missing_is_one_line(made, tmp_path, capsys, monkeypatch):
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib now raises ImportError
+    code, _, err = run(["report", made["path"], CAPTURE, "-o", tmp_path / "r.html"], capsys)
+    assert code == 2
+    assert err == MATPLOTLIB_MISSING + "\n"
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("case, message", [
+    ("missing result", "cannot read"),
+    ("not json", "not JSON"),
+    ("other schema", "not a calibd.result/1 result"),
+    ("no estimates", "the result has no estimates"),
+    ("missing capture", "no such file"),
+    ("other capture", "not the result's capture"),
+    ("no output directory", "cannot write: no such directory"),
+    ("output is a directory", "is a directory"),
+])
+def test_bad_input_is_one_line(made, tmp_path, capsys, case, message):
+    result, capture, output = made["path"], CAPTURE, tmp_path / "r.html"
+    if case == "missing result":
+        result = tmp_path / "absent.json"
+    elif case == "not json":
+        result = tmp_path / "bad.json"
+        result.write_text("{not json")
+    elif case == "other schema":
+        result = tmp_path / "other.json"
+        result.write_text('{"schema": "something/1"}')
+    elif case == "no estimates":
+        result = tmp_path / "empty.json"
+        result.write_text(json.dumps({"schema": "calibd.result/1", "site": made["result"]["site"]}))
+    elif case == "missing capture":
+        capture = tmp_path / "absent.bin"
+    elif case == "other capture":
+        capture = FIXTURES / "warmup_then_protocol_125hz.bin"
+    elif case == "no output directory":
+        output = tmp_path / "absent" / "r.html"
+    else:
+        output = tmp_path
+    code, out, err = run(["report", result, capture, "-o", output], capsys)
+    assert code == 2 and out == ""
+    assert err.count("\n") == 1 and message in err, err
+    assert "Traceback" not in err
