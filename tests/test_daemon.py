@@ -180,52 +180,6 @@ def test_replay_through_a_pty_gives_the_direct_replays_result(capsys):
     assert pitch(through_pty) == pytest.approx(pitch(direct), abs=0.002)
 
 
-def test_calibd_run_through_a_pty_until_sigterm(tmp_path):
-    """The daemon as systemd runs it: a subprocess reading a pty through pyserial; the thesis
-    capture is written into the pty at 50 times real time; a result appears; SIGTERM stops it."""
-    master, slave = os.openpty()
-    tty.setraw(master)
-    tty.setraw(slave)
-    config = tmp_path / "calibd.toml"
-    state_dir = tmp_path / "state"
-    config.write_text(f'[serial]\nport = "{os.ttyname(slave)}"\n[site]\nlatitude_deg = 40.59129\ng0 = 9.79956\n'
-                      f'[output]\nstate_dir = "{state_dir}"\n[method]\nresolve_every_s = 300\n')
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
-    daemon = subprocess.Popen([sys.executable, "-m", "calibd.cli", "run", "--config", str(config)],
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
-    try:
-        data = (FIXTURES / "thesis_real_cw_125hz.bin").read_bytes()
-        per_second = 125 * 59 * 50  # bytes per second at 50 times real time
-        deadline = time.monotonic() + 120
-        start = time.monotonic()
-        for offset in range(0, len(data), 8192):
-            time.sleep(max(0.0, start + offset / per_second - time.monotonic()))
-            view = memoryview(data)[offset:offset + 8192]
-            while view:
-                assert time.monotonic() < deadline, "the daemon stopped reading"
-                if select.select([], [master], [], 1.0)[1]:
-                    view = view[os.write(master, view):]
-        result_file = state_dir / "result.json"
-        while not result_file.exists():
-            assert time.monotonic() < deadline and daemon.poll() is None, daemon.stderr.read().decode()[-2000:]
-            time.sleep(0.2)
-        time.sleep(1.0)
-        daemon.send_signal(signal.SIGTERM)
-        assert daemon.wait(timeout=20) == 0
-    finally:
-        if daemon.poll() is None:
-            daemon.kill()
-        os.close(master)
-        os.close(slave)
-    result = json.loads(result_file.read_text())
-    assert result["method"] == "joint"
-    yaw = result["estimates"]["yaw"]
-    assert abs(yaw["value"] - -3.036) < 3 * yaw["sigma"]
-    assert json.loads((state_dir / "state.json").read_text())["state"] in ("SOLVED", "FAULT")
-    log = daemon.stderr.read().decode()
-    assert '"event": "solved"' in log and '"event": "stopped"' in log  # JSON lines off a terminal
-
-
 def _write_paced(master: int, data: bytes, bytes_per_s: float, deadline: float) -> None:
     start = time.monotonic()
     for offset in range(0, len(data), 8192):
@@ -237,6 +191,27 @@ def _write_paced(master: int, data: bytes, bytes_per_s: float, deadline: float) 
                 view = view[os.write(master, view):]
 
 
+def _wait_for_result(result_file: Path, daemon, deadline: float) -> None:
+    while not result_file.exists():
+        assert time.monotonic() < deadline and daemon.poll() is None, daemon.stderr.read().decode()[-2000:]
+        time.sleep(0.2)
+
+
+def _calibd_run(config: Path) -> subprocess.Popen:
+    """`calibd run` as systemd starts it: a subprocess, JSON logs on stderr."""
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    return subprocess.Popen([sys.executable, "-m", "calibd.cli", "run", "--config", str(config)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
+
+
+def _stop(daemon: subprocess.Popen, *fds: int) -> None:
+    """After a test, pass or fail: the daemon gone, the pty closed."""
+    if daemon.poll() is None:
+        daemon.kill()
+    for fd in fds:
+        os.close(fd)
+
+
 def _plug(link: Path) -> tuple[int, int]:
     """A new pty behind `link`, as udev re-creates /dev/stim300 when the adapter comes back."""
     master, slave = os.openpty()
@@ -246,6 +221,36 @@ def _plug(link: Path) -> tuple[int, int]:
     tmp.symlink_to(os.ttyname(slave))
     os.replace(tmp, link)
     return master, slave
+
+
+def test_calibd_run_through_a_pty_until_sigterm(tmp_path):
+    """The daemon as systemd runs it: a subprocess reading a pty through pyserial; the thesis
+    capture is written into the pty at 50 times real time; a result appears; SIGTERM stops it."""
+    link = tmp_path / "ttySTIM"
+    master, slave = _plug(link)
+    config = tmp_path / "calibd.toml"
+    state_dir = tmp_path / "state"
+    config.write_text(f'[serial]\nport = "{link}"\n[site]\nlatitude_deg = 40.59129\ng0 = 9.79956\n'
+                      f'[output]\nstate_dir = "{state_dir}"\n[method]\nresolve_every_s = 300\n')
+    daemon = _calibd_run(config)
+    try:
+        data = (FIXTURES / "thesis_real_cw_125hz.bin").read_bytes()
+        deadline = time.monotonic() + 120
+        _write_paced(master, data, 125 * 59 * 50, deadline)  # 50 times real time
+        result_file = state_dir / "result.json"
+        _wait_for_result(result_file, daemon, deadline)
+        time.sleep(1.0)
+        daemon.send_signal(signal.SIGTERM)
+        assert daemon.wait(timeout=20) == 0
+    finally:
+        _stop(daemon, master, slave)
+    result = json.loads(result_file.read_text())
+    assert result["method"] == "joint"
+    yaw = result["estimates"]["yaw"]
+    assert abs(yaw["value"] - -3.036) < 3 * yaw["sigma"]
+    assert json.loads((state_dir / "state.json").read_text())["state"] in ("SOLVED", "FAULT")
+    log = daemon.stderr.read().decode()
+    assert '"event": "solved"' in log and '"event": "stopped"' in log  # JSON lines off a terminal
 
 
 def test_calibd_run_survives_unplug_and_replug(tmp_path):
@@ -262,9 +267,7 @@ def test_calibd_run_survives_unplug_and_replug(tmp_path):
     config.write_text(f'[serial]\nport = "{link}"\n[site]\nlatitude_deg = 40.59129\ng0 = 9.79956\n'
                       f'[output]\nstate_dir = "{state_dir}"\n[warmup]\nwindow_s = 100\n'
                       '[method]\nresolve_every_s = 120\n')
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
-    daemon = subprocess.Popen([sys.executable, "-m", "calibd.cli", "run", "--config", str(config)],
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
+    daemon = _calibd_run(config)
     speed = 100 * 125 * per_sample  # bytes per second at 100 times real time
     deadline = time.monotonic() + 120
     try:
@@ -276,16 +279,11 @@ def test_calibd_run_survives_unplug_and_replug(tmp_path):
         master, slave = _plug(link)
         _write_paced(master, data[795 * 125 * per_sample:], speed, deadline)
         result_file = state_dir / "result.json"
-        while not result_file.exists():
-            assert time.monotonic() < deadline and daemon.poll() is None, daemon.stderr.read().decode()[-2000:]
-            time.sleep(0.2)
+        _wait_for_result(result_file, daemon, deadline)
         daemon.send_signal(signal.SIGTERM)
         assert daemon.wait(timeout=20) == 0
     finally:
-        if daemon.poll() is None:
-            daemon.kill()
-        os.close(master)
-        os.close(slave)
+        _stop(daemon, master, slave)
     events = [json.loads(line) for line in daemon.stderr.read().decode().splitlines() if line.startswith("{")]
     states = [e["state"] for e in events if e["event"] == "state"]
     assert states == ["WARMING_UP", "COLLECTING", "FAULT", "COLLECTING", "SOLVED"]
