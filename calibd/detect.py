@@ -369,16 +369,36 @@ def full_turns(segments: list[Segment], min_cruise_deg: float = 350.0) -> list[S
     return [s for s in segments if s.kind == "turn" and abs(s.cruise_angle_deg) >= min_cruise_deg]
 
 
+INDEX_TOLERANCE_DEG = 5.0  # an index turn is this close to +-90 deg, an index heading to a multiple of 90 deg
+
+
+def segment_roles(segments: list[Segment]) -> list[str]:
+    """The protocol role of each segment: static, index turn (about 90 deg), full turn (a
+    constant-rate part of a whole revolution), other turn."""
+    full = {id(s) for s in full_turns(segments)}
+    roles = []
+    for s in segments:
+        if s.kind == "static":
+            roles.append("static")
+        elif id(s) in full:
+            roles.append("full turn")
+        elif abs(abs(s.angle_deg) - 90.0) <= INDEX_TOLERANCE_DEG:
+            roles.append("index turn")
+        else:
+            roles.append("other turn")
+    return roles
+
+
 def protocol_progress(segments: list[Segment]) -> str:
     """What a session has so far, in the protocol's words: statics and the platform headings
-    they cover, turns by kind (index ~90 deg, full >= 350 deg at constant rate, other)."""
+    they cover, turns by role (index ~90 deg, full >= 350 deg at constant rate, other)."""
     statics = [s for s in segments if s.kind == "static"]
-    turns = [s for s in segments if s.kind == "turn"]
     headings = {round((s.platform_angle_deg % 360) / 90) % 4 for s in statics
-                if abs(s.platform_angle_deg / 90 - round(s.platform_angle_deg / 90)) * 90 <= 5}
-    full = len(full_turns(segments))
-    index = sum(1 for t in turns if abs(abs(t.angle_deg) - 90) <= 5)
-    def count(n: int, what: str) -> str:
-        return f"{n} {what}" + ("" if n == 1 else "s")
-    return (f"{count(len(statics), 'static')} at {len(headings)}/4 index headings, {count(index, 'index turn')}, "
-            f"{count(full, 'full turn')}, {count(len(turns) - index - full, 'other turn')}")
+                if abs(s.platform_angle_deg / 90 - round(s.platform_angle_deg / 90)) * 90 <= INDEX_TOLERANCE_DEG}
+    roles = segment_roles(segments)
+
+    def count(role: str) -> str:
+        n = roles.count(role)
+        return f"{n} {role}" + ("" if n == 1 else "s")
+    return (f"{count('static')} at {len(headings)}/4 index headings, {count('index turn')}, "
+            f"{count('full turn')}, {count('other turn')}")

@@ -7,18 +7,18 @@ static data; it tables every estimate with its 1-sigma beside the thesis method'
 same capture and, for a simulated capture, the truth. `report.html` embeds the figures (data
 URIs, inline CSS: it can be mailed or archived alone); `report_files/*.png` are the same figures.
 
-matplotlib (the optional extra `[plot]`) is imported here only, inside the functions, and draws
-on an Agg canvas: the other commands never load it, and no display is needed.
+matplotlib (the optional extra `[plot]`) is imported only inside the functions here and in
+`calibd.figures`, and draws on an Agg canvas: the other commands never load it, and no display
+is needed.
 """
 
 from __future__ import annotations
 
 import base64
 import html
-import io
 import json
 import os
-from dataclasses import dataclass, fields
+from dataclasses import fields
 from pathlib import Path
 
 import numpy as np
@@ -27,41 +27,19 @@ from stim300.atomic import write_atomic
 from stim300.progress import Progress
 
 from . import detect
-from .calibrate import (CalibrationError, JointFit, Session, joint_fit, load_session, session_segments,
-                        thesis_real_case)
+from .calibrate import CalibrationError, Session, load_session, session_segments, thesis_real_case
 from .config import WarmupConfig
-from .estimators.joint import JointOptions, alpha_beta
-from .frames import Site, int_to_imu
-from .noise import SQRT_S_PER_SQRT_H, NoiseError, characterise
-from .noise import UNITS as NOISE_UNITS
+from .figures import Figure, allan_figure, earth_rate_figure, timeline_figure
+from .frames import Site
 from .results import load_result
 from .scenario import Truth
 
 MATPLOTLIB_MISSING = "calibd report needs matplotlib: pip install 'stim300-calib[plot]'"
-DEG = np.pi / 180
-DEG_H = 3600 / DEG  # rad/s -> deg/h
-TIMELINE_BINS = 1500  # plotted points per trace: min/max envelopes keep turns and spikes visible
-INDEX_TURN_TOLERANCE_DEG = 5.0  # a turn within this of +-90 deg is an index turn (as detect.protocol_progress)
-TURN_BIN_DEG = 30.0  # turn samples are averaged in bins of platform angle this wide
 STEPS = ("capture", "segments", "timeline", "Earth-rate fit", "Allan deviation", "thesis method", "files")
-ROLE_COLOURS = {"static": "#2ca02c", "index turn": "#1f77b4", "full turn": "#ff7f0e", "other turn": "#7f7f7f"}
-AXIS_COLOURS = ("#d62728", "#2ca02c", "#1f77b4")  # X, Y, Z
-SENSOR_NAMES = {"gyro": "gyros", "acc": "accelerometers", "incl": "inclinometers"}
 
 
 class ReportError(ValueError):
     """The report cannot be made from these inputs (matplotlib missing, wrong capture, unwritable output)."""
-
-
-@dataclass
-class Figure:
-    """One figure of the report: its PNG, or why there is none."""
-
-    name: str  # file stem: report_files/<name>.png
-    title: str
-    caption: str
-    png: bytes | None = None
-    missing: str = ""
 
 
 def figures_dir(output) -> Path:
@@ -92,7 +70,7 @@ def write_report(result_path, capture: str, output, data: bytes | None = None, s
         session = load_session(capture, start_s, data) if start_s > 0 else whole
         bar.update(1, STEPS[1])
         segments = session_segments(session)
-        roles = segment_roles(segments)
+        roles = detect.segment_roles(segments)
         warm_up = (skipped_s, "warm-up skipped by the result (--start)") if skipped_s > 0 else (
             warm_up_end_s(whole.time_s, whole.temperature_c),
             f"warm-up (temperature trend above {WarmupConfig().max_slope_c_per_h:g} degC/h)")
@@ -191,23 +169,6 @@ def read_truth(capture: str) -> tuple[dict[str, float], dict[str, float]] | None
         return None
 
 
-def segment_roles(segments: list[detect.Segment]) -> list[str]:
-    """The protocol role of each segment: static, index turn (about 90 deg), full turn (a
-    constant-rate part of a whole revolution), other turn."""
-    full = {id(s) for s in detect.full_turns(segments)}
-    roles = []
-    for s in segments:
-        if s.kind == "static":
-            roles.append("static")
-        elif id(s) in full:
-            roles.append("full turn")
-        elif abs(abs(s.angle_deg) - 90.0) <= INDEX_TURN_TOLERANCE_DEG:
-            roles.append("index turn")
-        else:
-            roles.append("other turn")
-    return roles
-
-
 def warm_up_end_s(time_s: np.ndarray, temperature_c: np.ndarray | None, rule: WarmupConfig = WarmupConfig()) -> float:
     """The first time from which the temperature trend over the next `rule.window_s` (the whole
     rest when shorter) is within `rule.max_slope_c_per_h`: the daemon's warm-up criterion, read
@@ -235,252 +196,6 @@ def warm_up_end_s(time_s: np.ndarray, temperature_c: np.ndarray | None, rule: Wa
         return float(time_s[-1])
     return float(time_s[0] + np.flatnonzero(have)[settled[0]])  # the start of that second
 
-
-# ---------------------------------------------------------------- figures
-
-def _png(canvas, fig) -> bytes:
-    buffer = io.BytesIO()
-    canvas(fig).print_png(buffer)
-    return buffer.getvalue()
-
-
-def _new_figure(width_in: float, height_in: float):
-    from matplotlib.figure import Figure as MplFigure
-
-    return MplFigure(figsize=(width_in, height_in), dpi=100, layout="constrained")
-
-
-def envelope(time_s: np.ndarray, values: np.ndarray, bins: int = TIMELINE_BINS):
-    """(bin time, min, max, mean) of each column over `bins` equal sample bins: a 1-h session at
-    125 Hz (450k samples) plots as a few thousand points without losing a turn or a spike."""
-    n = len(time_s)
-    if n <= 2 * bins:
-        return time_s, values, values, values
-    starts = np.linspace(0, n, bins + 1).astype(np.int64)[:-1]
-    count = np.diff(np.append(starts, n))[:, None]
-    return (np.add.reduceat(time_s, starts) / count[:, 0], np.minimum.reduceat(values, starts),
-            np.maximum.reduceat(values, starts), np.add.reduceat(values, starts) / count)
-
-
-def timeline_figure(canvas, whole: Session, segments, roles, warm_up: tuple[float, str]) -> Figure:
-    from matplotlib.patches import Patch
-
-    fig = _new_figure(11, 8.5)
-    axes = fig.subplots(3, 1, sharex=True)
-    traces = [("gyro [deg/s]", whole.gyro / DEG, "gyro {}"), ("accelerometer [m/s$^2$]", whole.acc, "acc {}")]
-    for ax, (label, values, name) in zip(axes, traces):
-        t, low, high, mean = envelope(whole.time_s, values)
-        for k, axis in enumerate("XYZ"):
-            ax.fill_between(t, low[:, k], high[:, k], color=AXIS_COLOURS[k], alpha=0.25, lw=0)
-            ax.plot(t, mean[:, k], color=AXIS_COLOURS[k], lw=0.8, label=name.format(axis))
-        ax.set_ylabel(label)
-        ax.legend(loc="best", fontsize=8, ncols=3)
-    temp_ax = axes[2]
-    if whole.temperature_c is None:
-        temp_ax.text(0.5, 0.5, "no temperatures in this datagram", transform=temp_ax.transAxes, ha="center")
-        temp_ax.set_yticks([])
-    else:
-        t, low, high, mean = envelope(whole.time_s, whole.temperature_c[:, None])
-        temp_ax.fill_between(t, low[:, 0], high[:, 0], color="k", alpha=0.2, lw=0)
-        temp_ax.plot(t, mean[:, 0], color="k", lw=0.8, label="gyro temperature (mean of X, Y, Z)")
-        temp_ax.legend(loc="lower right", fontsize=8)
-    temp_ax.set_ylabel("temperature [degC]")
-    temp_ax.set_xlabel("time from the first datagram [s]")
-    span = float(whole.time_s[-1] - whole.time_s[0]) or 1.0
-    for seg, role in zip(segments, roles):
-        for ax in axes:
-            ax.axvspan(seg.start_s, seg.end_s, color=ROLE_COLOURS[role], alpha=0.12 if role == "static" else 0.3, lw=0)
-        width = (seg.end_s - seg.start_s) / span
-        if seg.kind == "static" and width > 0.012:  # narrower ones get no room for a label
-            axes[0].text((seg.start_s + seg.end_s) / 2, 0.5, f"{seg.up} up\nchi {seg.platform_angle_deg:.0f}°",
-                         transform=axes[0].get_xaxis_transform(), ha="center", va="center", fontsize=8,
-                         rotation=0 if width > 0.07 else 90, bbox={"facecolor": "white", "alpha": 0.7, "lw": 0})
-    warm_end, warm_label = warm_up
-    handles = [Patch(color=ROLE_COLOURS[r], alpha=0.35, label=r) for r in ROLE_COLOURS if r in roles]
-    if warm_end > whole.time_s[0]:
-        for ax in axes:
-            ax.axvspan(float(whole.time_s[0]), warm_end, facecolor="none", edgecolor="#d62728", hatch="//", lw=0)
-        handles.append(Patch(facecolor="none", edgecolor="#d62728", hatch="//", label=warm_label))
-    if handles:
-        fig.legend(handles=handles, loc="outside upper center", ncols=len(handles), fontsize=9)
-    axes[2].set_xlim(float(whole.time_s[0]), float(whole.time_s[-1]))
-    n_static = sum(r == "static" for r in roles)
-    return Figure("timeline", "Session timeline",
-                  f"Gyro, accelerometer and temperature against time (lines: means over "
-                  f"{TIMELINE_BINS} bins, bands: each bin's min to max). Shaded: the {len(segments)} segments "
-                  f"found ({n_static} statics, labelled with the IMU axis up and the platform angle chi); hatched: "
-                  f"{f'{warm_label} up to {warm_end:.0f} s' if warm_end > whole.time_s[0] else 'no warm-up'}.",
-                  _png(canvas, fig))
-
-
-def earth_term(params: np.ndarray, chi: np.ndarray) -> np.ndarray:
-    """The joint model's Earth-rate term (estimators/joint.py), N x 3 in rad/s, at platform angles
-    chi (rad): v1 (A0 cos chi - A1 sin chi) + v2 (A0 sin chi + A1 cos chi), A = R_int^IMU of the
-    fitted axis."""
-    a = int_to_imu(*alpha_beta(params[2:5]))
-    cos, sin = np.cos(chi)[:, None], np.sin(chi)[:, None]
-    return params[0] * (a[:, 0] * cos - a[:, 1] * sin) + params[1] * (a[:, 0] * sin + a[:, 1] * cos)
-
-
-def earth_rate_seen(fitted: JointFit) -> np.ndarray:
-    """The gyros less every fitted term but the Earth rate's (the platform rate k chi', the
-    offsets c, a drift when fitted), N x 3 rad/s: what the model says is Earth rate plus noise."""
-    g, inp = fitted.fit.gyro, fitted.inp
-    p = g.params
-    rest = np.outer(g.chi_rate, p[2:5]) + p[5:8]
-    if len(p) > 8:
-        rest += np.outer(inp.time_s - inp.time_s.mean(), p[8:11])
-    return inp.gyro - rest
-
-
-def _binned(chi_deg: np.ndarray, values: np.ndarray, width: float):
-    """Means and standard errors of `values` (N x k) in bins of chi mod 360 (deg); empty bins dropped."""
-    index = np.floor((chi_deg % 360.0) / width).astype(np.int64)
-    count = np.bincount(index, minlength=int(360 / width))
-    have = count > 1
-    centres = (np.arange(len(count)) + 0.5) * width
-    means, errors = [], []
-    for column in values.T:
-        total, square = np.bincount(index, column, len(count)), np.bincount(index, column**2, len(count))
-        mean = total[have] / count[have]
-        var = np.maximum(square[have] / count[have] - mean**2, 0.0)
-        means.append(mean)
-        errors.append(np.sqrt(var / count[have]))
-    return centres[have], np.column_stack(means), np.column_stack(errors)
-
-
-def earth_rate_figure(canvas, session: Session, site: Site, segments, result: dict) -> Figure:
-    joint_result = result.get("method") == "joint"
-    options = result.get("options", {}) if joint_result else {}
-    title = "Earth rate against the platform angle"
-    try:
-        fitted = joint_fit(session, site, JointOptions(bool(options.get("fixed_amplitude")),
-                                                       bool(options.get("drift"))), segments)
-    except CalibrationError as exc:
-        return Figure("earth_rate", title, "", missing=f"no joint fit on this capture: {exc}")
-    g = fitted.fit.gyro
-    seen = earth_rate_seen(fitted) * DEG_H
-    model = earth_term(g.params, g.chi) * DEG_H
-    residual = seen - model
-    chi_deg = g.chi / DEG
-    statics = fitted.inp.statics
-    static_chi = np.array([chi_deg[a:b].mean() for a, b in statics]) % 360.0
-    static_seen = np.array([seen[a:b].mean(axis=0) for a, b in statics])
-    static_res = np.array([residual[a:b].mean(axis=0) for a, b in statics])
-    static_err = np.array([residual[a:b].std(axis=0) / np.sqrt(b - a) for a, b in statics]) * g.noise_scale
-    turning = np.zeros(len(chi_deg), bool)
-    for s in fitted.segments:
-        if s.kind == "turn":
-            turning[s.start - fitted.first:s.stop - fitted.first] = True
-    bin_chi, bin_seen, bin_err = _binned(chi_deg[turning], seen[turning], TURN_BIN_DEG)
-    _, bin_res, _ = _binned(chi_deg[turning], residual[turning], TURN_BIN_DEG)
-    grid = np.linspace(0.0, 360.0, 361)
-    curve = earth_term(g.params, grid * DEG) * DEG_H
-
-    fig = _new_figure(10, 7.5)
-    top, bottom = fig.subplots(2, 1, sharex=True, height_ratios=(2, 1))
-    for k, axis in enumerate("XY"):
-        colour = AXIS_COLOURS[k]
-        top.plot(grid, curve[:, k], color=colour, lw=1.5, label=f"gyro {axis}: fitted Earth-rate term")
-        top.errorbar(static_chi, static_seen[:, k], static_err[:, k], fmt="o", color=colour, ms=6, capsize=3,
-                     label=f"gyro {axis}: static means")
-        top.errorbar(bin_chi, bin_seen[:, k], bin_err[:, k], fmt="x", color=colour, ms=5, alpha=0.5, lw=0.8,
-                     label=f"gyro {axis}: turn samples, {TURN_BIN_DEG:.0f}° bins")
-        bottom.errorbar(static_chi, static_res[:, k], static_err[:, k], fmt="o", color=colour, ms=6, capsize=3)
-        bottom.errorbar(bin_chi, bin_res[:, k], bin_err[:, k], fmt="x", color=colour, ms=5, alpha=0.5, lw=0.8)
-    bottom.axhline(0.0, color="k", lw=0.8)
-    amplitude, sigma = (x * DEG_H for x in g.amplitude_check)
-    expected = float(np.hypot(*site.earth_rate_nav[:2])) * DEG_H
-    yaw, yaw_sigma = fitted.fit.estimates["yaw"] / DEG, fitted.fit.sigmas["yaw"] / DEG
-    seen_amplitude = (f"horizontal Earth rate fixed to Ω_E cos(lat) = {expected:.2f} deg/h"
-                      if options.get("fixed_amplitude") else
-                      f"fitted horizontal Earth rate {amplitude:.2f} ± {sigma:.2f} deg/h (Ω_E cos(lat) = "
-                      f"{expected:.2f} deg/h)")
-    fig.suptitle(f"{seen_amplitude}; yaw {yaw:.2f} ± {yaw_sigma:.2f} deg", fontsize=10)
-    top.set_ylabel("gyro less fitted offsets and\nplatform-rate terms [deg/h]")
-    bottom.set_ylabel("residual [deg/h]")
-    bottom.set_xlabel("platform angle chi mod 360 [deg] (counter-clockwise about Up, 0 at the level static)")
-    bottom.set_xlim(0, 360)
-    bottom.set_xticks(np.arange(0, 361, 45))
-    # statics dominate: keep the scale on them, the noisier turn bins may run off it
-    span = np.abs(np.concatenate([static_seen.ravel(), curve[:, :2].ravel()])).max()
-    top.set_ylim(-1.6 * span, 1.6 * span)
-    res_span = max(np.abs(static_res).max() + static_err.max(), 1e-3)
-    bottom.set_ylim(-4 * res_span, 4 * res_span)
-    fig.legend(*top.get_legend_handles_labels(), loc="outside lower center", ncols=3, fontsize=8)
-    note = "" if joint_result else (f" The result's method ({result.get('method')}) fits no sinusoid: this is "
-                                    "the joint estimator's fit on the same segments.")
-    stated = result["estimates"].get("yaw", {}).get("value")
-    if joint_result and stated is not None and abs(stated - yaw) > 1e-6 + 1e-3 * yaw_sigma:
-        note += (f" The fit redone here gives a yaw of {yaw:.4f} deg where the result has {stated:.4f} deg: the "
-                 "result was made with other data, options or software.")
-    caption = (f"The horizontal gyros less the fitted offsets and platform-rate terms, against the platform "
-               f"angle: the Earth rate's horizontal component, a sinusoid whose phase is the yaw. Circles: the "
-               f"mean of each of the {len(statics)} statics (error bars 1-sigma, white noise scaled by the "
-               f"measured excess {g.noise_scale:.2f}); crosses: turn samples averaged in {TURN_BIN_DEG:.0f}° "
-               f"bins of chi. Below: the residuals after the fitted sinusoid.{note}")
-    return Figure("earth_rate", title, caption, _png(canvas, fig))
-
-
-def guide_points(noise) -> list[tuple[float, float] | None]:
-    """(tau s, deviation in the curve's unit) where the random-walk, bias-instability and rate
-    random-walk guides pass through the values read (None: not read). The readings are in their own
-    units (deg/sqrt(h), m/s/sqrt(h), ...): back to the deviation they were read from."""
-    rw, bi, rrw = noise.random_walk, noise.bias_instability, noise.rate_random_walk
-    per_adev = NOISE_UNITS[noise.name.split("_")[0]].random_walk_per_adev
-    return [(rw.tau_s, rw.value / per_adev), (bi.tau_s, bi.value),
-            None if rrw is None else (rrw.tau_s, rrw.value / SQRT_S_PER_SQRT_H)]
-
-
-def _allan_panel(ax, members) -> None:
-    """One sensor's channels: curves with their bands, the guides through the values read, and
-    the values in the legend."""
-    for k, noise in enumerate(members):
-        colour, taus = AXIS_COLOURS[k % 3], np.asarray(noise.taus_s)
-        rw, bi, rrw = noise.random_walk, noise.bias_instability, noise.rate_random_walk
-        falling = bi.tau_s >= taus[-1]  # no minimum inside the data: an upper bound
-        label = (f"{noise.name}: RW {rw.value:.3g} {rw.unit}, BI {'< ' if falling else ''}{bi.value:.3g} {bi.unit}"
-                 + (f", RRW {rrw.value:.3g} {rrw.unit}" if rrw is not None else ""))
-        ax.fill_between(taus, noise.adev_low, noise.adev_high, color=colour, alpha=0.2, lw=0)
-        ax.loglog(taus, noise.adev, color=colour, lw=1.3, label=label)
-        (tau_rw, at_rw), (tau_bi, at_bi), rising = guide_points(noise)
-        ax.loglog(taus, at_rw * np.sqrt(tau_rw / taus), color=colour, ls=":", lw=1.2)
-        ax.axhline(at_bi, color=colour, ls="--", lw=0.9)
-        points = [(tau_rw, at_rw), (tau_bi, at_bi)]
-        if rising is not None:
-            ax.loglog(taus, rising[1] * np.sqrt(taus / rising[0]), color=colour, ls="-.", lw=1.2)
-            points.append(rising)
-        ax.plot(*zip(*points), "o", color=colour, ms=5, mec="k", mew=0.5)
-    unit = members[0].adev_unit
-    ax.set_xlabel("averaging time tau [s]")
-    ax.set_ylabel(f"Allan deviation [{unit}]")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7, loc="upper right")
-
-
-def allan_figure(canvas, session: Session, segments) -> Figure:
-    title = "Allan deviation of the static data"
-    try:
-        channels = characterise(session, segments)
-    except NoiseError as exc:
-        return Figure("allan", title, "", missing=f"no Allan deviation: {exc}")
-    groups = {}
-    for name, noise in channels.items():
-        groups.setdefault(name.split("_")[0], []).append(noise)
-    fig = _new_figure(16, 5.5)
-    for ax, (sensor, members) in zip(fig.subplots(1, len(groups)), groups.items()):
-        ax.set_title(SENSOR_NAMES.get(sensor, sensor), fontsize=10)
-        _allan_panel(ax, members)
-    first = next(iter(channels.values()))
-    caption = (f"Overlapping Allan deviation of each channel over the {first.static_s:.0f} s of static data in "
-               f"{first.segments} statics, pooled (bands: 68 % interval). Guides in the channel's colour: "
-               "dotted, slope -1/2 through the random walk (RW) read at 1 s (dot); dashed, the bias instability (BI, the "
-               "curve's minimum, dot; '<' when the curve is still falling at its last tau); dash-dot, slope +1/2 "
-               "through the rate random walk (RRW) when the curve rises again.")
-    return Figure("allan", title, caption, _png(canvas, fig))
-
-
-# ---------------------------------------------------------------- page
 
 CSS = """
 body { font-family: sans-serif; margin: 2em auto; max-width: 1200px; color: #222; }

@@ -18,9 +18,9 @@ from calibd.calibrate import joint_fit, joint_real_case, load_session, thesis_re
 from calibd.cli import main as calibd_main
 from calibd.estimators.joint import JointOptions
 from calibd.frames import Site
+from calibd.figures import earth_rate_seen, earth_term, guide_points
 from calibd.noise import characterise
-from calibd.report import (MATPLOTLIB_MISSING, analysis_start_s, earth_rate_seen, earth_term, guide_points,
-                           warm_up_end_s, write_report)
+from calibd.report import MATPLOTLIB_MISSING, analysis_start_s, warm_up_end_s, write_report
 from calibd.results import write_result
 
 FIXTURES = Path(__file__).resolve().parent.parent / "fixtures"
