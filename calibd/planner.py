@@ -20,6 +20,7 @@ import numpy as np
 
 from .estimators.joint import JointInput, NoiseModel, SensorNoise, solve
 from .frames import STANDARD_GRAVITY, Site
+from .noise import SCHEMA as NOISE_FILE_SCHEMA
 from .results import ESTIMATES
 from .scenario import Noise, Segment, load_scenario
 from .sim import flicker_sigma, schedule, simulate
@@ -34,7 +35,6 @@ MAX_SESSION_S = 7200.0  # beyond 2 h the 30000 s flicker component, which the es
 MIN_SCALE = 0.1  # shortest layout searched: a tenth of the nominal statics (1 min level static), or one turn
 TIME_TOLERANCE = 0.01  # the time to a target is found to 1 % of itself
 MIN_COS_LATITUDE = 0.01  # nearer the poles the horizontal Earth rate that yaw comes from vanishes
-NOISE_SCHEMA = "calibd.noise/1"
 NOISE_FILE_FIGURES = {  # sensor -> (random walk field, its unit, bias instability field, its unit)
     "gyro": ("gyro_arw_deg_sqrt_h", "deg/sqrt(h)", "gyro_bias_instability_deg_h", "deg/h"),
     "acc": ("acc_vrw_m_s_sqrt_h", "m/s/sqrt(h)", "acc_bias_instability_mg", "mg"),
@@ -136,9 +136,9 @@ def noise_from_json(data: bytes, where: str) -> Noise:
         doc = json.loads(data)
     except ValueError as exc:
         raise PlanError(f"{where}: not a JSON noise file: {exc}") from None
-    if not isinstance(doc, dict) or doc.get("schema") != NOISE_SCHEMA:
+    if not isinstance(doc, dict) or doc.get("schema") != NOISE_FILE_SCHEMA:
         found = doc.get("schema") if isinstance(doc, dict) else None
-        raise PlanError(f"{where}: schema: {found!r} is not {NOISE_SCHEMA!r}")
+        raise PlanError(f"{where}: schema: {found!r} is not {NOISE_FILE_SCHEMA!r}")
     channels = doc.get("channels")
     if not isinstance(channels, dict):
         raise PlanError(f"{where}: channels: missing or not an object")
