@@ -104,28 +104,50 @@ def _platform_angle(inp: JointInput, axis: np.ndarray, offset: np.ndarray,
     return start + rate * dt / 2 - slope_term, rate
 
 
-def _gyro_designs(chi, chi_rate, tau, a, drift: bool) -> list[np.ndarray]:
-    """Per channel, the N x P regressors of (v1, v2, k_xyz, c_xyz[, d_xyz])."""
+@dataclass(frozen=True)
+class ChannelDesign:
+    """One channel's regressors, kept as the non-zero columns of its N x P design: each channel
+    has its own offsets (and rate and drift terms), so most of the P columns are zero, and a
+    session of an hour at 125 Hz would spend most of the solver's memory on them."""
+
+    params: np.ndarray  # which of the P parameters the columns belong to
+    values: np.ndarray  # N x len(params)
+
+    def __matmul__(self, params: np.ndarray) -> np.ndarray:
+        return self.values @ params[self.params]
+
+
+def _gyro_designs(chi, chi_rate, tau, a, drift: bool) -> list[ChannelDesign]:
+    """Per channel, the regressors of (v1, v2, k_xyz, c_xyz[, d_xyz]): the Earth terms, and the
+    channel's own rate coefficient, offset and drift."""
     cos, sin = np.cos(chi), np.sin(chi)
-    zeros, ones = np.zeros(len(chi)), np.ones(len(chi))
     designs = []
     for i in range(3):
-        cols = [a[i, 0] * cos - a[i, 1] * sin, a[i, 0] * sin + a[i, 1] * cos]
-        cols += [chi_rate if j == i else zeros for j in range(3)]
-        cols += [ones if j == i else zeros for j in range(3)]
+        cols = [a[i, 0] * cos - a[i, 1] * sin, a[i, 0] * sin + a[i, 1] * cos, chi_rate, np.ones(len(chi))]
+        params = [0, 1, 2 + i, 5 + i]
         if drift:
-            cols += [tau if j == i else zeros for j in range(3)]
-        designs.append(np.column_stack(cols))
+            cols.append(tau)
+            params.append(8 + i)
+        designs.append(ChannelDesign(np.array(params), np.column_stack(cols)))
     return designs
 
 
-def _normal_equations(designs, data) -> tuple[np.ndarray, np.ndarray]:
+def _gram(designs: list[ChannelDesign], p: int) -> np.ndarray:
+    """Sum over channels of D' D, each channel's block placed at its parameters."""
+    gram = np.zeros((p, p))
+    for d in designs:
+        gram[np.ix_(d.params, d.params)] += d.values.T @ d.values
+    return gram
+
+
+def _normal_equations(designs: list[ChannelDesign], data: np.ndarray, p: int) -> tuple[np.ndarray, np.ndarray]:
     """Channels weighted equally: the three axes of a sensor share one noise spec (weights from
     per-channel residuals would let a noise-free channel with tiny residuals dictate v1, v2
     through its small tilt coefficients)."""
-    gram = sum(d.T @ d for d in designs)
-    rhs = sum(d.T @ data[:, i] for i, d in enumerate(designs))
-    return gram, rhs
+    rhs = np.zeros(p)
+    for i, d in enumerate(designs):
+        rhs[d.params] += d.values.T @ data[:, i]
+    return _gram(designs, p), rhs
 
 
 def _free(gram, rhs) -> tuple[np.ndarray, np.ndarray]:
@@ -175,7 +197,7 @@ def fit_gyros(inp: JointInput, site: Site, options: JointOptions = JointOptions(
         previous = chi
         chi, chi_rate = _platform_angle(inp, axis, offset, static)
         designs = _gyro_designs(chi, chi_rate, tau, int_to_imu(*alpha_beta(axis)), options.drift)
-        gram, rhs = _normal_equations(designs, inp.gyro)
+        gram, rhs = _normal_equations(designs, inp.gyro, 11 if options.drift else 8)
         params, bread = _on_circle(gram, rhs, amplitude) if options.fixed_amplitude else _free(gram, rhs)
         residuals = np.column_stack([inp.gyro[:, i] - designs[i] @ params for i in range(3)])
         k = params[2:5]
@@ -226,21 +248,20 @@ def _covariance(designs, rows: np.ndarray, inp: JointInput, bread: np.ndarray, n
     would be optimistic for everything that compares segments far apart. Components much longer
     than a session (here above 3000 s) act as part of the bias during it, not as noise. `bread`
     is the inverse information of the (possibly constrained) fit: cov = bread . (H' Sigma H) . bread."""
-    meat = noise.white * sum(d.T @ d for d in designs)
+    meat = noise.white * _gram(designs, len(bread))
     if noise.flicker > 0:
         # Flicker varies over seconds at the fastest, so its quadratic form is taken on sums over
-        # FLICKER_BIN_S bins of every channel's non-zero columns, laid on a uniform bin grid.
-        used = [np.flatnonzero(np.any(d != 0, axis=0)) for d in designs]
+        # FLICKER_BIN_S bins of every channel's columns, laid on a uniform bin grid.
         bins = np.floor(inp.time_s[rows] / FLICKER_BIN_S).astype(np.int64)
         starts = np.flatnonzero(np.diff(bins, prepend=-1))
-        grid = np.zeros((bins[-1] + 1, sum(len(u) for u in used)))
-        grid[bins[starts]] = np.add.reduceat(np.column_stack([d[:, u] for d, u in zip(designs, used)]), starts)
+        grid = np.zeros((bins[-1] + 1, sum(len(d.params) for d in designs)))
+        grid[bins[starts]] = np.hstack([np.add.reduceat(d.values, starts) for d in designs])
         for correlated in correlate(grid, 1.0 / FLICKER_BIN_S, FLICKER_TAUS_S[:4]):
             start = 0
-            for u in used:
-                cols = slice(start, start + len(u))
-                meat[np.ix_(u, u)] += noise.flicker * grid[:, cols].T @ correlated[:, cols]
-                start += len(u)
+            for d in designs:
+                cols = slice(start, start + len(d.params))
+                meat[np.ix_(d.params, d.params)] += noise.flicker * grid[:, cols].T @ correlated[:, cols]
+                start += len(d.params)
     return bread @ meat @ bread
 
 
@@ -290,10 +311,12 @@ def fit_force(force: np.ndarray, chi: np.ndarray, inp: JointInput, a: np.ndarray
     n = len(rows)
     u3 = 1.0
     for _ in range(3):
-        designs = [np.column_stack([g0 * (a[i, 0] * cos - a[i, 1] * sin), g0 * (a[i, 0] * sin + a[i, 1] * cos)]
-                                   + [np.ones(n) if j == i else np.zeros(n) for j in range(3)]) for i in range(3)]
+        designs = [ChannelDesign(np.array([0, 1, 2 + i]),
+                                 np.column_stack([g0 * (a[i, 0] * cos - a[i, 1] * sin),
+                                                  g0 * (a[i, 0] * sin + a[i, 1] * cos), np.ones(n)]))
+                   for i in range(3)]
         data = force[rows] - g0 * u3 * a[:, 2]
-        gram, rhs = _normal_equations(designs, data)
+        gram, rhs = _normal_equations(designs, data, 5)
         params = np.linalg.solve(gram, rhs)
         residuals = np.column_stack([data[:, i] - designs[i] @ params for i in range(3)])
         u3 = np.sqrt(1.0 - params[0] ** 2 - params[1] ** 2)
@@ -399,6 +422,6 @@ def white_noise_bound(inp: JointInput, result: JointResult, site: Site, gyro_arw
     p = len(result.gyro.params)
     designs = _gyro_designs(result.gyro.chi, result.gyro.chi_rate, inp.time_s - inp.time_s.mean(),
                             int_to_imu(*alpha_beta(result.gyro.params[2:5])), p == 11)
-    cov = np.linalg.inv(sum(d.T @ d for d in designs)) * gyro_arw_rad_sqrt_s**2 * inp.rate_hz
+    cov = np.linalg.inv(_gram(designs, p)) * gyro_arw_rad_sqrt_s**2 * inp.rate_hz
     jac = result.jacobian[:, :p]
     return dict(zip(result.estimates, np.sqrt(np.diag(jac @ cov @ jac.T)).tolist()))
