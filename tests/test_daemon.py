@@ -225,7 +225,7 @@ def _plug(link: Path) -> tuple[int, int]:
 
 def test_calibd_run_through_a_pty_until_sigterm(tmp_path):
     """The daemon as systemd runs it: a subprocess reading a pty through pyserial; the thesis
-    capture is written into the pty at 50 times real time; a result appears; SIGTERM stops it."""
+    capture is written into the pty at 100 times real time; a result appears; SIGTERM stops it."""
     link = tmp_path / "ttySTIM"
     master, slave = _plug(link)
     config = tmp_path / "calibd.toml"
@@ -236,7 +236,7 @@ def test_calibd_run_through_a_pty_until_sigterm(tmp_path):
     try:
         data = (FIXTURES / "thesis_real_cw_125hz.bin").read_bytes()
         deadline = time.monotonic() + 120
-        _write_paced(master, data, 125 * 59 * 50, deadline)  # 50 times real time
+        _write_paced(master, data, 125 * 59 * 100, deadline)  # 100 times real time
         result_file = state_dir / "result.json"
         _wait_for_result(result_file, daemon, deadline)
         time.sleep(1.0)
