@@ -21,7 +21,7 @@ from stim300.cliutil import CommandParser, UsageError, read_input, run_command
 from stim300.progress import Progress
 
 from .calibrate import CalibrationError, joint_real_case, load_session, thesis_bench, thesis_real_case
-from .config import ConfigError, MethodConfig, WarmupConfig, load_config
+from .config import ConfigError, DetectionConfig, MethodConfig, WarmupConfig, load_config
 from .daemon import Calibrator, ResultStore
 from .estimators.joint import JointOptions
 from .estimators.thesis import sensitivity
@@ -148,9 +148,9 @@ def cmd_run(args) -> int:
 def cmd_replay(args) -> int:
     if args.config:
         config = _config(args.config, None)
-        site, warmup, method = config.site, config.warmup, config.method
+        site, warmup, method, detection = config.site, config.warmup, config.method, config.detection
     elif args.latitude is not None:
-        site, warmup, method = _site(args), WarmupConfig(), MethodConfig()
+        site, warmup, method, detection = _site(args), WarmupConfig(), MethodConfig(), DetectionConfig()
     else:
         raise UsageError("replay: give --config FILE or --latitude DEG")
     if args.warmup_window is not None:
@@ -172,7 +172,8 @@ def cmd_replay(args) -> int:
             store.write_result(result)
 
     configure_logging(logging.WARNING)
-    calibrator = Calibrator(site, warmup, method, on_result=on_result, on_state=on_state, source=args.capture)
+    calibrator = Calibrator(site, warmup, method, on_result=on_result, on_state=on_state, source=args.capture,
+                            detection=detection)
     speed = None if args.speed == "max" else float(args.speed)
     with Progress("replay", len(data), "B") as bar:
         (replay_pty if args.pty else replay)(data, calibrator, speed, progress=lambda done, total: bar.update(done))

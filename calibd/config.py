@@ -9,7 +9,7 @@ was expected.
 from __future__ import annotations
 
 import tomllib
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 from stim300.protocol import DEFAULT_BIT_RATE
@@ -18,7 +18,7 @@ from .frames import Site
 from .scenario import _Table
 
 METHODS = ("joint", "thesis")
-TABLES = ("serial", "site", "output", "warmup", "method")
+TABLES = ("serial", "site", "output", "warmup", "detection", "method")
 JOINT_ONLY = ("fixed_amplitude", "drift")
 THESIS_ONLY = ("alpha_deg", "beta_deg")
 
@@ -44,6 +44,20 @@ class WarmupConfig:
 
 
 @dataclass(frozen=True)
+class DetectionConfig:
+    """Segment detection settings (calibd.detect.find_segments); None keeps its default, and the
+    thresholds' default is to follow the sensor's own noise."""
+
+    turn_threshold_deg_s: float | None = None  # gyro average above which the platform moves
+    remount_g: float | None = None  # accelerometer jump between quiet stretches that is a re-mount
+    min_static_s: float | None = None  # shortest static kept (default 5 s)
+    settle_s: float | None = None  # trimmed off a static next to motion (default 1 s)
+
+    def options(self) -> dict:
+        return {key: value for key, value in asdict(self).items() if value is not None}
+
+
+@dataclass(frozen=True)
 class MethodConfig:
     """The estimator and its options (see `calibd calibrate --help` for what they mean)."""
 
@@ -62,6 +76,7 @@ class DaemonConfig:
     state_dir: Path
     warmup: WarmupConfig
     method: MethodConfig
+    detection: DetectionConfig = DetectionConfig()
 
     def with_port(self, port: str) -> DaemonConfig:
         """A copy on another serial port: one file serves every instance of the systemd
@@ -123,6 +138,18 @@ def _warmup(t: _ConfigTable) -> WarmupConfig:
     return warmup
 
 
+def _detection(t: _ConfigTable) -> DetectionConfig:
+    def positive(key: str, unit: str, allow_zero: bool = False):
+        return t.get(key, None, float, (lambda v: v >= 0) if allow_zero else _positive,
+                     f"a {'non-negative' if allow_zero else 'positive'} {unit}")
+    detection = DetectionConfig(turn_threshold_deg_s=positive("turn_threshold_deg_s", "rate in deg/s"),
+                                remount_g=positive("remount_g", "acceleration step in g"),
+                                min_static_s=positive("min_static_s", "duration in s"),
+                                settle_s=positive("settle_s", "duration in s", allow_zero=True))
+    t.finish()
+    return detection
+
+
 def _method(t: _ConfigTable) -> MethodConfig:
     d = MethodConfig()
     name = t.get("name", d.name, str, lambda n: n in METHODS, " or ".join(f'"{m}"' for m in METHODS))
@@ -159,7 +186,7 @@ def parse_config(data: dict, where: str) -> DaemonConfig:
 
     return DaemonConfig(serial=_serial(table("serial")), site=_site(table("site")),
                         state_dir=_state_dir(table("output")), warmup=_warmup(table("warmup")),
-                        method=_method(table("method")))
+                        method=_method(table("method")), detection=_detection(table("detection")))
 
 
 def load_config(path: str | Path) -> DaemonConfig:

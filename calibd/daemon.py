@@ -25,7 +25,7 @@ from stim300.protocol import INTERNAL_RATE_HZ
 from . import detect
 from .calibrate import (CalibrationError, ProtocolIncomplete, Session, fault_record, fault_summary, joint_real_case,
                         thesis_real_case)
-from .config import MethodConfig, WarmupConfig
+from .config import DetectionConfig, MethodConfig, WarmupConfig
 from .estimators.joint import JointOptions
 from .frames import STANDARD_GRAVITY, Site
 
@@ -83,8 +83,8 @@ class Calibrator:
     `on_state(state, detail)` are called as things happen."""
 
     def __init__(self, site: Site, warmup: WarmupConfig = WarmupConfig(), method: MethodConfig = MethodConfig(),
-                 on_result=None, on_state=None, source: str = "live"):
-        self.site, self.warmup, self.method = site, warmup, method
+                 on_result=None, on_state=None, source: str = "live", detection: DetectionConfig = DetectionConfig()):
+        self.site, self.warmup, self.method, self.detection = site, warmup, method, detection
         self.source = source  # the port or capture, named in results
         self.on_result = on_result or (lambda result: None)
         self.on_state = on_state or (lambda state, detail: None)
@@ -97,9 +97,10 @@ class Calibrator:
         self._reset_time()
 
     # ------------------------------------------------------------------ feeding
-    def configure(self, site: Site, warmup: WarmupConfig, method: MethodConfig) -> None:
-        """New settings (SIGHUP): they apply from the next solution on."""
-        self.site, self.warmup, self.method = site, warmup, method
+    def configure(self, site: Site, warmup: WarmupConfig, method: MethodConfig,
+                  detection: DetectionConfig = DetectionConfig()) -> None:
+        """New settings (SIGHUP): they apply from the next solution on (detection: the next session)."""
+        self.site, self.warmup, self.method, self.detection = site, warmup, method, detection
 
     def feed(self, samples: np.ndarray, rate_hz: int, restarts: int = 0) -> None:
         """A batch of decoded samples (stim300.codec.SAMPLE_DTYPE) in stream order; `restarts` is
@@ -218,7 +219,7 @@ class Calibrator:
         self._buffer.trim(start_s)
         self._flagged = [f for f in self._flagged if f[0] >= start_s]
         self._session_start = start_s
-        self._tracker = detect.SegmentTracker(self._stored_rate)
+        self._tracker = detect.SegmentTracker(self._stored_rate, **self.detection.options())
         self._next_solve = self._buffer.end_s + self.method.resolve_every_s
         self.sessions += 1
         self._set(State.COLLECTING, detail)

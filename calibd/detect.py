@@ -252,11 +252,15 @@ class SegmentTracker:
     within a session), so every pass cuts alike.
     """
 
-    def __init__(self, rate_hz: float, **options):
+    def __init__(self, rate_hz: float, turn_threshold_deg_s: float | None = None, remount_g: float | None = None,
+                 **options):
+        """`options` as find_segments'; thresholds left None follow the first update's noise."""
         self.rate_hz, self.options = rate_hz, options
         self.final: list[Segment] = []
         self._tail_start = 0  # first sample of the part still re-scanned
         self._tail_chi = 0.0  # platform angle there, relative to the session's first static
+        self._given = {key: value for key, value in (("turn_threshold_deg_s", turn_threshold_deg_s),
+                                                     ("remount_g", remount_g)) if value is not None}
         self._thresholds: dict | None = None
 
     def update(self, gyro: np.ndarray, acc: np.ndarray, time_s: np.ndarray | None = None) -> list[Segment]:
@@ -268,7 +272,7 @@ class SegmentTracker:
         t = np.arange(n) / self.rate_hz if time_s is None else np.asarray(time_s, dtype=np.float64)
         if self._thresholds is None:
             turn, remount = motion_thresholds(gyro, acc, self.rate_hz, self.options.get("smooth_s", 0.2))
-            self._thresholds = {"turn_threshold_deg_s": turn, "remount_g": remount}
+            self._thresholds = {"turn_threshold_deg_s": turn, "remount_g": remount} | self._given
         a = self._tail_start
         tail = find_segments(gyro[a:], acc[a:], self.rate_hz, t[a:], **self._thresholds, **self.options)
         shifted = [_shifted(s, a, self._tail_chi) for s in tail]

@@ -207,7 +207,7 @@ def run(config, reload_config) -> int:
     """`calibd run`: until SIGTERM. `reload_config()` returns a fresh config (SIGHUP)."""
     store = ResultStore(config.state_dir)
     calibrator = Calibrator(config.site, config.warmup, config.method, on_result=store.write_result,
-                            source=config.serial.port)
+                            source=config.serial.port, detection=config.detection)
 
     def on_state(state: State, detail: str) -> None:
         store.write_state(state, detail, {"port": config.serial.port})
@@ -237,7 +237,7 @@ def run(config, reload_config) -> int:
                 reload_requested.clear()
                 try:
                     fresh = reload_config()
-                    calibrator.configure(fresh.site, fresh.warmup, fresh.method)
+                    calibrator.configure(fresh.site, fresh.warmup, fresh.method, fresh.detection)
                     log.info("reloaded")
                 except ValueError as exc:
                     log.error("reload_failed", error=str(exc))

@@ -5,7 +5,8 @@ from pathlib import Path
 
 import pytest
 
-from calibd.config import ConfigError, DaemonConfig, MethodConfig, SerialConfig, WarmupConfig, load_config
+from calibd.config import (ConfigError, DaemonConfig, DetectionConfig, MethodConfig, SerialConfig, WarmupConfig,
+                           load_config)
 from calibd.frames import Site
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "systemd" / "calibd.example.toml"
@@ -27,6 +28,11 @@ state_dir = "/var/lib/calibd/ttyUSB0"
 max_slope_c_per_h = 0.5
 window_s = 900
 min_time_s = 3600
+
+[detection]
+turn_threshold_deg_s = 2.0
+min_static_s = 8
+settle_s = 0
 
 [method]
 name = "thesis"
@@ -66,8 +72,10 @@ def test_full_config_round_trips(tmp_path):
         site=Site(40.59129, 12.5, 9.79956),
         state_dir=Path("/var/lib/calibd/ttyUSB0"),
         warmup=WarmupConfig(0.5, 900.0, 3600.0),
-        method=MethodConfig("thesis", alpha_deg=0.5964, beta_deg=-0.1125, resolve_every_s=30.0))
+        method=MethodConfig("thesis", alpha_deg=0.5964, beta_deg=-0.1125, resolve_every_s=30.0),
+        detection=DetectionConfig(turn_threshold_deg_s=2.0, min_static_s=8.0, settle_s=0.0))
     assert isinstance(config.warmup.window_s, float)
+    assert config.detection.options() == {"turn_threshold_deg_s": 2.0, "min_static_s": 8.0, "settle_s": 0.0}
 
 
 def test_joint_options(tmp_path):
@@ -82,6 +90,7 @@ def test_defaults_apply(tmp_path):
     assert config.state_dir == Path("state")
     assert config.warmup == WarmupConfig(1.0, 600.0, 0.0)
     assert config.method == MethodConfig("joint", False, False, None, None, 60.0)
+    assert config.detection.options() == {}  # find_segments' defaults, thresholds from the noise
 
 
 def test_empty_optional_tables_give_defaults(tmp_path):
@@ -115,7 +124,11 @@ def replace_line(text: str, old: str, new: str) -> str:
     ("latitude_deg = 40.59129", 'latitude_deg = "40N"', "[site]", "latitude_deg", ["'40N'", "number"]),
     ('state_dir = "/var/lib/calibd/ttyUSB0"', "state_dir = []", "[output]", "state_dir", ["[]", "string"]),
     ('name = "thesis"', "name = 1", "[method]", "name", ["1", "string"]),
+    ("min_static_s = 8", 'min_static_s = "long"', "[detection]", "min_static_s", ["'long'", "number"]),
     # out of range
+    ("turn_threshold_deg_s = 2.0", "turn_threshold_deg_s = 0", "[detection]", "turn_threshold_deg_s",
+     ["0 is not a positive rate in deg/s"]),
+    ("settle_s = 0", "settle_s = -1", "[detection]", "settle_s", ["-1.0 is not a non-negative duration in s"]),
     ("latitude_deg = 40.59129", "latitude_deg = 95.0", "[site]", "latitude_deg",
      ["95.0 is not a latitude in [-90, 90] deg"]),
     ("height_m = 12.5", "height_m = 9500", "[site]", "height_m", ["9500", "[-500, 9000]"]),

@@ -89,6 +89,19 @@ def test_a_data_gap_starts_a_new_session_and_keeps_the_warm_up():
     assert waiting and re.match(r"collecting: \d+ s of data, \d+ static(s)? at \d/4 index headings", waiting[0])
 
 
+def test_detection_settings_reach_the_session():
+    """A fixed turn threshold above the platform's 20 deg/s: no turn is seen, so no result, and
+    the status says so; the same data with the thresholds from the noise solves."""
+    from calibd.config import DetectionConfig
+
+    states = []
+    calibrator = Calibrator(SITE, WarmupConfig(window_s=100.0), detection=DetectionConfig(turn_threshold_deg_s=25.0),
+                            on_state=lambda state, detail: states.append(detail))
+    replay((FIXTURES / "warmup_then_protocol_125hz.bin").read_bytes(), calibrator)
+    assert calibrator.result is None and "0 index turns" in states[-1]
+    assert run_replay("warmup_then_protocol_125hz", WarmupConfig(window_s=100.0))[2]
+
+
 def test_2000_hz_is_stored_block_averaged_at_125_hz():
     data = (FIXTURES / "static_turn_2000hz.bin").read_bytes()
     samples, _ = decode_capture(data)
