@@ -50,6 +50,7 @@ def test_example_config_has_the_loaders_keys():
         "site": {"latitude_deg": float, "height_m": float},
         "output": {"state_dir": str},
         "warmup": {"max_slope_c_per_h": float, "window_s": int, "min_time_s": int},
+        "detection": {"min_static_s": float, "settle_s": float},
         "method": {"name": str, "fixed_amplitude": bool, "drift": bool, "resolve_every_s": int},
     }
     assert set(config) == set(expected)
