@@ -32,6 +32,8 @@ class Stats:
     crc_errors: int = 0  # candidates of a known id and full length that failed, one per failed span
     skipped_bytes: int = 0  # bytes that belonged to no valid datagram
     restarts: int = 0  # power-up sequences seen after normal data
+    restart_datagrams: list[int] = field(default_factory=list)  # per restart: normal datagrams before it,
+    # i.e. the index of the restarted sensor's first sample in the decoded output (bulk and stream alike)
     config_changes: int = 0  # the normal format changed (new configuration or new datagram id)
     special_datagrams: int = 0
     undecodable_specials: int = 0  # CRC-valid special datagrams with codes the byte map lacks
@@ -182,6 +184,7 @@ class Scanner:
             self.serial_number = item
             if self._after_part_number:  # part number then serial number: the power-up sequence
                 self.stats.restarts += 1
+                self.stats.restart_datagrams.append(self.stats.datagrams)
                 self.last_counter = None  # the counter restarts with the sensor
         elif kind is PART_NUMBER:
             self.part_number = item

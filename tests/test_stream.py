@@ -29,6 +29,7 @@ def assert_same_as_bulk(data: bytes, cuts=(), fmt=None):
     bulk, scanner = decode_capture(data, fmt)
     assert same_samples(samples, bulk)
     assert parser.stats.as_dict() == scanner.stats.as_dict()
+    assert parser.stats.restart_datagrams == scanner.stats.restart_datagrams
     return samples, parser
 
 
@@ -214,6 +215,7 @@ def test_sensor_restart_is_counted_and_does_not_count_as_loss():
     samples, parser = assert_same_as_bulk(first + power_up(config) + second, [1000, 3001])
     assert same_samples(samples, np.concatenate([t1[:40], t2]))
     assert (parser.stats.restarts, parser.stats.lost_samples, parser.stats.config_changes) == (1, 0, 0)
+    assert parser.stats.restart_datagrams == [40]  # the second power-up's first sample
 
 
 def test_requested_part_number_is_not_a_restart():
