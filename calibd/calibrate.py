@@ -1,7 +1,8 @@
 """One-shot calibration of a capture: decode, find the segments, run a method, build the result.
 
-The same functions serve `calibd calibrate` and, later, the daemon on live data: they take
-decoded samples, never bytes.
+The same functions serve `calibd calibrate` and the daemon on live data: the methods take
+decoded samples, never bytes. A capture is cut at every sensor restart and one power-up is
+calibrated, from where its warm-up ends.
 """
 
 from __future__ import annotations
@@ -13,16 +14,17 @@ from scipy.special import gammaincc
 
 from stim300.bulk import decode_capture
 from stim300.codec import fault_bits
-from stim300.protocol import status_names
+from stim300.protocol import Status, status_names
 
 from . import detect
 from .config import WarmupConfig
 from .estimators import joint, thesis
 from .frames import STANDARD_GRAVITY, Site
 from .results import make_result
+from .warmup import Settling, settling
 
 DEG = np.pi / 180
-WARM_SLOPE_C_PER_H = WarmupConfig().max_slope_c_per_h  # the daemon's default warm-up criterion
+WARM_UP_RULE = WarmupConfig()  # the daemon's default: calibrate starts a power-up where it is met
 
 
 class CalibrationError(ValueError):
@@ -51,9 +53,21 @@ class Session:
     stream: dict
 
 
-def load_session(path: str, start_s: float = 0.0, data: bytes | None = None) -> Session:
-    """Decode a capture (the file at `path`, or its bytes already read); drop what comes before
-    `start_s` (e.g. a warm-up)."""
+@dataclass
+class Capture:
+    """A decoded capture cut at every sensor restart: each power-up has its own turn-on biases,
+    counter and platform angle, so a calibration uses one of them, never a mix."""
+
+    path: str
+    samples: np.ndarray  # stim300.codec.SAMPLE_DTYPE, every power-up in stream order
+    power_ups: list[tuple[int, int]]  # each power-up's samples [start, stop)
+    rate_hz: int
+    sensor: dict
+    stream: dict  # the whole capture's stream statistics
+
+
+def decode(path: str, data: bytes | None = None) -> Capture:
+    """Decode a capture (the file at `path`, or its bytes already read) and find its power-ups."""
     if data is None:
         with open(path, "rb") as f:
             data = f.read()
@@ -66,23 +80,98 @@ def load_session(path: str, start_s: float = 0.0, data: bytes | None = None) -> 
                                f"not {fmt.gyro_unit.name} / {fmt.acc_unit.name}")
     if np.isnan(samples["acc"][0, 0]) or np.isnan(samples["incl"][0, 0]):
         raise CalibrationError(f"{path}: datagram 0x{fmt.datagram_id:02X} lacks accelerometers or inclinometers")
-    rate = fmt.sample_rate_hz or 2000 // scanner.stats.counter_step
-    time_s = detect.sample_times(samples["counter"], rate)
-    keep = time_s >= start_s
-    temps = samples["temp_gyro"][keep].mean(axis=1)
     stats = scanner.stats
-    return Session(
-        time_s=time_s[keep], gyro=samples["gyro"][keep].astype(np.float64) * DEG,
-        acc=samples["acc"][keep].astype(np.float64) * STANDARD_GRAVITY,
-        incl=samples["incl"][keep].astype(np.float64) * STANDARD_GRAVITY,
-        temperature_c=None if np.isnan(temps).all() else temps.astype(np.float64), rate_hz=rate,
+    rate = fmt.sample_rate_hz or 2000 // stats.counter_step
+    cuts = sorted({0, len(samples), *stats.restart_datagrams, *_start_up_rises(samples)})
+    return Capture(
+        path=str(path), samples=samples, power_ups=list(zip(cuts, cuts[1:])), rate_hz=rate,
         sensor={"serial_number": scanner.serial_number.text if scanner.serial_number else None,
                 "part_number": str(scanner.part_number) if scanner.part_number else None,
                 "datagram_id": f"0x{fmt.datagram_id:02X}", "sample_rate_hz": rate},
-        stream={"capture": str(path), "start_s": float(start_s), "datagrams": stats.datagrams,
-                "lost_samples": stats.lost_samples,
-                "crc_errors": stats.crc_errors, "restarts": stats.restarts,
-                **fault_record(*fault_summary(samples[keep]))})
+        stream={"capture": str(path), "datagrams": stats.datagrams, "lost_samples": stats.lost_samples,
+                "crc_errors": stats.crc_errors, "restarts": stats.restarts})
+
+
+def _start_up_rises(samples: np.ndarray) -> list[int]:
+    """Samples where the start-up status bit comes on after data without it: a restart whose
+    power-up datagrams were lost (the scanner sees those only when they arrive intact)."""
+    up = ((samples["status_gyro"] | samples["status_acc"] | samples["status_incl"]) & Status.START_UP) != 0
+    return (np.flatnonzero(up[1:] & ~up[:-1]) + 1).tolist()
+
+
+def power_up_session(capture: Capture, number: int | None = None, start_s: float | None = 0.0) -> Session:
+    """Power-up `number` (1-based; None: the last) from `start_s` (s since its first sample), or,
+    with `start_s` None, from where the warm-up rule says its temperature has settled."""
+    count = len(capture.power_ups)
+    number = count if number is None else number
+    if not 1 <= number <= count:
+        raise CalibrationError(f"no power-up {number}: the capture has {count} (the sensor restarted "
+                               f"{count - 1} times)")
+    first, stop = capture.power_ups[number - 1]
+    samples = capture.samples[first:stop]
+    time_s = detect.sample_times(samples["counter"], capture.rate_hz)
+    temps = samples["temp_gyro"].mean(axis=1)
+    temps = None if np.isnan(temps).all() else temps.astype(np.float64)
+    if start_s is not None:
+        start_by = "the given start"
+    elif temps is None:
+        start_s, start_by = 0.0, "the first sample (no temperatures: the warm-up rule cannot be applied)"
+    else:
+        verdict = settling(time_s, temps, WARM_UP_RULE)
+        start_s = verdict.start_s
+        start_by = (f"warm-up rule: the temperature settled ({verdict.trend_c_per_h:+.2f} degC/h over "
+                    f"{WARM_UP_RULE.window_s:g} s)" if verdict.settled else
+                    f"warm-up rule: the temperature never settles, the calmest window ({verdict.trend_c_per_h:+.2f} "
+                    f"degC/h over {WARM_UP_RULE.window_s:g} s)")
+    keep = time_s >= start_s
+    if not keep.any():
+        raise CalibrationError(f"start {start_s:g} s is past the end of power-up {number} of {count} "
+                               f"({time_s[-1]:.1f} s)")
+    samples = samples[keep]
+    return Session(
+        time_s=time_s[keep], gyro=samples["gyro"].astype(np.float64) * DEG,
+        acc=samples["acc"].astype(np.float64) * STANDARD_GRAVITY,
+        incl=samples["incl"].astype(np.float64) * STANDARD_GRAVITY,
+        temperature_c=None if temps is None else temps[keep], rate_hz=capture.rate_hz, sensor=capture.sensor,
+        stream=capture.stream | {
+            "start_s": float(start_s), "start_by": start_by,
+            "power_up": {"number": number, "count": count, "first_datagram": first, "datagrams": stop - first,
+                         "duration_s": float(time_s[-1]) + 1 / capture.rate_hz},
+            **fault_record(*fault_summary(samples))})
+
+
+def load_session(path: str, start_s: float | None = 0.0, data: bytes | None = None,
+                 power_up: int | None = None) -> Session:
+    """One power-up of a capture (default the last) from `start_s` (None: where the warm-up ends)."""
+    return power_up_session(decode(path, data), power_up, start_s)
+
+
+def calibrate_capture(capture: Capture, solve, power_up: int | None = None, start_s: float | None = None) -> dict:
+    """`solve(session) -> result` on power-up `power_up`, or on the last power-up that has what
+    the method needs. Estimates of a power-up whose temperature never settles are flagged."""
+    count = len(capture.power_ups)
+    numbers = [power_up] if power_up is not None else range(count, 0, -1)
+    refusals = []
+    for number in numbers:
+        session = power_up_session(capture, number, start_s)
+        try:
+            result = solve(session)
+        except CalibrationError as exc:
+            refusals.append(f"power-up {number} of {count}: {exc}" if count > 1 else str(exc))
+            continue
+        if number < count:
+            passed_over = f"; the later ones lack what the method needs ({'; '.join(refusals)})" if refusals else ""
+            result["warnings"].append(
+                f"the sensor restarted after this power-up ({number} of {count}){passed_over}: these biases are "
+                "this power-up's, turn-on biases change at every restart")
+        verdict = _settling(session)
+        if verdict is not None and not verdict.settled:
+            for estimate in result["estimates"].values():
+                estimate["quality"] = "poor"
+            result["warnings"].append("every estimate is flagged poor: the data were taken while the IMU warmed "
+                                      "up, and biases move with temperature (record after the warm-up)")
+        return result
+    raise CalibrationError("; ".join(refusals))
 
 
 def fault_summary(samples: np.ndarray) -> tuple[int, int]:
@@ -112,14 +201,26 @@ def _session_warnings(session: Session) -> list[str]:
     return faults + _warm_up_warning(session)
 
 
+def _settling(session: Session) -> Settling | None:
+    """The warm-up rule on the session's own data (None without temperatures)."""
+    if session.temperature_c is None or len(session.time_s) < 2:
+        return None
+    return settling(session.time_s, session.temperature_c, WARM_UP_RULE)
+
+
 def _warm_up_warning(session: Session) -> list[str]:
-    t = session.temperature_c
-    if t is None or len(t) < 2:
+    verdict = _settling(session)
+    if verdict is None:
         return ["no temperatures in the datagram: warm-up cannot be checked"]
-    slope = detect.temperature_trend_c_per_h(session.time_s, t)
-    if abs(slope) > WARM_SLOPE_C_PER_H:
-        return [f"temperature still moving {slope:+.1f} degC/h over the data: the IMU is not warmed up, biases "
-                "drift (use --start to skip the warm-up)"]
+    rule = f"{WARM_UP_RULE.max_slope_c_per_h:g} degC/h over {WARM_UP_RULE.window_s:g} s"
+    if not verdict.settled:
+        return [f"the temperature never settles in this power-up (calmest trend {verdict.trend_c_per_h:+.1f} degC/h "
+                f"from {verdict.start_s:.0f} s; warmed up means within {rule}): the IMU is not warmed up, biases "
+                "drift with temperature"]
+    early_s = verdict.start_s - session.time_s[0]
+    if early_s > 1.0:
+        return [f"the first {early_s:.0f} s of the data are warm-up (the temperature settles within {rule} only "
+                f"from {verdict.start_s:.0f} s of the power-up): biases drift"]
     return []
 
 

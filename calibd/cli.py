@@ -20,7 +20,8 @@ from pathlib import Path
 from stim300.cliutil import CommandParser, UsageError, read_input, run_command
 from stim300.progress import Progress
 
-from .calibrate import CalibrationError, joint_real_case, load_session, thesis_bench, thesis_real_case
+from .calibrate import (CalibrationError, calibrate_capture, decode, joint_real_case, load_session, thesis_bench,
+                        thesis_real_case)
 from .config import ConfigError, DetectionConfig, MethodConfig, WarmupConfig, load_config
 from .daemon import Calibrator, ResultStore
 from .estimators.joint import JointOptions
@@ -63,6 +64,12 @@ def _number(low: float, high: float, unit: str):
     return parse
 
 
+def _positive_int(text: str) -> int:
+    if not text.isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a positive whole number")
+    return int(text)
+
+
 def _add_site_options(p: argparse.ArgumentParser, required: bool) -> None:
     p.add_argument("--latitude", type=_number(-90, 90, "deg"), required=required,
                    help="site latitude, deg" + ("" if required else " (without --config)"))
@@ -78,13 +85,37 @@ def _site(args) -> Site:
 
 
 def _summary(result: dict) -> str:
-    lines = [f"{result['method']}: {result['stream']['capture']}"]
+    lines = [f"{result['method']}: {result['stream']['capture']}", f"  site: {_site_line(result['site'])}"]
+    session = _session_line(result)
+    if session:
+        lines.append(f"  session: {session}")
     for name, e in result["estimates"].items():
         sigma = "" if e["sigma"] is None else f" +- {e['sigma']:.3g}"
         poor = "  (poor)" if e.get("quality") == "poor" else ""
         lines.append(f"  {name:12s} {e['value']:12.5f}{sigma} {e['unit']}{poor}")
     lines += [f"  warning: {w}" for w in result["warnings"]]
     return "\n".join(lines)
+
+
+def _site_line(site: dict) -> str:
+    """The site a result used: a wrong-sign latitude moves the gyro Z bias by 2 Omega_E sin|lat|."""
+    given = site.get("g0_given")
+    source = "" if given is None else " (given)" if given else " (normal gravity)"
+    return (f"latitude {site['latitude_deg']:+.5f} deg, height {site['height_m']:g} m, "
+            f"g0 {site['g0_m_s2']:.5f} m/s^2{source}")
+
+
+def _session_line(result: dict) -> str | None:
+    """Which power-up (calibrate) or daemon session the result rests on, and its time span."""
+    stream, power_up = result.get("stream", {}), result.get("stream", {}).get("power_up")
+    if power_up:
+        span = f"{stream['start_s']:.1f} s to {power_up['duration_s']:.1f} s of it"
+        return (f"power-up {power_up['number']} of {power_up['count']}, {span}, "
+                f"from {stream.get('start_by', 'given')}")
+    session = result.get("session")
+    if session:
+        return f"session {session['number']} since the daemon started, {session['duration_s']:.1f} s of data"
+    return None
 
 
 def cmd_calibrate(args) -> int:
@@ -99,17 +130,20 @@ def cmd_calibrate(args) -> int:
         raise UsageError("calibrate: --fixed-amplitude and --drift belong to --method joint")
     site = _site(args)
     try:
-        session = load_session(args.capture, args.start, read_input(args.capture))
+        capture = decode(args.capture, read_input(args.capture))
     except CalibrationError as exc:
         raise UsageError(str(exc)) from None  # it names the capture
-    try:
+
+    def solve(session):
         if args.method == "joint":
-            result = joint_real_case(session, site, JointOptions(args.fixed_amplitude, args.drift))
-        elif args.bench:
-            result = thesis_bench(session, site)
-        else:
-            tilt = None if args.alpha is None else (args.alpha, args.beta)
-            result = thesis_real_case(session, site, tilt, args.platform_rate)
+            return joint_real_case(session, site, JointOptions(args.fixed_amplitude, args.drift))
+        if args.bench:
+            return thesis_bench(session, site)
+        tilt = None if args.alpha is None else (args.alpha, args.beta)
+        return thesis_real_case(session, site, tilt, args.platform_rate)
+
+    try:
+        result = calibrate_capture(capture, solve, args.session, args.start)
     except CalibrationError as exc:
         raise UsageError(f"{args.capture}: {exc}") from None
     try:
@@ -290,7 +324,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--platform-rate", type=_number(-1000, 1000, "deg/s"),
                    help="platform rate of the full turn from telemetry, deg/s, signed (default: from the gyros)")
     p.add_argument("--bench", action="store_true", help="a bench session: six-position biases and alpha/beta")
-    p.add_argument("--start", type=_number(0, 1e9, "s"), default=0.0, help="skip the first S seconds (warm-up)")
+    p.add_argument("--start", type=_number(0, 1e9, "s"),
+                   help="start S seconds into the power-up (default: where the warm-up rule says the temperature "
+                        "has settled)")
+    p.add_argument("--session", type=_positive_int, metavar="N",
+                   help="calibrate power-up N (1-based) of a capture in which the sensor restarted (default: the "
+                        "last one that has what the method needs)")
     p.add_argument("--fixed-amplitude", action="store_true",
                    help="joint: fix the horizontal Earth rate to Omega_E cos(lat) (better yaw on short data; "
                         "loses the check that the Earth rate is really seen)")

@@ -28,6 +28,7 @@ from .calibrate import (CalibrationError, ProtocolIncomplete, Session, fault_rec
 from .config import DetectionConfig, MethodConfig, WarmupConfig
 from .estimators.joint import JointOptions
 from .frames import STANDARD_GRAVITY, Site
+from .warmup import settling
 
 log = structlog.get_logger("calibd")
 DEG = np.pi / 180
@@ -196,23 +197,23 @@ class Calibrator:
         return self.rate_hz // max(1, self.rate_hz // STORE_RATE_HZ)
 
     def _check_warm_up(self) -> None:
+        """The warm-up rule (calibd.warmup) on the data since the last check's window: the session
+        starts at the first window that settled."""
         rule, data = self.warmup, self._buffer
         elapsed = data.end_s
-        data.trim(elapsed - rule.window_s - 1.0)
+        data.trim(elapsed - rule.window_s - WARM_CHECK_EVERY_S - 1.0)
         if elapsed < max(rule.window_s, rule.min_time_s):
             self._set(State.WARMING_UP, f"warming up: {elapsed:.0f} s since power-up")
             return
-        recent = data.arrays(since_s=elapsed - rule.window_s)
-        if np.isnan(recent["temp"]).all():
-            slope, note = 0.0, " (no temperatures in the datagram: time since power-up only)"
-        else:
-            slope, note = detect.temperature_trend_c_per_h(recent["time_s"], recent["temp"]), ""
-        if abs(slope) > rule.max_slope_c_per_h:
-            self.detail = f"warming up: temperature moving {slope:+.2f} degC/h"
-            self._set(State.WARMING_UP, self.detail)
+        recent = data.arrays()
+        no_temperature = np.isnan(recent["temp"]).all()
+        verdict = settling(recent["time_s"], None if no_temperature else recent["temp"], rule)
+        if not verdict.settled:
+            self._set(State.WARMING_UP, f"warming up: temperature moving {verdict.trend_c_per_h:+.2f} degC/h")
             return
-        self._start_session(self._warm_since(recent),
-                            f"warmed up ({slope:+.2f} degC/h over {rule.window_s:.0f} s){note}")
+        how = (f"{rule.window_s:.0f} s since power-up (no temperatures in the datagram: time since power-up only)"
+               if no_temperature else f"{verdict.trend_c_per_h:+.2f} degC/h over {rule.window_s:.0f} s")
+        self._start_session(verdict.start_s, f"warmed up ({how})")
         self._solve()
 
     def _start_session(self, start_s: float, detail: str) -> None:
@@ -223,19 +224,6 @@ class Calibrator:
         self._next_solve = self._buffer.end_s + self.method.resolve_every_s
         self.sessions += 1
         self._set(State.COLLECTING, detail)
-
-    def _warm_since(self, recent: dict) -> float:
-        """Where the session starts: the earliest point of the window from which the temperature
-        trend to now is below the limit (a settled sensor: the window's start; a sensor still
-        creeping: later, as its early part was warmer-going than the whole window's average)."""
-        t, temp = recent["time_s"], recent["temp"]
-        if np.isnan(temp).all():
-            return float(t[0])
-        for t0 in np.linspace(t[0], t[-1] - (t[-1] - t[0]) / 4, 8):
-            keep = t >= t0
-            if abs(detect.temperature_trend_c_per_h(t[keep], temp[keep])) <= self.warmup.max_slope_c_per_h:
-                return float(t0)
-        return float(t[-1] - (t[-1] - t[0]) / 4)
 
     def _session(self) -> Session:
         d = self._buffer.arrays(since_s=self._session_start)

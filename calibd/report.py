@@ -33,6 +33,7 @@ from .figures import Figure, allan_figure, earth_rate_figure, timeline_figure
 from .frames import Site
 from .results import load_result
 from .scenario import Truth
+from .warmup import settling
 
 MATPLOTLIB_MISSING = "calibd report needs matplotlib: pip install 'stim300-calib[plot]'"
 STEPS = ("capture", "segments", "timeline", "Earth-rate fit", "Allan deviation", "thesis method", "files")
@@ -65,15 +66,15 @@ def write_report(result_path, capture: str, output, data: bytes | None = None, s
         bar.update(0, STEPS[0])
         skipped_s = float(result.get("stream", {}).get("start_s") or 0.0)
         start_s = analysis_start_s(result)
-        whole = load_session(capture, 0.0, data)
+        power_up = (result.get("stream", {}).get("power_up") or {}).get("number")
+        whole = load_session(capture, 0.0, data, power_up)
         _check_same_capture(result, whole, capture)
-        session = load_session(capture, start_s, data) if start_s > 0 else whole
+        session = load_session(capture, start_s, data, power_up) if start_s > 0 else whole
         bar.update(1, STEPS[1])
         segments = session_segments(session)
         roles = detect.segment_roles(segments)
-        warm_up = (skipped_s, "warm-up skipped by the result (--start)") if skipped_s > 0 else (
-            warm_up_end_s(whole.time_s, whole.temperature_c),
-            f"warm-up (temperature trend above {WarmupConfig().max_slope_c_per_h:g} degC/h)")
+        warm_up = (skipped_s, "warm-up skipped by the result") if skipped_s > 0 else (
+            _warm_up_end_s(whole), f"warm-up (temperature trend above {WarmupConfig().max_slope_c_per_h:g} degC/h)")
         bar.update(2, STEPS[2])
         figures = [timeline_figure(canvas, whole, segments, roles, warm_up)]
         bar.update(3, STEPS[3])
@@ -169,32 +170,12 @@ def read_truth(capture: str) -> tuple[dict[str, float], dict[str, float]] | None
         return None
 
 
-def warm_up_end_s(time_s: np.ndarray, temperature_c: np.ndarray | None, rule: WarmupConfig = WarmupConfig()) -> float:
-    """The first time from which the temperature trend over the next `rule.window_s` (the whole
-    rest when shorter) is within `rule.max_slope_c_per_h`: the daemon's warm-up criterion, read
-    forwards over a whole capture. 0 without temperatures; the capture's end if it never settles."""
-    if temperature_c is None or len(time_s) < 2:
-        return 0.0
-    seconds = np.floor(time_s - time_s[0]).astype(np.int64)  # 1-s means: the trend needs no more
-    count = np.bincount(seconds)
-    have = count > 0
-    t = (np.bincount(seconds, time_s) / np.maximum(count, 1))[have]
-    temp = (np.bincount(seconds, temperature_c) / np.maximum(count, 1))[have]
-    width = int(min(rule.window_s, len(t)))
-    if width < 2:
-        return 0.0
-    t0 = t - t[0]  # fewer digits lost in the sums
-
-    def window_sums(x):
-        c = np.concatenate(([0.0], np.cumsum(x)))
-        return c[width:] - c[:-width]
-
-    st, sy, stt, sty = window_sums(t0), window_sums(temp), window_sums(t0 * t0), window_sums(t0 * temp)
-    slope = (width * sty - st * sy) / (width * stt - st * st) * 3600
-    settled = np.flatnonzero(np.abs(slope) <= rule.max_slope_c_per_h)
-    if not len(settled):
-        return float(time_s[-1])
-    return float(time_s[0] + np.flatnonzero(have)[settled[0]])  # the start of that second
+def _warm_up_end_s(whole: Session) -> float:
+    """Where the warm-up rule ends the warm-up of the power-up (its end if it never settles)."""
+    if whole.temperature_c is None:
+        return float(whole.time_s[0])
+    verdict = settling(whole.time_s, whole.temperature_c)
+    return verdict.start_s if verdict.settled else float(whole.time_s[-1])
 
 
 CSS = """

@@ -40,7 +40,7 @@ def estimate(name: str, value_si: float, sigma_si: float | None = None) -> dict:
 
 def site_record(site: Site) -> dict:
     return {"latitude_deg": site.latitude_deg, "height_m": site.height_m, "g0_m_s2": site.gravity,
-            "earth_rate_deg_h": EARTH_RATE * 3600 / DEG}
+            "g0_given": site.g0 is not None, "earth_rate_deg_h": EARTH_RATE * 3600 / DEG}
 
 
 def make_result(method: str, site: Site, estimates: dict[str, tuple[float, float | None]], segments: list[dict],

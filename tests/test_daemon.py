@@ -170,9 +170,12 @@ def test_replay_command_and_status(tmp_path, capsys):
                         "--g0", "9.79956", "--warmup-window", "100", "--state-dir", str(tmp_path)])
     out = capsys.readouterr().out
     assert code == 0 and "[SOLVED]" in out and "yaw" in out
+    site = "site: latitude +40.59129 deg, height 0 m, g0 9.79956 m/s^2 (given)"
+    assert site in out and "session: session 1 since the daemon started" in out
     assert len(list((tmp_path / "history").iterdir())) >= 2
     assert calibd_main(["status", "--state-dir", str(tmp_path)]) == 0
-    assert "state: SOLVED" in capsys.readouterr().out
+    status = capsys.readouterr().out
+    assert "state: SOLVED" in status and site in status
     assert calibd_main(["replay", str(FIXTURES / "faults_125hz.bin"), "--latitude", "40"]) == 1
 
 

@@ -20,7 +20,7 @@ from calibd.estimators.joint import JointOptions
 from calibd.frames import Site
 from calibd.figures import earth_rate_seen, earth_term, guide_points
 from calibd.noise import characterise
-from calibd.report import MATPLOTLIB_MISSING, analysis_start_s, warm_up_end_s, write_report
+from calibd.report import MATPLOTLIB_MISSING, analysis_start_s, write_report
 from calibd.results import write_result
 
 FIXTURES = Path(__file__).resolve().parent.parent / "fixtures"
@@ -191,22 +191,6 @@ def test_analysis_starts_where_the_result_did():
     again = joint_real_case(load_session(capture, start), SITE)
     del again["stream"]["start_s"]
     assert again["segments"] == result["segments"] and again["estimates"] == result["estimates"]
-
-
-def test_warm_up_end_is_where_the_forward_trend_settles():
-    """Oracle: a least-squares line through the raw samples of each 600 s window."""
-    session = load_session(str(FIXTURES / "warmup_then_protocol_125hz.bin"))
-    t, temp = session.time_s, session.temperature_c
-    end = warm_up_end_s(t, temp)
-
-    def trend(start):
-        keep = (t >= start) & (t < start + 600)
-        return abs(np.polyfit(t[keep], temp[keep], 1)[0] * 3600)
-
-    assert trend(end) <= 1.0 < trend(end - 2)
-    assert 300 < end < 600  # 22 -> 38 degC with a 100 s time constant
-    assert warm_up_end_s(t[t > 700], temp[t > 700]) == pytest.approx(t[t > 700][0], abs=1.0)  # settled: none
-    assert warm_up_end_s(t, None) == 0.0
 
 
 def run(argv, capsys):

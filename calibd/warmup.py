@@ -1,0 +1,67 @@
+"""The warm-up rule: where a temperature record has settled enough to calibrate on.
+
+Biases follow temperature, so data from a sensor still warming up carry biases that are wrong
+by the time they are used. The rule (`WarmupConfig`): the settled part starts at the first
+window of `window_s` (the whole record when shorter) whose least-squares temperature trend is
+within `max_slope_c_per_h` and which ends at least `min_time_s` after power-up. The daemon
+applies it to the data so far, `calibd calibrate` and the report to a whole power-up.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .config import WarmupConfig
+
+
+@dataclass(frozen=True)
+class Settling:
+    """The rule's verdict on a record. `settled`: a window passed, and `start_s` is the first such
+    window's start; otherwise `start_s` is the start of the calmest window (the best part of a
+    record that never settles). `trend_c_per_h` is that window's trend (None without temperatures)."""
+
+    settled: bool
+    start_s: float
+    trend_c_per_h: float | None
+
+
+def settling(time_s: np.ndarray, temperature_c: np.ndarray | None, rule: WarmupConfig = WarmupConfig()) -> Settling:
+    """The warm-up rule on a record (time since power-up, s; temperatures, degC, or None when the
+    datagram has none: then time since power-up alone decides)."""
+    if len(time_s) < 2:
+        return Settling(False, float(time_s[0]) if len(time_s) else 0.0, None)
+    seconds = np.floor(time_s - time_s[0]).astype(np.int64)  # 1-s means: the trend needs no more
+    count = np.bincount(seconds)
+    have = np.flatnonzero(count)
+    first_sample = np.searchsorted(seconds, have)  # each second's first sample
+    t = (np.bincount(seconds, time_s)[have] / count[have])
+    width = int(min(rule.window_s, len(t)))
+    end_s = t[width - 1:]  # each window's last second
+    if temperature_c is None or width < 2:
+        trend = None
+        calm = np.ones(len(end_s), bool)
+    else:
+        temp = np.bincount(seconds, temperature_c)[have] / count[have]
+        trend = _window_slopes_c_per_h(t - t[0], temp, width)
+        calm = np.abs(trend) <= rule.max_slope_c_per_h
+    eligible = end_s >= rule.min_time_s
+    passed = np.flatnonzero(calm & eligible)
+    if len(passed):
+        k, settled = int(passed[0]), True
+    else:
+        pool = np.flatnonzero(eligible) if eligible.any() else np.arange(len(end_s))
+        k = int(pool[np.argmin(np.abs(trend[pool]))]) if trend is not None else int(pool[-1])
+        settled = False
+    return Settling(settled, float(time_s[first_sample[k]]), None if trend is None else float(trend[k]))
+
+
+def _window_slopes_c_per_h(t: np.ndarray, temp: np.ndarray, width: int) -> np.ndarray:
+    """Least-squares slope of every run of `width` consecutive points, by running sums."""
+    def sums(x):
+        c = np.concatenate(([0.0], np.cumsum(x)))
+        return c[width:] - c[:-width]
+
+    st, sy, stt, sty = sums(t), sums(temp), sums(t * t), sums(t * temp)
+    return (width * sty - st * sy) / (width * stt - st * st) * 3600
