@@ -2,6 +2,7 @@
 where the warm-up ends, and the site it used in every printout."""
 
 import json
+import re
 from dataclasses import replace
 from pathlib import Path
 
@@ -175,3 +176,18 @@ def test_calibrate_echoes_the_site(argv, shown, tmp_path, capsys):
     assert code == 0
     assert shown in capsys.readouterr().out
     assert json.loads((tmp_path / "r.json").read_text())["site"]["g0_given"] == ("--g0" in argv)
+
+
+def test_the_report_reads_the_power_up_the_result_used(level_only_bytes, tmp_path, capsys):
+    pytest.importorskip("matplotlib")
+    from calibd.report import write_report
+
+    capture = tmp_path / "two.bin"
+    capture.write_bytes(FULL.read_bytes() + level_only_bytes)
+    code, result, _, err = calibrate(capsys, capture, tmp_path=tmp_path)
+    assert code == 0 and result["stream"]["power_up"]["number"] == 1, err
+    write_report(tmp_path / "r.json", str(capture), tmp_path / "report.html")
+    page = (tmp_path / "report.html").read_text()
+    assert "The fit redone here gives a yaw" not in page  # the same data as the result's
+    roles = re.findall(r"<tr><td>\d+</td><td>([a-z ]+)</td>", page.split('id="segments"')[1])
+    assert roles == ["static", "index turn"] * 4 + ["static", "full turn", "static"]
