@@ -28,6 +28,8 @@ def test_fixture_is_reproducible_and_matches_its_truth(name):
     lost = set(faults["dropped_samples"]) | set(faults["bit_flipped_samples"])
     assert len(samples) == record["samples"] - len(lost)
     assert scanner.stats.restarts == (faults["restart_at_sample"] is not None)
+    restart = faults["restart_at_sample"]
+    assert scanner.stats.restart_datagrams == ([] if restart is None else [restart - sum(k < restart for k in lost)])
     assert f"0x{scanner.format.datagram_id:02X}" == record["sensor"]["datagram_id"]
     assert scanner.format.sample_rate_hz == record["sensor"]["sample_rate_hz"]
 
