@@ -205,14 +205,20 @@ def cmd_replay(args) -> int:
         if store:
             store.write_result(result)
 
+    def on_stale(result):
+        print(f"[{result['stale']['power_up']} power-up] {result['stale']['reason']}", flush=True)
+        if store:
+            store.replace_result(result)
+
     configure_logging(logging.WARNING)
     calibrator = Calibrator(site, warmup, method, on_result=on_result, on_state=on_state, source=args.capture,
-                            detection=detection)
+                            detection=detection, on_stale=on_stale)
     speed = None if args.speed == "max" else float(args.speed)
     with Progress("replay", len(data), "B") as bar:
         (replay_pty if args.pty else replay)(data, calibrator, speed, progress=lambda done, total: bar.update(done))
-    if calibrator.result is None:
-        print(f"no result: {calibrator.detail}")
+    if calibrator.result is None or "stale" in calibrator.result:
+        stale = " (the last result is the previous power-up's, marked stale)" if calibrator.result else ""
+        print(f"no result for the last power-up{stale}: {calibrator.detail}")
         return 1
     print(_summary(calibrator.result))
     return 0
@@ -231,6 +237,8 @@ def cmd_status(args) -> int:
     except ResultError:
         print("no result yet")
         return 0
+    if "stale" in result:
+        print(f"result: stale since {result['stale']['since']}, from the {result['stale']['power_up']} power-up")
     print(_summary(result))
     return 0
 

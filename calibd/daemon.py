@@ -3,8 +3,11 @@
 `Calibrator` holds no I/O: the live loop (`calibd run`), the replay of a capture and the tests
 feed it the same batches of samples. States: STARTING -> WARMING_UP -> COLLECTING -> SOLVED,
 with RESTARTED (the sensor power-cycled: turn-on biases changed, a new session starts) and FAULT
-(no data). Once warmed up, every `resolve_every_s` of new data it finds the segments of the
-session so far and solves as soon as the method has what it needs, then again as data grows.
+(no data). Once warmed up, it solves as soon as the method's protocol is complete (the platform
+stopped after a turn, and the session's segments hold what the method needs), again every
+`resolve_every_s` of new data, and once more at the end of the data (`finish`: the end of a
+replay, or a sensor restart, which ends the previous power-up's data). A restart marks the
+previous power-up's result stale at once (`stale_result`).
 """
 
 from __future__ import annotations
@@ -80,15 +83,18 @@ class _Buffer:
 
 
 class Calibrator:
-    """The daemon's state machine and online estimation; `on_result(result)` and
+    """The daemon's state machine and online estimation; `on_result(result)` (a new result),
+    `on_stale(result)` (the last result, now marked as the previous power-up's) and
     `on_state(state, detail)` are called as things happen."""
 
     def __init__(self, site: Site, warmup: WarmupConfig = WarmupConfig(), method: MethodConfig = MethodConfig(),
-                 on_result=None, on_state=None, source: str = "live", detection: DetectionConfig = DetectionConfig()):
+                 on_result=None, on_state=None, source: str = "live", detection: DetectionConfig = DetectionConfig(),
+                 on_stale=None):
         self.site, self.warmup, self.method, self.detection = site, warmup, method, detection
         self.source = source  # the port or capture, named in results
         self.on_result = on_result or (lambda result: None)
         self.on_state = on_state or (lambda state, detail: None)
+        self.on_stale = on_stale or (lambda result: None)
         self.state = State.STARTING
         self.detail = "waiting for data"
         self.result: dict | None = None
@@ -108,8 +114,7 @@ class Calibrator:
         the stream parser's running count of sensor restarts."""
         if restarts > self._restarts_seen:
             self._restarts_seen = restarts
-            self._set(State.RESTARTED, "sensor restarted: turn-on biases changed, starting a new session")
-            self._reset_time()
+            self._power_cycled()
         if not len(samples):
             return
         if np.isnan(samples["acc"][0, 0]) or np.isnan(samples["incl"][0, 0]):
@@ -127,7 +132,7 @@ class Calibrator:
         self._gap = False
         if self._session_start is not None and t[-1] - self._session_start > MAX_SESSION_S:
             return  # a session this long has said what it can: memory stays bounded
-        self._store(samples, t)
+        stored_t, stored_gyro = self._store(samples, t)
         count, bits = fault_summary(samples)
         if count:
             self._flagged.append((float(t[0]), count, bits))
@@ -135,8 +140,17 @@ class Calibrator:
         if self.state == State.WARMING_UP and now >= self._next_check:
             self._next_check = now + WARM_CHECK_EVERY_S
             self._check_warm_up()
-        elif self.state in (State.COLLECTING, State.SOLVED) and now >= self._next_solve:
-            self._next_solve = now + self.method.resolve_every_s
+        elif self.state in (State.COLLECTING, State.SOLVED):
+            if now >= self._next_solve:
+                self._solve()
+            elif self._stopped_moving(stored_t, stored_gyro):
+                self._solve_if_complete()
+
+    def finish(self) -> None:
+        """The end of the data (a replay's last byte, or the sensor's power-up before a restart):
+        solve once more on all of the session, so its last segments (the full turn, the final
+        static) count, not only those of the last re-solve."""
+        if self._session_start is not None and self._buffer.end_s > self._solved_until:
             self._solve()
 
     def data_lost(self, seconds: float) -> None:
@@ -158,7 +172,23 @@ class Calibrator:
         self._flagged: list[tuple[float, int, int]] = []  # per batch with faults: (time, samples flagged, bits)
         self._next_solve = 0.0
         self._next_check = 0.0
+        self._solved_until = -np.inf  # data time of the last solve attempt
+        self._moved = False  # the platform moved since the last look at the segments
+        self._last_motion_s = -np.inf  # data time of the end of the last motion seen
         self.rate_hz = 0
+
+    def _power_cycled(self) -> None:
+        """A restart ends the previous power-up's data: solve it to its end, mark its result as
+        belonging to that power-up (turn-on biases change at every power-up), start afresh."""
+        self.finish()
+        reason = "sensor restarted: turn-on biases changed, starting a new session"
+        if self.result is not None and "stale" not in self.result:
+            self.result = stale_result(self.result, "the sensor restarted after this result: it belongs to the "
+                                                    "previous power-up (turn-on biases change at every power-up)")
+            self.on_stale(self.result)
+            reason += "; the last result is the previous power-up's, marked stale"
+        self._set(State.RESTARTED, reason)
+        self._reset_time()
 
     def _times(self, counter: np.ndarray, rate_hz: int) -> np.ndarray:
         """Seconds since the first sample after power-up, from the counter: lost datagrams, within
@@ -173,8 +203,9 @@ class Calibrator:
         self._last_counter, self._t_last = int(counter[-1]), float(t[-1])
         return t
 
-    def _store(self, samples: np.ndarray, t: np.ndarray) -> None:
-        """Keep the session block-averaged to at most STORE_RATE_HZ (bounded memory at 2000 Hz)."""
+    def _store(self, samples: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Keep the session block-averaged to at most STORE_RATE_HZ (bounded memory at 2000 Hz);
+        returns the times (s) and gyro samples (deg/s) stored."""
         k = max(1, self.rate_hz // STORE_RATE_HZ)
         temp = np.nanmean(samples["temp_gyro"], axis=1) if not np.isnan(samples["temp_gyro"][0, 0]) \
             else np.full(len(samples), np.nan)
@@ -186,11 +217,41 @@ class Calibrator:
         if whole < len(block):
             self._pending.append(block[whole:])
         if not whole:
-            return
+            return block[:0, 0], block[:0, 1:4] / DEG
         mean = block[:whole].reshape(-1, k, block.shape[1]).mean(axis=1)
         mean[:, 0] = block[:whole:k, 0]  # a block's time is its first sample's
         values = mean[:, 1:].astype(np.float32)  # float32 keeps 1e-4 mg and 1e-5 deg/h: half the memory
         self._buffer.add(mean[:, 0], values[:, 0:3], values[:, 3:6], values[:, 6:9], values[:, 9])
+        return mean[:, 0], mean[:, 1:4] / DEG
+
+    def _stopped_moving(self, t: np.ndarray, gyro_deg_s: np.ndarray) -> bool:
+        """Whether the platform moved since the segments were last looked at and has been quiet
+        since for the settle time plus the minimum static, the least after which the detector
+        shows a new static. Moving: a gyro average over the detector's smoothing window above
+        its turn threshold (its floor before the tracker's first update)."""
+        settings = self._tracker.settings
+        if len(t):
+            threshold = settings["turn_threshold_deg_s"] or detect.MIN_TURN_THRESHOLD_DEG_S
+            k = min(len(t), max(1, round(settings["smooth_s"] * self._stored_rate)))
+            edges = np.arange(0, len(t) - k + 1, k)  # a short remainder joins the last window
+            sizes = np.diff(np.append(edges, len(t)))
+            means = np.add.reduceat(gyro_deg_s, edges, axis=0) / sizes[:, None]
+            moving = np.flatnonzero(np.linalg.norm(means, axis=1) > threshold)
+            if len(moving):
+                self._moved = True
+                self._last_motion_s = float(t[edges[moving[-1]] + sizes[moving[-1]] - 1])
+        quiet_s = self._buffer.end_s - self._last_motion_s
+        return self._moved and quiet_s >= settings["settle_s"] + settings["min_static_s"]
+
+    def _solve_if_complete(self) -> None:
+        """Once the platform has stopped: solve if the segments now end on a static (it lasted the
+        settle time and the minimum static) and hold what the method needs."""
+        session, segments = self._segments()
+        if not segments or segments[-1].kind != "static":
+            return  # the static after the motion is not long enough yet: look again next batch
+        self._moved = False
+        if detect.protocol_complete(segments, self.method.name):
+            self._solve((session, segments))
 
     @property
     def _stored_rate(self) -> int:
@@ -222,6 +283,7 @@ class Calibrator:
         self._session_start = start_s
         self._tracker = detect.SegmentTracker(self._stored_rate, **self.detection.options())
         self._next_solve = self._buffer.end_s + self.method.resolve_every_s
+        self._moved = False
         self.sessions += 1
         self._set(State.COLLECTING, detail)
 
@@ -236,12 +298,20 @@ class Calibrator:
         batches = [(count, bits) for t, count, bits in self._flagged if t >= self._session_start]
         return fault_record(sum(c for c, _ in batches), int(np.bitwise_or.reduce([b for _, b in batches] or [0])))
 
-    def _solve(self) -> None:
+    def _segments(self) -> tuple[Session, list[detect.Segment]]:
+        """The session so far and its segments; each segment is logged once it is final."""
         session = self._session()
         logged = len(self._tracker.final)
         segments = self._tracker.update(session.gyro / DEG, session.acc / STANDARD_GRAVITY, session.time_s)
         for seg in self._tracker.final[logged:]:  # final: no later data changes them
             _log_segment(seg)
+        return session, segments
+
+    def _solve(self, found: tuple[Session, list[detect.Segment]] | None = None) -> None:
+        """Solve on the session so far (`found`: it and its segments, when just looked at)."""
+        session, segments = found or self._segments()
+        self._solved_until = self._buffer.end_s
+        self._next_solve = self._solved_until + self.method.resolve_every_s
         m = self.method
         try:
             if m.name == "joint":
@@ -288,6 +358,15 @@ def _log_segment(seg: detect.Segment) -> None:
     log.info("segment", **fields)
 
 
+def stale_result(result: dict, reason: str) -> dict:
+    """The result marked as no longer applying: a `stale` record (why, since when, and that it
+    belongs to the previous power-up) and the reason first among the warnings, so a consumer
+    reading only result.json can tell."""
+    since = datetime.now(timezone.utc).isoformat(timespec="seconds")
+    return {**result, "stale": {"power_up": "previous", "reason": reason, "since": since},
+            "warnings": [f"stale: {reason}", *result["warnings"]]}
+
+
 class ResultStore:
     """The state directory: result.json (the last good result, replaced atomically and synced,
     so a crash at any moment leaves it readable), history/ (every result, timestamped) and
@@ -298,12 +377,21 @@ class ResultStore:
         (self.dir / "history").mkdir(parents=True, exist_ok=True)
 
     def write_result(self, result: dict) -> Path:
-        text = (json.dumps(result, indent=1, allow_nan=False) + "\n").encode()
+        text = _json(result)
         stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S.%fZ")
         write_atomic(self.dir / "history" / f"result-{stamp}.json", text)
         write_atomic(self.dir / "result.json", text)
         return self.dir / "result.json"
 
+    def replace_result(self, result: dict) -> Path:
+        """Rewrite result.json only (the last result marked stale): history keeps it as it was made."""
+        write_atomic(self.dir / "result.json", _json(result))
+        return self.dir / "result.json"
+
     def write_state(self, state: State, detail: str, extra: dict | None = None) -> None:
         record = {"state": state.value, "detail": detail, "updated": time.time(), **(extra or {})}
         write_atomic(self.dir / "state.json", (json.dumps(record) + "\n").encode(), durable=False)
+
+
+def _json(result: dict) -> bytes:
+    return (json.dumps(result, indent=1, allow_nan=False) + "\n").encode()

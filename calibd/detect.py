@@ -263,6 +263,13 @@ class SegmentTracker:
                                                      ("remount_g", remount_g)) if value is not None}
         self._thresholds: dict | None = None
 
+    @property
+    def settings(self) -> dict:
+        """The find_segments options the tracker cuts with: the defaults, those given, and the
+        thresholds once set (None before the first update when they follow the noise), for a
+        caller that watches for motion between updates."""
+        return find_segments.__kwdefaults__ | self.options | self._given | (self._thresholds or {})
+
     def update(self, gyro: np.ndarray, acc: np.ndarray, time_s: np.ndarray | None = None) -> list[Segment]:
         """All segments so far. gyro (N,3) deg/s, acc (N,3) g, time_s: the whole session, which
         only grows (earlier samples never change)."""
@@ -406,3 +413,23 @@ def protocol_progress(segments: list[Segment]) -> str:
         return f"{n} {role}" + ("" if n == 1 else "s")
     return (f"{count('static')} at {len(headings)}/4 index headings, {count('index turn')}, "
             f"{count('full turn')}, {count('other turn')}")
+
+
+def protocol_complete(segments: list[Segment], method: str) -> bool:
+    """Whether a session's segments end on a static and hold what `method` ("joint" or "thesis")
+    needs: joint, a level static, then a turn and a static of the same mounting; thesis, the
+    level static, four index positions and a full turn after it, then a static. A cheap test on
+    the segments that says a solve is worth running now rather than at the next re-solve."""
+    if not segments or segments[-1].kind != "static":
+        return False
+    level = level_static(segments)
+    after = segments[segments.index(level):]
+    if method == "joint":
+        mounted = [s.kind for s in after[:next((k for k, s in enumerate(after)
+                                                 if s.kind == "static" and s.up != level.up), len(after))]]
+        return "turn" in mounted and "static" in mounted[mounted.index("turn"):]
+    try:
+        index_positions(segments)
+    except ValueError:
+        return False
+    return any(t.start >= level.stop for t in full_turns(segments))

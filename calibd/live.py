@@ -96,8 +96,8 @@ def stream_faults(stats, before: dict, samples) -> tuple[dict, dict]:
 
 def replay(data: bytes, calibrator: Calibrator, speed: float | None = None, chunk_bytes: int = 65536,
            progress=None) -> None:
-    """Feed a capture's bytes through a StreamParser into the calibrator, as the live loop does;
-    `speed` N paces it at N times real time (None: as fast as possible)."""
+    """Feed a capture's bytes through a StreamParser into the calibrator, as the live loop does,
+    then tell it the data ended; `speed` N paces it at N times real time (None: as fast as possible)."""
     parser = StreamParser()
     started = time.monotonic()
     data_time = 0.0
@@ -113,6 +113,7 @@ def replay(data: bytes, calibrator: Calibrator, speed: float | None = None, chun
             time.sleep(max(0.0, started + data_time / speed - time.monotonic()))
         if progress:
             progress(min(offset + chunk_bytes, len(data)), len(data))
+    calibrator.finish()
 
 
 class _Pump:
@@ -134,9 +135,9 @@ class _Pump:
             log.warning("stream_faults", **faults)
         rate = _rate(parser)
         if len(samples) and rate:
-            self.last_data = time.monotonic()
             self.calibrator.sensor = _sensor(parser)
             self.calibrator.feed(samples, rate, parser.stats.restarts)
+            self.last_data = time.monotonic()  # after the feed: time spent solving is not silence
             return True
         silent = time.monotonic() - self.last_data
         if silent > NO_DATA_S and self.calibrator.state != State.FAULT:
@@ -153,7 +154,8 @@ def replay_pty(data: bytes, calibrator: Calibrator, speed: float | None = None, 
     """`replay --pty`: the capture written into a pseudo-terminal and read back by the daemon's own
     PortReader (pyserial, framing thread, ring), paced at `speed` times real time or as fast as
     the daemon keeps up: the writer waits while the ring is more than half unread, so nothing
-    is lost even when a solve holds the loop."""
+    is lost even when a solve holds the loop. When the capture has been read, the calibrator is
+    told the data ended (the writer stopping is no fault)."""
     master, slave = os.openpty()
     tty.setraw(master)
     tty.setraw(slave)
@@ -189,6 +191,7 @@ def replay_pty(data: bytes, calibrator: Calibrator, speed: float | None = None, 
                 progress(written[0], len(data))
             if reader.error is not None:
                 raise reader.error
+        calibrator.finish()
     finally:
         reader.stop()
         os.close(master)
@@ -207,7 +210,7 @@ def run(config, reload_config) -> int:
     """`calibd run`: until SIGTERM. `reload_config()` returns a fresh config (SIGHUP)."""
     store = ResultStore(config.state_dir)
     calibrator = Calibrator(config.site, config.warmup, config.method, on_result=store.write_result,
-                            source=config.serial.port, detection=config.detection)
+                            source=config.serial.port, detection=config.detection, on_stale=store.replace_result)
 
     def on_state(state: State, detail: str) -> None:
         store.write_state(state, detail, {"port": config.serial.port})

@@ -17,14 +17,19 @@ import pytest
 
 import stim300.atomic
 from calibd.cli import main as calibd_main
-from calibd.config import WarmupConfig
+from calibd.calibrate import joint_real_case, load_session
+from calibd.config import MethodConfig, WarmupConfig
 from calibd.daemon import Calibrator, ResultStore, State
 from calibd.frames import Site
-from calibd.live import configure_logging, replay, stream_faults
+from calibd.live import configure_logging, replay, replay_pty, stream_faults
 from stim300.bulk import decode_capture
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
 SITE = Site(40.59129, g0=9.79956)
+HEADING137 = FIXTURES / "heading137_lat60_125hz.bin"  # the thesis protocol in 607 s, 300 s level static
+SITE_137 = Site(60.0)
+NO_TIMER = MethodConfig(resolve_every_s=1e9)  # solves come from the protocol and the end of the data only
+SETTLE_AND_MIN_STATIC_S = 1.0 + 5.0  # the segment detector's defaults
 
 
 def run_replay(name: str, warmup: WarmupConfig = WarmupConfig()):
@@ -313,7 +318,6 @@ def test_calibd_run_survives_unplug_and_replug(tmp_path):
 def test_datagrams_the_sensor_flags_are_counted_and_warned_about(tmp_path):
     """An overload on the X accelerometer in ten datagrams of the session: calibrate and the
     daemon both count them, name the flags and warn; START_UP alone is no fault."""
-    from calibd.calibrate import joint_real_case, load_session
     from stim300.codec import encode_samples
 
     samples, scanner = decode_capture((FIXTURES / "thesis_real_cw_125hz.bin").read_bytes())
@@ -326,7 +330,7 @@ def test_datagrams_the_sensor_flags_are_counted_and_warned_about(tmp_path):
     assert any(w.startswith("10 datagrams carry fault flags (X, OVERLOAD)") for w in result["warnings"])
 
     results = []
-    calibrator = Calibrator(SITE, WarmupConfig(window_s=10.0), on_result=results.append)
+    calibrator = Calibrator(SITE, WarmupConfig(window_s=10.0), NO_TIMER, on_result=results.append)
     replay(capture.read_bytes(), calibrator)
     assert results[-1]["stream"]["flagged_datagrams"] == 10
     assert any("fault flags (X, OVERLOAD)" in w for w in results[-1]["warnings"])
@@ -360,12 +364,13 @@ class CountingCalibrator:
     def data_lost(self, seconds):
         self.state = State.FAULT
 
+    def finish(self):
+        self.finished = True
+
 
 def test_replay_through_a_pty_is_paced_and_complete():
     """--pty --speed 20: a minute of data takes about 3 s (unpaced it takes about 1 s), and every
     datagram arrives, garbage, CRC errors and the restart in this capture notwithstanding."""
-    from calibd.live import replay_pty
-
     data = (FIXTURES / "faults_125hz.bin").read_bytes()
     samples, scanner = decode_capture(data)
     duration_s = (len(samples) + scanner.stats.lost_samples) / 125
@@ -374,4 +379,122 @@ def test_replay_through_a_pty_is_paced_and_complete():
     replay_pty(data, counting, speed=20.0)
     elapsed = time.monotonic() - started
     assert counting.samples == len(samples) and counting.restarts == scanner.stats.restarts == 1
+    assert counting.finished and counting.state != State.FAULT  # the writer stopping is no fault
     assert duration_s / 20 * 0.9 < elapsed < duration_s / 20 + 3.0
+
+
+@pytest.mark.parametrize("feed", [replay, replay_pty])
+def test_a_replay_solves_at_the_end_of_the_data_as_calibrate_does(feed):
+    """Both replay paths end SOLVED with the whole capture's segments (the full turn and the
+    final static) in the last solution, which equals calibrate's on the same data (the capture
+    from where the warm-up rule started the session)."""
+    calibrator = Calibrator(SITE_137, WarmupConfig(window_s=10.0), NO_TIMER)
+    data = HEADING137.read_bytes()
+    feed(data, calibrator)
+    result = calibrator.result
+    samples, _ = decode_capture(data)
+    session_start_s = (len(samples) - 1) / 125 - result["session"]["duration_s"]  # no sample lost in this capture
+    reference = joint_real_case(load_session(str(HEADING137), session_start_s - 0.004), SITE_137)
+    assert calibrator.state == State.SOLVED
+    assert [s["kind"] for s in result["segments"][-2:]] == ["turn", "static"]
+    assert abs(result["segments"][-2]["angle_deg"]) > 350
+
+    def spans(r):
+        return [(s["kind"], round(s["end_s"] - s["start_s"], 3)) for s in r["segments"]]
+    assert spans(result) == spans(reference)
+    for name, e in reference["estimates"].items():
+        assert abs(result["estimates"][name]["value"] - e["value"]) < 0.02 * e["sigma"], name
+
+
+def test_the_replay_of_a_capture_that_needs_no_warm_up_gives_calibrates_result():
+    """With a short warm-up window the session loses only the window's seconds: the last
+    solution is calibrate's on the whole capture within 0.1 sigma."""
+    calibrator = Calibrator(SITE_137, WarmupConfig(window_s=10.0), NO_TIMER)
+    replay(HEADING137.read_bytes(), calibrator)
+    reference = joint_real_case(load_session(str(HEADING137)), SITE_137)
+    for name, e in reference["estimates"].items():
+        assert abs(calibrator.result["estimates"][name]["value"] - e["value"]) < 0.1 * e["sigma"], name
+
+
+@pytest.mark.parametrize("method", ["joint", "thesis"])
+def test_a_complete_protocol_is_solved_once_the_platform_has_settled(method):
+    """Fed in 0.2 s batches (as the live loop drains its ring) with no re-solve timer, the
+    calibrator solves within the settle time, the minimum static and one batch (plus the
+    detector's 0.2 s smoothing) of the end of each turn that completes the method's protocol:
+    the joint method after every turn, the thesis method after the full turn only."""
+    samples, _ = decode_capture(HEADING137.read_bytes())
+    turns = [p for p in json.loads(Path(f"{HEADING137}.truth.json").read_text())["schedule"] if p["kind"] == "turn"]
+    batch, now_s, solved_at_s = 25, [0.0], []
+    calibrator = Calibrator(SITE_137, WarmupConfig(window_s=10.0), MethodConfig(method, resolve_every_s=1e9),
+                            on_result=lambda result: solved_at_s.append(now_s[0]))
+    for start in range(0, len(samples), batch):
+        now_s[0] = min(start + batch, len(samples)) / 125
+        calibrator.feed(samples[start:start + batch], 125)
+    completing = turns if method == "joint" else turns[-1:]
+    assert len(solved_at_s) == len(completing)  # nothing before the protocol is complete, one solve per turn after
+    for turn, solved_s in zip(completing, solved_at_s):
+        earliest_s = turn["end_s"] + SETTLE_AND_MIN_STATIC_S
+        assert earliest_s - 0.2 <= solved_s <= earliest_s + batch / 125 + 0.2, (turn["end_s"], solved_s)
+
+
+def test_a_restart_marks_the_last_result_stale_before_anything_else():
+    """The previous power-up's data are solved to their end, then its result is marked stale at
+    once (on_stale, state RESTARTED); the new power-up's warm-up gives no result meanwhile."""
+    samples, _ = decode_capture(HEADING137.read_bytes())
+    events = []
+    calibrator = Calibrator(SITE_137, WarmupConfig(window_s=10.0), NO_TIMER,
+                            on_result=lambda result: events.append(("result", result)),
+                            on_stale=lambda result: events.append(("stale", result)),
+                            on_state=lambda state, detail: events.append((state, detail)))
+    for chunk in np.array_split(samples, 60):
+        calibrator.feed(chunk, 125)
+    before = len(events)
+    calibrator.feed(samples[:2000], 125, restarts=1)
+    after = events[before:]
+    kinds = [kind for kind, _ in after]
+    assert kinds[:4] == [State.SOLVED, "result", "stale", State.RESTARTED]
+    assert "result" not in kinds[3:]
+    final, stale = after[1][1], after[2][1]
+    assert final["session"]["duration_s"] > 600  # the whole power-up, the final static included
+    assert "stale" not in final and stale["estimates"] == final["estimates"]
+    assert stale["stale"]["power_up"] == "previous" and "restarted" in stale["stale"]["reason"]
+    assert stale["warnings"][0].startswith("stale: the sensor restarted")
+    assert calibrator.result is stale and "marked stale" in after[3][1]
+
+
+def test_replay_of_two_power_ups_leaves_the_first_ones_result_marked_stale(tmp_path, capsys):
+    """A capture of one power-up followed by another (which restarts again): result.json says
+    the result belongs to the previous power-up, `calibd status` says so, history keeps it as
+    it was made, and replay reports no result for the last power-up."""
+    capture = tmp_path / "two_power_ups.bin"
+    capture.write_bytes(HEADING137.read_bytes() + (FIXTURES / "faults_125hz.bin").read_bytes())
+    state_dir = tmp_path / "state"
+    code = calibd_main(["replay", str(capture), "--latitude", "60", "--warmup-window", "10",
+                        "--state-dir", str(state_dir)])
+    out = capsys.readouterr().out
+    assert code == 1 and "no result for the last power-up (the last result is the previous power-up's" in out
+    result = json.loads((state_dir / "result.json").read_text())
+    assert result["stale"]["power_up"] == "previous" and result["warnings"][0].startswith("stale:")
+    history = sorted((state_dir / "history").iterdir())
+    original = json.loads(history[-1].read_text())
+    assert "stale" not in original and original["estimates"] == result["estimates"]
+    assert not any("stale" in json.loads(p.read_text()) for p in history)
+    assert calibd_main(["status", "--state-dir", str(state_dir)]) == 0
+    status = capsys.readouterr().out
+    assert "result: stale since" in status and "from the previous power-up" in status
+
+
+def test_time_spent_solving_is_not_silence(monkeypatch):
+    """A feed that holds the loop longer than the no-data limit (a long solve on a loaded
+    machine) is not a data fault: silence counts from the end of the last feed."""
+    import calibd.live
+
+    class Slow(CountingCalibrator):
+        def feed(self, samples, rate_hz, restarts=0):
+            super().feed(samples, rate_hz, restarts)
+            time.sleep(1.2)
+
+    monkeypatch.setattr(calibd.live, "NO_DATA_S", 1.0)
+    slow = Slow()
+    replay_pty((FIXTURES / "faults_125hz.bin").read_bytes(), slow)
+    assert slow.samples and slow.finished and slow.state != State.FAULT
