@@ -81,6 +81,15 @@ def gyro_y_bias_from_turn(gyro_y: np.ndarray, roll: float, alpha: float, beta: f
     return float(no_mis.mean())
 
 
+def unaveraged_earth_rate(covered: float, site: Site) -> float:
+    """Largest mean horizontal Earth rate on a horizontal IMU axis over a constant-rate stretch
+    that covers `covered` rad of platform angle (rad/s). Eq. 6.31 assumes a whole period, where it
+    is 0. Over [chi0, chi0 + covered] the mean of Omega cos(lat) sin(chi) is
+    Omega cos(lat) sin(chi0 + covered/2) sin(covered/2) / (covered/2): at the worst heading chi0,
+    Omega cos(lat) |sin(covered/2) / (covered/2)|, which is 0 for whole revolutions."""
+    return float(EARTH_RATE * np.cos(np.radians(site.latitude_deg)) * abs(np.sinc(covered / (2 * np.pi))))
+
+
 def yaw_from_static(gyro_y_static: float, roll: float, gyro_y_bias: float, site: Site) -> float:
     """Yaw from the level-static Y gyro (eq. 6.32), linearised in yaw."""
     lat = np.radians(site.latitude_deg)
