@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from calibd import detect
-from calibd.calibrate import load_session, session_segments, thesis_bench, thesis_real_case
+from calibd.calibrate import (ProtocolIncomplete, Session, _one_period, load_session, session_segments, thesis_bench,
+                              thesis_real_case)
 from calibd.cli import main as calibd_main
 from calibd.estimators import thesis
 from calibd.frames import EARTH_RATE, STANDARD_GRAVITY, Site, int_to_imu, nav_to_imu
@@ -258,6 +259,33 @@ def test_a_turn_covering_a_period_at_constant_rate_needs_no_warning(tmp_path):
     _, result = nominal_run(scenario, tmp_path)
     assert not any("not a whole revolution" in w for w in result["warnings"])
     assert abs(errors(result, scenario)["yaw"]) < model_yaw_deg(scenario.truth)
+
+
+def test_one_period_is_timed_by_the_sample_clock_across_lost_datagrams():
+    """A 720 deg constant-rate part at 30 deg/s with 2 s of datagrams lost inside its first
+    revolution: the window still spans 12 s of data time (fewer samples), not 12 s of samples."""
+    rate_hz = 125
+    time_s = np.arange(40 * rate_hz) / rate_hz
+    time_s = np.concatenate((time_s[:5 * rate_hz], time_s[7 * rate_hz:]))  # 2 s lost at 5 s
+    data = Session(time_s, np.zeros((len(time_s), 3)), np.zeros((len(time_s), 3)), np.zeros((len(time_s), 3)),
+                   None, rate_hz, {}, {})
+    turn = detect.Segment("turn", 0, len(time_s), 0.0, 40.0, 0.0, angle_deg=720.0, rate_deg_s=30.0,
+                          cruise_start=rate_hz, cruise_stop=len(time_s) - rate_hz, cruise_angle_deg=720.0)
+    window, covered = _one_period(data, turn)
+    assert covered == 360.0 and window.start == rate_hz
+    assert time_s[window.stop - 1] - time_s[window.start] == pytest.approx(12.0 - 1 / rate_hz)
+    assert window.stop - window.start == 10 * rate_hz
+
+
+def test_a_turn_short_of_350_deg_is_no_full_turn_and_the_refusal_says_so(tmp_path):
+    base = quiet(load_scenario("thesis-real"), -1)
+    scenario = replace(base, segments=base.segments[:-2] + (replace(base.segments[-2], angle_deg=-300),
+                                                             base.segments[-1]))
+    write_capture(scenario, tmp_path / "s.bin")
+    with pytest.raises(ProtocolIncomplete) as refusal:
+        thesis_real_case(load_session(str(tmp_path / "s.bin")), SITE)
+    assert "no full turn (at least 350 deg) after the level static" in str(refusal.value)
+    assert refusal.value.found.endswith("4 index turns, 0 full turns, 1 other turn")
 
 
 def test_slow_ramps_leave_too_little_constant_rate_and_flag_yaw_and_gyro_y(tmp_path):
