@@ -75,7 +75,8 @@ def gyro_y_bias_from_turn(gyro_y: np.ndarray, roll: float, alpha: float, beta: f
                           site: Site) -> float:
     """Gyro Y bias from one whole period of the constant-rate part of a full turn (eqs. 6.29 to
     6.31): remove the roll-Earth term and the platform-rate projection, then average; the
-    Earth-rate sinusoid of amplitude Omega cos(lat) integrates to zero over the period."""
+    Earth-rate sinusoid of amplitude Omega cos(lat) integrates to zero over the period (over a
+    shorter constant-rate part, up to `unaveraged_earth_rate` of it stays)."""
     lat = np.radians(site.latitude_deg)
     no_mis = np.asarray(gyro_y) - roll * EARTH_RATE * np.sin(lat) - np.sin(alpha) * np.cos(beta) * platform_rate
     return float(no_mis.mean())
@@ -126,7 +127,7 @@ class RealCaseData:
     level_acc: np.ndarray  # m/s^2
     level_incl: np.ndarray  # m/s^2
     index_incl: np.ndarray  # 4 x 3 inclinometer means at the four index positions, m/s^2
-    turn_gyro: np.ndarray  # gyro samples over one period of the constant-rate part of the full turn, rad/s
+    turn_gyro: np.ndarray  # rad/s, over one period of the full turn's constant-rate part (all of it if shorter)
 
 
 def real_case(data: RealCaseData, site: Site, alpha_beta: tuple[float, float] | None = None,
