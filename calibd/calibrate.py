@@ -19,7 +19,7 @@ from stim300.protocol import Status, status_names
 from . import detect
 from .config import WarmupConfig
 from .estimators import joint, thesis
-from .frames import STANDARD_GRAVITY, Site
+from .frames import EARTH_RATE, STANDARD_GRAVITY, Site
 from .results import make_result
 from .warmup import Settling, settling
 
@@ -234,17 +234,28 @@ def _segment_record(seg: detect.Segment, role: str) -> dict:
     return record
 
 
-def _one_period(session: Session, turn: detect.Segment) -> tuple[slice, list[str]]:
-    """The first whole revolution of the turn's constant-rate part (eq. 6.31 integrates over
-    one period); the whole constant-rate part, with a warning, when it is shorter."""
-    period = int(round(360.0 / abs(turn.rate_deg_s) * session.rate_hz))
-    have = turn.cruise_stop - turn.cruise_start
-    if have >= period:
-        return slice(turn.cruise_start, turn.cruise_start + period), []
-    covered = have / session.rate_hz * abs(turn.rate_deg_s)
-    return slice(turn.cruise_start, turn.cruise_stop), [
-        f"the full turn's constant-rate part covers {covered:.0f} deg, not a whole revolution: the Earth-rate "
-        f"term does not average out of the gyro Y bias (eq. 6.31)"]
+def _one_period(session: Session, turn: detect.Segment) -> tuple[slice, float]:
+    """The samples eq. 6.31 averages over and the platform angle they cover (deg): the first whole
+    revolution of the turn's constant-rate part, timed by the sample clock (a lost datagram
+    does not lengthen it); the whole constant-rate part when it is shorter, as for a 360 deg turn
+    with ramps (the thesis's own case)."""
+    covered_deg = abs(turn.cruise_angle_deg)
+    if covered_deg < 360.0:
+        return slice(turn.cruise_start, turn.cruise_stop), covered_deg
+    t = session.time_s
+    end_s = t[turn.cruise_start] + 360.0 / abs(turn.rate_deg_s) - 0.5 / session.rate_hz
+    return slice(turn.cruise_start, int(np.searchsorted(t, end_s))), 360.0
+
+
+def _partial_period(covered_deg: float, site: Site) -> tuple[float, str]:
+    """(bound on the unaveraged horizontal Earth rate, rad/s; the start of the warning that says
+    so) for a window covering `covered_deg` of platform angle; (0, "") for a whole revolution."""
+    if covered_deg >= 360.0:
+        return 0.0, ""
+    bound = thesis.unaveraged_earth_rate(covered_deg * DEG, site)
+    return bound, (f"the full turn's constant-rate part covers {covered_deg:.0f} deg, not a whole revolution: the "
+                   f"horizontal Earth rate does not average out of its mean gyro (eq. 6.31); at "
+                   f"{site.latitude_deg:.2f} deg latitude the rest is up to {bound / DEG * 3600:.2f} deg/h")
 
 
 def _static_mean(values: np.ndarray, seg: detect.Segment) -> np.ndarray:
@@ -263,10 +274,10 @@ def thesis_real_case(session: Session, site: Site, alpha_beta_deg: tuple[float, 
     except ValueError as exc:
         raise _lacking(f"not the thesis real-case protocol: {exc}", segments) from None
     if not turns:
-        raise _lacking("not the thesis real-case protocol: no full turn (a constant-rate part of at "
-                       "least 350 deg) after the level static", segments)
+        raise _lacking(f"not the thesis real-case protocol: no full turn (at least {detect.FULL_TURN_MIN_DEG:.0f} "
+                       "deg) after the level static", segments)
     turn = turns[0]
-    window, warnings = _one_period(session, turn)
+    window, covered_deg = _one_period(session, turn)
     data = thesis.RealCaseData(
         level_gyro=_static_mean(session.gyro, level), level_acc=_static_mean(session.acc, level),
         level_incl=_static_mean(session.incl, level),
@@ -275,7 +286,14 @@ def thesis_real_case(session: Session, site: Site, alpha_beta_deg: tuple[float, 
     alpha_beta = None if alpha_beta_deg is None else (alpha_beta_deg[0] * DEG, alpha_beta_deg[1] * DEG)
     rate = None if platform_rate_deg_s is None else platform_rate_deg_s * DEG
     est = thesis.real_case(data, site, alpha_beta, rate)
-    warnings += _session_warnings(session)
+    earth_bound, partial = _partial_period(covered_deg, site)
+    yaw_bound_deg = earth_bound / (EARTH_RATE * np.cos(np.radians(site.latitude_deg))) / DEG  # eq. 6.32
+    if partial and alpha_beta is None:  # eq. 7.3 puts the turn's Y and X means into alpha and beta
+        tilt_bound_deg = earth_bound / abs(est["platform_rate"]) / DEG
+        partial += f", which eq. 7.3 takes for interface tilt: up to {tilt_bound_deg:.4f} deg on alpha and beta"
+    elif partial:
+        partial += f" on the gyro Y bias, so up to {yaw_bound_deg:.1f} deg on yaw (eq. 6.32)"
+    warnings = ([partial] if partial else []) + _session_warnings(session)
     warnings.append("incl_bias_z is assumed 0: rotations about the vertical cannot observe it (thesis 6.1)")
     if alpha_beta is not None:
         warnings.append("alpha and beta are a-priori values given by the user, not estimates")
@@ -295,9 +313,13 @@ def thesis_real_case(session: Session, site: Site, alpha_beta_deg: tuple[float, 
     diagnostics = {role: _earth_rate_report(values, session.rate_hz, site)
                    for role, values in (("level static", session.gyro[level.start:level.stop]),
                                         ("full turn", session.gyro[window]))}
-    return make_result(est["method"], site, estimates, records, warnings, session.sensor,
-                       stream=session.stream, platform_rate_deg_s=est["platform_rate"] / DEG,
-                       earth_rate_diagnostic=diagnostics)
+    result = make_result(est["method"], site, estimates, records, warnings, session.sensor,
+                         stream=session.stream, platform_rate_deg_s=est["platform_rate"] / DEG,
+                         earth_rate_diagnostic=diagnostics)
+    if alpha_beta is not None and yaw_bound_deg > YAW_SIGMA_POOR_DEG:  # can be as far off as a poor joint yaw
+        for name in ("gyro_bias_y", "yaw"):
+            result["estimates"][name]["quality"] = "poor"
+    return result
 
 
 def _earth_rate_report(gyro: np.ndarray, rate_hz: int, site: Site) -> dict:
@@ -330,8 +352,11 @@ def thesis_bench(session: Session, site: Site) -> dict:
         before = [s for s in statics if s.stop <= turn.start and s.up == "+Z"]
         level = before[-1] if before else positions["+Z"]
         pitch, roll = thesis.pitch_roll(_static_mean(session.incl, level) - biases["incl"])
-        window, notes = _one_period(session, turn)
-        warnings += notes
+        window, covered_deg = _one_period(session, turn)
+        earth_bound, partial = _partial_period(covered_deg, site)
+        if partial:  # eq. 5.7 assumes the yaw term averaged out; its rest tilts the platform-rate vector
+            warnings.append(f"{partial} in the turn at {turn.start_s:.0f} s, up to "
+                            f"{earth_bound / abs(turn.rate_deg_s * DEG) / DEG:.4f} deg on its alpha and beta")
         rate = thesis.bench_platform_rate(session.gyro[window].mean(axis=0), biases["gyro"], pitch, roll, site)
         tilts.append(thesis.interface_tilt(rate))
     alpha, beta = np.mean(tilts, axis=0)

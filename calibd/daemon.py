@@ -38,7 +38,7 @@ DEG = np.pi / 180
 STORE_RATE_HZ = 125  # faster data is block-averaged to this (the thesis's rate): averages of averages
 # keep the model exact, and the solver's work and memory follow the stored samples
 MAX_SESSION_S = 3600  # beyond this a session stops growing: bias instability floors yaw near 0.9 deg
-# for static protocols (calibd plan: 1.27 deg at 1 h for the thesis layout), and memory stays bounded
+# for static protocols (calibd plan: 1.28 deg at 1 h for the thesis layout), and memory stays bounded
 WARM_CHECK_EVERY_S = 10.0  # how often (data time) the warm-up rule is evaluated
 
 

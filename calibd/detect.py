@@ -371,21 +371,27 @@ def index_positions(segments: list[Segment], tolerance_deg: float = 5.0) -> list
     return sorted(chosen.values(), key=lambda s: s.start)
 
 
-def full_turns(segments: list[Segment], min_cruise_deg: float = 350.0) -> list[Segment]:
-    """Turns whose constant-rate part alone covers at least `min_cruise_deg`, in time order.
+FULL_TURN_MIN_DEG = 350.0  # a turn of at least this total angle, ramps included, is a full turn
 
-    Judged on the constant-rate part, not the total angle: the thesis averages the gyros over one
-    whole period at constant rate (eq. 6.31), and a 360 deg turn with ramps has only ~334 deg of
-    it at 27.93 deg/s and 30 deg/s^2. Consumers take one period from cruise_start."""
-    return [s for s in segments if s.kind == "turn" and abs(s.cruise_angle_deg) >= min_cruise_deg]
+
+def full_turns(segments: list[Segment], min_angle_deg: float = FULL_TURN_MIN_DEG) -> list[Segment]:
+    """Turns of at least `min_angle_deg` in total (ramps included), in time order.
+
+    Judged on the whole angle, as a platform is commanded: a 360 deg turn at 27.93 deg/s with
+    30 deg/s^2 ramps keeps its constant rate for only ~334 deg, and the thesis used exactly that
+    part of exactly such a turn. The gyro gives the angle within a fraction of a degree, so the
+    10 deg below 360 only admit a platform stopping short of its mark; longer turns (390, 720
+    deg) are full turns too. Whether the constant-rate part covers a whole period is the
+    consumer's question (calibrate._one_period)."""
+    return [s for s in segments if s.kind == "turn" and abs(s.angle_deg) >= min_angle_deg]
 
 
 INDEX_TOLERANCE_DEG = 5.0  # an index turn is this close to +-90 deg, an index heading to a multiple of 90 deg
 
 
 def segment_roles(segments: list[Segment]) -> list[str]:
-    """The protocol role of each segment: static, index turn (about 90 deg), full turn (a
-    constant-rate part of a whole revolution), other turn."""
+    """The protocol role of each segment: static, index turn (about 90 deg), full turn (at least
+    350 deg, see `full_turns`), other turn."""
     full = {id(s) for s in full_turns(segments)}
     roles = []
     for s in segments:
@@ -402,7 +408,7 @@ def segment_roles(segments: list[Segment]) -> list[str]:
 
 def protocol_progress(segments: list[Segment]) -> str:
     """What a session has so far, in the protocol's words: statics and the platform headings
-    they cover, turns by role (index ~90 deg, full >= 350 deg at constant rate, other)."""
+    they cover, turns by role (index ~90 deg, full >= 350 deg in total, other)."""
     statics = [s for s in segments if s.kind == "static"]
     headings = {round((s.platform_angle_deg % 360) / 90) % 4 for s in statics
                 if abs(s.platform_angle_deg / 90 - round(s.platform_angle_deg / 90)) * 90 <= INDEX_TOLERANCE_DEG}

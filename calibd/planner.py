@@ -52,7 +52,7 @@ def protocol_segments(protocol: str, scale: float) -> tuple[Segment, ...]:
     """The protocol's segments with its scalable part times `scale` (1 = nominal).
 
     thesis: the thesis-real scenario (10 min level static, four -90 deg index turns each followed
-    by 2 min static, a full turn of -390 deg, 30 s static); `scale` multiplies every static.
+    by 2 min static, a full turn of -360 deg, 30 s static); `scale` multiplies every static.
     index: the same without the full turn and its static. continuous: the continuous scenario
     (2 min static, ten and a quarter turns at 10 deg/s, 1 min static: the last static 90 deg from
     the first, as the estimator separates the accelerometer tilt from the biases only with statics

@@ -98,7 +98,22 @@ def test_index_positions_are_the_statics_after_the_90_deg_turns(sim_name, sense,
     assert detect.level_static(segments) == statics[0]
     turns = detect.full_turns(segments)
     assert len(turns) == 1 and turns[0] == segments[-2]  # the full turn, not the 90 deg ones
-    assert abs(turns[0].cruise_angle_deg) >= 360.0
+    # 360 deg with 30 deg/s^2 ramps: 13 deg of ramp at each end, so less than a period at constant rate
+    assert turns[0].angle_deg == pytest.approx(360.0 * sense, abs=0.1)
+    assert 325.0 < abs(turns[0].cruise_angle_deg) < 334.1
+
+
+@pytest.mark.parametrize("angle_deg,role", [(90, "index turn"), (-90, "index turn"), (340, "other turn"),
+                                            (-352, "full turn"), (360, "full turn"), (-390, "full turn"),
+                                            (720, "full turn")])
+def test_a_full_turn_is_judged_on_its_whole_angle_ramps_included(angle_deg, role):
+    """As a platform runs it: 27.93 deg/s with 30 deg/s^2 ramps, whatever the constant-rate part."""
+    scenario = load_scenario("thesis-real")
+    segments = (scenario.segments[0], replace(scenario.segments[-2], angle_deg=angle_deg), scenario.segments[-1])
+    found_segments = found(simulate(quiet(replace(scenario, segments=segments))))
+    assert detect.segment_roles(found_segments) == ["static", role, "static"]
+    progress = detect.protocol_progress(found_segments)  # what the daemon shows while collecting
+    assert f"1 {role}," in progress + "," and progress.count(" 0 ") == 2
 
 
 def test_bench_positions_come_out_as_separate_statics(bench):

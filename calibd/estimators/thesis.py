@@ -75,10 +75,20 @@ def gyro_y_bias_from_turn(gyro_y: np.ndarray, roll: float, alpha: float, beta: f
                           site: Site) -> float:
     """Gyro Y bias from one whole period of the constant-rate part of a full turn (eqs. 6.29 to
     6.31): remove the roll-Earth term and the platform-rate projection, then average; the
-    Earth-rate sinusoid of amplitude Omega cos(lat) integrates to zero over the period."""
+    Earth-rate sinusoid of amplitude Omega cos(lat) integrates to zero over the period (over a
+    shorter constant-rate part, up to `unaveraged_earth_rate` of it stays)."""
     lat = np.radians(site.latitude_deg)
     no_mis = np.asarray(gyro_y) - roll * EARTH_RATE * np.sin(lat) - np.sin(alpha) * np.cos(beta) * platform_rate
     return float(no_mis.mean())
+
+
+def unaveraged_earth_rate(covered: float, site: Site) -> float:
+    """Largest mean horizontal Earth rate on a horizontal IMU axis over a constant-rate stretch
+    that covers `covered` rad of platform angle (rad/s). Eq. 6.31 assumes a whole period, where it
+    is 0. Over [chi0, chi0 + covered] the mean of Omega cos(lat) sin(chi) is
+    Omega cos(lat) sin(chi0 + covered/2) sin(covered/2) / (covered/2): at the worst heading chi0,
+    Omega cos(lat) |sin(covered/2) / (covered/2)|, which is 0 for whole revolutions."""
+    return float(EARTH_RATE * np.cos(np.radians(site.latitude_deg)) * abs(np.sinc(covered / (2 * np.pi))))
 
 
 def yaw_from_static(gyro_y_static: float, roll: float, gyro_y_bias: float, site: Site) -> float:
@@ -117,7 +127,7 @@ class RealCaseData:
     level_acc: np.ndarray  # m/s^2
     level_incl: np.ndarray  # m/s^2
     index_incl: np.ndarray  # 4 x 3 inclinometer means at the four index positions, m/s^2
-    turn_gyro: np.ndarray  # gyro samples over one period of the constant-rate part of the full turn, rad/s
+    turn_gyro: np.ndarray  # rad/s, over one period of the full turn's constant-rate part (all of it if shorter)
 
 
 def real_case(data: RealCaseData, site: Site, alpha_beta: tuple[float, float] | None = None,
