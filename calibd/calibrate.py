@@ -12,8 +12,10 @@ import numpy as np
 from scipy.special import gammaincc
 
 from stim300.bulk import decode_capture
+from stim300.clock import CYCLE_S, counter_times
 from stim300.codec import fault_bits
 from stim300.protocol import status_names
+from stim300.reads import load_reads
 
 from . import detect
 from .config import WarmupConfig
@@ -53,11 +55,12 @@ class Session:
 
 def load_session(path: str, start_s: float = 0.0, data: bytes | None = None) -> Session:
     """Decode a capture (the file at `path`, or its bytes already read); drop what comes before
-    `start_s` (e.g. a warm-up)."""
+    `start_s` (e.g. a warm-up). The read log beside a recorded capture (PATH.reads.npy) lets
+    the time base include the datagrams lost for whole counter cycles."""
     if data is None:
         with open(path, "rb") as f:
             data = f.read()
-    samples, scanner = decode_capture(data)
+    samples, scanner = decode_capture(data, reads=load_reads(path))
     if not len(samples):
         raise CalibrationError(f"{path}: no STIM300 datagram found")
     fmt = scanner.format
@@ -67,8 +70,10 @@ def load_session(path: str, start_s: float = 0.0, data: bytes | None = None) -> 
     if np.isnan(samples["acc"][0, 0]) or np.isnan(samples["incl"][0, 0]):
         raise CalibrationError(f"{path}: datagram 0x{fmt.datagram_id:02X} lacks accelerometers or inclinometers")
     rate = fmt.sample_rate_hz or 2000 // scanner.stats.counter_step
-    time_s = detect.sample_times(samples["counter"], rate)
+    times = counter_times(samples["counter"], rate, samples["t_host"])
+    time_s = times.time_s
     keep = time_s >= start_s
+    hidden = times.gap_s[time_s[times.gap_index] > start_s]
     temps = samples["temp_gyro"][keep].mean(axis=1)
     stats = scanner.stats
     return Session(
@@ -82,7 +87,7 @@ def load_session(path: str, start_s: float = 0.0, data: bytes | None = None) -> 
         stream={"capture": str(path), "start_s": float(start_s), "datagrams": stats.datagrams,
                 "lost_samples": stats.lost_samples,
                 "crc_errors": stats.crc_errors, "restarts": stats.restarts,
-                **fault_record(*fault_summary(samples[keep]))})
+                **fault_record(*fault_summary(samples[keep])), **hidden_gap_record(len(hidden), hidden.sum())})
 
 
 def fault_summary(samples: np.ndarray) -> tuple[int, int]:
@@ -95,6 +100,11 @@ def fault_record(count: int, bits: int) -> dict:
     return {"flagged_datagrams": count, "fault_flags": status_names(bits)}
 
 
+def hidden_gap_record(count: int, seconds: float) -> dict:
+    """Gaps the datagram counter could not see (whole counter cycles), found from host read times."""
+    return {"hidden_gaps": count, "hidden_gap_s": round(float(seconds), 3)}
+
+
 def session_segments(session: Session) -> list[detect.Segment]:
     """The statics and turns of a whole session (the daemon tracks them incrementally instead)."""
     return detect.find_segments(session.gyro / DEG, session.acc / STANDARD_GRAVITY, session.rate_hz, session.time_s)
@@ -105,10 +115,16 @@ def _lacking(what: str, segments: list[detect.Segment]) -> ProtocolIncomplete:
 
 
 def _session_warnings(session: Session) -> list[str]:
-    """What is wrong with the data itself: faults the sensor flagged, a warm-up not over."""
+    """What is wrong with the data itself: faults the sensor flagged, gaps the time base had to
+    be corrected for, a warm-up not over."""
     flagged = session.stream.get("flagged_datagrams", 0)
     faults = [f"{flagged} datagrams carry fault flags ({', '.join(session.stream['fault_flags'])}): their samples "
               "are in the fit; an overload or channel error biases the statics they fall in"] if flagged else []
+    hidden = session.stream.get("hidden_gaps", 0)
+    if hidden:
+        faults.append(f"time base corrected: {hidden} data gaps the datagram counter could not see (whole "
+                      f"{CYCLE_S:.3f} s counter cycles, {session.stream['hidden_gap_s']:.3f} s in all) were "
+                      "measured on the host clock and added")
     return faults + _warm_up_warning(session)
 
 

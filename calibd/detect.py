@@ -29,9 +29,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from stim300.protocol import INTERNAL_RATE_HZ
+from stim300.clock import counter_times
 
-COUNTER_MODULUS = 256
 TURN_AXIS_SHARE = 0.9  # share of a motion's rotation about the vertical that makes it a turn (~25 deg cone)
 AXES = "XYZ"
 NOISE_MULTIPLE = 10.0  # thresholds sit this many noise sigmas above a quiet sensor's averaged output
@@ -45,22 +44,9 @@ def temperature_trend_c_per_h(time_s: np.ndarray, temperature_c: np.ndarray) -> 
 
 
 def sample_times(counter: np.ndarray, rate_hz: float) -> np.ndarray:
-    """Seconds from the first sample, from the datagram counter, so that lost datagrams leave gaps.
-
-    The counter counts the sensor's internal 2000 Hz samples (step 2000/rate per datagram) modulo
-    256: a step of k counts is k/step sample periods. It sees losses only modulo one counter cycle
-    (256 internal samples, 0.128 s at any rate): a step of 0 counts is read as a whole cycle (one
-    sample short of a cycle lost), and a loss of a cycle or more appears shorter by whole cycles.
-    A sensor restart (counter back to 0) looks like a loss too. Steps that are not whole periods
-    are rounded (at least one period).
-    """
-    counter = np.asarray(counter)
-    if counter.size == 0:
-        return np.zeros(0)
-    counts = np.diff(counter.astype(np.int64)) % COUNTER_MODULUS
-    counts[counts == 0] = COUNTER_MODULUS
-    periods = np.maximum(np.rint(counts * rate_hz / INTERNAL_RATE_HZ), 1.0)
-    return np.concatenate(([0.0], np.cumsum(periods))) / rate_hz
+    """Seconds from the first sample, from the datagram counter alone (`stim300.clock`'s rule:
+    lost datagrams leave gaps, modulo one counter cycle)."""
+    return counter_times(counter, rate_hz).time_s
 
 
 @dataclass(frozen=True)

@@ -20,9 +20,11 @@ import numpy as np
 from .atomic import atomic_file
 from .bulk import decode_capture
 from .cliutil import CommandParser, UsageError, run_command
+from .clock import counter_times
 from .progress import Progress
 from .protocol import (ACC_RANGE_LSB_EXP, DEFAULT_BIT_RATE, NORMAL_LAYOUTS, SAMPLE_RATES_HZ, AccUnit, Format, GyroUnit,
                        Status)
+from .reads import load_reads
 
 AXES = "xyz"
 GYRO_UNITS = {"rate": GyroUnit.RATE, "incremental": GyroUnit.INCREMENTAL_ANGLE,
@@ -94,8 +96,9 @@ def _mapped(path: str):
 
 
 def _decode(path: str, fmt: Format):
+    """Samples (columns) and scanner; with the capture's read log, samples carry host times."""
     with _mapped(path) as data:
-        samples, scanner = decode_capture(data, fmt, columns=True)
+        samples, scanner = decode_capture(data, fmt, columns=True, reads=load_reads(path))
     if scanner.stats.datagrams == 0:
         raise UsageError(f"{path}: no STIM300 datagram found in {scanner.stats.bytes_in} bytes "
                          "(not a STIM300 capture, or a format the options do not describe)")
@@ -185,6 +188,8 @@ def capture_info(samples: np.ndarray, scanner) -> dict:
     fmt = scanner.format
     step = s.counter_step
     rate = fmt.sample_rate_hz or (2000 // step if step else None)
+    timed = len(samples["t_host"]) > 0 and np.isfinite(samples["t_host"]).all()
+    times = counter_times(samples["counter"], rate, samples["t_host"]) if rate and timed else None
     info = {
         "datagrams": s.datagrams,
         "crc_errors": s.crc_errors,
@@ -196,7 +201,9 @@ def capture_info(samples: np.ndarray, scanner) -> dict:
         "datagram_id": f"0x{fmt.datagram_id:02X}" if fmt.datagram_id is not None else None,
         "crlf": fmt.crlf,
         "sample_rate_hz": rate,
-        "duration_s": (s.datagrams + s.lost_samples) / rate if rate else None,
+        "duration_s": (s.datagrams + s.lost_samples) / rate + (times.hidden_s if times else 0.0) if rate else None,
+        "hidden_gaps": times.hidden_gaps if times else None,  # None: no read log to find them with
+        "hidden_gap_s": round(times.hidden_s, 3) if times else None,
         "units": {k: v for k, v in fmt.units().items()},
         "acc_range_g": fmt.acc_range_g,
         "part_number": str(scanner.part_number) if scanner.part_number else None,
@@ -229,6 +236,9 @@ def _describe(info: dict) -> str:
         f"bytes            {info['bytes']} B",
         f"crc_errors       {info['crc_errors']}",
         f"lost_samples     {info['lost_samples']}",
+        "hidden_gaps      " + (f"{info['hidden_gaps']} ({info['hidden_gap_s']:.3f} s, found from the read log)"
+                               if info["hidden_gaps"] is not None
+                               else "- (no read log: gaps of whole counter cycles cannot be seen)"),
         f"skipped_bytes    {info['skipped_bytes']} B",
         f"restarts         {info['restarts']}",
         f"config_changes   {info['config_changes']}",
