@@ -21,10 +21,12 @@ from calibd.frames import Site
 from captures import exact_samples
 from stim300.bulk import decode_capture
 from stim300.cli import main as stim300_main
-from stim300.clock import CYCLE_S
-from stim300.codec import encode_samples
+from stim300.clock import CYCLE_S, CounterClock, host_window
+from stim300.codec import SAMPLE_DTYPE, encode_samples
+from stim300.port import PortReader
 from stim300.protocol import Format
 from stim300.reads import READS_DTYPE, load_reads, reads_path
+from stim300.ringbuffer import RingBuffer
 from stim300.special import Configuration, encode_special
 from test_clock import host_read_times
 
@@ -116,44 +118,80 @@ def test_without_a_read_log_the_capture_decodes_on_the_counter_alone(capture_wit
     assert "hidden_gaps      - (no read log" in capsys.readouterr().out
 
 
-def test_record_writes_the_read_log_that_load_session_times_the_capture_with(tmp_path, monkeypatch):
-    """`stim300 record` on a pty fed like a sensor at 125 Hz that loses 16 datagrams (one whole
-    counter cycle): the capture's read log restores the lost 0.128 s."""
+SENT = np.r_[0:150, 166:316]  # datagrams 150..165 lost: one whole counter cycle at 125 Hz
+
+
+def sensor_bytes() -> tuple[bytes, np.ndarray]:
+    """A configuration datagram and the frames of the datagrams SENT (a quiet 0xA7 sensor)."""
     config = Configuration.build(sample_rate_hz=RATE_HZ, bit_rate_bps=921600)
     fmt: Format = config.format
-    samples = exact_samples(300, fmt, fmt.datagram_id, np.random.default_rng(3))
-    samples["gyro"], samples["acc"], samples["incl"] = 0.0, 0.0, 0.0  # a quiet sensor: any values will do
-    samples["counter"] = (np.r_[0:150, 166:316] * 16) % 256  # datagrams 150..165 lost
-    frames = encode_samples(samples, fmt.datagram_id, fmt, crlf=False)
-    send_s = np.r_[0:150, 166:316] / RATE_HZ
+    samples = exact_samples(len(SENT), fmt, fmt.datagram_id, np.random.default_rng(3))
+    samples["gyro"], samples["acc"], samples["incl"] = 0.0, 0.0, 0.0
+    samples["counter"] = (SENT * 16) % 256
+    return encode_special(config, crlf=False), encode_samples(samples, fmt.datagram_id, fmt, crlf=False)
+
+
+@pytest.fixture
+def pty_sensor():
+    """A pty whose far end plays a 125 Hz sensor losing SENT's gap: call the returned function
+    (once the reader has the port open) to send, on the sample clock, two datagrams a write."""
     master, slave = os.openpty()
     tty.setraw(master)
     tty.setraw(slave)
+    head, frames = sensor_bytes()
+
+    def send() -> None:
+        os.write(master, head)
+        t0 = time.monotonic()
+        for k in range(0, len(frames), 2):
+            time.sleep(max(0.0, t0 + SENT[k] / RATE_HZ - time.monotonic()))
+            select.select([], [master], [], 1.0)
+            os.write(master, frames[k:k + 2].tobytes())
+
+    yield os.ttyname(slave), send
+    os.close(master)
+    os.close(slave)
+
+
+def test_port_reader_times_give_the_live_clock_the_lost_cycle(pty_sensor):
+    """The read times the daemon's own port reader stamps on a real pty are evidence enough."""
+    path, send = pty_sensor
+    ring = RingBuffer(4096, SAMPLE_DTYPE)
+    clock, times, gaps, cursor = CounterClock(), [], 0, 0
+    with PortReader(path, ring, request_config=False), ThreadPoolExecutor(1) as pool:
+        writer = pool.submit(send)
+        while cursor < len(SENT):
+            time.sleep(0.2)  # as the live loop drains the ring
+            samples, cursor, _ = ring.read_since(cursor)
+            if len(samples):
+                batch = clock.times(samples["counter"], RATE_HZ, samples["t_host"])
+                times.append(batch.time_s)
+                gaps += batch.hidden_gaps
+        writer.result(timeout=5.0)
+    late = np.flatnonzero(np.abs(np.concatenate(times) - SENT / RATE_HZ) > 1e-9)
+    assert gaps == 1 and (late >= 150).all() and (late < 150 + host_window(RATE_HZ)).all()  # judged within 0.5 s
+
+
+def test_record_writes_the_read_log_that_load_session_times_the_capture_with(pty_sensor, tmp_path, monkeypatch):
+    """`stim300 record` on a pty fed like a sensor at 125 Hz that loses 16 datagrams (one whole
+    counter cycle): the capture's read log restores the lost 0.128 s."""
+    path, send = pty_sensor
     opened = threading.Event()
     real_open = port.open_serial
     monkeypatch.setattr(port, "open_serial", lambda *a, **k: (real_open(*a, **k), opened.set())[0])
 
     def sensor() -> None:
         assert opened.wait(5.0)
-        os.write(master, encode_special(config, crlf=False))
-        t0 = time.monotonic()
-        for k in range(0, len(frames), 2):
-            time.sleep(max(0.0, t0 + send_s[k] - time.monotonic()))
-            select.select([], [master], [], 1.0)
-            os.write(master, frames[k:k + 2].tobytes())
+        send()
 
     out = tmp_path / "live.bin"
-    try:
-        with ThreadPoolExecutor(1) as pool:
-            writer = pool.submit(sensor)
-            assert stim300_main(["record", os.ttyname(slave), "-o", str(out), "--duration", "3.0"]) == 0
-            writer.result(timeout=5.0)
-    finally:
-        os.close(master)
-        os.close(slave)
+    with ThreadPoolExecutor(1) as pool:
+        writer = pool.submit(sensor)
+        assert stim300_main(["record", path, "-o", str(out), "--duration", "3.0"]) == 0
+        writer.result(timeout=5.0)
     reads = load_reads(out)
     assert reads is not None and reads["end"][-1] == out.stat().st_size
     assert np.all(np.diff(reads["end"]) > 0) and np.all(np.diff(reads["t_host_s"]) >= 0)
     session = load_session(str(out))
     assert session.stream["hidden_gaps"] == 1 and session.stream["hidden_gap_s"] == pytest.approx(CYCLE_S)
-    np.testing.assert_allclose(session.time_s, send_s, atol=1e-9)
+    np.testing.assert_allclose(session.time_s, SENT / RATE_HZ, atol=1e-9)
