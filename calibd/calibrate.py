@@ -122,9 +122,9 @@ def _session_warnings(session: Session) -> list[str]:
               "are in the fit; an overload or channel error biases the statics they fall in"] if flagged else []
     hidden = session.stream.get("hidden_gaps", 0)
     if hidden:
-        faults.append(f"time base corrected: {hidden} data gaps the datagram counter could not see (whole "
-                      f"{CYCLE_S:.3f} s counter cycles, {session.stream['hidden_gap_s']:.3f} s in all) were "
-                      "measured on the host clock and added")
+        faults.append(f"time base corrected: the host clock shows {session.stream['hidden_gap_s']:.3f} s of data "
+                      f"lost in {hidden} gap{'s' if hidden > 1 else ''} the datagram counter could not see (whole "
+                      f"{CYCLE_S:.3f} s counter cycles); that time was added")
     return faults + _warm_up_warning(session)
 
 

@@ -113,6 +113,8 @@ def columns(samples) -> dict[str, np.ndarray]:
     temps = [c for c in ("gyro", "acc", "incl") if any(c in lay.temperatures for lay in layouts)]
     aux = any(lay.aux for lay in layouts)
     out = {"counter": samples["counter"], "latency_us": samples["latency_us"]}
+    if len(samples["t_host"]) and np.isfinite(samples["t_host"]).all():  # the capture has a read log
+        out = {"t_host_s": samples["t_host"]} | out
     for block in clusters + ["temp_" + c for c in temps]:
         for k, axis in enumerate(AXES):
             out[f"{block}_{axis}"] = samples[block][:, k]  # contiguous in decode_capture's columns
@@ -128,7 +130,9 @@ def column_units(names, fmt: Format) -> dict[str, str]:
     result = {}
     for name in names:
         block = name.split("_")[0] if not name.startswith("temp_") else "temp"
-        if name.startswith("status_") or name == "counter":
+        if name == "t_host_s":
+            result[name] = "s"
+        elif name.startswith("status_") or name == "counter":
             result[name] = "1"
         elif name == "latency_us":
             result[name] = "us"

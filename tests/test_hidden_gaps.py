@@ -69,7 +69,8 @@ def test_the_daemon_keeps_the_platform_angle_across_a_hidden_gap_in_a_turn():
     assert [round(s["platform_angle_deg"]) for s in statics] == [0, -90, -180, -270, -360]
     assert within_3_sigma(last, "yaw", truth()["yaw_deg"])
     assert last["stream"]["hidden_gaps"] == 1 and last["stream"]["hidden_gap_s"] == pytest.approx(11 * CYCLE_S)
-    assert any(w.startswith("time base corrected: 1 data gaps") for w in last["warnings"])
+    assert any(w.startswith("time base corrected: the host clock shows 1.408 s of data lost in 1 gap ")
+               for w in last["warnings"])
 
 
 @pytest.fixture
@@ -106,6 +107,17 @@ def test_load_session_times_a_capture_from_its_read_log(capture_with_read_log, c
     info = json.loads(capsys.readouterr().out)
     assert info["hidden_gaps"] == 1 and info["hidden_gap_s"] == pytest.approx(1.408)
     assert info["duration_s"] == pytest.approx(true_s[-1] + 1 / RATE_HZ)
+
+
+def test_decode_gives_the_read_times_as_a_column(capture_with_read_log, tmp_path, capsys):
+    path, _ = capture_with_read_log
+    assert stim300_main(["decode", str(path), "-o", str(tmp_path / "with.npz")]) == 0
+    table = np.load(tmp_path / "with.npz")
+    assert json.loads(str(table["units"]))["t_host_s"] == "s"
+    assert np.all(np.diff(table["t_host_s"]) >= 0) and table["t_host_s"][-1] - table["t_host_s"][0] > 600
+    reads_path(path).unlink()
+    assert stim300_main(["decode", str(path), "-o", str(tmp_path / "without.npz")]) == 0
+    assert "t_host_s" not in np.load(tmp_path / "without.npz")
 
 
 def test_without_a_read_log_the_capture_decodes_on_the_counter_alone(capture_with_read_log, capsys):
