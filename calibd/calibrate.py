@@ -73,7 +73,7 @@ def load_session(path: str, start_s: float = 0.0, data: bytes | None = None) -> 
     times = counter_times(samples["counter"], rate, samples["t_host"])
     time_s = times.time_s
     keep = time_s >= start_s
-    hidden = times.gap_s[time_s[times.gap_index] > start_s]
+    hidden = times.gap_s[time_s[times.gap_index] > start_s] if times.checked else None
     temps = samples["temp_gyro"][keep].mean(axis=1)
     stats = scanner.stats
     return Session(
@@ -87,7 +87,7 @@ def load_session(path: str, start_s: float = 0.0, data: bytes | None = None) -> 
         stream={"capture": str(path), "start_s": float(start_s), "datagrams": stats.datagrams,
                 "lost_samples": stats.lost_samples,
                 "crc_errors": stats.crc_errors, "restarts": stats.restarts,
-                **fault_record(*fault_summary(samples[keep])), **hidden_gap_record(len(hidden), hidden.sum())})
+                **fault_record(*fault_summary(samples[keep])), **hidden_gap_record(hidden)})
 
 
 def fault_summary(samples: np.ndarray) -> tuple[int, int]:
@@ -100,9 +100,12 @@ def fault_record(count: int, bits: int) -> dict:
     return {"flagged_datagrams": count, "fault_flags": status_names(bits)}
 
 
-def hidden_gap_record(count: int, seconds: float) -> dict:
-    """Gaps the datagram counter could not see (whole counter cycles), found from host read times."""
-    return {"hidden_gaps": count, "hidden_gap_s": round(float(seconds), 3)}
+def hidden_gap_record(gap_s: list[float] | np.ndarray | None) -> dict:
+    """Gaps the datagram counter could not see (whole counter cycles), found from host read times
+    (`gap_s`: the time each added), or None where there were no host times to look with."""
+    if gap_s is None:
+        return {"hidden_gaps": None, "hidden_gap_s": None}
+    return {"hidden_gaps": len(gap_s), "hidden_gap_s": round(float(np.sum(gap_s)), 3)}
 
 
 def session_segments(session: Session) -> list[detect.Segment]:

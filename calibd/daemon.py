@@ -151,6 +151,7 @@ class Calibrator:
         self._pending: list[np.ndarray] = []
         self._clock = CounterClock()
         self._hidden: list[tuple[float, float]] = []  # gaps the counter could not see: (time, seconds added)
+        self._unchecked_until = -np.inf  # the end of the last batch without host times to look for them
         self._session_start: float | None = None
         self._tracker: detect.SegmentTracker | None = None
         self._gap = False
@@ -164,6 +165,8 @@ class Calibrator:
         times (`stim300.clock`): lost datagrams, within a batch or between batches, leave gaps,
         whole counter cycles included."""
         times = self._clock.times(samples["counter"], rate_hz, samples["t_host"])
+        if not times.checked:
+            self._unchecked_until = float(times.time_s[-1])
         for index, seconds in zip(times.gap_index, times.gap_s):
             at = float(times.time_s[index])
             self._hidden.append((at, float(seconds)))
@@ -248,7 +251,7 @@ class Calibrator:
         batches = [(count, bits) for t, count, bits in self._flagged if t >= self._session_start]
         hidden = [seconds for t, seconds in self._hidden if t > self._session_start]
         return fault_record(sum(c for c, _ in batches), int(np.bitwise_or.reduce([b for _, b in batches] or [0]))) \
-            | hidden_gap_record(len(hidden), sum(hidden))
+            | hidden_gap_record(None if self._unchecked_until >= self._session_start else hidden)
 
     def _solve(self) -> None:
         session = self._session()

@@ -192,8 +192,8 @@ def capture_info(samples: np.ndarray, scanner) -> dict:
     fmt = scanner.format
     step = s.counter_step
     rate = fmt.sample_rate_hz or (2000 // step if step else None)
-    timed = len(samples["t_host"]) > 0 and np.isfinite(samples["t_host"]).all()
-    times = counter_times(samples["counter"], rate, samples["t_host"]) if rate and timed else None
+    times = counter_times(samples["counter"], rate, samples["t_host"]) if rate else None
+    checked = times is not None and times.checked
     info = {
         "datagrams": s.datagrams,
         "crc_errors": s.crc_errors,
@@ -205,9 +205,9 @@ def capture_info(samples: np.ndarray, scanner) -> dict:
         "datagram_id": f"0x{fmt.datagram_id:02X}" if fmt.datagram_id is not None else None,
         "crlf": fmt.crlf,
         "sample_rate_hz": rate,
-        "duration_s": (s.datagrams + s.lost_samples) / rate + (times.hidden_s if times else 0.0) if rate else None,
-        "hidden_gaps": times.hidden_gaps if times else None,  # None: no read log to find them with
-        "hidden_gap_s": round(times.hidden_s, 3) if times else None,
+        "duration_s": (s.datagrams + s.lost_samples) / rate + times.hidden_s if rate else None,
+        "hidden_gaps": times.hidden_gaps if checked else None,  # None: no read log to find them with
+        "hidden_gap_s": round(times.hidden_s, 3) if checked else None,
         "units": {k: v for k, v in fmt.units().items()},
         "acc_range_g": fmt.acc_range_g,
         "part_number": str(scanner.part_number) if scanner.part_number else None,

@@ -68,7 +68,9 @@ def test_host_times_faster_than_real_time_are_no_evidence():
     counter, true_s = stream(5000, {})
     t_host = true_s / 200.0
     t_host[2500:] += 0.5  # the replay paused
-    assert counter_times(counter, RATE_HZ, t_host).hidden_gaps == 0
+    result = counter_times(counter, RATE_HZ, t_host)
+    assert result.hidden_gaps == 0 and not result.checked
+    assert counter_times(counter, RATE_HZ, np.r_[t_host[:2500], t_host[2500:] + 40.0]).hidden_gaps == 0  # a long pause
 
 
 def test_without_host_times_the_counter_rules_as_before():
@@ -78,7 +80,9 @@ def test_without_host_times_the_counter_rules_as_before():
     expected = np.array([0, 1, 2, 5, 6, 6 + 16]) / RATE_HZ  # the whole cycle is invisible; a step
     # of 0 counts is read as one cycle
     for t_host in (None, np.full(6, np.nan)):
-        np.testing.assert_allclose(counter_times(counter, RATE_HZ, t_host).time_s, expected, atol=1e-12)
+        times = counter_times(counter, RATE_HZ, t_host)
+        np.testing.assert_allclose(times.time_s, expected, atol=1e-12)
+        assert not times.checked
     assert len(counter_times(np.zeros(0, np.uint8), RATE_HZ).time_s) == 0
 
 
