@@ -212,8 +212,9 @@ def record(url: str, output_path, baudrate: int = DEFAULT_BIT_RATE, duration_s: 
 
     Bytes go to OUT.part, renamed to OUT at the end whatever stopped the recording (a port
     error included), so a file named OUT is always complete. The host time of every read goes
-    to OUT.reads.npy (`stim300.reads`), put in place just before OUT. Progress goes to stderr about once
-    a second. Returns the exit status: 0, or 1 after a port or file error (one line on stderr).
+    to OUT.reads.npy (`stim300.reads`), put in place just before OUT. Progress goes to stderr
+    about once a second. Returns the exit status: 0, or 1 after a port or file error (one line
+    on stderr).
     """
     out = Path(output_path)
     part = out.with_name(out.name + ".part")
