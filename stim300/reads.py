@@ -40,14 +40,17 @@ class ReadLog:
 
 
 def load_reads(capture) -> np.ndarray | None:
-    """The capture's read log (READS_DTYPE rows), or None when it has none or it is unreadable
-    (a capture from elsewhere decodes as before, on the counter alone)."""
-    path = reads_path(capture)
+    """The capture's read log (READS_DTYPE rows), or None when it has none, it is unreadable, or
+    it does not end where the capture does (not this capture's: a capture from elsewhere, or
+    one edited since, decodes as before, on the counter alone)."""
     try:
-        rows = np.load(path, allow_pickle=False)
+        rows = np.load(reads_path(capture), allow_pickle=False)
+        size = Path(capture).stat().st_size
     except (OSError, ValueError):
         return None
-    return rows if rows.dtype == READS_DTYPE and rows.ndim == 1 else None
+    if rows.dtype != READS_DTYPE or rows.ndim != 1 or not len(rows) or rows["end"][-1] != size:
+        return None
+    return rows
 
 
 def read_times(reads: np.ndarray, ends: np.ndarray) -> np.ndarray:

@@ -130,6 +130,13 @@ def test_without_a_read_log_the_capture_decodes_on_the_counter_alone(capture_wit
     assert "hidden_gaps      - (no read log" in capsys.readouterr().out
 
 
+def test_a_read_log_that_does_not_end_with_the_capture_is_not_used(capture_with_read_log):
+    path, _ = capture_with_read_log
+    path.write_bytes(path.read_bytes()[:-1000])  # the capture changed since it was recorded
+    assert load_reads(path) is None
+    assert load_session(str(path)).stream["hidden_gaps"] is None
+
+
 SENT = np.r_[0:150, 166:316]  # datagrams 150..165 lost: one whole counter cycle at 125 Hz
 
 
