@@ -13,8 +13,10 @@ import numpy as np
 from scipy.special import gammaincc
 
 from stim300.bulk import decode_capture
+from stim300.clock import CYCLE_S, counter_times
 from stim300.codec import fault_bits
 from stim300.protocol import Status, status_names
+from stim300.reads import load_reads
 
 from . import detect
 from .config import WarmupConfig
@@ -67,11 +69,13 @@ class Capture:
 
 
 def decode(path: str, data: bytes | None = None) -> Capture:
-    """Decode a capture (the file at `path`, or its bytes already read) and find its power-ups."""
+    """Decode a capture (the file at `path`, or its bytes already read) and find its power-ups. The
+    read log beside a recorded capture (PATH.reads.npy) stamps each datagram with its host read
+    time, so the time base can include datagrams lost for whole counter cycles."""
     if data is None:
         with open(path, "rb") as f:
             data = f.read()
-    samples, scanner = decode_capture(data)
+    samples, scanner = decode_capture(data, reads=load_reads(path))
     if not len(samples):
         raise CalibrationError(f"{path}: no STIM300 datagram found")
     fmt = scanner.format
@@ -109,7 +113,8 @@ def power_up_session(capture: Capture, number: int | None = None, start_s: float
                                f"{count - 1} times)")
     first, stop = capture.power_ups[number - 1]
     samples = capture.samples[first:stop]
-    time_s = detect.sample_times(samples["counter"], capture.rate_hz)
+    times = counter_times(samples["counter"], capture.rate_hz, samples["t_host"])
+    time_s = times.time_s
     temps = samples["temp_gyro"].mean(axis=1)
     temps = None if np.isnan(temps).all() else temps.astype(np.float64)
     if start_s is not None:
@@ -128,6 +133,7 @@ def power_up_session(capture: Capture, number: int | None = None, start_s: float
         raise CalibrationError(f"start {start_s:g} s is past the end of power-up {number} of {count} "
                                f"({time_s[-1]:.1f} s)")
     samples = samples[keep]
+    hidden = times.gap_s[time_s[times.gap_index] > start_s] if times.checked else None
     return Session(
         time_s=time_s[keep], gyro=samples["gyro"].astype(np.float64) * DEG,
         acc=samples["acc"].astype(np.float64) * STANDARD_GRAVITY,
@@ -137,7 +143,7 @@ def power_up_session(capture: Capture, number: int | None = None, start_s: float
             "start_s": float(start_s), "start_by": start_by,
             "power_up": {"number": number, "count": count, "first_datagram": first, "datagrams": stop - first,
                          "duration_s": float(time_s[-1]) + 1 / capture.rate_hz},
-            **fault_record(*fault_summary(samples))})
+            **fault_record(*fault_summary(samples)), **hidden_gap_record(hidden)})
 
 
 def load_session(path: str, start_s: float | None = 0.0, data: bytes | None = None,
@@ -184,6 +190,14 @@ def fault_record(count: int, bits: int) -> dict:
     return {"flagged_datagrams": count, "fault_flags": status_names(bits)}
 
 
+def hidden_gap_record(gap_s: list[float] | np.ndarray | None) -> dict:
+    """Gaps the datagram counter could not see (whole counter cycles), found from host read times
+    (`gap_s`: the time each added), or None where there were no host times to look with."""
+    if gap_s is None:
+        return {"hidden_gaps": None, "hidden_gap_s": None}
+    return {"hidden_gaps": len(gap_s), "hidden_gap_s": round(float(np.sum(gap_s)), 3)}
+
+
 def session_segments(session: Session) -> list[detect.Segment]:
     """The statics and turns of a whole session (the daemon tracks them incrementally instead)."""
     return detect.find_segments(session.gyro / DEG, session.acc / STANDARD_GRAVITY, session.rate_hz, session.time_s)
@@ -194,10 +208,16 @@ def _lacking(what: str, segments: list[detect.Segment]) -> ProtocolIncomplete:
 
 
 def _session_warnings(session: Session) -> list[str]:
-    """What is wrong with the data itself: faults the sensor flagged, a warm-up not over."""
+    """What is wrong with the data itself: faults the sensor flagged, gaps the time base had to
+    be corrected for, a warm-up not over."""
     flagged = session.stream.get("flagged_datagrams", 0)
     faults = [f"{flagged} datagrams carry fault flags ({', '.join(session.stream['fault_flags'])}): their samples "
               "are in the fit; an overload or channel error biases the statics they fall in"] if flagged else []
+    hidden = session.stream.get("hidden_gaps", 0)
+    if hidden:
+        faults.append(f"time base corrected: the host clock shows {session.stream['hidden_gap_s']:.3f} s of data "
+                      f"lost in {hidden} gap{'s' if hidden > 1 else ''} the datagram counter could not see (whole "
+                      f"{CYCLE_S:.3f} s counter cycles); that time was added")
     return faults + _warm_up_warning(session)
 
 

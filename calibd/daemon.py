@@ -23,11 +23,11 @@ import numpy as np
 import structlog
 
 from stim300.atomic import write_atomic
-from stim300.protocol import INTERNAL_RATE_HZ
+from stim300.clock import CounterClock
 
 from . import detect
-from .calibrate import (CalibrationError, ProtocolIncomplete, Session, fault_record, fault_summary, joint_real_case,
-                        thesis_real_case)
+from .calibrate import (CalibrationError, ProtocolIncomplete, Session, fault_record, fault_summary, hidden_gap_record,
+                        joint_real_case, thesis_real_case)
 from .config import DetectionConfig, MethodConfig, WarmupConfig
 from .estimators.joint import JointOptions
 from .frames import STANDARD_GRAVITY, Site
@@ -122,7 +122,7 @@ class Calibrator:
                                    "inclinometers: nothing to calibrate with")
             return
         self.rate_hz = rate_hz
-        t = self._times(samples["counter"], rate_hz)
+        t = self._times(samples, rate_hz)
         if self._gap and self._session_start is not None:
             self._start_session(float(t[0]), "data again after a gap: the platform angle was lost, "
                                              "collecting a new session (warm-up stands)")
@@ -164,8 +164,9 @@ class Calibrator:
     def _reset_time(self) -> None:
         self._buffer = _Buffer()
         self._pending: list[np.ndarray] = []
-        self._last_counter: int | None = None
-        self._t_last: float | None = None
+        self._clock = CounterClock()
+        self._hidden: list[tuple[float, float]] = []  # gaps the counter could not see: (time, seconds added)
+        self._unchecked_until = -np.inf  # the end of the last batch without host times to look for them
         self._session_start: float | None = None
         self._tracker: detect.SegmentTracker | None = None
         self._gap = False
@@ -190,18 +191,19 @@ class Calibrator:
         self._set(State.RESTARTED, reason)
         self._reset_time()
 
-    def _times(self, counter: np.ndarray, rate_hz: int) -> np.ndarray:
-        """Seconds since the first sample after power-up, from the counter: lost datagrams, within
-        a batch or between batches, leave gaps (modulo a counter cycle, as detect.sample_times)."""
-        step = INTERNAL_RATE_HZ // rate_hz
-        first = self._last_counter if self._last_counter is not None else int(counter[0]) - step
-        counts = np.diff(counter.astype(np.int64), prepend=first) % 256
-        counts[counts == 0] = 256
-        periods = np.maximum(np.rint(counts / step), 1.0)
-        start = self._t_last if self._t_last is not None else -1.0 / rate_hz
-        t = start + np.cumsum(periods) / rate_hz
-        self._last_counter, self._t_last = int(counter[-1]), float(t[-1])
-        return t
+    def _times(self, samples: np.ndarray, rate_hz: int) -> np.ndarray:
+        """Seconds since the first sample after power-up, from the counter and the host read
+        times (`stim300.clock`): lost datagrams, within a batch or between batches, leave gaps,
+        whole counter cycles included."""
+        times = self._clock.times(samples["counter"], rate_hz, samples["t_host"])
+        if not times.checked:
+            self._unchecked_until = float(times.time_s[-1])
+        for index, seconds in zip(times.gap_index, times.gap_s):
+            at = float(times.time_s[index])
+            self._hidden.append((at, float(seconds)))
+            log.warning("hidden_gap", at_s=round(at, 3), added_s=round(float(seconds), 3),
+                        detail="datagrams lost for whole counter cycles: the host clock's time added")
+        return times.time_s
 
     def _store(self, samples: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Keep the session block-averaged to at most STORE_RATE_HZ (bounded memory at 2000 Hz);
@@ -280,6 +282,7 @@ class Calibrator:
     def _start_session(self, start_s: float, detail: str) -> None:
         self._buffer.trim(start_s)
         self._flagged = [f for f in self._flagged if f[0] >= start_s]
+        self._hidden = [h for h in self._hidden if h[0] >= start_s]
         self._session_start = start_s
         self._tracker = detect.SegmentTracker(self._stored_rate, **self.detection.options())
         self._next_solve = self._buffer.end_s + self.method.resolve_every_s
@@ -296,7 +299,9 @@ class Calibrator:
 
     def _fault_record(self) -> dict:
         batches = [(count, bits) for t, count, bits in self._flagged if t >= self._session_start]
-        return fault_record(sum(c for c, _ in batches), int(np.bitwise_or.reduce([b for _, b in batches] or [0])))
+        hidden = [seconds for t, seconds in self._hidden if t > self._session_start]
+        return fault_record(sum(c for c, _ in batches), int(np.bitwise_or.reduce([b for _, b in batches] or [0]))) \
+            | hidden_gap_record(None if self._unchecked_until >= self._session_start else hidden)
 
     def _segments(self) -> tuple[Session, list[detect.Segment]]:
         """The session so far and its segments; each segment is logged once it is final."""

@@ -29,9 +29,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from stim300.protocol import INTERNAL_RATE_HZ
 
-COUNTER_MODULUS = 256
 TURN_AXIS_SHARE = 0.9  # share of a motion's rotation about the vertical that makes it a turn (~25 deg cone)
 AXES = "XYZ"
 NOISE_MULTIPLE = 10.0  # thresholds sit this many noise sigmas above a quiet sensor's averaged output
@@ -42,25 +40,6 @@ MIN_REMOUNT_G = 0.05  # a re-mount moves gravity by ~1 g between axes
 def temperature_trend_c_per_h(time_s: np.ndarray, temperature_c: np.ndarray) -> float:
     """Least-squares slope of a temperature record, degC/h: the warm-up criterion."""
     return float(np.polyfit(time_s, temperature_c, 1)[0] * 3600)
-
-
-def sample_times(counter: np.ndarray, rate_hz: float) -> np.ndarray:
-    """Seconds from the first sample, from the datagram counter, so that lost datagrams leave gaps.
-
-    The counter counts the sensor's internal 2000 Hz samples (step 2000/rate per datagram) modulo
-    256: a step of k counts is k/step sample periods. It sees losses only modulo one counter cycle
-    (256 internal samples, 0.128 s at any rate): a step of 0 counts is read as a whole cycle (one
-    sample short of a cycle lost), and a loss of a cycle or more appears shorter by whole cycles.
-    A sensor restart (counter back to 0) looks like a loss too. Steps that are not whole periods
-    are rounded (at least one period).
-    """
-    counter = np.asarray(counter)
-    if counter.size == 0:
-        return np.zeros(0)
-    counts = np.diff(counter.astype(np.int64)) % COUNTER_MODULUS
-    counts[counts == 0] = COUNTER_MODULUS
-    periods = np.maximum(np.rint(counts * rate_hz / INTERNAL_RATE_HZ), 1.0)
-    return np.concatenate(([0.0], np.cumsum(periods))) / rate_hz
 
 
 @dataclass(frozen=True)
@@ -189,7 +168,7 @@ def find_segments(gyro: np.ndarray, acc: np.ndarray, rate_hz: float, time_s: np.
                   remount_g: float | None = None) -> list[Segment]:
     """Statics and turns of a session, in time order.
 
-    gyro (N,3) deg/s and acc (N,3) g, finite; time_s as from `sample_times` (default: no losses).
+    gyro (N,3) deg/s and acc (N,3) g, finite; time_s as from `stim300.clock.counter_times` (default: no losses).
     A turn is motion above `turn_threshold_deg_s` (gyro averaged over `smooth_s`) mostly about
     the vertical; statics lose `settle_s` at each end next to motion or a re-mount (an acc step
     larger than `remount_g` between quiet stretches) and must keep `min_static_s`. A turn's

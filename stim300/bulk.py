@@ -15,6 +15,7 @@ from numpy.lib.stride_tricks import as_strided
 from .codec import SAMPLE_DTYPE, decode_frames, empty_columns
 from .crc import crc_columns
 from .protocol import NORMAL_LAYOUTS, SPECIAL_IDS, Format
+from .reads import read_times
 from .stream import WAIT, Scanner
 
 BLOCK = 65536  # datagrams checked and decoded together: keeps the columns in cache
@@ -27,7 +28,8 @@ _SHORTEST = min(layout.wire_length(False) for layout in NORMAL_LAYOUTS.values())
 class BulkDecoder:
     """Decode one capture held in memory (bytes, bytearray, mmap)."""
 
-    def __init__(self, data, fmt: Format | None = None, columns: bool = False):
+    def __init__(self, data, fmt: Format | None = None, columns: bool = False, reads: np.ndarray | None = None):
+        self._reads = reads
         self._raw = memoryview(data).cast("B")
         self._bytes = np.frombuffer(self._raw, np.uint8)
         self._found: list[tuple[int, int]] = []
@@ -74,7 +76,7 @@ class BulkDecoder:
         for offset, ident in self._found:
             layout = NORMAL_LAYOUTS[ident]
             frames = self._bytes[offset:offset + layout.pre_crc][None, :]
-            self._decode(frames, layout)
+            self._decode(frames, layout, offset, layout.wire_length(self.scanner.format.crlf is True))
         self._found.clear()
         return nxt
 
@@ -96,7 +98,7 @@ class BulkDecoder:
             good = count if valid.all() else int(np.argmin(valid))
             if good:
                 self.scanner.count_counters(frames[:good, layout.counter_offset])
-                self._decode(frames[:good], layout)
+                self._decode(frames[:good], layout, pos, length)
                 pos += good * length
             if good < count:
                 break
@@ -116,19 +118,23 @@ class BulkDecoder:
             valid &= (frames[:, -2] == 0x0D) & (frames[:, -1] == 0x0A)
         return valid
 
-    def _decode(self, frames: np.ndarray, layout) -> None:
+    def _decode(self, frames: np.ndarray, layout, start: int, length: int) -> None:
+        """Decode datagrams laid `length` bytes apart from byte `start`; with a read log, stamp
+        each with the host time of the read that completed it."""
         n = len(frames)
-        decode_frames(frames, layout, self.scanner.format, self._rows(self._n, self._n + n))
+        t_host = np.nan if self._reads is None else read_times(self._reads, start + length * np.arange(1, n + 1))
+        decode_frames(frames, layout, self.scanner.format, self._rows(self._n, self._n + n), t_host)
         self._n += n
 
 
-def decode_capture(data, fmt: Format | None = None, columns: bool = False):
+def decode_capture(data, fmt: Format | None = None, columns: bool = False, reads: np.ndarray | None = None):
     """Samples of a whole capture and the scanner (stats, format, special datagrams) after it.
 
     Samples come as a SAMPLE_DTYPE array, or with `columns` as a dict of per-field arrays like
     `codec.empty_columns` (what writing tables wants: no strided passes over whole records).
+    `reads`, the capture's read log (`stim300.reads`), gives each sample its `t_host`.
     """
-    decoder = BulkDecoder(data, fmt, columns)
+    decoder = BulkDecoder(data, fmt, columns, reads)
     samples = decoder.run()
     decoder.release()
     return samples, decoder.scanner

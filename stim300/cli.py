@@ -20,9 +20,11 @@ import numpy as np
 from .atomic import atomic_file
 from .bulk import decode_capture
 from .cliutil import CommandParser, UsageError, run_command
+from .clock import counter_times
 from .progress import Progress
 from .protocol import (ACC_RANGE_LSB_EXP, DEFAULT_BIT_RATE, NORMAL_LAYOUTS, SAMPLE_RATES_HZ, AccUnit, Format, GyroUnit,
                        Status)
+from .reads import load_reads
 
 AXES = "xyz"
 GYRO_UNITS = {"rate": GyroUnit.RATE, "incremental": GyroUnit.INCREMENTAL_ANGLE,
@@ -94,8 +96,9 @@ def _mapped(path: str):
 
 
 def _decode(path: str, fmt: Format):
+    """Samples (columns) and scanner; with the capture's read log, samples carry host times."""
     with _mapped(path) as data:
-        samples, scanner = decode_capture(data, fmt, columns=True)
+        samples, scanner = decode_capture(data, fmt, columns=True, reads=load_reads(path))
     if scanner.stats.datagrams == 0:
         raise UsageError(f"{path}: no STIM300 datagram found in {scanner.stats.bytes_in} bytes "
                          "(not a STIM300 capture, or a format the options do not describe)")
@@ -110,6 +113,8 @@ def columns(samples) -> dict[str, np.ndarray]:
     temps = [c for c in ("gyro", "acc", "incl") if any(c in lay.temperatures for lay in layouts)]
     aux = any(lay.aux for lay in layouts)
     out = {"counter": samples["counter"], "latency_us": samples["latency_us"]}
+    if len(samples["t_host"]) and np.isfinite(samples["t_host"]).all():  # the capture has a read log
+        out = {"t_host_s": samples["t_host"]} | out
     for block in clusters + ["temp_" + c for c in temps]:
         for k, axis in enumerate(AXES):
             out[f"{block}_{axis}"] = samples[block][:, k]  # contiguous in decode_capture's columns
@@ -125,7 +130,9 @@ def column_units(names, fmt: Format) -> dict[str, str]:
     result = {}
     for name in names:
         block = name.split("_")[0] if not name.startswith("temp_") else "temp"
-        if name.startswith("status_") or name == "counter":
+        if name == "t_host_s":
+            result[name] = "s"
+        elif name.startswith("status_") or name == "counter":
             result[name] = "1"
         elif name == "latency_us":
             result[name] = "us"
@@ -185,6 +192,8 @@ def capture_info(samples: np.ndarray, scanner) -> dict:
     fmt = scanner.format
     step = s.counter_step
     rate = fmt.sample_rate_hz or (2000 // step if step else None)
+    times = counter_times(samples["counter"], rate, samples["t_host"]) if rate else None
+    checked = times is not None and times.checked
     info = {
         "datagrams": s.datagrams,
         "crc_errors": s.crc_errors,
@@ -196,7 +205,9 @@ def capture_info(samples: np.ndarray, scanner) -> dict:
         "datagram_id": f"0x{fmt.datagram_id:02X}" if fmt.datagram_id is not None else None,
         "crlf": fmt.crlf,
         "sample_rate_hz": rate,
-        "duration_s": (s.datagrams + s.lost_samples) / rate if rate else None,
+        "duration_s": (s.datagrams + s.lost_samples) / rate + times.hidden_s if rate else None,
+        "hidden_gaps": times.hidden_gaps if checked else None,  # None: no read log to find them with
+        "hidden_gap_s": round(times.hidden_s, 3) if checked else None,
         "units": {k: v for k, v in fmt.units().items()},
         "acc_range_g": fmt.acc_range_g,
         "part_number": str(scanner.part_number) if scanner.part_number else None,
@@ -229,6 +240,9 @@ def _describe(info: dict) -> str:
         f"bytes            {info['bytes']} B",
         f"crc_errors       {info['crc_errors']}",
         f"lost_samples     {info['lost_samples']}",
+        "hidden_gaps      " + (f"{info['hidden_gaps']} ({info['hidden_gap_s']:.3f} s, found from the read log)"
+                               if info["hidden_gaps"] is not None
+                               else "- (no read log: gaps of whole counter cycles cannot be seen)"),
         f"skipped_bytes    {info['skipped_bytes']} B",
         f"restarts         {info['restarts']}",
         f"config_changes   {info['config_changes']}",

@@ -103,9 +103,10 @@ def _int24(word: np.ndarray, signed: bool = True) -> np.ndarray:
 
 
 def decode_frames(frames: np.ndarray, layout: Layout, fmt: Format, out: np.ndarray,
-                  t_host: float = np.nan) -> None:
+                  t_host: float | np.ndarray = np.nan) -> None:
     """Decode normal datagrams (rows of `frames`, N x width uint8 with width >= pre_crc) into
-    `out`: N samples of SAMPLE_DTYPE, or a dict of columns like `empty_columns` gives.
+    `out`: N samples of SAMPLE_DTYPE, or a dict of columns like `empty_columns` gives;
+    `t_host` is one read time for all, or one per datagram.
 
     Every field of `out` is written, so it may come from np.empty. The CRC is not checked here:
     callers only pass frames they have verified.

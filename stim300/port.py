@@ -20,10 +20,13 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import serial
 import structlog
 
+from .atomic import atomic_file
 from .protocol import CONFIGURATION, DEFAULT_BIT_RATE
+from .reads import ReadLog, reads_path
 from .ringbuffer import RingBuffer
 from .stream import StreamParser
 
@@ -208,8 +211,10 @@ def record(url: str, output_path, baudrate: int = DEFAULT_BIT_RATE, duration_s: 
     """Copy raw bytes from the port to `output_path` until duration, max_bytes or Ctrl-C.
 
     Bytes go to OUT.part, renamed to OUT at the end whatever stopped the recording (a port
-    error included), so a file named OUT is always complete. Progress goes to stderr about once
-    a second. Returns the exit status: 0, or 1 after a port or file error (one line on stderr).
+    error included), so a file named OUT is always complete. The host time of every read goes
+    to OUT.reads.npy (`stim300.reads`), put in place just before OUT. Progress goes to stderr
+    about once a second. Returns the exit status: 0, or 1 after a port or file error (one line
+    on stderr).
     """
     out = Path(output_path)
     part = out.with_name(out.name + ".part")
@@ -219,6 +224,7 @@ def record(url: str, output_path, baudrate: int = DEFAULT_BIT_RATE, duration_s: 
         print(f"stim300 record: {exc}", file=sys.stderr)
         return 1
     total, status = 0, 0
+    reads = ReadLog()
     start = time.monotonic()
     next_report = start + 1.0
     try:
@@ -233,14 +239,19 @@ def record(url: str, output_path, baudrate: int = DEFAULT_BIT_RATE, duration_s: 
                         next_report += 1.0
                     try:
                         data = _read_available(ser, None if max_bytes is None else max_bytes - total)
+                        returned = time.monotonic()
                     except (serial.SerialException, OSError) as exc:
                         print(f"stim300 record: {url}: {_describe(exc)}", file=sys.stderr)
                         status = 1
                         break
-                    f.write(data)
-                    total += len(data)
+                    if data:
+                        f.write(data)
+                        total += len(data)
+                        reads.add(total, returned)
             except KeyboardInterrupt:
                 pass  # Ctrl-C is how an open-ended recording ends: keep what we have
+        with atomic_file(reads_path(out)) as f:
+            np.save(f, reads.table())
         part.replace(out)
     except OSError as exc:
         print(f"stim300 record: {part}: {(exc.strerror or str(exc)).lower()}", file=sys.stderr)

@@ -15,6 +15,7 @@ from calibd.frames import r1
 from calibd.scenario import load_scenario
 from calibd.sim import simulate
 from stim300.bulk import decode_capture
+from stim300.clock import counter_times
 
 FIXTURES = Path(__file__).resolve().parent.parent / "fixtures"
 SETTLE_S = 1.0
@@ -142,7 +143,7 @@ def test_2000hz_capture():
     samples, scanner = decode_capture(data)
     rate = scanner.format.sample_rate_hz
     assert rate == 2000
-    time_s = detect.sample_times(samples["counter"], rate)
+    time_s = counter_times(samples["counter"], rate).time_s
     segments = detect.find_segments(samples["gyro"], samples["acc"], rate, time_s, min_static_s=3.0)
     check_against_truth(segments, truth["schedule"], rate)
 
@@ -152,7 +153,7 @@ def test_capture_with_lost_datagrams_is_one_static():
     truth = json.loads((FIXTURES / "faults_125hz.bin.truth.json").read_text())
     samples, scanner = decode_capture(data)
     rate = scanner.format.sample_rate_hz
-    time_s = detect.sample_times(samples["counter"], rate)
+    time_s = counter_times(samples["counter"], rate).time_s
     faults = truth["faults"]
     lost = set(faults["dropped_samples"]) | set(faults["bit_flipped_samples"])
     kept = np.array([k for k in range(truth["samples"]) if k not in lost])
@@ -174,13 +175,13 @@ def test_sample_times_follow_the_counter_across_losses_and_the_wrap(rate):
     rng = np.random.default_rng(rate)
     gaps = rng.choice([1, 1, 1, 2, 3, cycle - 1, cycle], 30 * cycle)  # periods between received samples
     index = 7 + np.concatenate(([0], np.cumsum(gaps)))  # up to a cycle minus one sample lost, many wraps
-    times = detect.sample_times(((index * step) % 256).astype(np.uint8), rate)
+    times = counter_times(((index * step) % 256).astype(np.uint8), rate).time_s
     assert np.allclose(times, (index - index[0]) / rate)
     assert np.diff(times).max() == pytest.approx(cycle / rate)
     # a whole cycle lost cannot be seen (documented): it reads as no loss
-    aliased = detect.sample_times(np.array([0, (cycle + 1) * step]) % 256, rate)
+    aliased = counter_times(np.array([0, (cycle + 1) * step]) % 256, rate).time_s
     assert np.allclose(aliased, [0, 1 / rate])
-    assert len(detect.sample_times(np.zeros(0, np.uint8), rate)) == 0
+    assert len(counter_times(np.zeros(0, np.uint8), rate).time_s) == 0
 
 
 def test_no_static_no_level():

@@ -1,0 +1,110 @@
+"""The counter clock: counter steps, plus the whole counter cycles the host read times prove lost."""
+
+import numpy as np
+import pytest
+
+from stim300.clock import CYCLE_S, CounterClock, counter_times, host_window
+
+RATE_HZ = 125
+
+
+def host_read_times(true_s: np.ndarray, rng, read_every_s: float = 0.004, stall_every_s: float = 2.0,
+                    stall_s: float = 0.06, drift_ppm: float = 80.0) -> np.ndarray:
+    """When a host reading in bursts sees each datagram: reads every few ms (USB delivery), now
+    and then held up by a loaded host for `stall_s`, on a clock drifting against the sensor's."""
+    span = true_s[-1] + 1.0
+    reads = np.cumsum(rng.uniform(0.5, 1.5, int(span / read_every_s) + 10) * read_every_s)
+    stalls = rng.uniform(0, span, int(span / stall_every_s) + 1)
+    for t in stalls:  # no read returns during a stall: the next one comes at its end
+        inside = (reads > t) & (reads < t + stall_s)
+        reads[inside] = t + stall_s
+    reads = np.unique(reads)
+    arrived = true_s + 0.0002  # the datagram's bytes are on the wire a little after its sample
+    t_read = reads[np.searchsorted(reads, arrived)]
+    return 1000.0 + t_read * (1 + drift_ppm * 1e-6)
+
+
+def stream(n: int, lost: dict[int, int], rate_hz: int = RATE_HZ):
+    """Counters and true times of n sent datagrams, with lost[i] datagrams lost before the i-th."""
+    index = np.arange(n) + np.cumsum([lost.get(i, 0) for i in range(n)])
+    step = 2000 // rate_hz
+    return ((index * step) % 256).astype(np.uint8), index / rate_hz
+
+
+@pytest.mark.parametrize("cycles", [1, 2, 12])
+def test_hidden_gaps_of_whole_cycles_are_restored_exactly(cycles):
+    per_cycle = int(round(CYCLE_S * RATE_HZ))
+    lost = {700: cycles * per_cycle, 1500: cycles * per_cycle + 3}
+    counter, true_s = stream(3000, lost)
+    t_host = host_read_times(true_s, np.random.default_rng(cycles))
+    result = counter_times(counter, RATE_HZ, t_host)
+    np.testing.assert_allclose(result.time_s, true_s, atol=1e-9)
+    assert result.gap_index.tolist() == [700, 1500]
+    assert result.hidden_s == pytest.approx(2 * cycles * CYCLE_S)
+
+
+def test_the_counter_alone_is_short_by_the_hidden_cycles():
+    counter, true_s = stream(2000, {900: 188})  # 1.5 s lost: the counter sees 12 datagrams
+    blind = counter_times(counter, RATE_HZ)
+    assert true_s[-1] - blind.time_s[-1] == pytest.approx(11 * CYCLE_S)
+    assert blind.hidden_gaps == 0
+    fixed = counter_times(counter, RATE_HZ, host_read_times(true_s, np.random.default_rng(5)))
+    np.testing.assert_allclose(fixed.time_s, true_s, atol=1e-9)
+    assert fixed.hidden_gaps == 1 and fixed.hidden_s == pytest.approx(11 * CYCLE_S)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_jitter_stalls_and_drift_alone_find_no_gap(seed):
+    counter, true_s = stream(20_000, {3000: 5, 9000: 15})  # visible losses only
+    t_host = host_read_times(true_s, np.random.default_rng(seed), stall_every_s=0.5, stall_s=0.06,
+                             drift_ppm=200.0)
+    result = counter_times(counter, RATE_HZ, t_host)
+    assert result.hidden_gaps == 0
+    np.testing.assert_allclose(result.time_s, true_s, atol=1e-9)
+
+
+def test_host_times_faster_than_real_time_are_no_evidence():
+    """A capture replayed at full speed, with pauses: the host clock says nothing of lost time."""
+    counter, true_s = stream(5000, {})
+    t_host = true_s / 200.0
+    t_host[2500:] += 0.5  # the replay paused
+    result = counter_times(counter, RATE_HZ, t_host)
+    assert result.hidden_gaps == 0 and not result.checked
+    assert counter_times(counter, RATE_HZ, np.r_[t_host[:2500], t_host[2500:] + 40.0]).hidden_gaps == 0  # a long pause
+
+
+def test_without_host_times_the_counter_rules_as_before():
+    step = 2000 // RATE_HZ
+    sent = np.array([0, 1, 2, 5, 5 + 17, 5 + 17 + 16])  # 2 lost, then 16 (a whole cycle), then 15
+    counter = (sent * step % 256).astype(np.uint8)
+    expected = np.array([0, 1, 2, 5, 6, 6 + 16]) / RATE_HZ  # the whole cycle is invisible; a step
+    # of 0 counts is read as one cycle
+    for t_host in (None, np.full(6, np.nan)):
+        times = counter_times(counter, RATE_HZ, t_host)
+        np.testing.assert_allclose(times.time_s, expected, atol=1e-12)
+        assert not times.checked
+    assert len(counter_times(np.zeros(0, np.uint8), RATE_HZ).time_s) == 0
+
+
+def test_the_live_clock_in_batches_adds_each_gap_within_a_window():
+    counter, true_s = stream(4000, {1000: 16, 1003: 64, 2600: 188})
+    t_host = host_read_times(true_s, np.random.default_rng(9))
+    clock = CounterClock()
+    edges = [0, 17, 990, 1000, 1001, 1030, 2600, 2625, 3333, 4000]  # gaps at, just after and before edges
+    parts = [clock.times(counter[a:b], RATE_HZ, t_host[a:b]) for a, b in zip(edges, edges[1:])]
+    late = np.abs(np.concatenate([p.time_s for p in parts]) - true_s) > 1e-9
+    window = host_window(RATE_HZ)
+    assert not late[:1000].any() and not late[1003 + window:2600].any() and not late[2600 + window:].any()
+    assert sum(p.hidden_gaps for p in parts) == 3
+    assert sum(p.hidden_s for p in parts) == pytest.approx((1 + 4 + 11) * CYCLE_S)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_live_clock_finds_no_gap_in_jitter_at_batch_ends(seed):
+    """Batches as the daemon drains them (0.2 s): a stalled read at a batch's end is no gap."""
+    counter, true_s = stream(10_000, {4000: 5})
+    t_host = host_read_times(true_s, np.random.default_rng(seed), stall_every_s=0.3, stall_s=0.06)
+    clock = CounterClock()
+    times = np.concatenate([clock.times(counter[a:a + 25], RATE_HZ, t_host[a:a + 25]).time_s
+                            for a in range(0, len(counter), 25)])
+    np.testing.assert_allclose(times, true_s, atol=1e-9)
