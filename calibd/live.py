@@ -9,6 +9,7 @@ and the daemon's own port reader and loop instead.
 
 from __future__ import annotations
 
+import bisect
 import logging
 import os
 import signal
@@ -107,13 +108,24 @@ def replay(data: bytes, calibrator: Calibrator, speed: float | None = None, chun
         rate = _rate(parser)
         if len(samples) and rate:
             calibrator.sensor = _sensor(parser)
-            calibrator.feed(samples, rate, parser.stats.restarts)
+            feed_power_ups(calibrator, samples, parser.stats.datagrams - len(samples), rate,
+                           parser.stats.restart_datagrams)
             data_time += len(samples) / rate
         if speed:
             time.sleep(max(0.0, started + data_time / speed - time.monotonic()))
         if progress:
             progress(min(offset + chunk_bytes, len(data)), len(data))
     calibrator.finish()
+
+
+def feed_power_ups(calibrator: Calibrator, samples: np.ndarray, first: int, rate: int,
+                   restart_datagrams: list[int]) -> None:
+    """Feed a batch whose first sample is the stream's sample number `first`, cut where the sensor
+    restarted inside it (`restart_datagrams`: each restarted sensor's first sample number), so the
+    old power-up's last samples end its session instead of opening the new one's warm-up."""
+    cuts = [i - first for i in restart_datagrams if first < i < first + len(samples)]
+    for lo, hi in zip([0, *cuts], [*cuts, len(samples)]):
+        calibrator.feed(samples[lo:hi], rate, bisect.bisect_right(restart_datagrams, first + lo))
 
 
 class _Pump:
@@ -136,7 +148,7 @@ class _Pump:
         rate = _rate(parser)
         if len(samples) and rate:
             self.calibrator.sensor = _sensor(parser)
-            self.calibrator.feed(samples, rate, parser.stats.restarts)
+            feed_power_ups(self.calibrator, samples, self.cursor - len(samples), rate, parser.stats.restart_datagrams)
             self.last_data = time.monotonic()  # after the feed: time spent solving is not silence
             return True
         silent = time.monotonic() - self.last_data

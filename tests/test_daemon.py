@@ -498,3 +498,20 @@ def test_time_spent_solving_is_not_silence(monkeypatch):
     slow = Slow()
     replay_pty((FIXTURES / "faults_125hz.bin").read_bytes(), slow)
     assert slow.samples and slow.finished and slow.state != State.FAULT
+
+
+def test_a_batch_spanning_a_restart_is_cut_at_the_restart():
+    """Every sample of the first power-up reaches the calibrator before the restart is counted,
+    however the bytes fall into batches, so its session ends with all of its data."""
+    first = HEADING137.read_bytes()
+    fed = []
+
+    class Recorder(CountingCalibrator):
+        def feed(self, samples, rate_hz, restarts=0):
+            super().feed(samples, rate_hz, restarts)
+            fed.append((len(samples), restarts))
+
+    replay(first + (FIXTURES / "faults_125hz.bin").read_bytes(), Recorder(), chunk_bytes=1 << 20)
+    before_restart = sum(n for n, restarts in fed if restarts == 0)
+    assert before_restart == decode_capture(first)[1].stats.datagrams
+    assert [r for _, r in fed] == sorted(r for _, r in fed)  # the count never goes back
