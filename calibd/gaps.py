@@ -22,6 +22,7 @@ from scipy.optimize import least_squares
 from scipy.special import gammaincc
 
 from .estimators.joint import JointInput, NoiseModel, mean_variance
+from .noise import FLICKER_TAUS_S
 from .frames import r3
 
 FOUND_SIGMAS = 4.0  # a correction this many sigma from zero is a loss (5 turns: 3e-4 false alarms a session)
@@ -81,12 +82,13 @@ def check_turn_angles(inp: JointInput, chi: np.ndarray, a: np.ndarray, g0: float
     if len(statics) < 3:
         raise ValueError("fewer than three statics")
     means = np.stack([[values[s:e].mean(axis=0) for s, e in statics] for values in (inp.acc, inp.incl)])
-    sigma = np.sqrt([[mean_variance(noise, e - s, inp.rate_hz) for s, e in statics]
-                     for noise in (acc_noise, incl_noise)])[:, :, None]
+    whiten = [np.linalg.inv(np.linalg.cholesky(static_means_covariance(noise, inp)))
+              for noise in (acc_noise, incl_noise)]
     static_chi = np.array([chi[s:e].mean() for s, e in statics])
 
     def residuals(params):
-        return ((means - _model(params, static_chi, a, g0)) / sigma).ravel()
+        misfit = means - _model(params, static_chi, a, g0)
+        return np.concatenate([(w @ m).ravel() for w, m in zip(whiten, misfit)])
 
     start = np.concatenate([u0, means[0, 0] - g0 * a[:, 2], means[1, 0] - g0 * a[:, 2], np.zeros(len(statics) - 1)])
     null = least_squares(lambda p: residuals(np.concatenate([p, start[8:]])), start[:8], method="lm")
@@ -99,6 +101,23 @@ def check_turn_angles(inp: JointInput, chi: np.ndarray, a: np.ndarray, g0: float
                             float(free.x[8 + k]), float(sigmas[k])) for k in range(len(statics) - 1))
     dof = means.size - 8
     return TiltCheck(turns, float(2 * null.cost), dof)
+
+
+def static_means_covariance(noise: NoiseModel, inp: JointInput) -> np.ndarray:
+    """Covariance of one channel's means over the statics: white noise and the flicker's fast
+    components as in each mean's own variance, and between statics the part of each flicker
+    component that the time between them has not decorrelated (the slow ones are nearly common to
+    all statics, and taken as independent they would make every angle look twice as uncertain)."""
+    start_s = np.array([inp.time_s[s] for s, _ in inp.statics])
+    end_s = np.array([inp.time_s[e - 1] for _, e in inp.statics]) + 1.0 / inp.rate_hz
+    length_s = end_s - start_s
+    gap_s = np.maximum(start_s[None, :] - end_s[:, None], start_s[:, None] - end_s[None, :])
+    cov = np.zeros((len(inp.statics), len(inp.statics)))
+    for corr_s in FLICKER_TAUS_S[:4]:
+        decay = corr_s / length_s * (1 - np.exp(-length_s / corr_s))
+        cov += noise.flicker * np.outer(decay, decay) * np.exp(-np.clip(gap_s, 0.0, None) / corr_s)
+    np.fill_diagonal(cov, [mean_variance(noise, e - s, inp.rate_hz) for s, e in inp.statics])
+    return cov
 
 
 def chi_correction(inp: JointInput, chi: np.ndarray, turns: list[TurnAngle]) -> np.ndarray:

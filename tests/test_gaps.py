@@ -10,6 +10,7 @@ from calibd import gaps
 from calibd.calibrate import joint_real_case, load_session
 from calibd.estimators.joint import JointInput, NoiseModel
 from calibd.frames import Site, int_to_imu, r3
+from calibd.noise import FLICKER_TAUS_S
 from calibd.scenario import load_scenario
 from calibd.sim import capture_bytes, simulate, truth_record
 
@@ -44,6 +45,21 @@ def test_tilt_check_recovers_a_known_turn_angle():
     corrected = chi + gaps.chi_correction(inp, chi, [t for t in check.turns if t.found])
     for start, stop in statics:
         assert corrected[start:stop] == pytest.approx(turned[start:stop], abs=1e-12)
+
+
+def test_static_means_covariance_matches_the_samples_covariance():
+    """Flicker correlates the statics' means: against the covariance of the samples themselves
+    (white plus the four Gauss-Markov components), averaged over each static."""
+    rate, statics = 20, ((0, 100), (160, 220), (400, 500))
+    noise = NoiseModel(white=0.3, flicker=0.7)
+    t = np.arange(500) / rate
+    samples = noise.white * np.eye(len(t)) + noise.flicker * sum(
+        np.exp(-np.abs(t[:, None] - t[None, :]) / c) for c in FLICKER_TAUS_S[:4])
+    averaging = np.zeros((len(statics), len(t)))
+    for k, (start, stop) in enumerate(statics):
+        averaging[k, start:stop] = 1 / (stop - start)
+    inp = JointInput(t, *(np.zeros((len(t), 3)),) * 3, statics, rate)
+    assert gaps.static_means_covariance(noise, inp) == pytest.approx(averaging @ samples @ averaging.T, rel=0.01)
 
 
 @pytest.fixture(scope="module")
