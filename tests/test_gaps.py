@@ -149,3 +149,12 @@ def test_a_platform_axis_along_up_leaves_the_turns_unchecked():
     assert not any(t["corrected"] for t in result["checks"]["turn_angles"])
     assert all(t["sigma_deg"] is None for t in result["checks"]["turn_angles"])
     assert any("5 of 5 turns' angles could not be checked" in w for w in result["warnings"])
+
+
+def test_continuous_rotation_says_the_turns_went_unchecked():
+    """Two statics (before and after ten turns) cannot pin a turn's angle: the result says so."""
+    scenario = load_scenario("continuous")
+    sim = simulate(replace(scenario, noise=replace(scenario.noise, enabled=False)))
+    result = joint_real_case(load_session("continuous.bin", data=capture_bytes(sim)[0]), scenario.site)
+    assert "turn_angles" not in result["checks"]
+    assert any("the statics do not pin the turns' angles" in w for w in result["warnings"])
