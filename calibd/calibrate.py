@@ -310,8 +310,8 @@ def _corrected(inp: joint.JointInput, fit: joint.JointResult, site: Site, option
     """The joint fit redone with the turns' angles corrected to the tilt's; each correction's
     1-sigma is carried into the sigmas through a fit redone with that correction moved by it."""
     def solved(turns):
-        moved = replace(inp, chi_correction=gaps.chi_correction(inp, fit.gyro.chi, turns))
-        return moved, joint.solve(moved, site, options)
+        corrected_inp = replace(inp, chi_correction=gaps.chi_correction(inp, fit.gyro.chi, turns))
+        return corrected_inp, joint.solve(corrected_inp, site, options)
 
     inp, corrected = solved(found)
     variance = {name: sigma**2 for name, sigma in corrected.sigmas.items()}
@@ -362,8 +362,8 @@ def _turn_angle_checks(fitted: JointFit, session: Session) -> dict:
                       "tilt_minus_gyro_deg": t.correction_rad / DEG,
                       "sigma_deg": t.sigma_rad / DEG if t.checkable else None, "corrected": t.found})
     final = fitted.final_tilt
-    return {"turn_angles": turns,
-            "force_static_chi2": {"chi2": final.chi2, "dof": final.dof, "p_value": final.p_value}}
+    chi2 = {"force_static_chi2": {"chi2": final.chi2, "dof": final.dof, "p_value": final.p_value}} if final else {}
+    return {"turn_angles": turns} | chi2
 
 
 def _turn_angle_warnings(fitted: JointFit, session: Session) -> list[str]:

@@ -74,8 +74,8 @@ def _model(params: np.ndarray, static_chi: np.ndarray, a: np.ndarray, g0: float)
 
 def check_turn_angles(inp: JointInput, chi: np.ndarray, a: np.ndarray, g0: float,
                       acc_noise: NoiseModel, incl_noise: NoiseModel, u0: np.ndarray) -> TiltCheck:
-    """Fit (u, b_acc, b_incl, one angle correction per turn) to the statics' mean forces, each
-    weighted by the variance the sensor's noise model gives a mean over that static. `chi`: the
+    """Fit (u, b_acc, b_incl, one angle correction per turn) to the statics' mean forces,
+    weighted by the covariance the sensors' noise models give those means. `chi`: the
     joint fit's platform angle; `a`: R_int^IMU; `u0`: the joint fit's (u1, u2) to start from.
     Raises ValueError when the statics do not determine the corrections."""
     statics = inp.statics
