@@ -7,7 +7,7 @@ calibrated, from where its warm-up ends.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.special import gammaincc
@@ -18,10 +18,10 @@ from stim300.codec import fault_bits
 from stim300.protocol import Status, status_names
 from stim300.reads import load_reads
 
-from . import detect
+from . import detect, gaps
 from .config import WarmupConfig
 from .estimators import joint, thesis
-from .frames import EARTH_RATE, STANDARD_GRAVITY, Site
+from .frames import EARTH_RATE, STANDARD_GRAVITY, Site, int_to_imu
 from .results import make_result
 from .warmup import Settling, settling
 
@@ -401,6 +401,8 @@ class JointFit:
     first: int  # the session sample where the fit's input starts (the level static's first)
     inp: joint.JointInput
     fit: joint.JointResult
+    turn_angles: gaps.TiltCheck | None = None  # each turn's angle against the tilt, before any correction
+    final_tilt: gaps.TiltCheck | None = None  # the same check on the fit as returned
 
 
 def joint_fit(session: Session, site: Site, options: joint.JointOptions = joint.JointOptions(),
@@ -431,7 +433,40 @@ def joint_fit(session: Session, site: Site, options: joint.JointOptions = joint.
         raise _lacking(str(exc), segments) from None
     except np.linalg.LinAlgError:
         raise _lacking("the segments do not determine every parameter (too few platform angles)", segments) from None
-    return JointFit(used, first, inp, fit)
+    check = _tilt_check(inp, fit, site)
+    found = [t for t in check.turns if t.found] if check else []
+    if not found:
+        return JointFit(used, first, inp, fit, check, check)
+    inp, fit = _corrected(inp, fit, site, options, found)
+    return JointFit(used, first, inp, fit, check, _tilt_check(inp, fit, site))
+
+
+def _tilt_check(inp: joint.JointInput, fit: joint.JointResult, site: Site) -> gaps.TiltCheck | None:
+    """The turns' angles against the tilt; None when the statics cannot tell them."""
+    a = int_to_imu(fit.estimates["alpha"], fit.estimates["beta"])
+    try:
+        return gaps.check_turn_angles(inp, fit.gyro.chi, a, site.gravity, fit.acc.noise, fit.incl.noise,
+                                      fit.incl.params[:2])
+    except (ValueError, np.linalg.LinAlgError):
+        return None
+
+
+def _corrected(inp: joint.JointInput, fit: joint.JointResult, site: Site, options: joint.JointOptions,
+               found: list[gaps.TurnAngle]) -> tuple[joint.JointInput, joint.JointResult]:
+    """The joint fit redone with the turns' angles corrected to the tilt's; each correction's
+    1-sigma is carried into the sigmas through a fit redone with that correction moved by it."""
+    def solved(turns):
+        corrected_inp = replace(inp, chi_correction=gaps.chi_correction(inp, fit.gyro.chi, turns))
+        return corrected_inp, joint.solve(corrected_inp, site, options)
+
+    inp, corrected = solved(found)
+    variance = {name: sigma**2 for name, sigma in corrected.sigmas.items()}
+    for k, turn in enumerate(found):
+        _, moved = solved(found[:k] + [replace(turn, correction_rad=turn.correction_rad + turn.sigma_rad)]
+                          + found[k + 1:])
+        for name in variance:
+            variance[name] += (moved.estimates[name] - corrected.estimates[name]) ** 2
+    return inp, replace(corrected, sigmas={name: float(np.sqrt(v)) for name, v in variance.items()})
 
 
 def joint_real_case(session: Session, site: Site, options: joint.JointOptions = joint.JointOptions(),
@@ -440,15 +475,76 @@ def joint_real_case(session: Session, site: Site, options: joint.JointOptions = 
     static to the last static of the same mounting. `segments`: the session's, when already found."""
     fitted = joint_fit(session, site, options, segments)
     used, fit = fitted.segments, fitted.fit
-    warnings = _session_warnings(session) + _joint_warnings(fit, site)
+    warnings = _session_warnings(session) + _joint_warnings(fit, site) + _turn_angle_warnings(fitted, session)
     estimates = {name: (fit.estimates[name], fit.sigmas[name]) for name in joint.ESTIMATE_NAMES}
     result = make_result("joint", site, estimates, [_segment_record(s, s.kind) for s in used], warnings,
                          session.sensor, stream=session.stream,
                          options={"fixed_amplitude": options.fixed_amplitude, "drift": options.drift},
-                         checks=_joint_checks(fit, site))
+                         checks=_joint_checks(fit, site) | _turn_angle_checks(fitted, session))
     if fit.sigmas["yaw"] / DEG > YAW_SIGMA_POOR_DEG:
         result["estimates"]["yaw"]["quality"] = "poor"
+    if fitted.final_tilt and fitted.final_tilt.p_value < CHI2_ALARM_P:
+        for name in PLATFORM_ANGLE_ESTIMATES:
+            result["estimates"][name]["quality"] = "poor"
     return result
+
+
+# what a wrong platform angle at the statics moves (alpha and beta come from the turns' rates)
+PLATFORM_ANGLE_ESTIMATES = ("pitch", "roll", "yaw", *(f"{s}_bias_{a}" for s in ("acc", "incl") for a in "xyz"))
+
+
+def _turn_window_s(fitted: JointFit, session: Session, turn: gaps.TurnAngle) -> tuple[float, float]:
+    """The turn's start and end on the session's time base."""
+    return float(session.time_s[fitted.first + turn.start]), float(session.time_s[fitted.first + turn.stop])
+
+
+def _turn_angle_checks(fitted: JointFit, session: Session) -> dict:
+    if fitted.turn_angles is None:
+        return {}
+    turns = []
+    for t in fitted.turn_angles.turns:
+        start_s, end_s = _turn_window_s(fitted, session, t)
+        turns.append({"start_s": round(start_s, 3), "end_s": round(end_s, 3), "gyro_deg": t.gyro_rad / DEG,
+                      "tilt_minus_gyro_deg": t.correction_rad / DEG,
+                      "sigma_deg": t.sigma_rad / DEG if t.checkable else None, "corrected": t.found})
+    final = fitted.final_tilt
+    chi2 = {"force_static_chi2": {"chi2": final.chi2, "dof": final.dof, "p_value": final.p_value}} if final else {}
+    return {"turn_angles": turns} | chi2
+
+
+def _turn_angle_warnings(fitted: JointFit, session: Session) -> list[str]:
+    """Turns whose angle the tilt corrected, turns it could not check, statics' forces that do
+    not fit."""
+    unseen = ("a datagram loss the counter cannot see (whole 0.128 s cycles) during a turn would go unnoticed "
+              "except by the gyro chi-square")
+    if fitted.turn_angles is None:
+        return [f"the statics do not pin the turns' angles (fewer than three statics, or too few platform "
+                f"angles): {unseen}"]
+    warnings = []
+    for t in fitted.turn_angles.turns:
+        start_s, end_s = _turn_window_s(fitted, session, t)
+        if t.found:
+            top_rate = np.max(np.abs(fitted.fit.gyro.chi_rate[t.start:t.stop]))
+            warnings.append(
+                f"the turn from {start_s:.1f} s to {end_s:.1f} s: the tilt the accelerometers and inclinometers "
+                f"see turned {(t.gyro_rad + t.correction_rad) / DEG:+.2f} deg where the gyros integrated "
+                f"{t.gyro_rad / DEG:+.2f} deg (off by {t.correction_rad / DEG:+.2f} +- {t.sigma_rad / DEG:.2f} deg): "
+                f"datagrams lost unseen by the counter (at least {abs(t.correction_rad) / top_rate:.2f} s at the "
+                "turn's top rate); the platform angle from that turn on is corrected and the correction's "
+                "uncertainty is in the sigmas")
+    unchecked = [t for t in fitted.turn_angles.turns if not t.checkable]
+    if unchecked:
+        tilt_deg = np.degrees(np.arcsin(min(np.hypot(*fitted.fit.incl.params[:2]), 1.0)))
+        warnings.append(f"{len(unchecked)} of {len(fitted.turn_angles.turns)} turns' angles could not be "
+                        f"checked against the tilt (platform axis {tilt_deg:.3f} deg from Up, too little to see "
+                        f"the angle to {np.degrees(gaps.CHECKABLE_SIGMA_RAD):.0f} deg): {unseen}")
+    final = fitted.final_tilt
+    if final and final.p_value < CHI2_ALARM_P:
+        warnings.append(f"the static segments' accelerometer and inclinometer means do not fit the model "
+                        f"(chi-square {final.chi2:.0f} for {final.dof} degrees of freedom): a platform angle off "
+                        "(datagrams lost during a turn), a platform that moved during a static, or a bias jump; "
+                        "pitch, roll, yaw and the accelerometer and inclinometer biases are flagged poor")
+    return warnings
 
 
 def _joint_checks(fit: joint.JointResult, site: Site) -> dict:

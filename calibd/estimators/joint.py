@@ -48,6 +48,8 @@ class JointInput:
     incl: np.ndarray  # (N, 3) m/s^2
     statics: tuple[tuple[int, int], ...]  # [start, stop) sample ranges of the static segments
     rate_hz: float
+    # (N,) rad added to the gyro-integrated platform angle: turns whose angle lost datagrams shortened
+    chi_correction: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -101,7 +103,8 @@ def _platform_angle(inp: JointInput, axis: np.ndarray, offset: np.ndarray,
     start = np.concatenate(([0.0], np.cumsum(rate * dt_next)[:-1]))
     # half an interval at a linearly changing rate: r dt/2 less slope dt^2/8 (matters in ramps)
     slope_term = np.gradient(rate) * dt / 8
-    return start + rate * dt / 2 - slope_term, rate
+    chi = start + rate * dt / 2 - slope_term
+    return (chi if inp.chi_correction is None else chi + inp.chi_correction), rate
 
 
 @dataclass(frozen=True)
@@ -227,13 +230,17 @@ def _static_chi2(residuals: np.ndarray, inp: JointInput, fitted: int, noise: Noi
     'static', or the model does not hold."""
     total, count = 0.0, 0
     for start, stop in inp.statics:
-        n = stop - start
-        tau = n / inp.rate_hz
-        var = noise.white / n + noise.flicker * sum(_gm_mean_variance(tau, c) for c in FLICKER_TAUS_S[:4])
+        var = mean_variance(noise, stop - start, inp.rate_hz)
         if var > 0:  # a given noise-free model (planning a protocol) leaves nothing to compare with
             total += float(np.sum(residuals[start:stop].mean(axis=0) ** 2) / var)
         count += 3
     return total, max(count - fitted, 1)
+
+
+def mean_variance(noise: NoiseModel, n: int, rate_hz: float) -> float:
+    """Variance of one channel's mean over n consecutive samples under the noise model."""
+    tau = n / rate_hz
+    return noise.white / n + noise.flicker * sum(_gm_mean_variance(tau, c) for c in FLICKER_TAUS_S[:4])
 
 
 def _gm_mean_variance(tau: float, corr: float) -> float:

@@ -1,0 +1,134 @@
+"""Datagram losses the counter cannot see, found and corrected from the data itself.
+
+The datagram counter repeats every 256 internal samples (0.128 s): a loss of a whole number of
+cycles during a turn shortens the time base unseen, and the gyro-integrated platform angle chi
+of every later static is short by the angle turned in the lost time (2.6 deg for one cycle at
+20 deg/s). The accelerometers and inclinometers see the platform angle independently: in a
+static at angle chi they read f = g0 A R3(chi) u + b, and the platform axis's tilt u turns with
+chi. Fitting the statics' mean forces with one free angle correction per turn (the motion
+between two statics) tells, for each turn, the angle the tilt saw it add beyond what the gyros
+integrated. A correction many sigma from zero is a loss; the joint fit is then redone with the
+corrected angles. The precision is the static means' noise over the tilt g0 |u_h|: a tenth of
+a degree for a tilt of 0.5 deg; a platform axis within a few hundredths of a degree of Up
+leaves the angles unchecked.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.special import gammaincc
+
+from .estimators.joint import JointInput, NoiseModel, mean_variance
+from .noise import FLICKER_TAUS_S
+from .frames import r3
+
+FOUND_SIGMAS = 4.0  # a correction this many sigma from zero is a loss (5 turns: 3e-4 false alarms a session)
+CHECKABLE_SIGMA_RAD = np.radians(1.0)  # a turn pinned less well than this is not checked
+
+
+@dataclass(frozen=True)
+class TurnAngle:
+    """The motion between two statics [stop of the one before, start of the one after) in
+    fit-input samples, and the angle the tilt saw it turn beyond the gyros' integral."""
+
+    start: int
+    stop: int
+    gyro_rad: float  # chi after minus chi before, from the gyros
+    correction_rad: float  # tilt minus gyros
+    sigma_rad: float
+
+    @property
+    def checkable(self) -> bool:
+        return self.sigma_rad <= CHECKABLE_SIGMA_RAD
+
+    @property
+    def found(self) -> bool:
+        return self.checkable and abs(self.correction_rad) > FOUND_SIGMAS * self.sigma_rad
+
+
+@dataclass(frozen=True)
+class TiltCheck:
+    """Every turn's angle against the tilt, and the chi-square of the statics' mean forces with
+    the gyros' angles (no correction): large when a platform angle or a static is wrong."""
+
+    turns: tuple[TurnAngle, ...]
+    chi2: float
+    dof: int
+
+    @property
+    def p_value(self) -> float:
+        return float(gammaincc(self.dof / 2, self.chi2 / 2))
+
+
+def _model(params: np.ndarray, static_chi: np.ndarray, a: np.ndarray, g0: float) -> np.ndarray:
+    """Static mean forces of both sensors, (2, S, 3): g0 A R3(chi + corrections so far) u + b."""
+    u1, u2 = params[:2]
+    u = np.array([u1, u2, np.sqrt(1.0 - u1**2 - u2**2)])
+    chi = static_chi + np.concatenate(([0.0], np.cumsum(params[8:])))
+    tilt = g0 * (a @ r3(chi) @ u)  # (S, 3)
+    return np.stack([tilt + params[2:5], tilt + params[5:8]])
+
+
+def check_turn_angles(inp: JointInput, chi: np.ndarray, a: np.ndarray, g0: float,
+                      acc_noise: NoiseModel, incl_noise: NoiseModel, u0: np.ndarray) -> TiltCheck:
+    """Fit (u, b_acc, b_incl, one angle correction per turn) to the statics' mean forces,
+    weighted by the covariance the sensors' noise models give those means. `chi`: the
+    joint fit's platform angle; `a`: R_int^IMU; `u0`: the joint fit's (u1, u2) to start from.
+    Raises ValueError when the statics do not determine the corrections."""
+    statics = inp.statics
+    if len(statics) < 3:
+        raise ValueError("fewer than three statics")
+    means = np.stack([[values[s:e].mean(axis=0) for s, e in statics] for values in (inp.acc, inp.incl)])
+    whiten = [np.linalg.inv(np.linalg.cholesky(static_means_covariance(noise, inp)))
+              for noise in (acc_noise, incl_noise)]
+    static_chi = np.array([chi[s:e].mean() for s, e in statics])
+
+    def residuals(params):
+        misfit = means - _model(params, static_chi, a, g0)
+        return np.concatenate([(w @ m).ravel() for w, m in zip(whiten, misfit)])
+
+    start = np.concatenate([u0, means[0, 0] - g0 * a[:, 2], means[1, 0] - g0 * a[:, 2], np.zeros(len(statics) - 1)])
+    null = least_squares(lambda p: residuals(np.concatenate([p, start[8:]])), start[:8], method="lm")
+    free = least_squares(residuals, np.concatenate([null.x, start[8:]]), method="lm")
+    cov = np.linalg.pinv(free.jac.T @ free.jac)
+    sigmas = np.sqrt(np.clip(np.diag(cov)[8:], 0.0, None))
+    if not np.all(np.isfinite(sigmas)) or np.linalg.matrix_rank(free.jac) < len(free.x):
+        sigmas = np.full(len(statics) - 1, np.inf)
+    turns = tuple(TurnAngle(statics[k][1], statics[k + 1][0], float(static_chi[k + 1] - static_chi[k]),
+                            float(free.x[8 + k]), float(sigmas[k])) for k in range(len(statics) - 1))
+    dof = means.size - 8
+    return TiltCheck(turns, float(2 * null.cost), dof)
+
+
+def static_means_covariance(noise: NoiseModel, inp: JointInput) -> np.ndarray:
+    """Covariance of one channel's means over the statics: white noise and the flicker's fast
+    components as in each mean's own variance, and between statics the part of each flicker
+    component that the time between them has not decorrelated (the slow ones are nearly common to
+    all statics, and taken as independent they would make every angle look twice as uncertain)."""
+    start_s = np.array([inp.time_s[s] for s, _ in inp.statics])
+    end_s = np.array([inp.time_s[e - 1] for _, e in inp.statics]) + 1.0 / inp.rate_hz
+    length_s = end_s - start_s
+    gap_s = np.maximum(start_s[None, :] - end_s[:, None], start_s[:, None] - end_s[None, :])
+    cov = np.zeros((len(inp.statics), len(inp.statics)))
+    for corr_s in FLICKER_TAUS_S[:4]:
+        decay = corr_s / length_s * (1 - np.exp(-length_s / corr_s))
+        cov += noise.flicker * np.outer(decay, decay) * np.exp(-np.clip(gap_s, 0.0, None) / corr_s)
+    np.fill_diagonal(cov, [mean_variance(noise, e - s, inp.rate_hz) for s, e in inp.statics])
+    return cov
+
+
+def chi_correction(inp: JointInput, chi: np.ndarray, turns: list[TurnAngle]) -> np.ndarray:
+    """Per sample, the platform angle the `turns` add beyond the gyros' integral: nothing before
+    a turn, all of it after, and in proportion to the angle turned in between (where in the turn
+    the datagrams went is not known)."""
+    total = np.zeros(len(inp.time_s))
+    for turn in turns:
+        progress = (chi - chi[turn.start - 1]) / (chi[turn.stop] - chi[turn.start - 1])
+        ramp = np.clip(progress, 0.0, 1.0)
+        ramp[:turn.start] = 0.0
+        ramp[turn.stop:] = 1.0
+        total += turn.correction_rad * ramp
+    return total
