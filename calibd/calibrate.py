@@ -14,8 +14,8 @@ from scipy.special import gammaincc
 
 from stim300.bulk import decode_capture
 from stim300.clock import CYCLE_S, counter_times
-from stim300.codec import fault_bits
-from stim300.protocol import Status, status_names
+from stim300.codec import fault_bits, start_up_rises
+from stim300.protocol import status_names
 from stim300.reads import load_reads
 
 from . import detect, gaps
@@ -86,7 +86,7 @@ def decode(path: str, data: bytes | None = None) -> Capture:
         raise CalibrationError(f"{path}: datagram 0x{fmt.datagram_id:02X} lacks accelerometers or inclinometers")
     stats = scanner.stats
     rate = fmt.sample_rate_hz or 2000 // stats.counter_step
-    cuts = sorted({0, len(samples), *stats.restart_datagrams, *_start_up_rises(samples)})
+    cuts = sorted({0, len(samples), *stats.restart_datagrams, *start_up_rises(samples).tolist()})
     return Capture(
         path=str(path), samples=samples, power_ups=list(zip(cuts, cuts[1:])), rate_hz=rate,
         sensor={"serial_number": scanner.serial_number.text if scanner.serial_number else None,
@@ -94,13 +94,6 @@ def decode(path: str, data: bytes | None = None) -> Capture:
                 "datagram_id": f"0x{fmt.datagram_id:02X}", "sample_rate_hz": rate},
         stream={"capture": str(path), "datagrams": stats.datagrams, "lost_samples": stats.lost_samples,
                 "crc_errors": stats.crc_errors, "restarts": stats.restarts})
-
-
-def _start_up_rises(samples: np.ndarray) -> list[int]:
-    """Samples where the start-up status bit comes on after data without it: a restart whose
-    power-up datagrams were lost (the scanner sees those only when they arrive intact)."""
-    up = ((samples["status_gyro"] | samples["status_acc"] | samples["status_incl"]) & Status.START_UP) != 0
-    return (np.flatnonzero(up[1:] & ~up[:-1]) + 1).tolist()
 
 
 def power_up_session(capture: Capture, number: int | None = None, start_s: float | None = 0.0) -> Session:

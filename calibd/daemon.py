@@ -24,6 +24,7 @@ import structlog
 
 from stim300.atomic import write_atomic
 from stim300.clock import CounterClock
+from stim300.codec import start_up_flags, start_up_rises
 
 from . import detect
 from .calibrate import (CalibrationError, ProtocolIncomplete, Session, fault_record, fault_summary, hidden_gap_record,
@@ -101,6 +102,7 @@ class Calibrator:
         self.sessions = 0
         self.sensor: dict = {}
         self._restarts_seen = 0
+        self._start_up_before = True  # whether the last sample fed had the start-up bit (none yet: as if)
         self._reset_time()
 
     # ------------------------------------------------------------------ feeding
@@ -115,8 +117,17 @@ class Calibrator:
         if restarts > self._restarts_seen:
             self._restarts_seen = restarts
             self._power_cycled()
+            self._start_up_before = True  # the new power-up's start-up bit is not a second restart
+        rises = start_up_rises(samples, self._start_up_before)
+        if len(rises):  # a restart whose power-up datagrams were lost: the start-up bit tells
+            self.feed(samples[:rises[0]], rate_hz, restarts)
+            self._power_cycled()
+            self._start_up_before = True
+            self.feed(samples[rises[0]:], rate_hz, restarts)
+            return
         if not len(samples):
             return
+        self._start_up_before = bool(start_up_flags(samples[-1:])[0])
         if np.isnan(samples["acc"][0, 0]) or np.isnan(samples["incl"][0, 0]):
             self._set(State.FAULT, f"datagram 0x{samples['datagram_id'][0]:02X} has no accelerometers or "
                                    "inclinometers: nothing to calibrate with")

@@ -39,13 +39,27 @@ SAMPLE_DTYPE = np.dtype([
 ])
 
 
-FAULT_BITS = 0xBF  # every status bit but START_UP (0x40): the sensor's own report of a bad measurement
+START_UP = 0x40  # the gyros' start-up period after power-on (protocol.Status.START_UP)
+FAULT_BITS = 0xFF & ~START_UP  # every status bit but START_UP: the sensor's own report of a bad measurement
 
 
 def fault_bits(samples: np.ndarray) -> np.ndarray:
     """Per sample, the fault bits set in any of its gyro, accelerometer or inclinometer status
     bytes (0: a clean measurement)."""
     return (samples["status_gyro"] | samples["status_acc"] | samples["status_incl"]) & FAULT_BITS
+
+
+def start_up_flags(samples: np.ndarray) -> np.ndarray:
+    """Per sample, whether its gyro, accelerometer or inclinometer status has the start-up bit."""
+    return ((samples["status_gyro"] | samples["status_acc"] | samples["status_incl"]) & START_UP) != 0
+
+
+def start_up_rises(samples: np.ndarray, start_up_before: bool = True) -> np.ndarray:
+    """Indices of the samples where the start-up status bit comes on after data without it: a
+    sensor restart, seen even when its power-up datagrams were lost. `start_up_before`: whether
+    the sample before these had the bit (True at a stream's start: nothing came before)."""
+    up = start_up_flags(samples)
+    return np.flatnonzero(up & ~np.concatenate(([start_up_before], up[:-1])))
 
 
 def empty_columns(n: int) -> dict[str, np.ndarray]:

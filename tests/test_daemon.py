@@ -515,3 +515,18 @@ def test_a_batch_spanning_a_restart_is_cut_at_the_restart():
     before_restart = sum(n for n, restarts in fed if restarts == 0)
     assert before_restart == decode_capture(first)[1].stats.datagrams
     assert [r for _, r in fed] == sorted(r for _, r in fed)  # the count never goes back
+
+
+def test_a_restart_seen_only_in_the_start_up_bit_starts_a_new_power_up():
+    """The power-up datagrams of a restart can be lost (CRC burst, port reopened); the start-up
+    status bit of the new power-up's first samples still tells, once, at the right sample."""
+    data = FIXTURES / "faults_125hz.bin"  # a sensor restart at 40 s
+    samples, scanner = decode_capture(data.read_bytes())
+    restart_at = scanner.stats.restart_datagrams[0]
+    calibrator = Calibrator(Site(40.59129), WarmupConfig(window_s=10.0, min_time_s=0.0))
+    states, batch = [], [0]
+    calibrator.on_state = lambda state, detail: states.append((state, batch[0]))
+    for batch[0] in range(0, len(samples), 25):
+        calibrator.feed(samples[batch[0]:batch[0] + 25], 125)  # no restart count: only the status bytes say it
+    restarts = [start for state, start in states if state == State.RESTARTED]
+    assert len(restarts) == 1 and restarts[0] <= restart_at < restarts[0] + 25
