@@ -31,7 +31,7 @@ PROTOCOLS = ("thesis", "continuous", "index")
 WHAT_SCALES = {"thesis": "static durations scaled, turns kept", "index": "static durations scaled, turns kept",
                "continuous": "number of whole turns scaled, statics kept"}
 PLAN_RATE_HZ = 5  # the sigmas match 125 Hz to 1e-4 (see the module docstring)
-MAX_SESSION_S = 7200.0  # beyond 2 h the 30000 s flicker component, which the estimator counts as bias, adds > 3 %
+MAX_SESSION_S = 7200.0  # beyond hours, flicker slower than the model's slowest component (30000 s) matters
 MIN_SCALE = 0.1  # shortest layout searched: a tenth of the nominal statics (1 min level static), or one turn
 TIME_TOLERANCE = 0.01  # the time to a target is found to 1 % of itself
 MIN_COS_LATITUDE = 0.01  # nearer the poles the horizontal Earth rate that yaw comes from vanishes
