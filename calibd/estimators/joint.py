@@ -323,24 +323,40 @@ class ForceFit:
     sensitivity: np.ndarray  # d params / d (k_x, k_y, k_z, g0): how the axis and g0 errors move them
 
 
-def _force_params(force: np.ndarray, chi: np.ndarray, rows: np.ndarray, k: np.ndarray, g0: float):
-    """(params, designs, gram, residuals) of f = g0 A R3(chi) u + b on the samples `rows`, with
-    A = int_to_imu(alpha, beta) of the platform axis k: linear in (u1, u2, b) once u3 is taken
-    from the previous pass."""
+@dataclass(frozen=True)
+class _StaticSums:
+    """The statics' platform-angle basis B = (cos chi, sin chi, 1) and its sums with itself and
+    the data. A channel's design is B times a 3 x 3 matrix of the axis and g0, so the force fit's
+    normal equations for any axis and g0 follow from these sums: refitting for the sensitivity
+    costs no pass over the samples."""
+
+    basis: np.ndarray  # n x 3
+    gram: np.ndarray  # B' B
+    cross: np.ndarray  # B' f, one column per channel
+
+
+def _channel_map(a_row: np.ndarray, g0: float) -> np.ndarray:
+    """T with design = B T: columns g0 (a0 cos - a1 sin), g0 (a0 sin + a1 cos), 1."""
+    return np.array([[g0 * a_row[0], g0 * a_row[1], 0.0], [-g0 * a_row[1], g0 * a_row[0], 0.0], [0.0, 0.0, 1.0]])
+
+
+def _force_params(sums: _StaticSums, k: np.ndarray, g0: float):
+    """(params, gram, maps, offsets) of f = g0 A R3(chi) u + b, A = int_to_imu(alpha, beta) of
+    the platform axis k: linear in (u1, u2, b) once u3 is taken from the previous pass; `offsets`
+    is the g0 u3 A[:, 2] the last pass took off the data."""
     a = int_to_imu(*alpha_beta(k))
-    cos, sin = np.cos(chi[rows]), np.sin(chi[rows])
+    maps = [_channel_map(a[i], g0) for i in range(3)]
     u3 = 1.0
     for _ in range(3):
-        designs = [ChannelDesign(np.array([0, 1, 2 + i]),
-                                 np.column_stack([g0 * (a[i, 0] * cos - a[i, 1] * sin),
-                                                  g0 * (a[i, 0] * sin + a[i, 1] * cos), np.ones(len(rows))]))
-                   for i in range(3)]
-        data = force[rows] - g0 * u3 * a[:, 2]
-        gram, rhs = _normal_equations(designs, data, 5)
+        offsets = g0 * u3 * a[:, 2]
+        gram, rhs = np.zeros((5, 5)), np.zeros(5)
+        for i, t in enumerate(maps):
+            cols = [0, 1, 2 + i]
+            gram[np.ix_(cols, cols)] += t.T @ sums.gram @ t
+            rhs[cols] += t.T @ (sums.cross[:, i] - offsets[i] * sums.gram[:, 2])  # B' 1 = B' B[:, 2]
         params = np.linalg.solve(gram, rhs)
-        residuals = np.column_stack([data[:, i] - designs[i] @ params for i in range(3)])
         u3 = np.sqrt(1.0 - params[0] ** 2 - params[1] ** 2)
-    return params, designs, gram, residuals
+    return params, gram, maps, offsets
 
 
 def fit_force(force: np.ndarray, chi: np.ndarray, inp: JointInput, k: np.ndarray, g0: float,
@@ -354,17 +370,19 @@ def fit_force(force: np.ndarray, chi: np.ndarray, inp: JointInput, k: np.ndarray
     if np.ptp(np.exp(1j * chis).real) < 0.5 and np.ptp(np.exp(1j * chis).imag) < 0.5:
         raise ValueError("the statics cover too few platform angles to separate the tilt from the biases "
                          "(index positions about 90 deg apart are needed)")
-    params, designs, gram, residuals = _force_params(force, chi, rows, k, g0)
+    basis = np.column_stack([np.cos(chi[rows]), np.sin(chi[rows]), np.ones(len(rows))])
+    sums = _StaticSums(basis, basis.T @ basis, basis.T @ force[rows])
+    params, gram, maps, offsets = _force_params(sums, k, g0)
     drivers = np.append(k, g0)
 
     def refit(x):
-        return _force_params(force, chi, rows, x[:3], x[3])[0]
+        return _force_params(sums, x[:3], x[3])[0]
 
-    steps = np.array([1e-6, 1e-6, 1e-6, 1e-4])  # k is near unit length; g0 in m/s^2
-    sensitivity = np.column_stack([(refit(drivers + h) - refit(drivers - h)) / (2 * h[i])
-                                   for i, h in enumerate(np.diag(steps))])
+    steps = np.diag([1e-6, 1e-6, 1e-6, 1e-4])  # k is near unit length; g0 in m/s^2
+    sensitivity = np.column_stack([(refit(drivers + h) - refit(drivers - h)) / (2 * h.max()) for h in steps])
+    designs = [ChannelDesign(np.array([0, 1, 2 + i]), basis @ t) for i, t in enumerate(maps)]
     full = np.zeros_like(force)
-    full[rows] = residuals
+    full[rows] = force[rows] - offsets - np.column_stack([d @ params for d in designs])
     noise = noise or _fitted_noise(full, inp, least_flicker)
     cov = _covariance(designs, rows, inp, np.linalg.inv(gram), noise)
     return ForceFit(params, cov, _noise_scale(full, inp), noise, sensitivity)
