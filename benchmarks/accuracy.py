@@ -36,7 +36,7 @@ import numpy as np
 from calibd.calibrate import CalibrationError, Session, joint_fit, joint_real_case, thesis_real_case
 from calibd.estimators.joint import white_noise_bound
 from calibd.frames import NORMAL_GRAVITY_SIGMA, STANDARD_GRAVITY, Site, normal_gravity
-from calibd.scenario import Segment, Truth, load_scenario
+from calibd.scenario import Truth, load_scenario
 from calibd.sim import simulate, truth_record
 
 DEG = np.pi / 180

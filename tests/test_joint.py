@@ -15,8 +15,7 @@ from calibd.estimators.joint import (JointInput, JointOptions, NoiseModel, Senso
                                      fit_force, fit_gyros, solve, white_noise_bound)
 from calibd.frames import EARTH_RATE, NORMAL_GRAVITY_SIGMA, STANDARD_GRAVITY, Site, int_to_imu
 from calibd.noise import FLICKER_TAUS_S
-from calibd.scenario import Noise
-from calibd.scenario import Segment, load_scenario
+from calibd.scenario import Noise, Segment, load_scenario
 from calibd.sim import simulate, truth_record, write_capture
 
 DEG = np.pi / 180

@@ -16,10 +16,14 @@ u = R_NAV^int Up the platform axis's tilt: linear in (u1, u2, b) for the gyro-de
 No small-angle approximation is made anywhere.
 
 Uncertainty: each fit's covariance is that of its least squares under a white + flicker noise
-model per sensor (bias instability correlates the errors over minutes), propagated to every
-estimate through the numerical Jacobian of the chain. The model is fitted to the Allan
-deviation of the longest static's residuals, or given (`SensorNoise`: the protocol planner
-gives a datasheet's figures to a noise-free session of the protocol).
+model per sensor (bias instability correlates the errors over minutes; every flicker component
+counts, so a bias's sigma is that of the turn-on bias, the wander over the session included).
+The force fits' sensitivity to the gyro-derived axis and to g0 carries the gyro covariance and
+g0's (Site.gravity_sigma) into the accelerometer and inclinometer parameters, with their
+cross-covariances; the numerical Jacobian of the chain takes it all to every estimate. The
+model is fitted to the Allan deviation of the longest static's residuals, its flicker at least
+the STIM300 datasheet's, or given (`SensorNoise`: the protocol planner gives a datasheet's
+figures to a noise-free session of the protocol).
 """
 
 from __future__ import annotations
