@@ -1,13 +1,22 @@
-"""Monte Carlo accuracy of the thesis's methods and the joint estimator on random thesis sessions.
+"""Monte Carlo accuracy of the joint estimator's estimates and 1-sigma (and of the thesis's methods).
 
-Each session: the thesis real-case protocol (10 min level static, four 90 deg index turns with
-120 s statics, a full turn at 27.93 deg/s) in a random sense, with a random truth (any heading,
-pitch/roll within 1 deg, alpha/beta within 1 deg, biases within the STIM300's range), STIM300
-noise (white plus bias instability), 125 Hz. Per estimate it prints the RMS error of the thesis
-nominal run (a-priori alpha/beta off by the thesis's 0.0030/0.0071 deg), the thesis linear run,
-the joint estimator, the white-noise Cramer-Rao bound for the same data, and the share of
-sessions where the joint estimate is within 2 reported sigma. Biases are compared with the bias
-the data carry (the settled value plus the session mean of the bias-instability wander).
+Three run sets of random sessions, each with a random truth (any heading, pitch/roll within
+1 deg, alpha/beta within 1 deg, biases within the STIM300's range), STIM300 noise (white plus
+bias instability), 125 Hz, turns in a random sense:
+- `g0 given`: the thesis real-case protocol (10 min level static, four 90 deg index turns with
+  120 s statics, a full turn at 27.93 deg/s) with the site's measured g0 given;
+- `normal gravity`: the same protocol without g0: the calibration takes normal gravity, while the
+  simulated true g0 differs from it by a random local anomaly of the documented spread
+  (frames.NORMAL_GRAVITY_SIGMA);
+- `one index`: statics at two platform angles only (10 min level static, one 90 deg index turn
+  with a 120 s static, a full turn, 30 s static), through `calibd calibrate`'s path (refusals and
+  "poor" flags counted).
+Per estimate it prints the RMS error, RMS(error / reported sigma) and the share of sessions
+within 2 reported sigma; for the first set also the RMS error of the thesis nominal run
+(a-priori alpha/beta off by the thesis's 0.0030/0.0071 deg) and linear run and the white-noise
+Cramer-Rao bound. Biases are compared with the turn-on bias: the bias the sensor has at this
+power-up (the settled bias moved by the warm-up's mean temperature excess), which the
+bias-instability wander moves during the session.
 
     python benchmarks/accuracy.py [--sessions 200] [--write docs/accuracy.md]
 """
@@ -19,14 +28,14 @@ import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 
-from calibd import detect
-from calibd.calibrate import Session, joint_real_case, thesis_real_case
-from calibd.estimators.joint import JointInput, solve, white_noise_bound
-from calibd.frames import STANDARD_GRAVITY
+from calibd.calibrate import CalibrationError, Session, joint_fit, joint_real_case, thesis_real_case
+from calibd.estimators.joint import white_noise_bound
+from calibd.frames import NORMAL_GRAVITY_SIGMA, STANDARD_GRAVITY, Site, normal_gravity
 from calibd.scenario import Truth, load_scenario
 from calibd.sim import simulate, truth_record
 
@@ -36,9 +45,11 @@ NAMES = ["pitch", "roll", "yaw", "alpha", "beta", "gyro_bias_x", "gyro_bias_y", 
 UNITS = {**{n: "deg" for n in NAMES[:5]}, **{n: "deg/h" for n in NAMES[5:8]}, **{n: "mg" for n in NAMES[8:]}}
 ARW = 0.15 / 60 * DEG  # rad/sqrt(s): the datasheet angle random walk the bound assumes
 GYRO_DRIVEN = ("yaw", "alpha", "beta", "gyro_bias_x", "gyro_bias_y", "gyro_bias_z")  # what the gyro bound covers
+RUN_SETS = ("g0 given", "normal gravity", "one index")
+SEED_OFFSET = {"g0 given": 0, "normal gravity": 100_000, "one index": 200_000}
 
 
-def random_scenario(seed: int):
+def random_scenario(seed: int, run_set: str = "g0 given"):
     rng = np.random.default_rng(10_000 + seed)
     base = load_scenario("thesis-real")
     truth = Truth(yaw_deg=rng.uniform(-180, 180), pitch_deg=rng.uniform(-1, 1), roll_deg=rng.uniform(-1, 1),
@@ -46,83 +57,120 @@ def random_scenario(seed: int):
                   gyro_bias_deg_h=tuple(rng.uniform(-250, 250, 3)), acc_bias_mg=tuple(rng.uniform(-5, 5, 3)),
                   incl_bias_mg=tuple(rng.uniform(-2, 2, 3)))
     sense = rng.choice([-1, 1])
-    segments = tuple(replace(s, angle_deg=abs(s.angle_deg) * sense) if s.kind == "turn" else s
-                     for s in base.segments)
-    return replace(base, seed=seed, truth=truth, segments=segments)
+    segments = base.segments
+    if run_set == "one index":  # the level static, the first index turn and static, the full turn and its static
+        segments = segments[:3] + segments[-2:]
+    segments = tuple(replace(s, angle_deg=abs(s.angle_deg) * sense) if s.kind == "turn" else s for s in segments)
+    site = base.site
+    if run_set == "normal gravity":
+        lat = site.latitude_deg
+        site = Site(lat, site.height_m, normal_gravity(lat, site.height_m) + rng.normal(0, NORMAL_GRAVITY_SIGMA))
+    return replace(base, seed=seed, truth=truth, segments=segments, site=site)
 
 
-def one_session(seed: int) -> dict:
-    scenario = random_scenario(seed)
+def one_session(seed: int, run_set: str) -> dict:
+    scenario = random_scenario(seed + SEED_OFFSET[run_set], run_set)
     sim = simulate(scenario)
     s = sim.samples
     rate = scenario.sensor.sample_rate_hz
     session = Session(time_s=np.arange(len(s)) / rate, gyro=s["gyro"].astype(float) * DEG,
                       acc=s["acc"].astype(float) * STANDARD_GRAVITY, incl=s["incl"].astype(float) * STANDARD_GRAVITY,
                       temperature_c=None, rate_hz=rate, sensor={}, stream={"capture": f"seed {seed}"})
+    given = scenario.site
+    site = Site(given.latitude_deg, given.height_m) if run_set == "normal gravity" else given
     truth = scenario.truth.estimates()
     carried = truth_record(sim, {})["bias_during_capture"]
     for name, key in (("gyro_bias", "gyro_bias_deg_h"), ("acc_bias", "acc_bias_mg"), ("incl_bias", "incl_bias_mg")):
-        truth |= {f"{name}_{a}": v for a, v in zip("xyz", carried[key]["session"])}
-    tilt = (truth["alpha"] + 0.0030, truth["beta"] - 0.0071)
-    out = {}
-    for run, result in (("nominal", thesis_real_case(session, scenario.site, tilt)),
-                        ("linear", thesis_real_case(session, scenario.site)),
-                        ("joint", joint_real_case(session, scenario.site))):
+        truth |= {f"{name}_{a}": v for a, v in zip("xyz", carried[key]["mean"])}  # turn-on: without the wander
+
+    def error(result):
         e = {n: result["estimates"][n]["value"] - truth[n] for n in NAMES}
         e["yaw"] = (e["yaw"] + 180) % 360 - 180
-        out[run] = [e[n] for n in NAMES]
-        if run == "joint":
-            out["sigma"] = [result["estimates"][n]["sigma"] for n in NAMES]
-    out["bound"] = _bound(session, scenario)
+        return [e[n] for n in NAMES]
+
+    out = {"refused": None, "poor": False}
+    if run_set == "one index":
+        try:
+            result = joint_real_case(session, site)
+        except CalibrationError as exc:
+            return out | {"refused": str(exc)}
+        out["poor"] = any(v.get("quality") == "poor" for v in result["estimates"].values())
+    else:
+        fitted = joint_fit(session, site)
+        result = {"estimates": {n: {"value": fitted.fit.estimates[n] * _display(n),
+                                    "sigma": fitted.fit.sigmas[n] * _display(n)} for n in NAMES}}
+        bound = white_noise_bound(fitted.inp, fitted.fit, site, ARW)
+        out["bound"] = [bound[n] * _display(n) if n in GYRO_DRIVEN else float("nan") for n in NAMES]
+    out["joint"] = error(result)
+    out["sigma"] = [result["estimates"][n]["sigma"] for n in NAMES]
+    if run_set == "g0 given":
+        tilt = (truth["alpha"] + 0.0030, truth["beta"] - 0.0071)
+        out["nominal"] = error(thesis_real_case(session, site, tilt))
+        out["linear"] = error(thesis_real_case(session, site))
     return out
 
 
-def _bound(session: Session, scenario) -> list[float]:
-    segments = detect.find_segments(session.gyro / DEG, session.acc / STANDARD_GRAVITY, session.rate_hz)
-    statics = [(s.start, s.stop) for s in segments if s.kind == "static"]
-    first = statics[0][0]
-    inp = JointInput(session.time_s[first:] - session.time_s[first], session.gyro[first:], session.acc[first:],
-                     session.incl[first:], tuple((a - first, b - first) for a, b in statics), session.rate_hz)
-    bound = white_noise_bound(inp, solve(inp, scenario.site), scenario.site, ARW)
-    scale = {"deg": 1 / DEG, "deg/h": 3600 / DEG}
-    return [bound[n] * scale[UNITS[n]] if n in GYRO_DRIVEN else float("nan") for n in NAMES]
+def _display(name: str) -> float:
+    return {"deg": 1 / DEG, "deg/h": 3600 / DEG, "mg": 1000 / STANDARD_GRAVITY}[UNITS[name]]
 
 
 def table(results: list[dict]) -> str:
-    arr = {k: np.array([r[k] for r in results]) for k in ("nominal", "linear", "joint", "sigma", "bound")}
+    solved = [r for r in results if r["refused"] is None]
+    arr = {k: np.array([r[k] for r in solved]) for k in ("nominal", "linear", "joint", "sigma", "bound")
+           if solved and k in solved[0]}
 
     def rms(x):
-        return np.sqrt(np.mean(x**2, axis=0))
+        return np.sqrt(np.mean(np.square(x), axis=0))
 
-    lines = ["| estimate | unit | thesis nominal RMS | thesis linear RMS | joint RMS | white-noise bound | "
-             "joint / bound | joint within 2 sigma |", "|---|---|---|---|---|---|---|---|"]
+    def column(key, i):
+        return f"{rms(arr[key][:, i]):.4g}" if key in arr else "-"
+
+    lines = ["| estimate | unit | joint RMS error | RMS(error / sigma) | within 2 sigma | white-noise bound | "
+             "thesis nominal RMS | thesis linear RMS |", "|---|---|---|---|---|---|---|---|"]
     for i, name in enumerate(NAMES):
-        bound = np.mean(arr["bound"][:, i])
-        joint = rms(arr["joint"][:, i])
-        ratio = f"{joint / bound:.2f}" if np.isfinite(bound) else "-"
-        bound_text = f"{bound:.4g}" if np.isfinite(bound) else "-"
-        covered = np.mean(np.abs(arr["joint"][:, i]) <= 2 * arr["sigma"][:, i])
-        lines.append(f"| {name} | {UNITS[name]} | {rms(arr['nominal'][:, i]):.4g} | {rms(arr['linear'][:, i]):.4g} | "
-                     f"{joint:.4g} | {bound_text} | {ratio} | {100 * covered:.0f}% |")
+        err, sigma = arr["joint"][:, i], arr["sigma"][:, i]
+        bound = np.mean(arr["bound"][:, i]) if "bound" in arr else float("nan")
+        lines.append(f"| {name} | {UNITS[name]} | {rms(err):.4g} | {rms(err / sigma):.2f} | "
+                     f"{100 * np.mean(np.abs(err) <= 2 * sigma):.0f}% | "
+                     f"{f'{bound:.4g}' if np.isfinite(bound) else '-'} | {column('nominal', i)} | "
+                     f"{column('linear', i)} |")
     return "\n".join(lines)
+
+
+def summary(run_set: str, results: list[dict]) -> str:
+    refused = [r["refused"] for r in results if r["refused"] is not None]
+    poor = sum(r["poor"] for r in results)
+    head = f"### {run_set}: {len(results)} sessions"
+    notes = []
+    if refused:
+        notes.append(f"{len(refused)} refused (\"{refused[0]}\")")
+    if poor:
+        notes.append(f"{poor} with an estimate of quality poor")
+    head += (" (" + "; ".join(notes) + ")") if notes else ""
+    return head + "\n\n" + (table(results) if len(refused) < len(results) else "every session refused") + "\n"
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sessions", type=int, default=200)
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--sets", nargs="+", choices=RUN_SETS, default=list(RUN_SETS), help="run sets (default: all)")
     ap.add_argument("--write", help="also write the report to this markdown file (docs/accuracy.md)")
     args = ap.parse_args()
     started = time.perf_counter()
-    results = []
+    parts = []
     with ProcessPoolExecutor(args.workers) as pool:
-        for k, result in enumerate(pool.map(one_session, range(1, args.sessions + 1)), 1):
-            results.append(result)
-            if k % 20 == 0:
-                print(f"{k}/{args.sessions} sessions, {time.perf_counter() - started:.0f} s", file=sys.stderr)
-    report = (f"{args.sessions} random thesis sessions (any heading, either sense, alpha/beta within 1 deg, "
-              f"STIM300 noise, 125 Hz); errors against the truth, biases against the bias the data carry.\n\n"
-              + table(results) + "\n")
+        for run_set in args.sets:
+            results = []
+            for k, result in enumerate(pool.map(partial(one_session, run_set=run_set),
+                                                range(1, args.sessions + 1)), 1):
+                results.append(result)
+                if k % 20 == 0:
+                    print(f"{run_set}: {k}/{args.sessions} sessions, {time.perf_counter() - started:.0f} s",
+                          file=sys.stderr)
+            parts.append(summary(run_set, results))
+    report = ("Random sessions (any heading, either sense, alpha/beta within 1 deg, STIM300 noise, 125 Hz); "
+              "errors against the truth, biases against the turn-on bias.\n\n" + "\n".join(parts))
     print(report)
     if args.write:
         path = Path(args.write)

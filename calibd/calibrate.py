@@ -473,7 +473,8 @@ def joint_real_case(session: Session, site: Site, options: joint.JointOptions = 
     result = make_result("joint", site, estimates, [_segment_record(s, s.kind) for s in used], warnings,
                          session.sensor, stream=session.stream,
                          options={"fixed_amplitude": options.fixed_amplitude, "drift": options.drift},
-                         checks=_joint_checks(fit, site) | _turn_angle_checks(fitted, session))
+                         checks=_joint_checks(fit, site) | _turn_angle_checks(fitted, session),
+                         bias_reference="turn-on")
     if fit.sigmas["yaw"] / DEG > YAW_SIGMA_POOR_DEG:
         result["estimates"]["yaw"]["quality"] = "poor"
     if fitted.final_tilt and fitted.final_tilt.p_value < CHI2_ALARM_P:
@@ -561,13 +562,15 @@ def _chi2_record(fit: joint.JointResult) -> dict:
 
 
 def _joint_warnings(fit: joint.JointResult, site: Site) -> list[str]:
-    warnings = ["biases are those of this session: the slow part of bias instability cannot be told "
-                "from the bias and is included",
+    warnings = ["biases are turn-on biases (the sensor's at this power-up): their 1-sigma includes the "
+                "bias-instability wander over the session, which moves the bias the data carry away from them",
                 "horizontal accelerometer and inclinometer biases rest on the gyro-derived alpha and beta "
                 "(a single rotation axis cannot separate them from the IMU tilt otherwise): an error "
-                "d_beta moves the X biases by g0 d_beta",
-                "Z accelerometer and inclinometer biases rest on g0; the normal-gravity formula can be off "
-                "by about 0.1 mg where the local anomaly is large (give --g0 when it is measured)"]
+                "d_beta moves the X biases by g0 d_beta, and their 1-sigma carries it"]
+    if site.g0 is None:
+        warnings.append(f"Z accelerometer and inclinometer biases rest on normal gravity: their 1-sigma includes "
+                        f"{site.gravity_sigma / STANDARD_GRAVITY * 1000:.3f} mg for a typical local gravity anomaly, "
+                        "more where it is large (give --g0 when it is measured)")
     if fit.sigmas["yaw"] / DEG > YAW_SIGMA_POOR_DEG:
         warnings.append(f"yaw is too poor to use: 1-sigma {fit.sigmas['yaw'] / DEG:.1f} deg (more static time "
                         "at several headings, or more turning, would help)")

@@ -12,6 +12,10 @@ import numpy as np
 
 EARTH_RATE = 7.2921150e-5  # rad/s (WGS84), = 15.0411 deg/h
 STANDARD_GRAVITY = 9.80665  # m/s^2 per g: the STIM300's g unit (k0 of the datasheet)
+# How far true gravity may lie from normal gravity at a site (1-sigma): the local free-air
+# anomaly, whose worldwide RMS is about 42 mGal (point anomaly variance 1795 mGal^2 in Tscherning
+# and Rapp's 1974 degree-variance model); mountains and trenches reach 100 mGal and more.
+NORMAL_GRAVITY_SIGMA = 4.2e-4  # m/s^2 (42 mGal, 0.043 mg)
 
 
 def _stack(rows) -> np.ndarray:
@@ -88,6 +92,11 @@ class Site:
     @property
     def gravity(self) -> float:
         return self.g0 if self.g0 is not None else normal_gravity(self.latitude_deg, self.height_m)
+
+    @property
+    def gravity_sigma(self) -> float:
+        """1-sigma of `gravity`, m/s^2: 0 for a measured g0, the local anomaly for normal gravity."""
+        return 0.0 if self.g0 is not None else NORMAL_GRAVITY_SIGMA
 
     @property
     def earth_rate_nav(self) -> np.ndarray:

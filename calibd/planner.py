@@ -18,12 +18,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .estimators.joint import JointInput, NoiseModel, SensorNoise, solve
+from .estimators.joint import JointInput, SensorNoise, datasheet_noise, solve
 from .frames import STANDARD_GRAVITY, Site
 from .noise import SCHEMA as NOISE_FILE_SCHEMA
 from .results import ESTIMATES
 from .scenario import Noise, Segment, load_scenario
-from .sim import flicker_sigma, schedule, simulate
+from .sim import schedule, simulate
 
 DEG = math.pi / 180
 MG = STANDARD_GRAVITY / 1000
@@ -31,7 +31,7 @@ PROTOCOLS = ("thesis", "continuous", "index")
 WHAT_SCALES = {"thesis": "static durations scaled, turns kept", "index": "static durations scaled, turns kept",
                "continuous": "number of whole turns scaled, statics kept"}
 PLAN_RATE_HZ = 5  # the sigmas match 125 Hz to 1e-4 (see the module docstring)
-MAX_SESSION_S = 7200.0  # beyond 2 h the 30000 s flicker component, which the estimator counts as bias, adds > 3 %
+MAX_SESSION_S = 7200.0  # beyond hours, flicker slower than the model's slowest component (30000 s) matters
 MIN_SCALE = 0.1  # shortest layout searched: a tenth of the nominal statics (1 min level static), or one turn
 TIME_TOLERANCE = 0.01  # the time to a target is found to 1 % of itself
 MIN_COS_LATITUDE = 0.01  # nearer the poles the horizontal Earth rate that yaw comes from vanishes
@@ -114,19 +114,6 @@ def describe(segments: tuple[Segment, ...]) -> str:
 
 
 # ---------------------------------------------------------------- noise
-
-def sensor_noise(figures: Noise, rate_hz: float) -> SensorNoise:
-    """The joint estimator's noise models for datasheet figures, at `rate_hz`: white variance per
-    sample from the random walk, and the flicker components the simulator uses for the bias
-    instability (Allan deviation minimum = the figure)."""
-    def model(density: float, instability: float) -> NoiseModel:
-        flicker = flicker_sigma(density, instability) ** 2 if instability > 0 else 0.0
-        return NoiseModel(density**2 * rate_hz, flicker)
-
-    gyro = model(figures.gyro_arw_deg_sqrt_h / 60 * DEG, figures.gyro_bias_instability_deg_h / 3600 * DEG)
-    return SensorNoise(gyro=gyro, acc=model(figures.acc_vrw_m_s_sqrt_h / 60, figures.acc_bias_instability_mg * MG),
-                       incl=model(figures.incl_vrw_m_s_sqrt_h / 60, figures.incl_bias_instability_mg * MG))
-
 
 def noise_from_json(data: bytes, where: str) -> Noise:
     """Figures from a `calibd.noise/1` file (written by `calibd noise`). The three axes of a
@@ -222,7 +209,7 @@ def plan(protocol: str, site: Site, figures: Noise, scale: float = 1.0) -> Plan:
     check_site(site)
     segments = protocol_segments(protocol, scale)
     inp, seconds = _session(protocol, scale, site)
-    noise = sensor_noise(figures, inp.rate_hz)
+    noise = datasheet_noise(figures, inp.rate_hz)
     return Plan(protocol, scale, segments, seconds, solve(inp, site, noise=noise).sigmas, site, inp, noise)
 
 

@@ -1,5 +1,6 @@
 """The joint estimator: exact on noise-free sessions of any heading, sense and latitude; unmoved
-by turn overshoot and platform tilt; honest 1-sigma on a small Monte Carlo; the command."""
+by turn overshoot and platform tilt; a 1-sigma that carries every term moving its estimate
+(alpha/beta, g0, the bias wander) and is honest on a small Monte Carlo; the command."""
 
 import json
 from dataclasses import replace
@@ -8,11 +9,13 @@ import numpy as np
 import pytest
 
 from calibd import detect
-from calibd.calibrate import joint_real_case, load_session
+from calibd.calibrate import _joint_warnings, joint_real_case, load_session
 from calibd.cli import main as calibd_main
-from calibd.estimators.joint import JointInput, JointOptions, solve, white_noise_bound
-from calibd.frames import EARTH_RATE, STANDARD_GRAVITY, Site
-from calibd.scenario import Segment, load_scenario
+from calibd.estimators.joint import (JointInput, JointOptions, NoiseModel, SensorNoise, alpha_beta, datasheet_noise,
+                                     fit_force, fit_gyros, solve, white_noise_bound)
+from calibd.frames import EARTH_RATE, NORMAL_GRAVITY_SIGMA, STANDARD_GRAVITY, Site, int_to_imu
+from calibd.noise import FLICKER_TAUS_S
+from calibd.scenario import Noise, Segment, load_scenario
 from calibd.sim import simulate, truth_record, write_capture
 
 DEG = np.pi / 180
@@ -147,9 +150,9 @@ def test_fixed_amplitude_agrees_with_free():
 
 
 def test_sigma_is_honest_on_a_small_monte_carlo():
-    """Eight noisy thesis sessions: errors against the bias the data carry (bias-instability wander
-    included), over the reported 1-sigma, pooled over every estimate. The 200-session check is
-    benchmarks/accuracy.py."""
+    """Eight noisy thesis sessions: errors against the turn-on bias (the bias-instability wander
+    is error), over the reported 1-sigma, pooled over every estimate and over the biases. The
+    Monte Carlo of many sessions is benchmarks/accuracy.py."""
     z, yaw_errors, bounds = [], [], []
     for seed in range(1, 9):
         scenario = replace(THESIS, seed=seed)
@@ -159,15 +162,110 @@ def test_sigma_is_honest_on_a_small_monte_carlo():
         truth = scenario.truth.estimates()
         carried = truth_record(sim, {})["bias_during_capture"]
         for name, key in (("gyro_bias", "gyro_bias_deg_h"), ("acc_bias", "acc_bias_mg"), ("incl_bias", "incl_bias_mg")):
-            truth |= {f"{name}_{a}": v for a, v in zip("xyz", carried[key]["session"])}
+            truth |= {f"{name}_{a}": v for a, v in zip("xyz", carried[key]["mean"])}
         e = errors(result.estimates, truth)
         z += [e[n] / (result.sigmas[n] * display(n)) for n in e]
         yaw_errors.append(e["yaw"])
         bounds.append(white_noise_bound(inp, result, scenario.site, 0.15 / 60 * DEG)["yaw"] / DEG)
-    z = np.abs(np.array(z))
+    z = np.abs(np.array(z)).reshape(8, -1)
     assert 0.8 <= np.mean(z <= 2) <= 1.0
+    biases = z[:, 5:]  # without the wander and the alpha/beta terms: RMS about 1.9
+    assert 0.6 < np.sqrt(np.mean(biases**2)) < 1.4
     assert np.sqrt(np.mean(np.square(yaw_errors))) < 2.5 * np.mean(bounds)  # near the noise limit (about 2 deg)
     assert np.mean(bounds) == pytest.approx(2.0, abs=0.6)
+
+
+@pytest.fixture(scope="module")
+def quiet_thesis():
+    scenario = quiet(THESIS)
+    return scenario, exact_input(simulate(scenario))
+
+
+STIM300 = datasheet_noise(Noise(), THESIS.sensor.sample_rate_hz)
+NONE = NoiseModel(0.0, 0.0)
+
+
+def test_a_beta_error_moves_the_x_biases_by_g0_d_beta(quiet_thesis):
+    """The force fits take the gyro-derived platform axis as exact: tilting it by d_beta moves the
+    inclinometer X bias by g0 d_beta, and the fit's sensitivity predicts the move."""
+    scenario, inp = quiet_thesis
+    g0 = scenario.site.gravity
+    gyro = fit_gyros(inp, scenario.site)
+    k = gyro.params[2:5]
+    alpha, beta = alpha_beta(k)
+    d_beta = 1e-4
+    tilted = int_to_imu(alpha, beta + d_beta)[:, 2]
+    fit, moved = (fit_force(inp.incl, gyro.chi, inp, axis, g0) for axis in (k, tilted))
+    assert (moved.params[2] - fit.params[2]) / (g0 * d_beta) == pytest.approx(1.0, abs=1e-3)
+    predicted = fit.sensitivity[:, :3] @ (tilted - k)
+    assert moved.params - fit.params == pytest.approx(predicted, abs=1e-3 * g0 * d_beta)
+
+
+def test_horizontal_bias_sigma_carries_alpha_beta(quiet_thesis):
+    """Noise-free accelerometers and inclinometers, STIM300 gyros: the horizontal biases' only
+    error is the gyro-derived tilt's, so their sigma is g0 times alpha's and beta's."""
+    scenario, inp = quiet_thesis
+    result = solve(inp, scenario.site, noise=SensorNoise(STIM300.gyro, NONE, NONE))
+    g0, s = scenario.site.gravity, result.sigmas
+    assert s["beta"] > 0
+    for sensor in ("acc", "incl"):
+        assert s[f"{sensor}_bias_x"] == pytest.approx(g0 * s["beta"], rel=0.01)
+        assert s[f"{sensor}_bias_y"] == pytest.approx(g0 * s["alpha"], rel=0.01)
+
+
+def test_z_bias_sigma_carries_g0_only_when_normal_gravity(quiet_thesis):
+    """A measured g0 adds nothing; normal gravity adds the local anomaly's spread to the Z biases
+    (in quadrature) and says so in a warning."""
+    scenario, inp = quiet_thesis
+    measured, normal = scenario.site, Site(scenario.site.latitude_deg)
+    given, assumed = (solve(inp, site, noise=STIM300) for site in (measured, normal))
+    for name in ("acc_bias_z", "incl_bias_z"):
+        added = assumed.sigmas[name] ** 2 - given.sigmas[name] ** 2
+        assert added == pytest.approx(NORMAL_GRAVITY_SIGMA**2, rel=0.01), name
+    assert assumed.sigmas["acc_bias_x"] == pytest.approx(given.sigmas["acc_bias_x"], rel=1e-3)
+    assert any("normal gravity" in w and "0.043 mg" in w for w in _joint_warnings(assumed, normal))
+    assert not any("normal gravity" in w for w in _joint_warnings(given, measured))
+
+
+def test_bias_sigma_includes_the_wander_over_the_session(quiet_thesis):
+    """Accelerometer flicker only: the Z bias is the mean over the statics, so its variance
+    against the turn-on bias is that of the flicker's mean over the static samples, every
+    component counted (the 30000 s one is nearly constant over the session: it is the wander)."""
+    scenario, inp = quiet_thesis
+    flicker = STIM300.acc.flicker
+    result = solve(inp, scenario.site, noise=SensorNoise(NONE, NoiseModel(0.0, flicker), NONE))
+    t = np.concatenate([inp.time_s[a:b:25] for a, b in inp.statics])  # 5 Hz is fine enough for 3 s and up
+    lag = np.abs(t[:, None] - t[None, :])
+    per_component = [np.mean(np.exp(-lag / c)) for c in FLICKER_TAUS_S]
+    assert result.sigmas["acc_bias_z"] ** 2 == pytest.approx(flicker * sum(per_component), rel=0.02)
+    assert flicker * per_component[-1] > 0.3 * result.sigmas["acc_bias_z"] ** 2  # the slowest is a large share
+
+
+def test_fitted_flicker_is_at_least_the_datasheets(quiet_thesis):
+    """A static of minutes cannot resolve flicker under the white noise (noise-free data: none
+    at all); the covariance then uses the STIM300 datasheet's rather than none."""
+    scenario, inp = quiet_thesis
+    result = solve(inp, scenario.site)
+    assert result.gyro.noise.flicker == STIM300.gyro.flicker > 0
+    assert result.acc.noise.flicker == STIM300.acc.flicker and result.incl.noise.flicker == STIM300.incl.flicker
+
+
+def one_index(scenario):
+    """Statics at two platform angles only: the level static, one index turn and static, the full turn."""
+    return replace(scenario, segments=scenario.segments[:3] + scenario.segments[-2:])
+
+
+def test_one_index_position_yaw_sigma_covers():
+    """Statics at 0 and 90 deg only: yaw rests on the difference of two statics minutes apart,
+    which gyro flicker moves; the fitted noise would often find no flicker there and give
+    a yaw 3 to 4 sigma off. With the datasheet's flicker as the least the errors stay within
+    3 sigma (benchmarks/accuracy.py: the one-index run set)."""
+    for seed in (11, 12, 13):
+        scenario = one_index(replace(THESIS, seed=seed))
+        sim = simulate(scenario)
+        result = solve(exact_input(sim), scenario.site)
+        e = errors(result.estimates, scenario.truth.estimates())
+        assert abs(e["yaw"]) < 3 * result.sigmas["yaw"] / DEG, seed
 
 
 def test_a_bias_jump_fails_the_residual_check():

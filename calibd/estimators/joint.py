@@ -16,10 +16,14 @@ u = R_NAV^int Up the platform axis's tilt: linear in (u1, u2, b) for the gyro-de
 No small-angle approximation is made anywhere.
 
 Uncertainty: each fit's covariance is that of its least squares under a white + flicker noise
-model per sensor (bias instability correlates the errors over minutes), propagated to every
-estimate through the numerical Jacobian of the chain. The model is fitted to the Allan
-deviation of the longest static's residuals, or given (`SensorNoise`: the protocol planner
-gives a datasheet's figures to a noise-free session of the protocol).
+model per sensor (bias instability correlates the errors over minutes; every flicker component
+counts, so a bias's sigma is that of the turn-on bias, the wander over the session included).
+The force fits' sensitivity to the gyro-derived axis and to g0 carries the gyro covariance and
+g0's (Site.gravity_sigma) into the accelerometer and inclinometer parameters, with their
+cross-covariances; the numerical Jacobian of the chain takes it all to every estimate. The
+model is fitted to the Allan deviation of the longest static's residuals, its flicker at least
+the STIM300 datasheet's, or given (`SensorNoise`: the protocol planner gives a datasheet's
+figures to a noise-free session of the protocol).
 """
 
 from __future__ import annotations
@@ -28,8 +32,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..frames import EARTH_RATE, Site, euler_321, int_to_imu
+from ..frames import EARTH_RATE, STANDARD_GRAVITY, Site, euler_321, int_to_imu
 from ..noise import FLICKER_TAUS_S, allan_deviation, correlate, fit_noise_model
+from ..scenario import Noise
+from ..sim import flicker_sigma
 
 ESTIMATE_NAMES = ("pitch", "roll", "yaw", "alpha", "beta", "gyro_bias_x", "gyro_bias_y", "gyro_bias_z",
                   "acc_bias_x", "acc_bias_y", "acc_bias_z", "incl_bias_x", "incl_bias_y", "incl_bias_z")
@@ -57,7 +63,7 @@ class NoiseModel:
     """One sensor's noise as the covariance sees it, the same for its three channels."""
 
     white: float  # white-noise variance per sample at the session's rate, SI unit^2
-    flicker: float  # variance of each Gauss-Markov component of FLICKER_TAUS_S[:4], SI unit^2
+    flicker: float  # variance of each Gauss-Markov component of FLICKER_TAUS_S, SI unit^2
 
 
 @dataclass(frozen=True)
@@ -67,6 +73,20 @@ class SensorNoise:
     gyro: NoiseModel  # rad/s
     acc: NoiseModel  # m/s^2
     incl: NoiseModel  # m/s^2
+
+
+def datasheet_noise(figures: Noise, rate_hz: float) -> SensorNoise:
+    """The noise models of datasheet figures, at `rate_hz`: white variance per sample from the
+    random walk, and the flicker components the simulator uses for the bias instability (Allan
+    deviation minimum = the figure)."""
+    def model(density: float, instability: float) -> NoiseModel:
+        flicker = flicker_sigma(density, instability) ** 2 if instability > 0 else 0.0
+        return NoiseModel(density**2 * rate_hz, flicker)
+
+    deg, mg = np.pi / 180, STANDARD_GRAVITY / 1000
+    gyro = model(figures.gyro_arw_deg_sqrt_h / 60 * deg, figures.gyro_bias_instability_deg_h / 3600 * deg)
+    return SensorNoise(gyro=gyro, acc=model(figures.acc_vrw_m_s_sqrt_h / 60, figures.acc_bias_instability_mg * mg),
+                       incl=model(figures.incl_vrw_m_s_sqrt_h / 60, figures.incl_bias_instability_mg * mg))
 
 
 @dataclass(frozen=True)
@@ -187,9 +207,10 @@ def _on_circle(gram, rhs, amplitude: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 def fit_gyros(inp: JointInput, site: Site, options: JointOptions = JointOptions(),
-              noise: NoiseModel | None = None) -> GyroFit:
+              noise: NoiseModel | None = None, least_flicker: float = 0.0) -> GyroFit:
     """The gyro fit, iterated: chi needs the platform axis and the Earth terms the fit gives.
-    `noise`: the noise model of the covariance (default: fitted to the static residuals)."""
+    `noise`: the noise model of the covariance (default: fitted to the static residuals, its
+    flicker at least `least_flicker`)."""
     static = np.concatenate([np.arange(a, b) for a, b in inp.statics])
     axis = np.array([0.0, 0.0, 1.0])
     offset = inp.gyro[static].mean(axis=0)
@@ -208,7 +229,7 @@ def fit_gyros(inp: JointInput, site: Site, options: JointOptions = JointOptions(
         offset = inp.gyro - residuals - np.outer(chi_rate, k)  # the fitted non-rotational part
         if np.max(np.abs(chi - previous)) < CHI_TOLERANCE:
             break
-    noise = noise or _fitted_noise(residuals, inp)
+    noise = noise or _fitted_noise(residuals, inp, least_flicker)
     cov = _covariance(designs, np.arange(len(inp.time_s)), inp, bread, noise)
     scale = _noise_scale(residuals, inp)
     fitted = float(np.hypot(*params[:2]))
@@ -218,10 +239,15 @@ def fit_gyros(inp: JointInput, site: Site, options: JointOptions = JointOptions(
                    _static_chi2(residuals, inp, len(params) - 3, noise))
 
 
-def _fitted_noise(residuals: np.ndarray, inp: JointInput) -> NoiseModel:
-    """White + flicker fitted to the Allan deviation of the longest static's residuals."""
+def _fitted_noise(residuals: np.ndarray, inp: JointInput, least_flicker: float) -> NoiseModel:
+    """White + flicker fitted to the Allan deviation of the longest static's residuals, the
+    flicker no lower than `least_flicker` (the datasheet's): a static of minutes resolves the
+    white noise well but not flicker below it (the gyros' 0.3 deg/h under 0.7 deg/h of white
+    noise at a quarter of 10 min), and a fit that finds none would make every sigma that
+    compares statics far apart, or a bias with the turn-on bias, too small."""
     a, b = max(inp.statics, key=lambda s: s[1] - s[0])
-    return NoiseModel(*fit_noise_model(residuals[a:b], inp.rate_hz))
+    white, flicker = fit_noise_model(residuals[a:b], inp.rate_hz, FLICKER_TAUS_S)
+    return NoiseModel(white, max(flicker, least_flicker))
 
 
 def _static_chi2(residuals: np.ndarray, inp: JointInput, fitted: int, noise: NoiseModel) -> tuple[float, int]:
@@ -238,9 +264,11 @@ def _static_chi2(residuals: np.ndarray, inp: JointInput, fitted: int, noise: Noi
 
 
 def mean_variance(noise: NoiseModel, n: int, rate_hz: float) -> float:
-    """Variance of one channel's mean over n consecutive samples under the noise model."""
+    """Variance of one channel's mean over n consecutive samples under the noise model, less the
+    slowest flicker component: it moves every static alike, so fitted offsets take it, not the
+    differences between statics."""
     tau = n / rate_hz
-    return noise.white / n + noise.flicker * sum(_gm_mean_variance(tau, c) for c in FLICKER_TAUS_S[:4])
+    return noise.white / n + noise.flicker * sum(_gm_mean_variance(tau, c) for c in FLICKER_TAUS_S[:-1])
 
 
 def _gm_mean_variance(tau: float, corr: float) -> float:
@@ -252,8 +280,9 @@ def _gm_mean_variance(tau: float, corr: float) -> float:
 def _covariance(designs, rows: np.ndarray, inp: JointInput, bread: np.ndarray, noise: NoiseModel) -> np.ndarray:
     """Parameter covariance under white noise plus flicker (a sum of Gauss-Markov processes) on
     the samples `rows`. Flicker correlates the errors over minutes; a white-noise covariance
-    would be optimistic for everything that compares segments far apart. Components much longer
-    than a session (here above 3000 s) act as part of the bias during it, not as noise. `bread`
+    would be optimistic for everything that compares segments far apart. Every component counts,
+    the slowest (30000 s) too: over a session it is a nearly constant wander of the bias, the
+    difference between the bias the session carries and the turn-on bias reported. `bread`
     is the inverse information of the (possibly constrained) fit: cov = bread . (H' Sigma H) . bread."""
     meat = noise.white * _gram(designs, len(bread))
     if noise.flicker > 0:
@@ -263,7 +292,7 @@ def _covariance(designs, rows: np.ndarray, inp: JointInput, bread: np.ndarray, n
         starts = np.flatnonzero(np.diff(bins, prepend=-1))
         grid = np.zeros((bins[-1] + 1, sum(len(d.params) for d in designs)))
         grid[bins[starts]] = np.hstack([np.add.reduceat(d.values, starts) for d in designs])
-        for correlated in correlate(grid, 1.0 / FLICKER_BIN_S, FLICKER_TAUS_S[:4]):
+        for correlated in correlate(grid, 1.0 / FLICKER_BIN_S, FLICKER_TAUS_S):
             start = 0
             for d in designs:
                 cols = slice(start, start + len(d.params))
@@ -300,38 +329,75 @@ def _noise_scale(residuals: np.ndarray, inp: JointInput) -> float:
 @dataclass
 class ForceFit:
     params: np.ndarray  # u1, u2 (platform axis tilt in the interface frame), b (3), m/s^2 for b
-    cov: np.ndarray
+    cov: np.ndarray  # from this sensor's noise alone, the platform axis and g0 taken as exact
     noise_scale: float
     noise: NoiseModel  # the model the covariance assumes: fitted to the residuals, or given
+    sensitivity: np.ndarray  # d params / d (k_x, k_y, k_z, g0): how the axis and g0 errors move them
 
 
-def fit_force(force: np.ndarray, chi: np.ndarray, inp: JointInput, a: np.ndarray, g0: float,
-              noise: NoiseModel | None = None) -> ForceFit:
-    """f = g0 A R3(chi) u + b at every static sample, u = (u1, u2, sqrt(1 - u1^2 - u2^2)):
-    linear in (u1, u2, b) once u3 is taken from the previous pass. `noise` as in fit_gyros."""
+@dataclass(frozen=True)
+class _StaticSums:
+    """The statics' platform-angle basis B = (cos chi, sin chi, 1) and its sums with itself and
+    the data. A channel's design is B times a 3 x 3 matrix of the axis and g0, so the force fit's
+    normal equations for any axis and g0 follow from these sums: refitting for the sensitivity
+    costs no pass over the samples."""
+
+    basis: np.ndarray  # n x 3
+    gram: np.ndarray  # B' B
+    cross: np.ndarray  # B' f, one column per channel
+
+
+def _channel_map(a_row: np.ndarray, g0: float) -> np.ndarray:
+    """T with design = B T: columns g0 (a0 cos - a1 sin), g0 (a0 sin + a1 cos), 1."""
+    return np.array([[g0 * a_row[0], g0 * a_row[1], 0.0], [-g0 * a_row[1], g0 * a_row[0], 0.0], [0.0, 0.0, 1.0]])
+
+
+def _force_params(sums: _StaticSums, k: np.ndarray, g0: float):
+    """(params, gram, maps, offsets) of f = g0 A R3(chi) u + b, A = int_to_imu(alpha, beta) of
+    the platform axis k: linear in (u1, u2, b) once u3 is taken from the previous pass; `offsets`
+    is the g0 u3 A[:, 2] the last pass took off the data."""
+    a = int_to_imu(*alpha_beta(k))
+    maps = [_channel_map(a[i], g0) for i in range(3)]
+    u3 = 1.0
+    for _ in range(3):
+        offsets = g0 * u3 * a[:, 2]
+        gram, rhs = np.zeros((5, 5)), np.zeros(5)
+        for i, t in enumerate(maps):
+            cols = [0, 1, 2 + i]
+            gram[np.ix_(cols, cols)] += t.T @ sums.gram @ t
+            rhs[cols] += t.T @ (sums.cross[:, i] - offsets[i] * sums.gram[:, 2])  # B' 1 = B' B[:, 2]
+        params = np.linalg.solve(gram, rhs)
+        u3 = np.sqrt(1.0 - params[0] ** 2 - params[1] ** 2)
+    return params, gram, maps, offsets
+
+
+def fit_force(force: np.ndarray, chi: np.ndarray, inp: JointInput, k: np.ndarray, g0: float,
+              noise: NoiseModel | None = None, least_flicker: float = 0.0) -> ForceFit:
+    """The accelerometer or inclinometer fit at every static sample, for the gyro-derived
+    platform axis k (IMU axes). `noise` as in fit_gyros. The fit takes k and g0 as exact; its
+    sensitivity to them lets `solve` carry their uncertainty into the biases (an error d_beta
+    moves the X biases by g0 d_beta, one of g0 the Z biases by as much)."""
     rows = np.concatenate([np.arange(s, e) for s, e in inp.statics])
     chis = np.array([chi[s:e].mean() for s, e in inp.statics])
     if np.ptp(np.exp(1j * chis).real) < 0.5 and np.ptp(np.exp(1j * chis).imag) < 0.5:
         raise ValueError("the statics cover too few platform angles to separate the tilt from the biases "
                          "(index positions about 90 deg apart are needed)")
-    cos, sin = np.cos(chi[rows]), np.sin(chi[rows])
-    n = len(rows)
-    u3 = 1.0
-    for _ in range(3):
-        designs = [ChannelDesign(np.array([0, 1, 2 + i]),
-                                 np.column_stack([g0 * (a[i, 0] * cos - a[i, 1] * sin),
-                                                  g0 * (a[i, 0] * sin + a[i, 1] * cos), np.ones(n)]))
-                   for i in range(3)]
-        data = force[rows] - g0 * u3 * a[:, 2]
-        gram, rhs = _normal_equations(designs, data, 5)
-        params = np.linalg.solve(gram, rhs)
-        residuals = np.column_stack([data[:, i] - designs[i] @ params for i in range(3)])
-        u3 = np.sqrt(1.0 - params[0] ** 2 - params[1] ** 2)
+    basis = np.column_stack([np.cos(chi[rows]), np.sin(chi[rows]), np.ones(len(rows))])
+    sums = _StaticSums(basis, basis.T @ basis, basis.T @ force[rows])
+    params, gram, maps, offsets = _force_params(sums, k, g0)
+    drivers = np.append(k, g0)
+
+    def refit(x):
+        return _force_params(sums, x[:3], x[3])[0]
+
+    steps = np.diag([1e-6, 1e-6, 1e-6, 1e-4])  # k is near unit length; g0 in m/s^2
+    sensitivity = np.column_stack([(refit(drivers + h) - refit(drivers - h)) / (2 * h.max()) for h in steps])
+    designs = [ChannelDesign(np.array([0, 1, 2 + i]), basis @ t) for i, t in enumerate(maps)]
     full = np.zeros_like(force)
-    full[rows] = residuals
-    noise = noise or _fitted_noise(full, inp)
+    full[rows] = force[rows] - offsets - np.column_stack([d @ params for d in designs])
+    noise = noise or _fitted_noise(full, inp, least_flicker)
     cov = _covariance(designs, rows, inp, np.linalg.inv(gram), noise)
-    return ForceFit(params, cov, _noise_scale(full, inp), noise)
+    return ForceFit(params, cov, _noise_scale(full, inp), noise, sensitivity)
 
 
 # ---------------------------------------------------------------- from fits to estimates
@@ -393,23 +459,43 @@ class JointResult:
 
 def solve(inp: JointInput, site: Site, options: JointOptions = JointOptions(),
           noise: SensorNoise | None = None) -> JointResult:
-    """Every estimate and its 1-sigma; `noise` replaces the noise models fitted to the residuals."""
-    gyro = fit_gyros(inp, site, options, noise and noise.gyro)
-    a = int_to_imu(*alpha_beta(gyro.params[2:5]))
-    incl = fit_force(inp.incl, gyro.chi, inp, a, site.gravity, noise and noise.incl)
-    acc = fit_force(inp.acc, gyro.chi, inp, a, site.gravity, noise and noise.acc)
+    """Every estimate and its 1-sigma; `noise` replaces the noise models fitted to the residuals
+    (whose flicker is at least the STIM300 datasheet's)."""
+    least = datasheet_noise(Noise(), inp.rate_hz)
+    gyro = fit_gyros(inp, site, options, noise and noise.gyro, least.gyro.flicker)
+    k = gyro.params[2:5]
+    incl = fit_force(inp.incl, gyro.chi, inp, k, site.gravity, noise and noise.incl, least.incl.flicker)
+    acc = fit_force(inp.acc, gyro.chi, inp, k, site.gravity, noise and noise.acc, least.acc.flicker)
     sizes = (len(gyro.params), len(incl.params))
     x = np.concatenate([gyro.params, incl.params, acc.params])
 
     def chain(p):
         return estimates_from(p[:sizes[0]], p[sizes[0]:sum(sizes)], p[sum(sizes):], site)
 
-    cov = _block_diag(gyro.cov, incl.cov, acc.cov)
+    cov = parameter_covariance(gyro, incl, acc, site.gravity_sigma)
     steps = np.sqrt(np.diag(cov)) * 1e-3 + 1e-15
     jac = _jacobian(chain, x, steps)
     sigma = np.sqrt(np.diag(jac @ cov @ jac.T))
     values = chain(x)
     return JointResult(values, dict(zip(values, sigma.tolist())), gyro, incl, acc, jac)
+
+
+def parameter_covariance(gyro: GyroFit, incl: ForceFit, acc: ForceFit, g0_sigma: float) -> np.ndarray:
+    """Covariance of (gyro, incl, acc params). The three sensors' noises are independent, but
+    the force fits use the gyro-derived platform axis and g0: their parameters move with the
+    gyro parameters and g0 through their sensitivities, which couples all three blocks.
+    With d = (gyro params, g0): x = M d + force noise, cov = M cov(d) M' + blockdiag(0, incl, acc)."""
+    p = len(gyro.params)
+    drivers = _block_diag(gyro.cov, np.array([[g0_sigma**2]]))
+
+    def from_drivers(force: ForceFit) -> np.ndarray:
+        m = np.zeros((len(force.params), p + 1))
+        m[:, 2:5] = force.sensitivity[:, :3]  # k is gyro params 2:5
+        m[:, p] = force.sensitivity[:, 3]
+        return m
+
+    m = np.vstack([np.eye(p, p + 1), from_drivers(incl), from_drivers(acc)])
+    return m @ drivers @ m.T + _block_diag(np.zeros((p, p)), incl.cov, acc.cov)
 
 
 def _block_diag(*blocks) -> np.ndarray:
