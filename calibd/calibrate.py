@@ -430,7 +430,11 @@ def joint_fit(session: Session, site: Site, options: joint.JointOptions = joint.
     found = [t for t in check.turns if t.found] if check else []
     if not found:
         return JointFit(used, first, inp, fit, check, check)
-    inp, fit = _corrected(inp, fit, site, options, found)
+    try:
+        inp, fit = _corrected(inp, fit, site, options, found)
+    except (ValueError, np.linalg.LinAlgError) as exc:
+        raise CalibrationError(f"the tilt the accelerometers and inclinometers see disagrees with the gyros' turn "
+                               f"angles, and the corrected angles leave no usable fit ({exc})") from None
     return JointFit(used, first, inp, fit, check, _tilt_check(inp, fit, site))
 
 
@@ -512,8 +516,8 @@ def _turn_angle_warnings(fitted: JointFit, session: Session) -> list[str]:
     unseen = ("a datagram loss the counter cannot see (whole 0.128 s cycles) during a turn would go unnoticed "
               "except by the gyro chi-square")
     if fitted.turn_angles is None:
-        return [f"the statics do not pin the turns' angles (fewer than three statics, or too few platform "
-                f"angles): {unseen}"]
+        return [f"the statics do not pin the turns' angles (statics at fewer than {gaps.MIN_HEADINGS} "
+                f"headings): {unseen}"]
     warnings = []
     for t in fitted.turn_angles.turns:
         start_s, end_s = _turn_window_s(fitted, session, t)

@@ -27,6 +27,17 @@ from .frames import r3
 
 FOUND_SIGMAS = 4.0  # a correction this many sigma from zero is a loss (5 turns: 3e-4 false alarms a session)
 CHECKABLE_SIGMA_RAD = np.radians(1.0)  # a turn pinned less well than this is not checked
+MIN_HEADINGS = 3  # statics at fewer distinct headings cannot tell a turn's angle from the tilt
+HEADING_SEPARATION_RAD = np.radians(30.0)  # statics closer in heading (mod 360 deg) share one
+
+
+def distinct_headings(static_chi: np.ndarray) -> int:
+    """How many headings (platform angles mod 360 deg, HEADING_SEPARATION_RAD apart) the statics
+    cover. Each heading adds one tilt direction; the tilt (2 unknowns) and one angle per turn are
+    determined only from three on: at two headings one difference vector fits any angle."""
+    headings = np.sort(np.mod(static_chi, 2 * np.pi))
+    steps = np.diff(np.concatenate((headings, [headings[0] + 2 * np.pi])))
+    return max(1, int(np.count_nonzero(steps > HEADING_SEPARATION_RAD)))
 
 
 @dataclass(frozen=True)
@@ -79,12 +90,12 @@ def check_turn_angles(inp: JointInput, chi: np.ndarray, a: np.ndarray, g0: float
     joint fit's platform angle; `a`: R_int^IMU; `u0`: the joint fit's (u1, u2) to start from.
     Raises ValueError when the statics do not determine the corrections."""
     statics = inp.statics
-    if len(statics) < 3:
-        raise ValueError("fewer than three statics")
+    static_chi = np.array([chi[s:e].mean() for s, e in statics])
+    if distinct_headings(static_chi) < MIN_HEADINGS:
+        raise ValueError(f"statics at fewer than {MIN_HEADINGS} headings")
     means = np.stack([[values[s:e].mean(axis=0) for s, e in statics] for values in (inp.acc, inp.incl)])
     whiten = [np.linalg.inv(np.linalg.cholesky(static_means_covariance(noise, inp)))
               for noise in (acc_noise, incl_noise)]
-    static_chi = np.array([chi[s:e].mean() for s, e in statics])
 
     def residuals(params):
         misfit = means - _model(params, static_chi, a, g0)

@@ -158,3 +158,25 @@ def test_continuous_rotation_says_the_turns_went_unchecked():
     result = joint_real_case(load_session("continuous.bin", data=capture_bytes(sim)[0]), scenario.site)
     assert "turn_angles" not in result["checks"]
     assert any("the statics do not pin the turns' angles" in w for w in result["warnings"])
+
+
+def test_headings_are_counted_modulo_a_turn():
+    assert gaps.distinct_headings(np.radians([0, -90, -180, -270, -360, -720])) == 4
+    assert gaps.distinct_headings(np.radians([0, 90, 450])) == 2
+    assert gaps.distinct_headings(np.radians([0, 10, 355])) == 1
+
+
+def test_one_index_position_leaves_the_turns_unchecked_and_is_solved():
+    """Statics at two headings (level, one index position, and again after a full turn): one
+    difference of tilt directions fits any turn angle, so none is corrected; the result says so
+    and stays within its sigma."""
+    segments = THESIS.segments[:3] + THESIS.segments[-2:]
+    scenario = replace(THESIS, seed=7, segments=segments)
+    sim = simulate(scenario)
+    result = joint_real_case(load_session("one-index.bin", data=capture_bytes(sim)[0]), scenario.site)
+    assert any("statics at fewer than 3 headings" in w for w in result["warnings"])
+    assert not any(LOST_WARNING in w for w in result["warnings"])
+    truth = scenario.truth
+    for name in ("pitch", "roll", "yaw"):
+        e = result["estimates"][name]
+        assert abs(e["value"] - getattr(truth, f"{name}_deg")) < 3 * e["sigma"], name
