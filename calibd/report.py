@@ -21,7 +21,6 @@ import os
 from dataclasses import fields
 from pathlib import Path
 
-
 from stim300.atomic import write_atomic
 from stim300.progress import Progress
 

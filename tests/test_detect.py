@@ -169,7 +169,7 @@ def test_capture_with_lost_datagrams_is_one_static():
 
 
 @pytest.mark.parametrize("rate", [125, 2000])
-def test_sample_times_follow_the_counter_across_losses_and_the_wrap(rate):
+def test_counter_times_follow_the_counter_across_losses_and_the_wrap(rate):
     step = 2000 // rate
     cycle = 256 // step  # sample periods in one counter cycle
     rng = np.random.default_rng(rate)
