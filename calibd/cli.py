@@ -165,18 +165,23 @@ def cmd_sensitivity(args) -> int:
     return 0
 
 
+def _load_config(path: str, port: str | None):
+    """The configuration at `path`, its port replaced by `port` when given; ConfigError if unusable."""
+    config = load_config(path)
+    return config.with_port(port) if port else config
+
+
 def _config(path: str, port: str | None):
     try:
-        config = load_config(path)
+        return _load_config(path, port)
     except ConfigError as exc:
         raise UsageError(str(exc)) from None
-    return config.with_port(port) if port else config
 
 
 def cmd_run(args) -> int:
     config = _config(args.config, args.port)
     configure_logging()
-    return run(config, lambda: _config(args.config, args.port))
+    return run(config, lambda: _load_config(args.config, args.port))  # a bad reload keeps the old one
 
 
 def cmd_replay(args) -> int:

@@ -27,6 +27,7 @@ from stim300.port import PortError, PortReader
 from stim300.ringbuffer import RingBuffer
 from stim300.stream import StreamParser
 
+from .config import ConfigError
 from .daemon import Calibrator, ResultStore, State
 
 log = structlog.get_logger("calibd")
@@ -219,7 +220,8 @@ def _bytes_per_second(parser: StreamParser) -> float | None:
 
 
 def run(config, reload_config) -> int:
-    """`calibd run`: until SIGTERM. `reload_config()` returns a fresh config (SIGHUP)."""
+    """`calibd run`: until SIGTERM. `reload_config()` returns a fresh config (SIGHUP) or raises
+    ConfigError, which leaves the daemon running on the configuration it has."""
     store = ResultStore(config.state_dir)
     calibrator = Calibrator(config.site, config.warmup, config.method, on_result=store.write_result,
                             source=config.serial.port, detection=config.detection, on_stale=store.replace_result)
@@ -254,8 +256,8 @@ def run(config, reload_config) -> int:
                     fresh = reload_config()
                     calibrator.configure(fresh.site, fresh.warmup, fresh.method, fresh.detection)
                     log.info("reloaded")
-                except ValueError as exc:
-                    log.error("reload_failed", error=str(exc))
+                except ConfigError as exc:
+                    log.error("reload_failed", error=str(exc), detail="keeping the configuration in use")
             if pump.step():
                 sd_notify("WATCHDOG=1")
             if reader.error is not None:

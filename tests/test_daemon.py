@@ -530,3 +530,48 @@ def test_a_restart_seen_only_in_the_start_up_bit_starts_a_new_power_up():
         calibrator.feed(samples[batch[0]:batch[0] + 25], 125)  # no restart count: only the status bytes say it
     restarts = [start for state, start in states if state == State.RESTARTED]
     assert len(restarts) == 1 and restarts[0] <= restart_at < restarts[0] + 25
+
+
+def _read_log_until(daemon: subprocess.Popen, log: list[str], event: str, count: int, deadline: float) -> None:
+    """Collect the daemon's JSON log lines (stderr) until `event` has appeared `count` times."""
+    os.set_blocking(daemon.stderr.fileno(), False)
+    while "".join(log).count(f'"event": "{event}"') < count:
+        assert time.monotonic() < deadline and daemon.poll() is None, "".join(log)[-2000:]
+        if select.select([daemon.stderr], [], [], 0.2)[0]:
+            log.append((daemon.stderr.read() or b"").decode())
+
+
+def test_a_broken_configuration_on_sighup_keeps_the_daemon_running(tmp_path):
+    """Each way a configuration file can break (syntax, type, unknown key, deleted, a directory,
+    not text) is one `reload_failed` line on SIGHUP, and the daemon runs on; a good file reloads."""
+    link = tmp_path / "ttySTIM"
+    master, slave = _plug(link)
+    config = tmp_path / "calibd.toml"
+    good = (f'[serial]\nport = "{link}"\n[site]\nlatitude_deg = 40.59129\n'
+            f'[output]\nstate_dir = "{tmp_path / "state"}"\n[method]\nresolve_every_s = 300\n')
+    config.write_text(good)
+    breakages = [lambda: config.write_text("[serial\n"),
+                 lambda: config.write_text(good.replace("40.59129", '"forty"')),
+                 lambda: config.write_text(good.replace("[method]\n", "[method]\nbogus = 1\n")),
+                 lambda: config.unlink(),
+                 lambda: config.mkdir(),
+                 lambda: (config.rmdir(), config.write_bytes(b"\xff\xfe\x00"))]
+    daemon, log = _calibd_run(config), []
+    deadline = time.monotonic() + 60
+    try:
+        _read_log_until(daemon, log, "started", 1, deadline)
+        for failures, breakage in enumerate(breakages, 1):
+            breakage()
+            daemon.send_signal(signal.SIGHUP)
+            _read_log_until(daemon, log, "reload_failed", failures, deadline)
+        config.unlink()
+        config.write_text(good)
+        daemon.send_signal(signal.SIGHUP)
+        _read_log_until(daemon, log, "reloaded", 1, deadline)
+        daemon.send_signal(signal.SIGTERM)
+        assert daemon.wait(timeout=20) == 0
+    finally:
+        _stop(daemon, master, slave)
+    text = "".join(log)
+    for reason in ("not valid TOML", "forty", "bogus", "no such configuration file", "is a directory", "not UTF-8"):
+        assert reason in text, reason
