@@ -422,7 +422,7 @@ def joint_fit(session: Session, site: Site, options: joint.JointOptions = joint.
         statics=tuple((s.start - first, s.stop - first) for s in statics), rate_hz=session.rate_hz)
     try:
         fit = joint.solve(inp, site, options)
-    except ValueError as exc:
+    except joint.Underdetermined as exc:
         raise _lacking(str(exc), segments) from None
     except np.linalg.LinAlgError:
         raise _lacking("the segments do not determine every parameter (too few platform angles)", segments) from None
@@ -432,7 +432,7 @@ def joint_fit(session: Session, site: Site, options: joint.JointOptions = joint.
         return JointFit(used, first, inp, fit, check, check)
     try:
         inp, fit = _corrected(inp, fit, site, options, found)
-    except (ValueError, np.linalg.LinAlgError) as exc:
+    except (joint.Underdetermined, np.linalg.LinAlgError) as exc:
         raise CalibrationError(f"the tilt the accelerometers and inclinometers see disagrees with the gyros' turn "
                                f"angles, and the corrected angles leave no usable fit ({exc})") from None
     return JointFit(used, first, inp, fit, check, _tilt_check(inp, fit, site))
@@ -444,7 +444,7 @@ def _tilt_check(inp: joint.JointInput, fit: joint.JointResult, site: Site) -> ga
     try:
         return gaps.check_turn_angles(inp, fit.gyro.chi, a, site.gravity, fit.acc.noise, fit.incl.noise,
                                       fit.incl.params[:2])
-    except (ValueError, np.linalg.LinAlgError):
+    except (joint.Underdetermined, np.linalg.LinAlgError):
         return None
 
 

@@ -344,6 +344,11 @@ class Calibrator:
             if self.state != State.SOLVED:
                 self._set(State.COLLECTING, f"collecting: {session.time_s[-1]:.0f} s of data; {exc}")
             return
+        except Exception as exc:  # a fault of calibd, not of the data: said as such, and the daemon runs on
+            log.exception("solve_failed")
+            self._set(self.state, f"solve failed: {type(exc).__name__}: {exc} (a fault in calibd; the log "
+                                  "has its traceback)")
+            return
         result["session"] = {"number": self.sessions, "duration_s": float(session.time_s[-1]),
                              "solved_at": datetime.now(timezone.utc).isoformat(timespec="seconds")}
         self.result = result

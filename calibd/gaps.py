@@ -21,7 +21,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.special import gammaincc
 
-from .estimators.joint import JointInput, NoiseModel, mean_variance
+from .estimators.joint import JointInput, NoiseModel, Underdetermined, mean_variance
 from .noise import FLICKER_TAUS_S
 from .frames import r3
 
@@ -88,11 +88,11 @@ def check_turn_angles(inp: JointInput, chi: np.ndarray, a: np.ndarray, g0: float
     """Fit (u, b_acc, b_incl, one angle correction per turn) to the statics' mean forces,
     weighted by the covariance the sensors' noise models give those means. `chi`: the
     joint fit's platform angle; `a`: R_int^IMU; `u0`: the joint fit's (u1, u2) to start from.
-    Raises ValueError when the statics do not determine the corrections."""
+    Raises Underdetermined when the statics do not determine the corrections."""
     statics = inp.statics
     static_chi = np.array([chi[s:e].mean() for s, e in statics])
     if distinct_headings(static_chi) < MIN_HEADINGS:
-        raise ValueError(f"statics at fewer than {MIN_HEADINGS} headings")
+        raise Underdetermined(f"statics at fewer than {MIN_HEADINGS} headings")
     means = np.stack([[values[s:e].mean(axis=0) for s, e in statics] for values in (inp.acc, inp.incl)])
     whiten = [np.linalg.inv(np.linalg.cholesky(static_means_covariance(noise, inp)))
               for noise in (acc_noise, incl_noise)]

@@ -44,3 +44,7 @@ def run_command(parser: argparse.ArgumentParser, argv=None) -> int:
     except BrokenPipeError:  # `... | head` closed our stdout: nothing more to say, and no traceback
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # the interpreter flushes at exit
         return 141
+    except Exception as exc:  # a fault of the program, not of the input: one line that says so
+        print(f"{prog}: internal error: {type(exc).__name__}: {exc} (a fault in {prog}, not in the input: "
+              "please report it with the command)", file=sys.stderr)
+        return 1

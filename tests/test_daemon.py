@@ -575,3 +575,29 @@ def test_a_broken_configuration_on_sighup_keeps_the_daemon_running(tmp_path):
     text = "".join(log)
     for reason in ("not valid TOML", "forty", "bogus", "no such configuration file", "is a directory", "not UTF-8"):
         assert reason in text, reason
+
+
+def test_a_fault_inside_the_estimator_is_an_error_not_a_wait(monkeypatch, tmp_path, capsys):
+    """A programming error in the solver (here a numpy broadcasting error) is not mistaken for a
+    protocol that lacks something: the daemon says the solve failed and logs the traceback, and
+    the command line ends with one line and exit status 1."""
+    import calibd.estimators.joint as joint
+
+    def broken(*args, **kwargs):
+        raise ValueError("operands could not be broadcast together with shapes (3,) (4,)")
+
+    monkeypatch.setattr(joint, "solve", broken)
+    samples, _ = decode_capture(HEADING137.read_bytes())
+    calibrator = Calibrator(Site(60.0), WarmupConfig(window_s=10.0, min_time_s=0.0))
+    details = []
+    calibrator.on_state = lambda state, detail: details.append(detail)
+    calibrator.feed(samples, 125)
+    calibrator.finish()
+    assert calibrator.result is None
+    assert any(d.startswith("solve failed: ValueError: operands could not be broadcast") for d in details)
+    assert not any("waiting for: operands" in d for d in details)
+    code = calibd_main(["calibrate", str(HEADING137), "--latitude", "60", "-o", str(tmp_path / "r.json")])
+    err = capsys.readouterr().err
+    assert code == 1 and len(err.strip().splitlines()) == 1
+    assert "internal error: ValueError: operands could not be broadcast" in err and "Traceback" not in err
+    assert not (tmp_path / "r.json").exists()

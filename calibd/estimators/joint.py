@@ -44,6 +44,11 @@ CHI_TOLERANCE = 1e-13  # rad: the largest change of chi between passes that coun
 FLICKER_BIN_S = 0.1  # flicker's fastest component (3 s) barely changes within a bin (3 % at most)
 
 
+class Underdetermined(ValueError):
+    """The session's segments do not determine the fit (statics at too few platform angles):
+    something the protocol lacks, told apart from a fault of the code."""
+
+
 @dataclass(frozen=True)
 class JointInput:
     """A session in SI: samples from the level static (chi = 0 there) to the end of the protocol."""
@@ -380,7 +385,7 @@ def fit_force(force: np.ndarray, chi: np.ndarray, inp: JointInput, k: np.ndarray
     rows = np.concatenate([np.arange(s, e) for s, e in inp.statics])
     chis = np.array([chi[s:e].mean() for s, e in inp.statics])
     if np.ptp(np.exp(1j * chis).real) < 0.5 and np.ptp(np.exp(1j * chis).imag) < 0.5:
-        raise ValueError("the statics cover too few platform angles to separate the tilt from the biases "
+        raise Underdetermined("the statics cover too few platform angles to separate the tilt from the biases "
                          "(index positions about 90 deg apart are needed)")
     basis = np.column_stack([np.cos(chi[rows]), np.sin(chi[rows]), np.ones(len(rows))])
     sums = _StaticSums(basis, basis.T @ basis, basis.T @ force[rows])
