@@ -274,7 +274,8 @@ def allan_figure(canvas, session: Session, segments) -> Figure:
     first = next(iter(channels.values()))
     caption = (f"Overlapping Allan deviation of each channel over the {first.static_s:.0f} s of static data in "
                f"{first.segments} statics, pooled (bands: 68 % interval). Guides in the channel's colour: "
-               "dotted, slope -1/2 through the random walk (RW) read at 1 s (dot); dashed, the bias instability (BI, the "
+               "dotted, slope -1/2 through the random walk (RW) read at 1 s (dot); dashed, the bias instability "
+               "(BI, the "
                "curve's minimum, dot; '<' when the curve is still falling at its last tau); dash-dot, slope +1/2 "
                "through the rate random walk (RRW) when the curve rises again.")
     return Figure("allan", title, caption, _png(canvas, fig))

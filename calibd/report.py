@@ -250,7 +250,8 @@ def _stream(result: dict, whole: Session) -> str:
     duration = float(whole.time_s[-1]) + 1.0 / whole.rate_hz
     rows = [("datagrams", f"{s['datagrams']} datagrams"), ("CRC errors", f"{s['crc_errors']} spans"),
             ("lost samples", f"{s['lost_samples']} samples"), ("sensor restarts", f"{s['restarts']} restarts"),
-            *([("datagrams with fault flags", f"{s['flagged_datagrams']} datagrams")] if "flagged_datagrams" in s else []),
+            *([("datagrams with fault flags", f"{s['flagged_datagrams']} datagrams")]
+              if "flagged_datagrams" in s else []),
             ("duration", f"{duration:.3f} s at {whole.rate_hz} Hz")]
     sensor = result.get("sensor", {})
     rows += [(label, sensor[key]) for key, label in (("serial_number", "serial number"),
@@ -291,7 +292,8 @@ def render_html(result: dict, result_name: str, capture: str, whole: Session, se
     summary = (f"method {result.get('method')}; site latitude {site['latitude_deg']:.5f} deg, height "
                f"{site.get('height_m', 0.0):g} m, g0 {site.get('g0_m_s2', float('nan')):.5f} m/s^2; "
                f"{len(segments)} segments found; "
-               + (f"{warm_label} up to {warm_end:.0f} s" if warm_end > whole.time_s[0] else "no warm-up in the capture"))
+               + (f"{warm_label} up to {warm_end:.0f} s" if warm_end > whole.time_s[0]
+                  else "no warm-up in the capture"))
     body = [f"<h1>Calibration report</h1><p>Result <code>{_e(result_name)}</code> on capture "
             f"<code>{_e(capture)}</code>: {_e(summary)}.</p>",
             "<h2>Estimates</h2>", _estimates_table(result, thesis, truth),

@@ -246,7 +246,8 @@ def _describe(info: dict) -> str:
         f"skipped_bytes    {info['skipped_bytes']} B",
         f"restarts         {info['restarts']}",
         f"config_changes   {info['config_changes']}",
-        "status flags     " + ("; ".join(f"{block}: " + ", ".join(f"{flag} in {n} datagrams" for flag, n in flags.items())
+        "status flags     " + ("; ".join(f"{block}: " + ", ".join(f"{flag} in {n} datagrams"
+                                                                  for flag, n in flags.items())
                                            for block, flags in info["status_flags"].items() if flags) or "none"),
         "units            " + ", ".join(f"{k} {v}" for k, v in info["units"].items()),
         f"acc range        {info['acc_range_g']} g",

@@ -324,8 +324,8 @@ FIXTURE = "fixtures/thesis_real_cw_125hz.bin"
 
 def test_calibrate_command_writes_the_result_schema(tmp_path, capsys):
     out = tmp_path / "result.json"
-    code = calibd_main(["calibrate", FIXTURE, "--method", "thesis", "--latitude", "40.59129", "--g0", "9.79956", "--alpha", "0.5934",
-                        "--beta", "-0.1196", "-o", str(out)])
+    code = calibd_main(["calibrate", FIXTURE, "--method", "thesis", "--latitude", "40.59129", "--g0", "9.79956",
+                        "--alpha", "0.5934", "--beta", "-0.1196", "-o", str(out)])
     assert code == 0, capsys.readouterr().err
     result = json.loads(out.read_text())
     assert result["schema"] == "calibd.result/1" and result["method"] == "thesis-nominal"
