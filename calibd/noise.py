@@ -63,6 +63,30 @@ def allan_gm(tau: np.ndarray, sigma: float, corr: float) -> np.ndarray:
     return sigma**2 / x**2 * (2 * x - 3 + 4 * np.exp(-x) - np.exp(-2 * x))
 
 
+FLOOR_TAUS_S = np.logspace(0, 4, 400)  # where the instability floor is read: 1 s to about 3 h
+
+
+def flicker_sigma(white_density: float, instability: float) -> float:
+    """Sigma of each flicker component so that the minimum of the Allan deviation of white noise
+    (density `white_density`, unit·sqrt(s)) plus the components is `instability`, read over
+    1 s to 3 h (the datasheet's figure comes from a 20-hour record; beyond the longest time
+    constant the sum of Gauss-Markov processes would fall off, where flicker noise stays flat)."""
+    taus = FLOOR_TAUS_S
+    white = white_density**2 / taus
+
+    def minimum(sigma):
+        coloured = sum(allan_gm(taus, sigma, c) for c in FLICKER_TAUS_S)
+        return np.sqrt(white + coloured).min()
+
+    lo, hi = 0.0, 10 * instability
+    if minimum(lo) >= instability:
+        return 0.0  # white noise alone already reaches the instability floor in range
+    for _ in range(60):  # bisection: the minimum grows with sigma
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if minimum(mid) < instability else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
 def _second_difference_sums(x: np.ndarray, m: np.ndarray, rate_hz: float) -> np.ndarray:
     """Sum over the record of the squared second differences of its integral at lags m (samples),
     per channel."""

@@ -23,7 +23,7 @@ from stim300.protocol import NORMAL_LAYOUTS, AccUnit, Format, GyroUnit
 from stim300.special import Configuration, PartNumber, SerialNumber, encode_special
 
 from .frames import EARTH_RATE, STANDARD_GRAVITY, euler_321, int_to_imu, nav_to_imu, r1, r2, r3
-from .noise import FLICKER_TAUS_S, allan_gm
+from .noise import FLICKER_TAUS_S, flicker_sigma
 from .scenario import Scenario
 
 START_UP_S = 0.7  # gyro start-up period after power-on: status bit 6 set (DS §7.5.2.1)
@@ -117,30 +117,6 @@ def gauss_markov(rng: np.random.Generator, n: int, dt: float, sigma: float, tau_
     start = rng.standard_normal((axes, 1)) * sigma
     out, _ = lfilter([1.0], [1.0, -a], white, axis=1, zi=a * start)
     return out.T
-
-
-FLOOR_TAUS_S = np.logspace(0, 4, 400)  # where the instability floor is read: 1 s to about 3 h
-
-
-def flicker_sigma(white_density: float, instability: float) -> float:
-    """Sigma of each flicker component so that the minimum of the Allan deviation of white noise
-    (density `white_density`, unit·sqrt(s)) plus the components is `instability`, read over
-    1 s to 3 h (the datasheet's figure comes from a 20-hour record; beyond the longest time
-    constant the sum of Gauss-Markov processes would fall off, where flicker noise stays flat)."""
-    taus = FLOOR_TAUS_S
-    white = white_density**2 / taus
-
-    def minimum(sigma):
-        coloured = sum(allan_gm(taus, sigma, c) for c in FLICKER_TAUS_S)
-        return np.sqrt(white + coloured).min()
-
-    lo, hi = 0.0, 10 * instability
-    if minimum(lo) >= instability:
-        return 0.0  # white noise alone already reaches the instability floor in range
-    for _ in range(60):  # bisection: the minimum grows with sigma
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if minimum(mid) < instability else (lo, mid)
-    return 0.5 * (lo + hi)
 
 
 def sensor_noise(rng: np.random.Generator, n: int, rate_hz: float, density: float, instability: float):

@@ -13,9 +13,10 @@ from calibd.calibrate import Session, load_session
 from calibd.cli import main as calibd_main
 from calibd.detect import Segment as Detected
 from calibd.noise import (CHANNELS, FLICKER_TAUS_S, M_S2_TO_MG, RAD_S_TO_DEG_H, NoiseError, allan_deviation,
-                          allan_edf, allan_gm, characterise, confidence_interval, pooled_allan_deviation)
+                          allan_edf, allan_gm, characterise, confidence_interval, flicker_sigma,
+                          pooled_allan_deviation)
 from calibd.scenario import Segment, load_scenario
-from calibd.sim import flicker_sigma, write_capture
+from calibd.sim import write_capture
 
 SIM_S = 3600.0
 

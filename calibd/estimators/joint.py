@@ -33,9 +33,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..frames import EARTH_RATE, STANDARD_GRAVITY, Site, euler_321, int_to_imu
-from ..noise import FLICKER_TAUS_S, allan_deviation, correlate, fit_noise_model
+from ..noise import FLICKER_TAUS_S, allan_deviation, correlate, fit_noise_model, flicker_sigma
 from ..scenario import Noise
-from ..sim import flicker_sigma
 
 ESTIMATE_NAMES = ("pitch", "roll", "yaw", "alpha", "beta", "gyro_bias_x", "gyro_bias_y", "gyro_bias_z",
                   "acc_bias_x", "acc_bias_y", "acc_bias_z", "incl_bias_x", "incl_bias_y", "incl_bias_z")
