@@ -47,10 +47,12 @@ class _Stderr:
 
 
 def configure_logging(level: int = logging.INFO) -> None:
-    """JSON lines on stderr for journald when not on a terminal, readable lines on one."""
-    renderer = structlog.dev.ConsoleRenderer() if sys.stderr.isatty() else structlog.processors.JSONRenderer()
+    """JSON lines on stderr for journald when not on a terminal (a traceback as a field of its
+    line), readable lines on one (the console renderer prints tracebacks itself)."""
+    renderers = [structlog.dev.ConsoleRenderer()] if sys.stderr.isatty() else \
+        [structlog.processors.format_exc_info, structlog.processors.JSONRenderer()]
     structlog.configure(processors=[structlog.processors.add_log_level, structlog.processors.TimeStamper("iso"),
-                                    renderer],
+                                    *renderers],
                         wrapper_class=structlog.make_filtering_bound_logger(level),
                         logger_factory=structlog.PrintLoggerFactory(_Stderr()))
 

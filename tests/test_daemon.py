@@ -587,6 +587,7 @@ def test_a_fault_inside_the_estimator_is_an_error_not_a_wait(monkeypatch, tmp_pa
         raise ValueError("operands could not be broadcast together with shapes (3,) (4,)")
 
     monkeypatch.setattr(joint, "solve", broken)
+    configure_logging()
     samples, _ = decode_capture(HEADING137.read_bytes())
     calibrator = Calibrator(Site(60.0), WarmupConfig(window_s=10.0, min_time_s=0.0))
     details = []
@@ -596,6 +597,8 @@ def test_a_fault_inside_the_estimator_is_an_error_not_a_wait(monkeypatch, tmp_pa
     assert calibrator.result is None
     assert any(d.startswith("solve failed: ValueError: operands could not be broadcast") for d in details)
     assert not any("waiting for: operands" in d for d in details)
+    log = capsys.readouterr().err
+    assert '"event": "solve_failed"' in log and "Traceback" in log and "operands could not be broadcast" in log
     code = calibd_main(["calibrate", str(HEADING137), "--latitude", "60", "-o", str(tmp_path / "r.json")])
     err = capsys.readouterr().err
     assert code == 1 and len(err.strip().splitlines()) == 1
