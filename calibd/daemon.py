@@ -32,6 +32,7 @@ from .calibrate import (CalibrationError, ProtocolIncomplete, Session, fault_rec
 from .config import DetectionConfig, MethodConfig, WarmupConfig
 from .estimators.joint import JointOptions
 from .frames import STANDARD_GRAVITY, Site
+from .results import result_json
 from .warmup import settling
 
 log = structlog.get_logger("calibd")
@@ -398,7 +399,7 @@ class ResultStore:
         (self.dir / "history").mkdir(parents=True, exist_ok=True)
 
     def write_result(self, result: dict) -> Path:
-        text = _json(result)
+        text = result_json(result)
         stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S.%fZ")
         write_atomic(self.dir / "history" / f"result-{stamp}.json", text)
         write_atomic(self.dir / "result.json", text)
@@ -406,13 +407,9 @@ class ResultStore:
 
     def replace_result(self, result: dict) -> Path:
         """Rewrite result.json only (the last result marked stale): history keeps it as it was made."""
-        write_atomic(self.dir / "result.json", _json(result))
+        write_atomic(self.dir / "result.json", result_json(result))
         return self.dir / "result.json"
 
     def write_state(self, state: State, detail: str, extra: dict | None = None) -> None:
         record = {"state": state.value, "detail": detail, "updated": time.time(), **(extra or {})}
         write_atomic(self.dir / "state.json", (json.dumps(record) + "\n").encode(), durable=False)
-
-
-def _json(result: dict) -> bytes:
-    return (json.dumps(result, indent=1, allow_nan=False) + "\n").encode()

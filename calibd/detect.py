@@ -37,11 +37,6 @@ MIN_TURN_THRESHOLD_DEG_S = 0.5  # above gyro bias + Earth rate of any navigation
 MIN_REMOUNT_G = 0.05  # a re-mount moves gravity by ~1 g between axes
 
 
-def temperature_trend_c_per_h(time_s: np.ndarray, temperature_c: np.ndarray) -> float:
-    """Least-squares slope of a temperature record, degC/h: the warm-up criterion."""
-    return float(np.polyfit(time_s, temperature_c, 1)[0] * 3600)
-
-
 @dataclass(frozen=True)
 class Segment:
     """A static or a turn: samples [start, stop), times [start_s, end_s).

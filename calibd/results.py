@@ -54,8 +54,13 @@ def make_result(method: str, site: Site, estimates: dict[str, tuple[float, float
             "segments": segments, "warnings": list(warnings), "sensor": sensor, **extra}
 
 
+def result_json(result: dict) -> bytes:
+    """The result file's bytes: JSON, one key a line, no NaN (a result with one is a bug)."""
+    return (json.dumps(result, indent=1, allow_nan=False) + "\n").encode()
+
+
 def write_result(path, result: dict) -> None:
-    write_atomic(path, (json.dumps(result, indent=1, allow_nan=False) + "\n").encode())
+    write_atomic(path, result_json(result))
 
 
 def load_result(path) -> dict:

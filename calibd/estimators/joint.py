@@ -385,7 +385,7 @@ def fit_force(force: np.ndarray, chi: np.ndarray, inp: JointInput, k: np.ndarray
     chis = np.array([chi[s:e].mean() for s, e in inp.statics])
     if np.ptp(np.exp(1j * chis).real) < 0.5 and np.ptp(np.exp(1j * chis).imag) < 0.5:
         raise Underdetermined("the statics cover too few platform angles to separate the tilt from the biases "
-                         "(index positions about 90 deg apart are needed)")
+                              "(index positions about 90 deg apart are needed)")
     basis = np.column_stack([np.cos(chi[rows]), np.sin(chi[rows]), np.ones(len(rows))])
     sums = _StaticSums(basis, basis.T @ basis, basis.T @ force[rows])
     params, gram, maps, offsets = _force_params(sums, k, g0)
