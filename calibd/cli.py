@@ -17,7 +17,8 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from stim300.cliutil import CommandParser, UsageError, read_input, run_command
+from stim300.cliutil import CommandParser, read_input, run_command
+from stim300.errors import UsageError
 from stim300.progress import Progress
 
 from .calibrate import (CalibrationError, calibrate_capture, decode, joint_real_case, load_session, thesis_bench,

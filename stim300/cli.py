@@ -19,8 +19,9 @@ import numpy as np
 
 from .atomic import atomic_file
 from .bulk import decode_capture
-from .cliutil import CommandParser, UsageError, run_command
+from .cliutil import CommandParser, run_command
 from .clock import counter_times
+from .errors import UsageError
 from .progress import Progress
 from .protocol import (ACC_RANGE_LSB_EXP, DEFAULT_BIT_RATE, NORMAL_LAYOUTS, SAMPLE_RATES_HZ, AccUnit, Format, GyroUnit,
                        Status)

@@ -6,9 +6,7 @@ import argparse
 import os
 import sys
 
-
-class UsageError(Exception):
-    """A problem with what the user gave us: reported as one line, exit status 2."""
+from .errors import UsageError
 
 
 class CommandParser(argparse.ArgumentParser):

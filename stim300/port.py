@@ -1,4 +1,4 @@
-"""The serial side of the driver: open a port, read it into a ring, record it, talk Service Mode.
+"""The serial side of the driver: open a port, read it into a ring, record it.
 
 `PortReader` is what the daemon runs: a thread that reads whatever the port has, stamps each
 read with the host clock, feeds one `StreamParser` (kept across reopens, so its statistics
@@ -6,15 +6,13 @@ cover the whole session) and pushes the samples into a `RingBuffer`. A vanished 
 closed and reopened with exponential backoff, and every (re)open asks for the configuration
 datagram (`C<CR>`, protocol doc §12) so the parser re-adopts the sensor's format.
 
-The Service Mode helpers (protocol doc §10) work on an open `serial.Serial` that nothing else
-is reading: stop the `PortReader` first.
+Service Mode (talking to the unit instead of reading it) is `stim300.service`.
 """
 
 from __future__ import annotations
 
 import errno
 import os
-import re
 import sys
 import threading
 import time
@@ -25,6 +23,7 @@ import serial
 import structlog
 
 from .atomic import atomic_file
+from .errors import PortError
 from .protocol import CONFIGURATION, DEFAULT_BIT_RATE
 from .reads import ReadLog, reads_path
 from .ringbuffer import RingBuffer
@@ -44,10 +43,6 @@ _ERRNO_TEXT = {
     errno.EAGAIN: "in use by another process",  # the exclusive lock is taken
     errno.EIO: "input/output error (device unplugged?)",
 }
-
-
-class PortError(Exception):
-    """A serial port could not be opened or used; the message is one line naming the port."""
 
 
 def _describe(exc: BaseException) -> str:
@@ -258,108 +253,3 @@ def record(url: str, output_path, baudrate: int = DEFAULT_BIT_RATE, duration_s: 
         return 1
     print(f"recorded {total} B in {time.monotonic() - start:.1f} s to {out}", file=sys.stderr)
     return status
-
-
-# ---------------------------------------------------------------- Service Mode (protocol doc §10)
-
-PROMPT = b"\r>"
-SERVICEMODE_REQUEST = b"SERVICEMODE\r"
-ENTER_SETTLE_S = 0.05  # silence after CR '>' that proves it was the prompt, not datagram bytes
-_ERROR_REPLY = re.compile(r"E(\d{3})\s*(.*)", re.S)
-_EXIT_LINE = re.compile(rb"SYSTEM RETURNING TO (?:NORMAL|INIT) MODE\.?\r")
-_TEXT_TAIL = re.compile(rb"[\t\n\r\x20-\x7e]*\Z")
-
-
-class ServiceError(Exception):
-    """The sensor answered a Service Mode command with an error (`code` from `Ennn`, else None)."""
-
-    def __init__(self, command: str, code: int | None, text: str):
-        label = f"E{code:03d} " if code is not None else "unexpected reply: "
-        super().__init__(f"service command {command!r}: {label}{text}")
-        self.command = command
-        self.code = code
-        self.text = text
-
-
-def _read_until(ser: serial.Serial, done, timeout: float, what: str) -> bytearray:
-    """Read until `done(buf)` is true; TimeoutError after `timeout` s (plus one port timeout)."""
-    deadline = time.monotonic() + timeout
-    buf = bytearray()
-    while not done(buf):
-        if time.monotonic() >= deadline:
-            raise TimeoutError(f"{ser.port}: no {what} within {timeout} s; last bytes {bytes(buf[-80:])!r}")
-        buf += _read_available(ser)
-    return buf
-
-
-def _text(raw: bytes) -> str:
-    """Service Mode text with CR / CR LF line ends as '\\n', surrounding blank space removed."""
-    return raw.decode("ascii", "replace").replace("\r\n", "\n").replace("\r", "\n").strip()
-
-
-def _reply(command: str, body: bytes) -> str:
-    """The text of a reply without the command's echo; raises ServiceError on `Ennn ...`."""
-    echo = command.encode("ascii") + b"\r"
-    if body.startswith(echo):
-        body = body[len(echo):]
-    text = _text(body)
-    error = _ERROR_REPLY.match(text)
-    if error:
-        raise ServiceError(command, int(error[1]), error[2].strip())
-    return text
-
-
-def enter_service_mode(ser: serial.Serial, timeout: float = 3.0) -> str:
-    """Send SERVICEMODE; return the information report printed before the first prompt.
-
-    The unit finishes the datagram in progress first, so binary bytes precede the report; the
-    prompt counts only once the line stays quiet after it, and the report is the text after
-    the last non-text byte (a few printable bytes ending that datagram may remain in front).
-    """
-    ser.reset_input_buffer()
-    ser.write(SERVICEMODE_REQUEST)
-
-    def prompted(buf: bytearray) -> bool:
-        if not buf.endswith(PROMPT):
-            return False
-        time.sleep(ENTER_SETTLE_S)
-        return not ser.in_waiting
-
-    buf = _read_until(ser, prompted, timeout, "Service Mode prompt")
-    body = bytes(buf[:-len(PROMPT)])
-    return _text(_TEXT_TAIL.search(body)[0])
-
-
-def service_command(ser: serial.Serial, command: str, timeout: float = 3.0) -> str:
-    """Run one Service Mode command (e.g. "i m", "m 4"); return its reply text.
-
-    Not for commands that ask for confirmation (`s`, lower-case `x n`): they end without a prompt.
-    """
-    if "\r" in command or "\n" in command:
-        raise ValueError(f"a Service Mode command is one line, got {command!r}")
-    ser.write(command.encode("ascii") + b"\r")
-    buf = _read_until(ser, lambda b: PROMPT in b, timeout, f"prompt after {command!r}")
-    return _reply(command, bytes(buf[:buf.index(PROMPT)]))
-
-
-def exit_service_mode(ser: serial.Serial, to: str = "N", timeout: float = 3.0) -> bytes:
-    """Leave Service Mode at once (`x N` to Normal, `x I` to Init Mode, no confirmation).
-
-    The unit echoes the command and prints SYSTEM RETURNING TO ... MODE (real firmware: no
-    period, no prompt), then datagrams follow at once. Returns the bytes read after that line:
-    feed them to the parser before anything read later.
-    """
-    if to not in ("N", "I"):
-        raise ValueError(f"exit to 'N' (Normal) or 'I' (Init) Mode, got {to!r}")
-    command = f"x {to}"
-    ser.write(command.encode("ascii") + b"\r")
-
-    def answered(buf: bytearray) -> bool:
-        return _EXIT_LINE.search(buf) is not None or PROMPT in buf
-
-    buf = _read_until(ser, answered, timeout, f"answer to {command!r}")
-    line = _EXIT_LINE.search(buf)
-    if line is None:  # still in Service Mode: the unit refused, with an error and a prompt
-        _reply(command, bytes(buf[:buf.index(PROMPT)]))
-        raise ServiceError(command, None, _text(bytes(buf)))
-    return bytes(buf[line.end():])

@@ -10,6 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from enum import IntEnum, IntFlag
 
+from .errors import FormatError
+
 CR_LF = b"\r\n"
 COUNTER_MODULUS = 256
 INTERNAL_RATE_HZ = 2000  # the counter counts internal 2000 Hz samples
@@ -252,12 +254,12 @@ class Format:
 
     def __post_init__(self):
         if self.datagram_id is not None and self.datagram_id not in NORMAL_LAYOUTS:
-            raise ValueError(f"unknown normal datagram id 0x{self.datagram_id:02X}")
+            raise FormatError(f"unknown normal datagram id 0x{self.datagram_id:02X}")
         if self.acc_range_g not in ACC_RANGE_LSB_EXP:
-            raise ValueError(f"accelerometer range {self.acc_range_g} g is not one of "
+            raise FormatError(f"accelerometer range {self.acc_range_g} g is not one of "
                              f"{sorted(ACC_RANGE_LSB_EXP)} g")
         if self.sample_rate_hz is not None and self.sample_rate_hz not in SAMPLE_RATES_HZ:
-            raise ValueError(f"sample rate {self.sample_rate_hz} Hz is not one of {SAMPLE_RATES_HZ} Hz")
+            raise FormatError(f"sample rate {self.sample_rate_hz} Hz is not one of {SAMPLE_RATES_HZ} Hz")
 
     @property
     def counter_step(self) -> int | None:

@@ -13,6 +13,7 @@ from enum import IntEnum
 from typing import Any, ClassVar, Sequence
 
 from .crc import datagram_crc
+from .errors import FormatError
 from .protocol import (
     BIAS_TRIM,
     CONFIGURATION,
@@ -54,7 +55,7 @@ __all__ = [
 def _char_byte(char: str, name: str) -> int:
     """One text character as one byte; latin-1 so that every byte value decodes and re-encodes."""
     if not isinstance(char, str) or len(char) != 1 or ord(char) > 0xFF:
-        raise ValueError(f"{name} must be a single character U+0000..U+00FF, got {char!r}")
+        raise FormatError(f"{name} must be a single character U+0000..U+00FF, got {char!r}")
     return ord(char)
 
 
@@ -68,13 +69,13 @@ def _char_value(char: str, limit: int, name: str) -> int:
     code = ord(char) if isinstance(char, str) and len(char) == 1 else -1
     value = code - 48 if 48 <= code <= 57 else code - 55 if code >= 65 else -1
     if not 0 <= value < limit:
-        raise ValueError(f"{name}: character {char!r} does not encode a value 0..{limit - 1}")
+        raise FormatError(f"{name}: character {char!r} does not encode a value 0..{limit - 1}")
     return value
 
 
 def _uint(value: int, size: int, name: str) -> bytes:
     if not isinstance(value, int) or not 0 <= value < 1 << (8 * size):
-        raise ValueError(f"{name} must be an integer 0..{(1 << 8 * size) - 1}, got {value!r}")
+        raise FormatError(f"{name} must be an integer 0..{(1 << 8 * size) - 1}, got {value!r}")
     return value.to_bytes(size, "big")
 
 
@@ -82,13 +83,13 @@ def _acc_lsb(range_g: int) -> float:
     try:
         return acc_lsb(AccUnit.ACCELERATION, range_g)
     except KeyError:
-        raise ValueError(f"accelerometer range {range_g!r} g is unknown") from None
+        raise FormatError(f"accelerometer range {range_g!r} g is unknown") from None
 
 
 def _triple(values: Sequence[Any], name: str) -> tuple:
     values = tuple(values)
     if len(values) != 3:
-        raise ValueError(f"{name} needs one value per axis (X, Y, Z), got {values!r}")
+        raise FormatError(f"{name} needs one value per axis (X, Y, Z), got {values!r}")
     return values
 
 
@@ -140,7 +141,7 @@ class PartNumber(_Special):
     def to_payload(self, acc_range_g: int = 10) -> bytes:
         text = self.text
         if not isinstance(text, str) or len(text) != 17 or any(text[i] != "-" for i in _PN_HYPHENS):
-            raise ValueError(f"part number must look like 'DDDDD-DDDDDDD-DDD', got {text!r}")
+            raise FormatError(f"part number must look like 'DDDDD-DDDDDDD-DDD', got {text!r}")
         digits = [c for i, c in enumerate(text) if i not in _PN_HYPHENS]
         nibbles = [0] * 18
         for digit, (low, high) in _PN_DIGITS.items():
@@ -183,7 +184,7 @@ class SerialNumber(_Special):
 
     def to_payload(self, acc_range_g: int = 10) -> bytes:
         if not isinstance(self.text, str) or len(self.text) != 15:
-            raise ValueError(f"serial number must be 'N' + 14 digits, got {self.text!r}")
+            raise FormatError(f"serial number must be 'N' + 14 digits, got {self.text!r}")
         # Hex digits A-F are accepted so any byte pattern round-trips; real units send 0-9.
         values = [_char_value(c, 16, "serial number digit") for c in self.text[1:]]
         digits = bytes(hi << 4 | lo for hi, lo in zip(values[0::2], values[1::2]))
@@ -218,13 +219,13 @@ class _Table:
         try:
             return self.to_code[value]
         except (KeyError, TypeError):
-            raise ValueError(f"configuration {name}={value!r}: expected one of {self.describe}") from None
+            raise FormatError(f"configuration {name}={value!r}: expected one of {self.describe}") from None
 
     def value(self, name: str, code: int) -> Any:
         try:
             return self.to_value[code]
         except KeyError:
-            raise ValueError(f"configuration {name}: code {code:#x} is not defined in the "
+            raise FormatError(f"configuration {name}: code {code:#x} is not defined in the "
                              f"byte map (protocol doc §8.1)") from None
 
 
@@ -289,7 +290,7 @@ def _lookup(table: dict[int, Any], wanted: Any, what: str) -> int:
     for code, value in table.items():
         if value == wanted:
             return code
-    raise ValueError(f"{what} {wanted!r} is not one of {[v for v in table.values()]}")
+    raise FormatError(f"{what} {wanted!r} is not one of {[v for v in table.values()]}")
 
 
 @dataclass(frozen=True)
@@ -484,9 +485,9 @@ def _scaled24(values: tuple[float, ...], lsb: float, name: str) -> bytes:
         try:
             count = round(value / lsb)
         except (TypeError, ValueError, OverflowError):
-            raise ValueError(f"{name}: {value!r} is not a finite number") from None
+            raise FormatError(f"{name}: {value!r} is not a finite number") from None
         if not -(1 << 23) <= count < 1 << 23:
-            raise ValueError(f"{name}: {value!r} is outside the 24-bit range of LSB {lsb!r}")
+            raise FormatError(f"{name}: {value!r} is outside the 24-bit range of LSB {lsb!r}")
         out += count.to_bytes(3, "big", signed=True)
     return bytes(out)
 
@@ -556,12 +557,12 @@ def encode_special(obj: SpecialDatagram, crlf: bool, acc_range_g: int = 10) -> b
 def decode_special(frame: bytes, acc_range_g: int = 10) -> SpecialDatagram:
     """Object for a special datagram starting at its ID byte; the CRC is the caller's job."""
     if not frame:
-        raise ValueError("empty frame: no special datagram id")
+        raise FormatError("empty frame: no special datagram id")
     entry = SPECIAL_IDS.get(frame[0])
     if entry is None:
-        raise ValueError(f"0x{frame[0]:02X} is not a special datagram id")
+        raise FormatError(f"0x{frame[0]:02X} is not a special datagram id")
     kind = entry[0]
     if len(frame) < kind.pre_crc:
-        raise ValueError(f"{kind.name} datagram 0x{frame[0]:02X} needs {kind.pre_crc} bytes before "
+        raise FormatError(f"{kind.name} datagram 0x{frame[0]:02X} needs {kind.pre_crc} bytes before "
                          f"the CRC, got {len(frame)}")
     return _CLASSES[kind].from_payload(bytes(frame[1:kind.pre_crc]), acc_range_g)

@@ -17,10 +17,11 @@ import stim300.port as port
 from captures import exact_samples, same_samples
 from stim300.bulk import decode_capture
 from stim300.codec import SAMPLE_DTYPE, encode_samples
-from stim300.port import (PortError, PortReader, ServiceError, enter_service_mode, exit_service_mode, open_serial,
-                          record, service_command)
+from stim300.errors import FormatError, PortError, ServiceError, ServiceTimeout
+from stim300.port import PortReader, open_serial, record
 from stim300.protocol import Format
 from stim300.ringbuffer import RingBuffer
+from stim300.service import enter_service_mode, exit_service_mode, service_command
 from stim300.special import Configuration, encode_special
 from stim300.stream import StreamParser
 
@@ -317,8 +318,10 @@ def test_service_mode_enter_command_error_and_exit_back_to_datagrams(pty):
             with pytest.raises(ServiceError) as refused:
                 service_command(ser, "q", timeout=DEADLINE_S)
             assert (refused.value.code, refused.value.text) == (1, "UNKNOWN COMMAND")
-            with pytest.raises(ValueError):
+            with pytest.raises(FormatError):
                 exit_service_mode(ser, "n")  # lower case would wait for a confirmation
+            with pytest.raises(FormatError):
+                service_command(ser, "i m\rs")  # two commands: the second would go unanswered
             with pytest.raises(ServiceError, match="E003 INVALID PARAMETER"):
                 exit_service_mode(ser, "I", timeout=DEADLINE_S)
             data = bytearray(exit_service_mode(ser, timeout=DEADLINE_S))
@@ -333,8 +336,10 @@ def test_service_mode_enter_command_error_and_exit_back_to_datagrams(pty):
 
 
 def test_service_mode_timeout_names_what_was_awaited(pty):
-    with open_serial(pty.path) as ser, pytest.raises(TimeoutError, match="prompt after 'i m'"):
+    with open_serial(pty.path) as ser, pytest.raises(ServiceTimeout, match="prompt after 'i m'") as silent:
         service_command(ser, "i m", timeout=0.1)
+    assert silent.value.command == "i m"
+    assert isinstance(silent.value, TimeoutError) and isinstance(silent.value, ServiceError)
 
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
