@@ -53,7 +53,7 @@ def make_capture(path: Path, seconds: float) -> None:
 
 def bulk_rate(data: bytes) -> tuple[float, float, int]:
     t = time.perf_counter()
-    samples, _ = decode_capture(data)
+    samples = decode_capture(data).samples
     elapsed = time.perf_counter() - t
     return len(data) / elapsed / 1e6, elapsed, len(samples)
 

@@ -75,23 +75,24 @@ def decode(path: str, data: bytes | None = None) -> Capture:
     if data is None:
         with open(path, "rb") as f:
             data = f.read()
-    samples, scanner = decode_capture(data, reads=load_reads(path))
+    decoded = decode_capture(data, reads=load_reads(path))
+    samples, info = decoded.samples, decoded.info
     if not len(samples):
         raise CalibrationError(f"{path}: no STIM300 datagram found")
-    fmt = scanner.format
+    fmt = info.format
     if fmt.gyro_unit.is_angle or fmt.acc_unit.is_velocity:
         raise CalibrationError(f"{path}: calibration needs rate and acceleration outputs, "
                                f"not {fmt.gyro_unit.name} / {fmt.acc_unit.name}")
     if np.isnan(samples["acc"][0, 0]) or np.isnan(samples["incl"][0, 0]):
         raise CalibrationError(f"{path}: datagram 0x{fmt.datagram_id:02X} lacks accelerometers or inclinometers")
-    stats = scanner.stats
-    rate = fmt.sample_rate_hz or 2000 // stats.counter_step
+    if info.rate_hz is None:
+        raise CalibrationError(f"{path}: sample rate unknown: no configuration datagram, and "
+                               f"{len(samples)} datagram(s) are too few to infer it from the counter")
+    stats = info.stats
     cuts = sorted({0, len(samples), *stats.restart_datagrams, *start_up_rises(samples).tolist()})
     return Capture(
-        path=str(path), samples=samples, power_ups=list(zip(cuts, cuts[1:])), rate_hz=rate,
-        sensor={"serial_number": scanner.serial_number.text if scanner.serial_number else None,
-                "part_number": str(scanner.part_number) if scanner.part_number else None,
-                "datagram_id": f"0x{fmt.datagram_id:02X}", "sample_rate_hz": rate},
+        path=str(path), samples=samples, power_ups=list(zip(cuts, cuts[1:])), rate_hz=info.rate_hz,
+        sensor=info.sensor_record(),
         stream={"capture": str(path), "datagrams": stats.datagrams, "lost_samples": stats.lost_samples,
                 "crc_errors": stats.crc_errors, "restarts": stats.restarts})
 

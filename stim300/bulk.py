@@ -5,30 +5,37 @@ path: from an offset where a datagram of the current format starts, it checks a 
 consecutive datagrams at once (id byte, CRC by column tables, CR LF) and decodes the valid
 prefix in one go. The first datagram that does not verify goes back to the scanner, which
 re-synchronises byte by byte exactly as it does on a live stream.
+
+`decode_capture` gives rows (SAMPLE_DTYPE), `decode_columns` one array per field: what writing
+tables wants (no strided passes over whole records).
 """
 
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
 from numpy.lib.stride_tricks import as_strided
 
+from .capture import Capture, StreamInfo, stream_info
 from .codec import SAMPLE_DTYPE, decode_frames, empty_columns
 from .crc import crc_columns
-from .protocol import NORMAL_LAYOUTS, SPECIAL_IDS, Format
+from .protocol import CR_LF, NORMAL_LAYOUTS, SPECIAL_IDS, Format
 from .reads import read_times
 from .stream import WAIT, Scanner
 
 BLOCK = 65536  # datagrams checked and decoded together: keeps the columns in cache
 FIRST_BLOCK = 64  # a block after a re-synchronisation starts small, in case the stream is noisy
-_IS_ID = np.zeros(256, bool)
+_IS_ID = np.zeros(1 << 8, bool)  # per byte value: can a datagram start with it
 _IS_ID[list(NORMAL_LAYOUTS) + list(SPECIAL_IDS)] = True
 _SHORTEST = min(layout.wire_length(False) for layout in NORMAL_LAYOUTS.values())
 
 
 class BulkDecoder:
-    """Decode one capture held in memory (bytes, bytearray, mmap)."""
+    """Decode one capture held in memory (bytes, bytearray, mmap) into the storage `allocate(n)`
+    gives: SAMPLE_DTYPE rows or `codec.empty_columns`."""
 
-    def __init__(self, data, fmt: Format | None = None, columns: bool = False, reads: np.ndarray | None = None):
+    def __init__(self, data, fmt: Format | None, reads: np.ndarray | None, allocate):
         self._reads = reads
         self._raw = memoryview(data).cast("B")
         self._bytes = np.frombuffer(self._raw, np.uint8)
@@ -36,7 +43,7 @@ class BulkDecoder:
         self.scanner = Scanner(fmt, lambda offset, ident: self._found.append((offset, ident)))
         self.scanner.stats.bytes_in = len(self._raw)
         most = len(self._raw) // _SHORTEST + 1  # untouched rows cost address space only
-        self._out = empty_columns(most) if columns else np.empty(most, SAMPLE_DTYPE)
+        self._out = allocate(most)
         self._n = 0
 
     def run(self) -> np.ndarray | dict[str, np.ndarray]:
@@ -115,7 +122,7 @@ class BulkDecoder:
         valid = crc_columns(frames, pre) == sent
         valid &= frames[:, 0] == layout.datagram_id
         if crlf:
-            valid &= (frames[:, -2] == 0x0D) & (frames[:, -1] == 0x0A)
+            valid &= (frames[:, -2] == CR_LF[0]) & (frames[:, -1] == CR_LF[1])
         return valid
 
     def _decode(self, frames: np.ndarray, layout, start: int, length: int) -> None:
@@ -127,14 +134,22 @@ class BulkDecoder:
         self._n += n
 
 
-def decode_capture(data, fmt: Format | None = None, columns: bool = False, reads: np.ndarray | None = None):
-    """Samples of a whole capture and the scanner (stats, format, special datagrams) after it.
+def decode_capture(data, fmt: Format | None = None, reads: np.ndarray | None = None) -> Capture:
+    """A whole capture's samples (SAMPLE_DTYPE rows) and its StreamInfo. `fmt` describes a capture
+    without a configuration datagram; `reads`, its read log (`stim300.reads`), gives each sample
+    its `t_host`."""
+    samples, info = _decode(data, fmt, reads, partial(np.empty, dtype=SAMPLE_DTYPE))
+    return Capture(samples, info)
 
-    Samples come as a SAMPLE_DTYPE array, or with `columns` as a dict of per-field arrays like
-    `codec.empty_columns` (what writing tables wants: no strided passes over whole records).
-    `reads`, the capture's read log (`stim300.reads`), gives each sample its `t_host`.
-    """
-    decoder = BulkDecoder(data, fmt, columns, reads)
+
+def decode_columns(data, fmt: Format | None = None, reads: np.ndarray | None = None) \
+        -> tuple[dict[str, np.ndarray], StreamInfo]:
+    """`decode_capture` as one array per SAMPLE_DTYPE field (like `codec.empty_columns`)."""
+    return _decode(data, fmt, reads, empty_columns)
+
+
+def _decode(data, fmt, reads, allocate):
+    decoder = BulkDecoder(data, fmt, reads, allocate)
     samples = decoder.run()
     decoder.release()
-    return samples, decoder.scanner
+    return samples, stream_info(decoder.scanner)

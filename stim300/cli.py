@@ -18,7 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from .atomic import atomic_file
-from .bulk import decode_capture
+from .bulk import decode_columns
+from .capture import StreamInfo
 from .cliutil import CommandParser, run_command
 from .clock import counter_times
 from .errors import UsageError
@@ -96,14 +97,14 @@ def _mapped(path: str):
         raise UsageError(f"{path}: cannot read: {exc.strerror or exc}") from None
 
 
-def _decode(path: str, fmt: Format):
-    """Samples (columns) and scanner; with the capture's read log, samples carry host times."""
+def _decode(path: str, fmt: Format) -> tuple[dict[str, np.ndarray], StreamInfo]:
+    """Samples (columns) and stream info; with the capture's read log, samples carry host times."""
     with _mapped(path) as data:
-        samples, scanner = decode_capture(data, fmt, columns=True, reads=load_reads(path))
-    if scanner.stats.datagrams == 0:
-        raise UsageError(f"{path}: no STIM300 datagram found in {scanner.stats.bytes_in} bytes "
+        samples, info = decode_columns(data, fmt, reads=load_reads(path))
+    if info.stats.datagrams == 0:
+        raise UsageError(f"{path}: no STIM300 datagram found in {info.stats.bytes_in} bytes "
                          "(not a STIM300 capture, or a format the options do not describe)")
-    return samples, scanner
+    return samples, info
 
 
 def columns(samples) -> dict[str, np.ndarray]:
@@ -118,7 +119,7 @@ def columns(samples) -> dict[str, np.ndarray]:
         out = {"t_host_s": samples["t_host"]} | out
     for block in clusters + ["temp_" + c for c in temps]:
         for k, axis in enumerate(AXES):
-            out[f"{block}_{axis}"] = samples[block][:, k]  # contiguous in decode_capture's columns
+            out[f"{block}_{axis}"] = samples[block][:, k]  # contiguous in decode_columns' columns
     if aux:
         out["aux"] = samples["aux"]
     for block in clusters + ["temp_" + c for c in temps] + (["aux"] if aux else []):
@@ -138,7 +139,8 @@ def column_units(names, fmt: Format) -> dict[str, str]:
         elif name == "latency_us":
             result[name] = "us"
         elif name == "aux":
-            result[name] = units["pps"] if fmt.datagram_id and fmt.datagram_id >= 0xF0 else units["aux"]
+            pps = fmt.datagram_id is not None and NORMAL_LAYOUTS[fmt.datagram_id].aux == "pps"
+            result[name] = units["pps" if pps else "aux"]
         else:
             result[name] = units[block]
     return result
@@ -173,26 +175,25 @@ def cmd_decode(args) -> int:
     if not (out.endswith(".npz") or out.endswith(".csv")):
         raise UsageError(f"{out}: output must end in .npz or .csv")
     started = time.perf_counter()
-    samples, scanner = _decode(args.capture, _format(args))
+    samples, info = _decode(args.capture, _format(args))
     cols = columns(samples)
-    units = column_units(cols, scanner.format)
+    units = column_units(cols, info.format)
     with _output(out) as f:
         if out.endswith(".npz"):
             np.savez(f, **cols, units=np.array(json.dumps(units)))
         else:
             _write_csv(f, cols)
-    s = scanner.stats
+    s = info.stats
     print(f"{args.capture}: {s.datagrams} datagrams -> {out} ({len(cols)} columns) in "
           f"{time.perf_counter() - started:.2f} s; crc_errors {s.crc_errors}, lost_samples {s.lost_samples}, "
           f"skipped_bytes {s.skipped_bytes} B", file=sys.stderr)
     return 0
 
 
-def capture_info(samples: np.ndarray, scanner) -> dict:
-    s = scanner.stats
-    fmt = scanner.format
-    step = s.counter_step
-    rate = fmt.sample_rate_hz or (2000 // step if step else None)
+def capture_info(samples, stream: StreamInfo) -> dict:
+    s = stream.stats
+    fmt = stream.format
+    rate = stream.rate_hz
     times = counter_times(samples["counter"], rate, samples["t_host"]) if rate else None
     checked = times is not None and times.checked
     info = {
@@ -211,9 +212,9 @@ def capture_info(samples: np.ndarray, scanner) -> dict:
         "hidden_gap_s": round(times.hidden_s, 3) if checked else None,
         "units": {k: v for k, v in fmt.units().items()},
         "acc_range_g": fmt.acc_range_g,
-        "part_number": str(scanner.part_number) if scanner.part_number else None,
-        "serial_number": str(scanner.serial_number) if scanner.serial_number else None,
-        "configuration": scanner.configuration.as_dict() if scanner.configuration else None,
+        "part_number": stream.part_number,
+        "serial_number": stream.serial_number,
+        "configuration": stream.configuration.as_dict() if stream.configuration else None,
         "status_flags": status_counts(samples),
     }
     return info
@@ -261,8 +262,8 @@ def _describe(info: dict) -> str:
 
 
 def cmd_info(args) -> int:
-    samples, scanner = _decode(args.capture, _format(args))
-    info = capture_info(samples, scanner)
+    samples, stream = _decode(args.capture, _format(args))
+    info = capture_info(samples, stream)
     print(json.dumps(info, indent=1) if args.json else _describe(info))
     return 0
 

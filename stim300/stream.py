@@ -10,17 +10,34 @@ from __future__ import annotations
 
 import collections
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
 from .codec import SAMPLE_DTYPE, decode_frames
 from .crc import datagram_crc
 from .protocol import (CONFIGURATION, COUNTER_MODULUS, CR_LF, INTERNAL_RATE_HZ, NORMAL_LAYOUTS, PART_NUMBER,
-                       SERIAL_NUMBER, SPECIAL_IDS, Format)
+                       SAMPLE_RATES_HZ, SERIAL_NUMBER, SPECIAL_IDS, Format)
 from .special import decode_special
 
 SPECIAL_HISTORY = 64  # special datagrams remembered (they are rare: power-up and on request)
+
+
+@dataclass(frozen=True)
+class StreamStats:
+    """`Stats` at one moment, with the counter-derived figures worked out: what a result carries."""
+
+    bytes_in: int
+    datagrams: int
+    crc_errors: int
+    lost_samples: int
+    skipped_bytes: int
+    restarts: int
+    restart_datagrams: tuple[int, ...]
+    config_changes: int
+    special_datagrams: int
+    undecodable_specials: int
+    counter_step: int | None
 
 
 @dataclass
@@ -42,7 +59,7 @@ class Stats:
 
     @property
     def counter_step(self) -> int | None:
-        """Counter increment per datagram: 2000 / sample rate, or inferred from the data."""
+        """Counter increment per datagram: INTERNAL_RATE_HZ / sample rate, or inferred from the data."""
         if self.configured_step:
             return self.configured_step
         seen = np.flatnonzero(self.counter_steps)
@@ -51,7 +68,7 @@ class Stats:
             return None
         step = math.gcd(*seen.tolist())
         step &= -step  # largest power of two dividing the gcd
-        return min(step, INTERNAL_RATE_HZ // 125)
+        return min(step, INTERNAL_RATE_HZ // min(SAMPLE_RATES_HZ))
 
     @property
     def lost_samples(self) -> int:
@@ -64,12 +81,17 @@ class Stats:
         missing = np.maximum(-(-deltas // step) - 1, 0)
         return int(missing @ self.counter_steps)
 
+    def snapshot(self) -> StreamStats:
+        """A frozen copy: these counters go on changing while the stream is read."""
+        return StreamStats(
+            bytes_in=self.bytes_in, datagrams=self.datagrams, crc_errors=self.crc_errors,
+            lost_samples=self.lost_samples, skipped_bytes=self.skipped_bytes, restarts=self.restarts,
+            restart_datagrams=tuple(self.restart_datagrams), config_changes=self.config_changes,
+            special_datagrams=self.special_datagrams, undecodable_specials=self.undecodable_specials,
+            counter_step=self.counter_step)
+
     def as_dict(self) -> dict:
-        return {"bytes_in": self.bytes_in, "datagrams": self.datagrams, "crc_errors": self.crc_errors,
-                "lost_samples": self.lost_samples, "skipped_bytes": self.skipped_bytes,
-                "restarts": self.restarts, "config_changes": self.config_changes,
-                "special_datagrams": self.special_datagrams, "undecodable_specials": self.undecodable_specials,
-                "counter_step": self.counter_step}
+        return asdict(self.snapshot())
 
 
 WAIT = -1  # scan result: not enough bytes yet to decide

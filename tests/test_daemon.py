@@ -71,7 +71,7 @@ def test_a_data_gap_starts_a_new_session_and_keeps_the_warm_up():
     """The platform may turn while the port is gone, so the session restarts when data returns;
     the sensor stayed powered (no restart datagrams), so there is no second warm-up. While
     collecting, the status says what the session has and what it still waits for."""
-    samples, _ = decode_capture((FIXTURES / "warmup_then_protocol_125hz.bin").read_bytes())
+    samples = decode_capture((FIXTURES / "warmup_then_protocol_125hz.bin").read_bytes()).samples
     events, results = [], []
     calibrator = Calibrator(SITE, WarmupConfig(window_s=100.0), on_result=results.append,
                             on_state=lambda state, detail: events.append((state, detail)))
@@ -109,7 +109,7 @@ def test_detection_settings_reach_the_session():
 
 def test_2000_hz_is_stored_block_averaged_at_125_hz():
     data = (FIXTURES / "static_turn_2000hz.bin").read_bytes()
-    samples, _ = decode_capture(data)
+    samples = decode_capture(data).samples
     calibrator = Calibrator(SITE)
     calibrator.feed(samples[:4003], 2000)
     calibrator.feed(samples[4003:8000], 2000)
@@ -278,7 +278,7 @@ def test_calibd_run_survives_unplug_and_replug(tmp_path):
     """The adapter goes away after the warm-up, in the first static, and 5 s of data are lost:
     the daemon reports the fault, reopens the port when it comes back, and, as the platform angle
     was lost, collects a second session (no second warm-up) that it solves."""
-    samples, _ = decode_capture((FIXTURES / "warmup_then_protocol_125hz.bin").read_bytes())
+    samples = decode_capture((FIXTURES / "warmup_then_protocol_125hz.bin").read_bytes()).samples
     data = (FIXTURES / "warmup_then_protocol_125hz.bin").read_bytes()
     per_sample = len(data) // len(samples)  # 0x97 datagrams, no garbage in this capture
     link = tmp_path / "ttySTIM"
@@ -320,11 +320,12 @@ def test_datagrams_the_sensor_flags_are_counted_and_warned_about(tmp_path):
     daemon both count them, name the flags and warn; START_UP alone is no fault."""
     from stim300.codec import encode_samples
 
-    samples, scanner = decode_capture((FIXTURES / "thesis_real_cw_125hz.bin").read_bytes())
+    decoded = decode_capture((FIXTURES / "thesis_real_cw_125hz.bin").read_bytes())
+    samples, info = decoded.samples, decoded.info
     samples["status_acc"][20000:20010] = 0x11  # OVERLOAD on X
     samples["status_gyro"][:50] = 0x40  # START_UP only
     capture = tmp_path / "flagged.bin"
-    capture.write_bytes(encode_samples(samples, 0xA7, scanner.format, False).tobytes())
+    capture.write_bytes(encode_samples(samples, 0xA7, info.format, False).tobytes())
     result = joint_real_case(load_session(str(capture)), SITE)
     assert result["stream"]["flagged_datagrams"] == 10 and result["stream"]["fault_flags"] == ["X", "OVERLOAD"]
     assert any(w.startswith("10 datagrams carry fault flags (X, OVERLOAD)") for w in result["warnings"])
@@ -372,13 +373,14 @@ def test_replay_through_a_pty_is_paced_and_complete():
     """--pty --speed 20: a minute of data takes about 3 s (unpaced it takes about 1 s), and every
     datagram arrives, garbage, CRC errors and the restart in this capture notwithstanding."""
     data = (FIXTURES / "faults_125hz.bin").read_bytes()
-    samples, scanner = decode_capture(data)
-    duration_s = (len(samples) + scanner.stats.lost_samples) / 125
+    decoded = decode_capture(data)
+    samples, info = decoded.samples, decoded.info
+    duration_s = (len(samples) + info.stats.lost_samples) / 125
     counting = CountingCalibrator()
     started = time.monotonic()
     replay_pty(data, counting, speed=20.0)
     elapsed = time.monotonic() - started
-    assert counting.samples == len(samples) and counting.restarts == scanner.stats.restarts == 1
+    assert counting.samples == len(samples) and counting.restarts == info.stats.restarts == 1
     assert counting.finished and counting.state != State.FAULT  # the writer stopping is no fault
     assert duration_s / 20 * 0.9 < elapsed < duration_s / 20 + 3.0
 
@@ -392,7 +394,7 @@ def test_a_replay_solves_at_the_end_of_the_data_as_calibrate_does(feed):
     data = HEADING137.read_bytes()
     feed(data, calibrator)
     result = calibrator.result
-    samples, _ = decode_capture(data)
+    samples = decode_capture(data).samples
     session_start_s = (len(samples) - 1) / 125 - result["session"]["duration_s"]  # no sample lost in this capture
     reference = joint_real_case(load_session(str(HEADING137), session_start_s - 0.004), SITE_137)
     assert calibrator.state == State.SOLVED
@@ -422,7 +424,7 @@ def test_a_complete_protocol_is_solved_once_the_platform_has_settled(method):
     calibrator solves within the settle time, the minimum static and one batch (plus the
     detector's 0.2 s smoothing) of the end of each turn that completes the method's protocol:
     the joint method after every turn, the thesis method after the full turn only."""
-    samples, _ = decode_capture(HEADING137.read_bytes())
+    samples = decode_capture(HEADING137.read_bytes()).samples
     turns = [p for p in json.loads(Path(f"{HEADING137}.truth.json").read_text())["schedule"] if p["kind"] == "turn"]
     batch, now_s, solved_at_s = 25, [0.0], []
     calibrator = Calibrator(SITE_137, WarmupConfig(window_s=10.0), MethodConfig(method, resolve_every_s=1e9),
@@ -440,7 +442,7 @@ def test_a_complete_protocol_is_solved_once_the_platform_has_settled(method):
 def test_a_restart_marks_the_last_result_stale_before_anything_else():
     """The previous power-up's data are solved to their end, then its result is marked stale at
     once (on_stale, state RESTARTED); the new power-up's warm-up gives no result meanwhile."""
-    samples, _ = decode_capture(HEADING137.read_bytes())
+    samples = decode_capture(HEADING137.read_bytes()).samples
     events = []
     calibrator = Calibrator(SITE_137, WarmupConfig(window_s=10.0), NO_TIMER,
                             on_result=lambda result: events.append(("result", result)),
@@ -513,7 +515,7 @@ def test_a_batch_spanning_a_restart_is_cut_at_the_restart():
 
     replay(first + (FIXTURES / "faults_125hz.bin").read_bytes(), Recorder(), chunk_bytes=1 << 20)
     before_restart = sum(n for n, restarts in fed if restarts == 0)
-    assert before_restart == decode_capture(first)[1].stats.datagrams
+    assert before_restart == decode_capture(first).info.stats.datagrams
     assert [r for _, r in fed] == sorted(r for _, r in fed)  # the count never goes back
 
 
@@ -521,8 +523,8 @@ def test_a_restart_seen_only_in_the_start_up_bit_starts_a_new_power_up():
     """The power-up datagrams of a restart can be lost (CRC burst, port reopened); the start-up
     status bit of the new power-up's first samples still tells, once, at the right sample."""
     data = FIXTURES / "faults_125hz.bin"  # a sensor restart at 40 s
-    samples, scanner = decode_capture(data.read_bytes())
-    restart_at = scanner.stats.restart_datagrams[0]
+    decoded = decode_capture(data.read_bytes())
+    samples, restart_at = decoded.samples, decoded.info.stats.restart_datagrams[0]
     calibrator = Calibrator(Site(40.59129), WarmupConfig(window_s=10.0, min_time_s=0.0))
     states, batch = [], [0]
     calibrator.on_state = lambda state, detail: states.append((state, batch[0]))
@@ -588,7 +590,7 @@ def test_a_fault_inside_the_estimator_is_an_error_not_a_wait(monkeypatch, tmp_pa
 
     monkeypatch.setattr(joint, "solve", broken)
     configure_logging()
-    samples, _ = decode_capture(HEADING137.read_bytes())
+    samples = decode_capture(HEADING137.read_bytes()).samples
     calibrator = Calibrator(Site(60.0), WarmupConfig(window_s=10.0, min_time_s=0.0))
     details = []
     calibrator.on_state = lambda state, detail: details.append(detail)

@@ -140,8 +140,8 @@ def test_a_tilted_or_upside_down_imu_gives_the_same_turns(real, rotation, up):
 def test_2000hz_capture():
     data = (FIXTURES / "static_turn_2000hz.bin").read_bytes()
     truth = json.loads((FIXTURES / "static_turn_2000hz.bin.truth.json").read_text())
-    samples, scanner = decode_capture(data)
-    rate = scanner.format.sample_rate_hz
+    decoded = decode_capture(data)
+    samples, rate = decoded.samples, decoded.info.format.sample_rate_hz
     assert rate == 2000
     time_s = counter_times(samples["counter"], rate).time_s
     segments = detect.find_segments(samples["gyro"], samples["acc"], rate, time_s, min_static_s=3.0)
@@ -151,8 +151,8 @@ def test_2000hz_capture():
 def test_capture_with_lost_datagrams_is_one_static():
     data = (FIXTURES / "faults_125hz.bin").read_bytes()
     truth = json.loads((FIXTURES / "faults_125hz.bin.truth.json").read_text())
-    samples, scanner = decode_capture(data)
-    rate = scanner.format.sample_rate_hz
+    decoded = decode_capture(data)
+    samples, rate = decoded.samples, decoded.info.format.sample_rate_hz
     time_s = counter_times(samples["counter"], rate).time_s
     faults = truth["faults"]
     lost = set(faults["dropped_samples"]) | set(faults["bit_flipped_samples"])

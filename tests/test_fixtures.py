@@ -23,15 +23,16 @@ def test_fixture_is_reproducible_and_matches_its_truth(name):
     assert hashlib.sha256(shipped).hexdigest() == hashlib.sha256(data).hexdigest(), "stale: run make_fixtures.py"
     assert (FIXTURES / f"{name}.bin.truth.json").read_bytes() == truth
     record = json.loads(truth)
-    samples, scanner = decode_capture(shipped)
+    decoded = decode_capture(shipped)
+    samples, info = decoded.samples, decoded.info
     faults = record["faults"]
     lost = set(faults["dropped_samples"]) | set(faults["bit_flipped_samples"])
     assert len(samples) == record["samples"] - len(lost)
-    assert scanner.stats.restarts == (faults["restart_at_sample"] is not None)
+    assert info.stats.restarts == (faults["restart_at_sample"] is not None)
     restart = faults["restart_at_sample"]
-    assert scanner.stats.restart_datagrams == ([] if restart is None else [restart - sum(k < restart for k in lost)])
-    assert f"0x{scanner.format.datagram_id:02X}" == record["sensor"]["datagram_id"]
-    assert scanner.format.sample_rate_hz == record["sensor"]["sample_rate_hz"]
+    assert info.stats.restart_datagrams == (() if restart is None else (restart - sum(k < restart for k in lost),))
+    assert f"0x{info.datagram_id:02X}" == record["sensor"]["datagram_id"]
+    assert info.format.sample_rate_hz == record["sensor"]["sample_rate_hz"]
 
 
 def test_fixtures_stay_small():

@@ -45,7 +45,7 @@ def truth() -> dict:
 def cut_in_a_turn() -> tuple[np.ndarray, np.ndarray]:
     """The capture's samples with CUT datagrams lost mid-turn, stamped as a host reading in bursts
     would see them; and the true times of those kept."""
-    samples, _ = decode_capture(CAPTURE.read_bytes())
+    samples = decode_capture(CAPTURE.read_bytes()).samples
     keep = np.r_[0:CUT_AT, CUT_AT + CUT:len(samples)]
     true_s = keep / RATE_HZ
     samples = samples[keep]
@@ -77,8 +77,8 @@ def test_the_daemon_keeps_the_platform_angle_across_a_hidden_gap_in_a_turn():
 def capture_with_read_log(tmp_path):
     """The cut capture as bytes, with the read log a recording host would have written."""
     data = CAPTURE.read_bytes()
-    samples, scanner = decode_capture(data)
-    fmt = scanner.format
+    decoded = decode_capture(data)
+    samples, fmt = decoded.samples, decoded.info.format
     frames = encode_samples(samples, fmt.datagram_id, fmt, fmt.crlf)
     head = data[:len(data) - frames.size]
     assert head + frames.tobytes() == data

@@ -27,8 +27,8 @@ def quiet(scenario, **truth):
 def decoded(scenario):
     sim = simulate(scenario)
     data, faults = capture_bytes(sim)
-    samples, scanner = decode_capture(data)
-    return sim, samples, scanner, faults
+    capture = decode_capture(data)
+    return sim, capture.samples, capture.info, faults
 
 
 @pytest.fixture(scope="module")
@@ -38,7 +38,7 @@ def thesis():
 
 def test_noise_free_statics_are_the_model_to_the_count(thesis):
     scenario = quiet(thesis)
-    sim, samples, scanner, _ = decoded(scenario)
+    sim, samples, info, _ = decoded(scenario)
     t = scenario.truth
     r = nav_to_imu(t.yaw_deg * DEG, t.pitch_deg * DEG, t.roll_deg * DEG)
     gyro = r @ scenario.site.earth_rate_nav / DEG + np.array(t.gyro_bias_deg_h) / 3600
@@ -51,7 +51,7 @@ def test_noise_free_statics_are_the_model_to_the_count(thesis):
                                                                   samples["gyro"][level].shape).astype(np.float32))
     assert np.abs(samples["acc"][level].astype(np.float64).mean(0) - acc).max() <= ACC_LSB / 2
     assert np.abs(samples["incl"][level].astype(np.float64).mean(0) - incl).max() <= INCL_LSB / 2
-    assert scanner.stats.datagrams == len(sim.samples)
+    assert info.stats.datagrams == len(sim.samples)
 
 
 @pytest.mark.parametrize("angle,rate,accel", [(-90, 20, 20), (90, 20, 20), (360, 27.93, 30), (-5, 20, 20)])
@@ -138,8 +138,8 @@ def test_warm_up_moves_the_biases(thesis):
 def test_faults_show_in_the_decoder_statistics(thesis):
     scenario = replace(thesis, segments=(Segment("static", duration_s=60),),
                        faults=replace(thesis.faults, drop=7, garbage_bursts=3, bit_flips=5, restart_at_s=30.0))
-    sim, samples, scanner, faults = decoded(scenario)
-    s = scanner.stats
+    sim, samples, info, faults = decoded(scenario)
+    s = info.stats
     lost = set(faults["dropped_samples"]) | set(faults["bit_flipped_samples"])
     assert s.datagrams == len(sim.samples) - len(lost)
     assert s.restarts == 1
@@ -170,9 +170,10 @@ def test_calibd_simulate_writes_capture_and_truth(tmp_path, capsys):
     out = tmp_path / "short.bin"
     assert calibd_main(["simulate", str(scenario), "-o", str(out)]) == 0
     truth = json.loads((tmp_path / "short.bin.truth.json").read_text())
-    samples, scanner = decode_capture(out.read_bytes())
+    capture = decode_capture(out.read_bytes())
+    samples, info = capture.samples, capture.info
     assert len(samples) == truth["samples"] == 500
-    assert scanner.format.datagram_id == 0x93 and scanner.format.crlf
+    assert info.format.datagram_id == 0x93 and info.format.crlf
     assert truth["site"]["g0"] == pytest.approx(9.80619, abs=1e-4)  # normal gravity at 45 deg
     assert calibd_main(["simulate", str(tmp_path / "nope.toml"), "-o", str(out)]) == 2
     assert "no such scenario file" in capsys.readouterr().err
