@@ -22,7 +22,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.ndimage import minimum_filter1d
 
 from .protocol import COUNTER_MODULUS, INTERNAL_RATE_HZ
 
@@ -93,6 +92,8 @@ def _hidden_cycles(offset_s: np.ndarray, window: int) -> np.ndarray:
 
     Gaps are taken in order, each removed from the offsets before the next is judged, so two
     gaps closer than a window do not add up."""
+    from scipy.ndimage import minimum_filter1d  # here, not at the top: `import stim300` stays free of scipy
+
     n = len(offset_s)
     judged = n - window + 1
     cycles = np.zeros(n, np.int64)

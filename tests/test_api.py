@@ -1,6 +1,10 @@
 """The stim300 package's seams: one error root, and the public names of `import stim300`."""
 
 import inspect
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 
@@ -9,6 +13,8 @@ from stim300.errors import FormatError, PortError, ServiceError, ServiceTimeout,
 from stim300.port import open_serial
 from stim300.protocol import Format
 from stim300.special import SerialNumber, decode_special
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_every_public_error_class_is_a_stim300_error():
@@ -35,3 +41,20 @@ def test_the_driver_raises_its_own_errors_for_bad_input(tmp_path):
         SerialNumber("X1").to_payload()
     with pytest.raises(PortError, match="no such device"):
         open_serial(str(tmp_path / "ttyNONE"))
+
+
+def test_every_public_name_resolves():
+    import stim300
+    assert len(stim300.__all__) == len(set(stim300.__all__))
+    missing = [name for name in stim300.__all__ if getattr(stim300, name, None) is None]
+    assert not missing
+    assert {"decode_capture", "Capture", "StreamInfo", "StreamParser", "PortReader", "Stim300Error",
+            "service_command", "CounterClock", "SAMPLE_DTYPE"} <= set(stim300.__all__)
+
+
+def test_import_stim300_loads_neither_calibd_nor_scipy():
+    code = ("import sys, stim300; from stim300 import *; "
+            "print(sorted({m.split('.')[0] for m in sys.modules} & {'calibd', 'scipy', 'matplotlib'}))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         env=os.environ | {"PYTHONPATH": str(ROOT)}, cwd=ROOT).stdout
+    assert out.strip() == "[]"
