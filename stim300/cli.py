@@ -31,7 +31,7 @@ from .reads import load_reads
 AXES = "xyz"
 GYRO_UNITS = {"rate": GyroUnit.RATE, "incremental": GyroUnit.INCREMENTAL_ANGLE,
               "average": GyroUnit.AVERAGE_RATE, "integrated": GyroUnit.INTEGRATED_ANGLE}
-GYRO_UNITS |= {name + "-delayed": GyroUnit(unit | 8) for name, unit in GYRO_UNITS.items()}
+GYRO_UNITS |= {name + "-delayed": GyroUnit[unit.name + "_DELAYED"] for name, unit in GYRO_UNITS.items()}
 ACC_UNITS = {"acceleration": AccUnit.ACCELERATION, "incremental": AccUnit.INCREMENTAL_VELOCITY,
              "average": AccUnit.AVERAGE_ACCELERATION, "integrated-gs": AccUnit.INTEGRATED_VELOCITY_GS,
              "integrated-ms": AccUnit.INTEGRATED_VELOCITY_MS}
@@ -301,7 +301,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("record", help="raw bytes from a serial port to a capture file")
     p.add_argument("port", help="device path (/dev/ttyUSB0) or pyserial URL")
     p.add_argument("-o", "--output", required=True)
-    p.add_argument("--baud", type=_positive(int), default=DEFAULT_BIT_RATE, help="bit/s (default 921600)")
+    p.add_argument("--baud", type=_positive(int), default=DEFAULT_BIT_RATE, help=f"bit/s (default {DEFAULT_BIT_RATE})")
     p.add_argument("--duration", type=_positive(float), help="seconds to record (default: until Ctrl-C)")
     p.add_argument("--max-bytes", type=_positive(int), help="stop after this many bytes")
     p.set_defaults(func=cmd_record)

@@ -13,7 +13,7 @@ from functools import lru_cache
 import numpy as np
 
 from .crc import crc_columns
-from .protocol import CLUSTERS, CR_LF, NORMAL_LAYOUTS, Format, Layout
+from .protocol import CLUSTERS, CR_LF, NORMAL_LAYOUTS, Format, Layout, Status
 
 AXES = "xyz"
 
@@ -39,7 +39,7 @@ SAMPLE_DTYPE = np.dtype([
 ])
 
 
-START_UP = 0x40  # the gyros' start-up period after power-on (protocol.Status.START_UP)
+START_UP = int(Status.START_UP)  # the gyros' start-up period after power-on
 FAULT_BITS = 0xFF & ~START_UP  # every status bit but START_UP: the sensor's own report of a bad measurement
 
 

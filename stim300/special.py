@@ -23,8 +23,10 @@ from .protocol import (
     GYRO_RATE_LSB,
     INCL_ACC_LSB,
     PART_NUMBER,
+    SAMPLE_RATES_HZ,
     SERIAL_NUMBER,
     SPECIAL_IDS,
+    STANDARD_BIT_RATES,
     AccUnit,
     Format,
     GyroUnit,
@@ -241,9 +243,10 @@ _BOOL = _Table({0: False, 1: True})
 _CHAR = _Table({c: chr(c) for c in range(256)}, "one character U+0000..U+00FF")
 _LPF_HZ = _Table({0b000: 16, 0b001: 33, 0b010: 66, 0b011: 131, 0b100: 262})
 _ACC_RANGE_G = _Table({0b0000: 10, 0b0011: 5, 0b0100: 30, 0b0110: 80, 0b0010: 2})  # 2 g: VX only
-_SAMPLE_RATE_HZ = {0: 125, 1: 250, 2: 500, 3: 1000, 4: 2000, 5: None}  # None = external trigger
-_BIT_RATE_BPS = {0: 374400, 1: 460800, 2: 921600, 3: 1843200, 15: None}  # None = user-defined
 EXTERNAL_TRIGGER_CODE = 5
+USER_BIT_RATE_CODE = 15
+_SAMPLE_RATE_HZ = dict(enumerate(SAMPLE_RATES_HZ)) | {EXTERNAL_TRIGGER_CODE: None}  # codes 0..4: 125..2000 Hz
+_BIT_RATE_BPS = dict(enumerate(STANDARD_BIT_RATES)) | {USER_BIT_RATE_CODE: None}  # codes 0..3: 374400..1843200
 
 # Field -> (value table, one (byte, lowest bit, width) per axis or a single one). DS Table 5-16.
 _CONFIG_MAP: dict[str, tuple[_Table, tuple[tuple[int, int, int], ...]]] = {
