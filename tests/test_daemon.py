@@ -608,3 +608,18 @@ def test_a_fault_inside_the_estimator_is_an_error_not_a_wait(monkeypatch, tmp_pa
     assert code == 1 and len(err.strip().splitlines()) == 1
     assert "internal error: ValueError: operands could not be broadcast" in err and "Traceback" not in err
     assert not (tmp_path / "r.json").exists()
+
+
+def test_a_replay_logs_the_stream_faults_as_the_daemon_does():
+    """The one loop logs each growth of the stream's faults: over the replay they add up to the
+    bulk decoder's counts."""
+    from structlog.testing import capture_logs
+
+    data = (FIXTURES / "faults_125hz.bin").read_bytes()
+    _, scanner = decode_capture(data)
+    with capture_logs() as logs:
+        replay(CaptureSource(data, chunk_bytes=20_000), CountingCalibrator())
+    faults = [e for e in logs if e["event"] == "stream_faults"]
+    assert len(faults) > 1
+    for name in ("crc_errors", "lost_samples", "skipped_bytes"):
+        assert sum(e.get(name, 0) for e in faults) == getattr(scanner.stats, name), name

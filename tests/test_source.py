@@ -158,3 +158,19 @@ def test_a_capture_source_holds_one_chunk_of_samples_not_the_capture():
     assert count == len(samples)
     assert whole_peak >= len(samples) * SAMPLE_DTYPE.itemsize
     assert source_peak < whole_peak / 10, (source_peak, whole_peak)
+
+
+def test_a_port_source_reports_the_samples_an_overrun_cost(pty):
+    """A ring of 50 samples read only after 500 arrived: the batch holds the newest 50 and says
+    450 were lost, so nothing vanishes unreported."""
+    master, path = pty
+    data, samples, _ = capture(500, rate=2000)
+    with PortSource(path, request_config=False, ring_s=50 / 2000) as source:
+        os.write(master, data)
+        deadline = time.monotonic() + DEADLINE_S
+        while source.reader.parser.stats.datagrams < 500:
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        batch = source.read(0.0)
+    assert batch.overrun_samples == 450 and batch.first == 450
+    assert same_samples(batch.samples, samples[450:])
