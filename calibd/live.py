@@ -111,8 +111,9 @@ def pump(source: SampleSource, calibrator: Calibrator, stop=lambda: False, on_st
                 calibrator.sensor_seen(batch.sensor)
                 feed_power_ups(calibrator, batch.samples, batch.first, batch.rate_hz, batch.restart_datagrams)
                 fed = True
-        if not fed and not source.ended and source.silent_s > NO_DATA_S and calibrator.state != State.FAULT:
-            calibrator.data_lost(source.silent_s)
+        silent_s = source.silent_s
+        if not fed and not source.ended and silent_s > NO_DATA_S and calibrator.state != State.FAULT:
+            calibrator.data_lost(silent_s)
         if on_step:
             on_step(fed)
     if source.ended and source.error is None:

@@ -253,6 +253,7 @@ class PtySource(SampleSource):
             self._close_pty()
             raise
         self._stop = threading.Event()
+        self._write_error: OSError | None = None
         self._idle_reads = 0
         self.done_bytes = 0
         self.total_bytes = len(data)
@@ -275,16 +276,16 @@ class PtySource(SampleSource):
             try:
                 while view:
                     view = view[os.write(self._master, view):]
-            except OSError:
-                if self._stop.is_set():
-                    return  # closed under the writer: nobody reads any more
-                raise
+            except OSError as exc:
+                if not self._stop.is_set():  # else closed under the writer: nobody reads any more
+                    self._write_error = exc
+                return
             self.done_bytes = min(offset + size, len(data))
 
     def _read_internal(self, timeout_s: float) -> Batch | None:
         batch = self._port.read(timeout_s)
-        if self._port.ended:
-            self.error, self.ended = self._port.error, True
+        if self._port.ended or self._write_error is not None:
+            self.error, self.ended = self._port.error or self._write_error, True
         elif batch is not None and len(batch.samples):
             self._idle_reads = 0
         elif not self._writer.is_alive():

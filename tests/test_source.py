@@ -174,3 +174,29 @@ def test_a_port_source_reports_the_samples_an_overrun_cost(pty):
         batch = source.read(0.0)
     assert batch.overrun_samples == 450 and batch.first == 450
     assert same_samples(batch.samples, samples[450:])
+
+
+def test_a_port_whose_reader_fails_ends_with_the_readers_error(pty):
+    master, path = pty
+    data, _, _ = capture(100, rate=2000)
+    with PortSource(path, request_config=False) as source:
+        def broken(*args):
+            raise RuntimeError("parser fault")
+        source.reader.parser.feed = broken
+        os.write(master, data)
+        read_all(source)
+        assert source.ended and isinstance(source.error, RuntimeError) and source.read(0.0) is None
+
+
+def test_a_pty_whose_writer_fails_ends_with_the_write_error(monkeypatch):
+    """The pty refusing bytes (EIO) ends the replay with that error, not with a silently short
+    capture."""
+    import stim300.source
+
+    def refuse(fd, data):
+        raise OSError(5, "Input/output error")
+
+    monkeypatch.setattr(stim300.source.os, "write", refuse)
+    with PtySource(FAULTS.read_bytes()) as source:
+        assert read_all(source) == []
+        assert source.ended and isinstance(source.error, OSError) and source.error.errno == 5
