@@ -16,6 +16,7 @@ from captures import capture, same_samples
 from stim300.bulk import decode_capture
 from stim300.codec import SAMPLE_DTYPE
 from stim300.port import PortError
+from stim300.protocol import INTERNAL_RATE_HZ
 from stim300.reads import READS_DTYPE
 from stim300.source import CaptureSource, PortSource, PtySource
 
@@ -165,7 +166,7 @@ def test_a_port_source_reports_the_samples_an_overrun_cost(pty):
     450 were lost, so nothing vanishes unreported."""
     master, path = pty
     data, samples, _ = capture(500, rate=2000)
-    with PortSource(path, request_config=False, ring_s=50 / 2000) as source:
+    with PortSource(path, request_config=False, ring_s=50 / INTERNAL_RATE_HZ) as source:
         os.write(master, data)
         deadline = time.monotonic() + DEADLINE_S
         while source.reader.parser.stats.datagrams < 500:
