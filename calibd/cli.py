@@ -20,6 +20,7 @@ from pathlib import Path
 from stim300.cliutil import CommandParser, read_input, run_command
 from stim300.errors import UsageError
 from stim300.progress import Progress
+from stim300.source import CaptureSource, PtySource
 
 from .calibrate import (CalibrationError, calibrate_capture, decode, joint_real_case, load_session, thesis_bench,
                         thesis_real_case)
@@ -28,7 +29,7 @@ from .daemon import Calibrator, ResultStore
 from .estimators.joint import JointOptions
 from .estimators.thesis import sensitivity
 from .frames import STANDARD_GRAVITY, Site
-from .live import configure_logging, replay, replay_pty, run
+from .live import configure_logging, replay, run
 from .results import ResultError, load_result, write_result
 from .scenario import READY_MADE, ScenarioError, load_scenario
 
@@ -220,8 +221,9 @@ def cmd_replay(args) -> int:
     calibrator = Calibrator(site, warmup, method, on_result=on_result, on_state=on_state, source=args.capture,
                             detection=detection, on_stale=on_stale)
     speed = None if args.speed == "max" else float(args.speed)
+    source = PtySource(data, speed) if args.pty else CaptureSource(data, speed)
     with Progress("replay", len(data), "B") as bar:
-        (replay_pty if args.pty else replay)(data, calibrator, speed, progress=lambda done, total: bar.update(done))
+        replay(source, calibrator, progress=lambda done, total: bar.update(done))
     if calibrator.result is None or "stale" in calibrator.result:
         stale = " (the last result is the previous power-up's, marked stale)" if calibrator.result else ""
         print(f"no result for the last power-up{stale}: {calibrator.detail}")

@@ -112,6 +112,10 @@ class Calibrator:
         """New settings (SIGHUP): they apply from the next solution on (detection: the next session)."""
         self.site, self.warmup, self.method, self.detection = site, warmup, method, detection
 
+    def sensor_seen(self, identity: dict) -> None:
+        """The sensor as the stream names it (serial and part number, datagram, rate): results carry it."""
+        self.sensor = identity
+
     def feed(self, samples: np.ndarray, rate_hz: int, restarts: int = 0) -> None:
         """A batch of decoded samples (stim300.codec.SAMPLE_DTYPE) in stream order; `restarts` is
         the stream parser's running count of sensor restarts."""

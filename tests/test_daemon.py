@@ -21,8 +21,9 @@ from calibd.calibrate import joint_real_case, load_session
 from calibd.config import MethodConfig, WarmupConfig
 from calibd.daemon import Calibrator, ResultStore, State
 from calibd.frames import Site
-from calibd.live import configure_logging, replay, replay_pty, stream_faults
+from calibd.live import configure_logging, replay, stream_faults
 from stim300.bulk import decode_capture
+from stim300.source import CaptureSource, PtySource
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
 SITE = Site(40.59129, g0=9.79956)
@@ -36,7 +37,7 @@ def run_replay(name: str, warmup: WarmupConfig = WarmupConfig()):
     states, results = [], []
     calibrator = Calibrator(SITE, warmup, on_result=results.append,
                             on_state=lambda state, detail: states.append(state))
-    replay((FIXTURES / f"{name}.bin").read_bytes(), calibrator)
+    replay(CaptureSource((FIXTURES / f"{name}.bin").read_bytes()), calibrator)
     changes = [s for k, s in enumerate(states) if k == 0 or s != states[k - 1]]
     return calibrator, changes, results
 
@@ -102,7 +103,7 @@ def test_detection_settings_reach_the_session():
     states = []
     calibrator = Calibrator(SITE, WarmupConfig(window_s=100.0), detection=DetectionConfig(turn_threshold_deg_s=25.0),
                             on_state=lambda state, detail: states.append(detail))
-    replay((FIXTURES / "warmup_then_protocol_125hz.bin").read_bytes(), calibrator)
+    replay(CaptureSource((FIXTURES / "warmup_then_protocol_125hz.bin").read_bytes()), calibrator)
     assert calibrator.result is None and "0 index turns" in states[-1]
     assert run_replay("warmup_then_protocol_125hz", WarmupConfig(window_s=100.0))[2]
 
@@ -332,7 +333,7 @@ def test_datagrams_the_sensor_flags_are_counted_and_warned_about(tmp_path):
 
     results = []
     calibrator = Calibrator(SITE, WarmupConfig(window_s=10.0), NO_TIMER, on_result=results.append)
-    replay(capture.read_bytes(), calibrator)
+    replay(CaptureSource(capture.read_bytes()), calibrator)
     assert results[-1]["stream"]["flagged_datagrams"] == 10
     assert any("fault flags (X, OVERLOAD)" in w for w in results[-1]["warnings"])
 
@@ -358,6 +359,9 @@ class CountingCalibrator:
     def __init__(self):
         self.samples, self.state, self.sensor, self.restarts = 0, State.STARTING, {}, 0
 
+    def sensor_seen(self, identity):
+        self.sensor = identity
+
     def feed(self, samples, rate_hz, restarts=0):
         self.samples += len(samples)
         self.restarts = restarts
@@ -378,21 +382,21 @@ def test_replay_through_a_pty_is_paced_and_complete():
     duration_s = (len(samples) + info.stats.lost_samples) / 125
     counting = CountingCalibrator()
     started = time.monotonic()
-    replay_pty(data, counting, speed=20.0)
+    replay(PtySource(data, speed=20.0), counting)
     elapsed = time.monotonic() - started
     assert counting.samples == len(samples) and counting.restarts == info.stats.restarts == 1
     assert counting.finished and counting.state != State.FAULT  # the writer stopping is no fault
     assert duration_s / 20 * 0.9 < elapsed < duration_s / 20 + 3.0
 
 
-@pytest.mark.parametrize("feed", [replay, replay_pty])
-def test_a_replay_solves_at_the_end_of_the_data_as_calibrate_does(feed):
+@pytest.mark.parametrize("source", [CaptureSource, PtySource])
+def test_a_replay_solves_at_the_end_of_the_data_as_calibrate_does(source):
     """Both replay paths end SOLVED with the whole capture's segments (the full turn and the
     final static) in the last solution, which equals calibrate's on the same data (the capture
     from where the warm-up rule started the session)."""
     calibrator = Calibrator(SITE_137, WarmupConfig(window_s=10.0), NO_TIMER)
     data = HEADING137.read_bytes()
-    feed(data, calibrator)
+    replay(source(data), calibrator)
     result = calibrator.result
     samples = decode_capture(data).samples
     session_start_s = (len(samples) - 1) / 125 - result["session"]["duration_s"]  # no sample lost in this capture
@@ -412,7 +416,7 @@ def test_the_replay_of_a_capture_that_needs_no_warm_up_gives_calibrates_result()
     """With a short warm-up window the session loses only the window's seconds: the last
     solution is calibrate's on the whole capture within 0.1 sigma."""
     calibrator = Calibrator(SITE_137, WarmupConfig(window_s=10.0), NO_TIMER)
-    replay(HEADING137.read_bytes(), calibrator)
+    replay(CaptureSource(HEADING137.read_bytes()), calibrator)
     reference = joint_real_case(load_session(str(HEADING137)), SITE_137)
     for name, e in reference["estimates"].items():
         assert abs(calibrator.result["estimates"][name]["value"] - e["value"]) < 0.1 * e["sigma"], name
@@ -498,7 +502,7 @@ def test_time_spent_solving_is_not_silence(monkeypatch):
 
     monkeypatch.setattr(calibd.live, "NO_DATA_S", 1.0)
     slow = Slow()
-    replay_pty((FIXTURES / "faults_125hz.bin").read_bytes(), slow)
+    replay(PtySource((FIXTURES / "faults_125hz.bin").read_bytes()), slow)
     assert slow.samples and slow.finished and slow.state != State.FAULT
 
 
@@ -513,7 +517,7 @@ def test_a_batch_spanning_a_restart_is_cut_at_the_restart():
             super().feed(samples, rate_hz, restarts)
             fed.append((len(samples), restarts))
 
-    replay(first + (FIXTURES / "faults_125hz.bin").read_bytes(), Recorder(), chunk_bytes=1 << 20)
+    replay(CaptureSource(first + (FIXTURES / "faults_125hz.bin").read_bytes(), chunk_bytes=1 << 20), Recorder())
     before_restart = sum(n for n, restarts in fed if restarts == 0)
     assert before_restart == decode_capture(first).info.stats.datagrams
     assert [r for _, r in fed] == sorted(r for _, r in fed)  # the count never goes back
@@ -606,3 +610,18 @@ def test_a_fault_inside_the_estimator_is_an_error_not_a_wait(monkeypatch, tmp_pa
     assert code == 1 and len(err.strip().splitlines()) == 1
     assert "internal error: ValueError: operands could not be broadcast" in err and "Traceback" not in err
     assert not (tmp_path / "r.json").exists()
+
+
+def test_a_replay_logs_the_stream_faults_as_the_daemon_does():
+    """The one loop logs each growth of the stream's faults: over the replay they add up to the
+    bulk decoder's counts."""
+    from structlog.testing import capture_logs
+
+    data = (FIXTURES / "faults_125hz.bin").read_bytes()
+    stats = decode_capture(data).info.stats
+    with capture_logs() as logs:
+        replay(CaptureSource(data, chunk_bytes=20_000), CountingCalibrator())
+    faults = [e for e in logs if e["event"] == "stream_faults"]
+    assert len(faults) > 1
+    for name in ("crc_errors", "lost_samples", "skipped_bytes"):
+        assert sum(e.get(name, 0) for e in faults) == getattr(stats, name), name
