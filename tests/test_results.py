@@ -91,3 +91,13 @@ def test_the_truth_file_is_read_under_its_new_and_its_former_name(tmp_path):
         capture = tmp_path / f"{schema.replace('/', '_')}.bin"
         Path(f"{capture}.truth.json").write_text(json.dumps(record | {"schema": schema}))
         assert read_truth(str(capture)) == (expected if readable else None), schema
+
+
+def test_status_refuses_a_newer_result_in_one_line(tmp_path, capsys):
+    from calibd.cli import main as calibd_main
+
+    (tmp_path / "state.json").write_text(json.dumps({"state": "SOLVED", "detail": "solved", "updated": 0}))
+    (tmp_path / "result.json").write_text(json.dumps(joint_like().to_dict() | {"schema": "calibd.result/3"}))
+    assert calibd_main(["status", "--state-dir", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "calibd.result/3, newer than this calibd reads (up to 2): upgrade calibd" in err
