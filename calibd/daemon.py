@@ -394,14 +394,14 @@ class ResultStore:
         self.dir = Path(state_dir)
         (self.dir / "history").mkdir(parents=True, exist_ok=True)
 
-    def write_result(self, result: dict) -> Path:
+    def write_result(self, result: CalibrationResult) -> Path:
         text = result_json(result)
         stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S.%fZ")
         write_atomic(self.dir / "history" / f"result-{stamp}.json", text)
         write_atomic(self.dir / "result.json", text)
         return self.dir / "result.json"
 
-    def replace_result(self, result: dict) -> Path:
+    def replace_result(self, result: CalibrationResult) -> Path:
         """Rewrite result.json only (the last result marked stale): history keeps it as it was made."""
         write_atomic(self.dir / "result.json", result_json(result))
         return self.dir / "result.json"
