@@ -83,10 +83,13 @@ def one_session(seed: int, run_set: str) -> dict:
     for name, key in (("gyro_bias", "gyro_bias_deg_h"), ("acc_bias", "acc_bias_mg"), ("incl_bias", "incl_bias_mg")):
         truth |= {f"{name}_{a}": v for a, v in zip("xyz", carried[key]["mean"])}  # turn-on: without the wander
 
-    def error(result):
-        e = {n: result["estimates"][n]["value"] - truth[n] for n in NAMES}
+    def error(values: dict[str, float]):
+        e = {n: values[n] - truth[n] for n in NAMES}
         e["yaw"] = (e["yaw"] + 180) % 360 - 180
         return [e[n] for n in NAMES]
+
+    def values(result):
+        return {n: e.value for n, e in result.estimates.items()}
 
     out = {"refused": None, "poor": False}
     if run_set == "one index":
@@ -94,19 +97,20 @@ def one_session(seed: int, run_set: str) -> dict:
             result = joint_real_case(session, site)
         except CalibrationError as exc:
             return out | {"refused": str(exc)}
-        out["poor"] = any(v.get("quality") == "poor" for v in result["estimates"].values())
+        out["poor"] = any(e.quality == "poor" for e in result.estimates.values())
+        estimates, sigmas = values(result), {n: e.sigma for n, e in result.estimates.items()}
     else:
         fitted = joint_fit(session, site)
-        result = {"estimates": {n: {"value": fitted.fit.estimates[n] * _display(n),
-                                    "sigma": fitted.fit.sigmas[n] * _display(n)} for n in NAMES}}
+        estimates = {n: fitted.fit.estimates[n] * _display(n) for n in NAMES}
+        sigmas = {n: fitted.fit.sigmas[n] * _display(n) for n in NAMES}
         bound = white_noise_bound(fitted.inp, fitted.fit, site, ARW)
         out["bound"] = [bound[n] * _display(n) if n in GYRO_DRIVEN else float("nan") for n in NAMES]
-    out["joint"] = error(result)
-    out["sigma"] = [result["estimates"][n]["sigma"] for n in NAMES]
+    out["joint"] = error(estimates)
+    out["sigma"] = [sigmas[n] for n in NAMES]
     if run_set == "g0 given":
         tilt = (truth["alpha"] + 0.0030, truth["beta"] - 0.0071)
-        out["nominal"] = error(thesis_real_case(session, site, tilt))
-        out["linear"] = error(thesis_real_case(session, site))
+        out["nominal"] = error(values(thesis_real_case(session, site, tilt)))
+        out["linear"] = error(values(thesis_real_case(session, site)))
     return out
 
 

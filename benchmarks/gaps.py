@@ -44,13 +44,13 @@ def one_session(seed: int) -> list[dict]:
         cut = replace(sim, samples=np.delete(sim.samples, np.arange(first, first + count)))
         result = joint_real_case(load_session(f"seed {seed}", data=capture_bytes(cut)[0]), scenario.site)
         z = []
-        for name, e in result["estimates"].items():
-            if e.get("quality") != "poor":
-                error = e["value"] - truth[name]
-                z.append(abs((error + 180) % 360 - 180 if name == "yaw" else error) / e["sigma"])
-        checked = result["checks"].get("turn_angles", [])
+        for name, e in result.estimates.items():
+            if e.quality != "poor":
+                error = e.value - truth[name]
+                z.append(abs((error + 180) % 360 - 180 if name == "yaw" else error) / e.sigma)
+        checked = result.checks.get("turn_angles", [])
         out.append({"corrected": [k for k, t in enumerate(checked) if t["corrected"]], "expected": turn,
-                    "flagged": any(e.get("quality") == "poor" and n != "yaw" for n, e in result["estimates"].items()),
+                    "flagged": any(e.quality == "poor" and n != "yaw" for n, e in result.estimates.items()),
                     "worst_z": max(z, default=0.0), "unchecked": not checked or any(t["sigma_deg"] is None
                                                                                      for t in checked)})
     return out

@@ -51,7 +51,7 @@ def main() -> int:
             session = load_session(str(path))
             for run, tilt in (("nominal", (0.5964, -0.1125)), ("linear", None)):
                 result = thesis_real_case(session, SITE, tilt)
-                errors[run].append([result["estimates"][n]["value"] - truth[n] for n in NAMES])
+                errors[run].append([result.estimates[n].value - truth[n] for n in NAMES])
             if (k + 1) % 10 == 0:
                 print(f"{k + 1}/{args.seeds} sessions, {time.perf_counter() - started:.0f} s", file=sys.stderr)
     units = {"pitch": "deg", "roll": "deg", "yaw": "deg", "alpha": "deg", "beta": "deg"}

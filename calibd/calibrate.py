@@ -22,7 +22,7 @@ from . import detect, gaps
 from .config import WarmupConfig
 from .estimators import joint, thesis
 from .frames import EARTH_RATE, STANDARD_GRAVITY, Site, int_to_imu
-from .results import make_result
+from .results import CalibrationResult, make_result
 from .warmup import Settling, settling
 
 DEG = np.pi / 180
@@ -146,7 +146,8 @@ def load_session(path: str, start_s: float | None = 0.0, data: bytes | None = No
     return power_up_session(decode(path, data), power_up, start_s)
 
 
-def calibrate_capture(capture: Capture, solve, power_up: int | None = None, start_s: float | None = None) -> dict:
+def calibrate_capture(capture: Capture, solve, power_up: int | None = None,
+                      start_s: float | None = None) -> CalibrationResult:
     """`solve(session) -> result` on power-up `power_up`, or on the last power-up that has what
     the method needs. Estimates of a power-up whose temperature never settles are flagged."""
     count = len(capture.power_ups)
@@ -161,15 +162,13 @@ def calibrate_capture(capture: Capture, solve, power_up: int | None = None, star
             continue
         if number < count:
             passed_over = f"; the later ones lack what the method needs ({'; '.join(refusals)})" if refusals else ""
-            result["warnings"].append(
+            result = result.with_warning(
                 f"the sensor restarted after this power-up ({number} of {count}){passed_over}: these biases are "
                 "this power-up's, turn-on biases change at every restart")
         verdict = _settling(session)
         if verdict is not None and not verdict.settled:
-            for estimate in result["estimates"].values():
-                estimate["quality"] = "poor"
-            result["warnings"].append("every estimate is flagged poor: the data were taken while the IMU warmed "
-                                      "up, and biases move with temperature (record after the warm-up)")
+            result = result.flag_poor(result.estimates, "every estimate is flagged poor: the data were taken while "
+                                      "the IMU warmed up, and biases move with temperature (record after the warm-up)")
         return result
     raise CalibrationError("; ".join(refusals))
 
@@ -277,7 +276,8 @@ def _static_mean(values: np.ndarray, seg: detect.Segment) -> np.ndarray:
 
 
 def thesis_real_case(session: Session, site: Site, alpha_beta_deg: tuple[float, float] | None = None,
-                     platform_rate_deg_s: float | None = None, segments: list[detect.Segment] | None = None) -> dict:
+                     platform_rate_deg_s: float | None = None,
+                     segments: list[detect.Segment] | None = None) -> CalibrationResult:
     """The thesis's real-case chain on a session: nominal with alpha/beta given, else linear.
     `segments`: the session's, when already found."""
     segments = session_segments(session) if segments is None else segments
@@ -331,8 +331,7 @@ def thesis_real_case(session: Session, site: Site, alpha_beta_deg: tuple[float, 
                          stream=session.stream, platform_rate_deg_s=est["platform_rate"] / DEG,
                          earth_rate_diagnostic=diagnostics)
     if alpha_beta is not None and yaw_bound_deg > YAW_SIGMA_POOR_DEG:  # can be as far off as a poor joint yaw
-        for name in ("gyro_bias_y", "yaw"):
-            result["estimates"][name]["quality"] = "poor"
+        result = result.flag_poor(("gyro_bias_y", "yaw"))
     return result
 
 
@@ -345,14 +344,21 @@ def _earth_rate_report(gyro: np.ndarray, rate_hz: int, site: Site) -> dict:
             "peak_frequency_hz": report["peak_frequency_hz"], "visible": report["visible"]}
 
 
-def thesis_bench(session: Session, site: Site) -> dict:
-    """The bench campaign: six-position biases of every channel (eq. 5.3) and alpha/beta from
-    every full turn (eqs. 5.6-5.8), averaged."""
-    segments = session_segments(session)
-    statics = [s for s in segments if s.kind == "static"]
+def bench_positions(segments: list[detect.Segment]) -> dict[str, detect.Segment]:
+    """The bench protocol's six positions: the first static with each axis up, by axis ("+Z")."""
     positions = {}
-    for s in statics:  # the first static with each axis up
-        positions.setdefault(s.up, s)
+    for s in segments:
+        if s.kind == "static":
+            positions.setdefault(s.up, s)
+    return positions
+
+
+def thesis_bench(session: Session, site: Site, segments: list[detect.Segment] | None = None) -> CalibrationResult:
+    """The bench campaign: six-position biases of every channel (eq. 5.3) and alpha/beta from
+    every full turn (eqs. 5.6-5.8), averaged. `segments`: the session's, when already found."""
+    segments = session_segments(session) if segments is None else segments
+    statics = [s for s in segments if s.kind == "static"]
+    positions = bench_positions(segments)
     missing = [axis for axis in thesis.UP_AXES if axis not in positions]
     if missing:
         raise CalibrationError(f"not the bench protocol: no static with {', '.join(missing)} up")
@@ -468,7 +474,7 @@ def _corrected(inp: joint.JointInput, fit: joint.JointResult, site: Site, option
 
 
 def joint_real_case(session: Session, site: Site, options: joint.JointOptions = joint.JointOptions(),
-                    segments: list[detect.Segment] | None = None) -> dict:
+                    segments: list[detect.Segment] | None = None) -> CalibrationResult:
     """The joint estimator (method.md §6) on every static and turning sample from the level
     static to the last static of the same mounting. `segments`: the session's, when already found."""
     fitted = joint_fit(session, site, options, segments)
@@ -481,10 +487,9 @@ def joint_real_case(session: Session, site: Site, options: joint.JointOptions = 
                          checks=_joint_checks(fit, site) | _turn_angle_checks(fitted, session),
                          bias_reference="turn-on")
     if fit.sigmas["yaw"] / DEG > YAW_SIGMA_POOR_DEG:
-        result["estimates"]["yaw"]["quality"] = "poor"
+        result = result.flag_poor(("yaw",))
     if fitted.final_tilt and fitted.final_tilt.p_value < CHI2_ALARM_P:
-        for name in PLATFORM_ANGLE_ESTIMATES:
-            result["estimates"][name]["quality"] = "poor"
+        result = result.flag_poor(PLATFORM_ANGLE_ESTIMATES)
     return result
 
 

@@ -22,15 +22,14 @@ from stim300.errors import UsageError
 from stim300.progress import Progress
 from stim300.source import CaptureSource, PtySource
 
-from .calibrate import (CalibrationError, calibrate_capture, decode, joint_real_case, load_session, thesis_bench,
-                        thesis_real_case)
-from .config import ConfigError, DetectionConfig, MethodConfig, WarmupConfig, load_config
+from .calibrate import CalibrationError, calibrate_capture, decode, load_session
+from .config import METHODS, ConfigError, DetectionConfig, MethodConfig, WarmupConfig, load_config
 from .daemon import Calibrator, ResultStore
-from .estimators.joint import JointOptions
+from .estimators import estimator
 from .estimators.thesis import sensitivity
 from .frames import STANDARD_GRAVITY, Site
 from .live import configure_logging, replay, run
-from .results import ResultError, load_result, write_result
+from .results import CalibrationResult, ResultError, load_result, write_result
 from .scenario import READY_MADE, ScenarioError, load_scenario
 
 DEG = math.pi / 180
@@ -86,16 +85,16 @@ def _site(args) -> Site:
         raise UsageError(str(exc)) from None
 
 
-def _summary(result: dict) -> str:
-    lines = [f"{result['method']}: {result['stream']['capture']}", f"  site: {_site_line(result['site'])}"]
+def _summary(result: CalibrationResult) -> str:
+    lines = [f"{result.method}: {result.stream['capture']}", f"  site: {_site_line(result.site)}"]
     session = _session_line(result)
     if session:
         lines.append(f"  session: {session}")
-    for name, e in result["estimates"].items():
-        sigma = "" if e["sigma"] is None else f" +- {e['sigma']:.3g}"
-        poor = "  (poor)" if e.get("quality") == "poor" else ""
-        lines.append(f"  {name:12s} {e['value']:12.5f}{sigma} {e['unit']}{poor}")
-    lines += [f"  warning: {w}" for w in result["warnings"]]
+    for name, e in result.estimates.items():
+        sigma = "" if e.sigma is None else f" +- {e.sigma:.3g}"
+        poor = "  (poor)" if e.quality == "poor" else ""
+        lines.append(f"  {name:12s} {e.value:12.5f}{sigma} {e.unit}{poor}")
+    lines += [f"  warning: {w}" for w in result.warnings]
     return "\n".join(lines)
 
 
@@ -107,14 +106,15 @@ def _site_line(site: dict) -> str:
             f"g0 {site['g0_m_s2']:.5f} m/s^2{source}")
 
 
-def _session_line(result: dict) -> str | None:
+def _session_line(result: CalibrationResult) -> str | None:
     """Which power-up (calibrate) or daemon session the result rests on, and its time span."""
-    stream, power_up = result.get("stream", {}), result.get("stream", {}).get("power_up")
+    stream = result.stream
+    power_up = stream.get("power_up")
     if power_up:
         span = f"{stream['start_s']:.1f} s to {power_up['duration_s']:.1f} s of it"
         return (f"power-up {power_up['number']} of {power_up['count']}, {span}, "
                 f"from {stream.get('start_by', 'given')}")
-    session = result.get("session")
+    session = result.session
     if session:
         return f"session {session['number']} since the daemon started, {session['duration_s']:.1f} s of data"
     return None
@@ -136,13 +136,12 @@ def cmd_calibrate(args) -> int:
     except CalibrationError as exc:
         raise UsageError(str(exc)) from None  # it names the capture
 
+    method = estimator("thesis-bench" if args.bench else args.method)
+    options = method.options({"fixed_amplitude": args.fixed_amplitude, "drift": args.drift, "alpha_deg": args.alpha,
+                              "beta_deg": args.beta, "platform_rate_deg_s": args.platform_rate})
+
     def solve(session):
-        if args.method == "joint":
-            return joint_real_case(session, site, JointOptions(args.fixed_amplitude, args.drift))
-        if args.bench:
-            return thesis_bench(session, site)
-        tilt = None if args.alpha is None else (args.alpha, args.beta)
-        return thesis_real_case(session, site, tilt, args.platform_rate)
+        return method.solve(session, site, None, options)
 
     try:
         result = calibrate_capture(capture, solve, args.session, args.start)
@@ -213,7 +212,7 @@ def cmd_replay(args) -> int:
             store.write_result(result)
 
     def on_stale(result):
-        print(f"[{result['stale']['power_up']} power-up] {result['stale']['reason']}", flush=True)
+        print(f"[{result.stale['power_up']} power-up] {result.stale['reason']}", flush=True)
         if store:
             store.replace_result(result)
 
@@ -224,7 +223,7 @@ def cmd_replay(args) -> int:
     source = PtySource(data, speed) if args.pty else CaptureSource(data, speed)
     with Progress("replay", len(data), "B") as bar:
         replay(source, calibrator, progress=lambda done, total: bar.update(done))
-    if calibrator.result is None or "stale" in calibrator.result:
+    if calibrator.result is None or calibrator.result.stale is not None:
         stale = " (the last result is the previous power-up's, marked stale)" if calibrator.result else ""
         print(f"no result for the last power-up{stale}: {calibrator.detail}")
         return 1
@@ -240,13 +239,15 @@ def cmd_status(args) -> int:
     state = json.loads(state_file.read_text())
     age = time.time() - state.get("updated", time.time())
     print(f"state: {state['state']} ({state['detail']}), updated {age:.0f} s ago")
-    try:
-        result = load_result(directory / "result.json")
-    except ResultError:
+    if not (directory / "result.json").exists():
         print("no result yet")
         return 0
-    if "stale" in result:
-        print(f"result: stale since {result['stale']['since']}, from the {result['stale']['power_up']} power-up")
+    try:
+        result = load_result(directory / "result.json")
+    except ResultError as exc:
+        raise UsageError(str(exc)) from None  # a newer calibd's result, or not a result: say which
+    if result.stale is not None:
+        print(f"result: stale since {result.stale['since']}, from the {result.stale['power_up']} power-up")
     print(_summary(result))
     return 0
 
@@ -332,7 +333,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("calibrate", help="capture -> biases and alignment (result JSON)")
     p.add_argument("capture")
     p.add_argument("-o", "--output", required=True, help="RESULT.json (replaced atomically)")
-    p.add_argument("--method", choices=("joint", "thesis"), default="joint",
+    p.add_argument("--method", choices=METHODS, default="joint",
                    help="joint: every segment in one fit, with 1-sigma (default); thesis: the thesis's chain")
     _add_site_options(p, required=True)
     p.add_argument("--alpha", type=_number(-10, 10, "deg"), help="a-priori interface tilt alpha, deg (nominal run)")

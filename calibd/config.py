@@ -14,10 +14,11 @@ from pathlib import Path
 
 from stim300.protocol import DEFAULT_BIT_RATE
 
+from .estimators import DAEMON_METHODS
 from .frames import Site
 from .scenario import _Table
 
-METHODS = ("joint", "thesis")
+METHODS = DAEMON_METHODS  # the estimators (calibd.estimators) the daemon runs
 TABLES = ("serial", "site", "output", "warmup", "detection", "method")
 JOINT_ONLY = ("fixed_amplitude", "drift")
 THESIS_ONLY = ("alpha_deg", "beta_deg")

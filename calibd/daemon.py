@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from datetime import datetime, timezone
 from enum import Enum
 from pathlib import Path
@@ -27,12 +27,11 @@ from stim300.clock import CounterClock
 from stim300.codec import start_up_flags, start_up_rises
 
 from . import detect
-from .calibrate import (CalibrationError, ProtocolIncomplete, Session, fault_record, fault_summary, hidden_gap_record,
-                        joint_real_case, thesis_real_case)
+from .calibrate import CalibrationError, Session, fault_record, fault_summary, hidden_gap_record
 from .config import DetectionConfig, MethodConfig, WarmupConfig
-from .estimators.joint import JointOptions
+from .estimators import estimator
 from .frames import STANDARD_GRAVITY, Site
-from .results import result_json
+from .results import CalibrationResult, result_json
 from .warmup import settling
 
 log = structlog.get_logger("calibd")
@@ -99,7 +98,7 @@ class Calibrator:
         self.on_stale = on_stale or (lambda result: None)
         self.state = State.STARTING
         self.detail = "waiting for data"
-        self.result: dict | None = None
+        self.result: CalibrationResult | None = None
         self.sessions = 0
         self.sensor: dict = {}
         self._restarts_seen = 0
@@ -199,7 +198,7 @@ class Calibrator:
         belonging to that power-up (turn-on biases change at every power-up), start afresh."""
         self.finish()
         reason = "sensor restarted: turn-on biases changed, starting a new session"
-        if self.result is not None and "stale" not in self.result:
+        if self.result is not None and self.result.stale is None:
             self.result = stale_result(self.result, "the sensor restarted after this result: it belongs to the "
                                                     "previous power-up (turn-on biases change at every power-up)")
             self.on_stale(self.result)
@@ -333,18 +332,15 @@ class Calibrator:
         session, segments = found or self._segments()
         self._solved_until = self._buffer.end_s
         self._next_solve = self._solved_until + self.method.resolve_every_s
-        m = self.method
-        try:
-            if m.name == "joint":
-                result = joint_real_case(session, self.site, JointOptions(m.fixed_amplitude, m.drift), segments)
-            else:
-                tilt = None if m.alpha_deg is None else (m.alpha_deg, m.beta_deg)
-                result = thesis_real_case(session, self.site, tilt, segments=segments)
-        except ProtocolIncomplete as exc:
+        method = estimator(self.method.name)
+        lacking = method.missing(segments)
+        if lacking is not None:
             if self.state != State.SOLVED:
-                self._set(State.COLLECTING, f"collecting: {session.time_s[-1]:.0f} s of data, {exc.found}; "
-                                            f"waiting for: {exc.reason}")
+                self._set(State.COLLECTING, f"collecting: {session.time_s[-1]:.0f} s of data, "
+                                            f"{detect.protocol_progress(segments)}; waiting for: {lacking}")
             return
+        try:
+            result = method.solve(session, self.site, segments, method.options(asdict(self.method)))
         except CalibrationError as exc:
             if self.state != State.SOLVED:
                 self._set(State.COLLECTING, f"collecting: {session.time_s[-1]:.0f} s of data; {exc}")
@@ -354,14 +350,14 @@ class Calibrator:
             self._set(self.state, f"solve failed: {type(exc).__name__}: {exc} (a fault in calibd; the log "
                                   "has its traceback)")
             return
-        result["session"] = {"number": self.sessions, "duration_s": float(session.time_s[-1]),
-                             "solved_at": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+        result = replace(result, session={"number": self.sessions, "duration_s": float(session.time_s[-1]),
+                                          "solved_at": datetime.now(timezone.utc).isoformat(timespec="seconds")})
         self.result = result
-        yaw = result["estimates"]["yaw"]
-        sigma = f" +- {yaw['sigma']:.2f}" if yaw["sigma"] is not None else ""
-        self._set(State.SOLVED, f"solved on {session.time_s[-1]:.0f} s: yaw {yaw['value']:.2f}{sigma} deg")
-        log.info("solved", **{name: round(e["value"], 6) for name, e in result["estimates"].items()},
-                 units={name: e["unit"] for name, e in result["estimates"].items()})
+        yaw = result.estimates["yaw"]
+        sigma = f" +- {yaw.sigma:.2f}" if yaw.sigma is not None else ""
+        self._set(State.SOLVED, f"solved on {session.time_s[-1]:.0f} s: yaw {yaw.value:.2f}{sigma} deg")
+        log.info("solved", **{name: round(e.value, 6) for name, e in result.estimates.items()},
+                 units={name: e.unit for name, e in result.estimates.items()})
         self.on_result(result)
 
     def _set(self, state: State, detail: str) -> None:
@@ -384,13 +380,13 @@ def _log_segment(seg: detect.Segment) -> None:
     log.info("segment", **fields)
 
 
-def stale_result(result: dict, reason: str) -> dict:
+def stale_result(result: CalibrationResult, reason: str) -> CalibrationResult:
     """The result marked as no longer applying: a `stale` record (why, since when, and that it
     belongs to the previous power-up) and the reason first among the warnings, so a consumer
     reading only result.json can tell."""
     since = datetime.now(timezone.utc).isoformat(timespec="seconds")
-    return {**result, "stale": {"power_up": "previous", "reason": reason, "since": since},
-            "warnings": [f"stale: {reason}", *result["warnings"]]}
+    return replace(result, stale={"power_up": "previous", "reason": reason, "since": since}).with_warning(
+        f"stale: {reason}", first=True)
 
 
 class ResultStore:
@@ -402,14 +398,14 @@ class ResultStore:
         self.dir = Path(state_dir)
         (self.dir / "history").mkdir(parents=True, exist_ok=True)
 
-    def write_result(self, result: dict) -> Path:
+    def write_result(self, result: CalibrationResult) -> Path:
         text = result_json(result)
         stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S.%fZ")
         write_atomic(self.dir / "history" / f"result-{stamp}.json", text)
         write_atomic(self.dir / "result.json", text)
         return self.dir / "result.json"
 
-    def replace_result(self, result: dict) -> Path:
+    def replace_result(self, result: CalibrationResult) -> Path:
         """Rewrite result.json only (the last result marked stale): history keeps it as it was made."""
         write_atomic(self.dir / "result.json", result_json(result))
         return self.dir / "result.json"

@@ -13,10 +13,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from .calibrate import CalibrationError, JointFit, Session, joint_fit
-from .estimators.joint import JointOptions, alpha_beta
+from .estimators import estimator
+from .estimators.joint import alpha_beta
 from .frames import Site, int_to_imu
 from .noise import SQRT_S_PER_SQRT_H, NoiseError, characterise
 from .noise import UNITS as NOISE_UNITS
+from .results import CalibrationResult
 
 DEG = np.pi / 180
 DEG_H = 3600 / DEG  # rad/s -> deg/h
@@ -149,13 +151,13 @@ def _binned(chi_deg: np.ndarray, values: np.ndarray, width: float):
     return centres[have], np.column_stack(means), np.column_stack(errors)
 
 
-def earth_rate_figure(canvas, session: Session, site: Site, segments, result: dict) -> Figure:
-    joint_result = result.get("method") == "joint"
-    options = result.get("options", {}) if joint_result else {}
+def earth_rate_figure(canvas, session: Session, site: Site, segments, result: CalibrationResult) -> Figure:
+    joint = estimator("joint")
+    joint_result = result.method == joint.name
+    options = joint.options((result.options or {}) if joint_result else {})
     title = "Earth rate against the platform angle"
     try:
-        fitted = joint_fit(session, site, JointOptions(bool(options.get("fixed_amplitude")),
-                                                       bool(options.get("drift"))), segments)
+        fitted = joint_fit(session, site, options, segments)
     except CalibrationError as exc:
         return Figure("earth_rate", title, "", missing=f"no joint fit on this capture: {exc}")
     g = fitted.fit.gyro
@@ -193,7 +195,7 @@ def earth_rate_figure(canvas, session: Session, site: Site, segments, result: di
     expected = float(np.hypot(*site.earth_rate_nav[:2])) * DEG_H
     yaw, yaw_sigma = fitted.fit.estimates["yaw"] / DEG, fitted.fit.sigmas["yaw"] / DEG
     seen_amplitude = (f"horizontal Earth rate fixed to Ω_E cos(lat) = {expected:.2f} deg/h"
-                      if options.get("fixed_amplitude") else
+                      if options.fixed_amplitude else
                       f"fitted horizontal Earth rate {amplitude:.2f} ± {sigma:.2f} deg/h (Ω_E cos(lat) = "
                       f"{expected:.2f} deg/h)")
     fig.suptitle(f"{seen_amplitude}; yaw {yaw:.2f} ± {yaw_sigma:.2f} deg", fontsize=10)
@@ -208,9 +210,9 @@ def earth_rate_figure(canvas, session: Session, site: Site, segments, result: di
     res_span = max(np.abs(static_res).max() + static_err.max(), 1e-3)
     bottom.set_ylim(-4 * res_span, 4 * res_span)
     fig.legend(*top.get_legend_handles_labels(), loc="outside lower center", ncols=3, fontsize=8)
-    note = "" if joint_result else (f" The result's method ({result.get('method')}) fits no sinusoid: this is "
+    note = "" if joint_result else (f" The result's method ({result.method}) fits no sinusoid: this is "
                                     "the joint estimator's fit on the same segments.")
-    stated = result["estimates"].get("yaw", {}).get("value")
+    stated = result.estimates["yaw"].value if "yaw" in result.estimates else None
     if joint_result and stated is not None and abs(stated - yaw) > 1e-6 + 1e-3 * yaw_sigma:
         note += (f" The fit redone here gives a yaw of {yaw:.4f} deg where the result has {stated:.4f} deg: the "
                  "result was made with other data, options or software.")

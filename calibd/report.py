@@ -25,12 +25,13 @@ from stim300.atomic import write_atomic
 from stim300.progress import Progress
 
 from . import detect
-from .calibrate import CalibrationError, Session, load_session, session_segments, thesis_real_case
+from .calibrate import CalibrationError, Session, load_session, session_segments
 from .config import WarmupConfig
+from .estimators import estimator
 from .figures import Figure, allan_figure, earth_rate_figure, timeline_figure
 from .frames import Site
-from .results import load_result
-from .scenario import Truth
+from .results import CalibrationResult, load_result, schema_version
+from .scenario import TRUTH_FORMER_NAMES, TRUTH_SCHEMA, TRUTH_VERSION, Truth
 from .warmup import settling
 
 MATPLOTLIB_MISSING = "calibd report needs matplotlib: pip install 'stim300-calib[plot]'"
@@ -52,19 +53,15 @@ def write_report(result_path, capture: str, output, data: bytes | None = None, s
     already read) to `output` and its figures directory; returns the files written, the HTML
     first. A progress bar goes to `stream` (stderr) when it is a terminal."""
     canvas = _agg_canvas()
-    result = load_result(result_path)
+    result = load_result(result_path)  # it checks the schema, the estimates and the site
     site = _site(result, result_path)
-    estimates = result.get("estimates")
-    if not (isinstance(estimates, dict) and all(isinstance(e, dict) and {"value", "unit"} <= set(e)
-                                                for e in estimates.values())):
-        raise ReportError(f"{result_path}: the result has no estimates (value and unit each)")
     output = Path(output)
     _check_writable(output)
     with Progress("report", len(STEPS), "steps", stream) as bar:
         bar.update(0, STEPS[0])
-        skipped_s = float(result.get("stream", {}).get("start_s") or 0.0)
+        skipped_s = float(result.stream.get("start_s") or 0.0)
         start_s = analysis_start_s(result)
-        power_up = (result.get("stream", {}).get("power_up") or {}).get("number")
+        power_up = (result.stream.get("power_up") or {}).get("number")
         whole = load_session(capture, 0.0, data, power_up)
         _check_same_capture(result, whole, capture)
         session = load_session(capture, start_s, data, power_up) if start_s > 0 else whole
@@ -80,10 +77,11 @@ def write_report(result_path, capture: str, output, data: bytes | None = None, s
         bar.update(4, STEPS[4])
         figures.append(allan_figure(canvas, session, segments))
         bar.update(5, STEPS[5])
+        method = estimator("thesis")
         try:
-            thesis = thesis_real_case(session, site, segments=segments)
+            thesis = method.solve(session, site, segments, method.options({}))
         except CalibrationError as exc:
-            thesis = {"error": str(exc)}
+            thesis = str(exc)
         bar.update(6, STEPS[6])
         page = render_html(result, str(result_path), capture, whole, segments, roles, warm_up, figures, thesis,
                            read_truth(capture), figures_dir(output).name)
@@ -104,9 +102,9 @@ def _agg_canvas():
     return FigureCanvasAgg
 
 
-def _site(result: dict, path) -> Site:
+def _site(result: CalibrationResult, path) -> Site:
     try:
-        site = result["site"]
+        site = result.site
         return Site(site["latitude_deg"], site.get("height_m", 0.0), site.get("g0_m_s2"))
     except (KeyError, TypeError, ValueError) as exc:
         raise ReportError(f"{path}: no usable site in the result ({exc})") from None
@@ -123,29 +121,29 @@ def _check_writable(output: Path) -> None:
         raise ReportError(f"{output}: cannot write: permission denied")
 
 
-def analysis_start_s(result: dict) -> float:
+def analysis_start_s(result: CalibrationResult) -> float:
     """Where the result's data began in its capture: the start offset it records (stream.start_s,
     `calibd calibrate --start`), else its first segment's start (results of older versions do not
     record the offset, but their segments begin after it). The segments found from there are the
     result's."""
-    recorded = result.get("stream", {}).get("start_s")
+    recorded = result.stream.get("start_s")
     if recorded:
         return float(recorded)
-    first = min((float(s["start_s"]) for s in result.get("segments", []) if "start_s" in s), default=0.0)
+    first = min((float(s["start_s"]) for s in result.segments if "start_s" in s), default=0.0)
     return max(first - 1e-6, 0.0)  # the record is rounded to 1 ms: keep the first sample
 
 
-def _check_same_capture(result: dict, whole: Session, capture: str) -> None:
+def _check_same_capture(result: CalibrationResult, whole: Session, capture: str) -> None:
     """A report on other data than the result's would put its numbers under figures of something
     else: refused. The datagram count (recorded by `calibd calibrate`) identifies the capture;
     a result without it (the daemon's) must at least have its segments inside the capture."""
-    recorded = result.get("stream", {}).get("datagrams")
+    recorded = result.stream.get("datagrams")
     have = whole.stream["datagrams"]
     if recorded is not None and recorded != have:
         raise ReportError(f"{capture}: {have} datagrams, but the result was made from a capture of {recorded} "
-                          f"datagrams ({result['stream'].get('capture')}): not the result's capture")
+                          f"datagrams ({result.stream.get('capture')}): not the result's capture")
     duration = float(whole.time_s[-1]) + 1.0 / whole.rate_hz
-    end = max((float(s.get("end_s", 0.0)) for s in result.get("segments", [])), default=0.0)
+    end = max((float(s.get("end_s", 0.0)) for s in result.segments), default=0.0)
     if end > duration + 1.0:
         raise ReportError(f"{capture}: {duration:.1f} s long, but the result's segments run to {end:.1f} s: "
                           "not the result's capture")
@@ -160,6 +158,7 @@ def read_truth(capture: str) -> tuple[dict[str, float], dict[str, float]] | None
     path = Path(f"{capture}.truth.json")
     try:
         record = json.loads(path.read_text())
+        schema_version(record["schema"], TRUTH_SCHEMA, TRUTH_VERSION, str(path), TRUTH_FORMER_NAMES)
         truth = Truth(**{f.name: record["truth"][f.name] for f in fields(Truth)})
         carried = Truth(**{f.name: getattr(truth, f.name) if f.name not in record.get("bias_during_capture", {})
                            else record["bias_during_capture"][f.name]["session"] for f in fields(Truth)})
@@ -201,38 +200,40 @@ def _num(value: float | None, name: str, form: str = ".5f") -> str:
     return f'<td class="num" data-name="{name}" data-value="{float(value)!r}">{float(value):{form}}</td>'
 
 
-def _estimates_table(result: dict, thesis: dict, truth: tuple[dict, dict] | None) -> str:
-    thesis_estimates = thesis.get("estimates", {})
-    thesis_note = (f"thesis method ({_e(thesis['method'])})" if "method" in thesis
-                   else f"thesis method: n/a ({_e(thesis['error'])})")
+def _estimates_table(result: CalibrationResult, thesis: CalibrationResult | str,
+                     truth: tuple[dict, dict] | None) -> str:
+    """`thesis`: the thesis method's result on the same data, or why there is none."""
+    solved = isinstance(thesis, CalibrationResult)
+    thesis_estimates = thesis.estimates if solved else {}
+    thesis_note = f"thesis method ({_e(thesis.method)})" if solved else f"thesis method: n/a ({_e(thesis)})"
     scenario, carried = truth if truth else ({}, {})
     head = ["estimate", "value", "1-sigma", "unit", "quality", "thesis method", "truth", "truth in the data",
             "value - truth in the data"]
     rows = [f"<tr>{''.join(f'<th>{h}</th>' for h in head)}</tr>"]
-    for name, e in result["estimates"].items():
+    for name, e in result.estimates.items():
         other = thesis_estimates.get(name)
         true = carried.get(name)
-        error = None if true is None else e["value"] - true
+        error = None if true is None else e.value - true
         if name == "yaw" and error is not None:
             error = (error + 180.0) % 360.0 - 180.0
-        quality = e.get("quality", "")
+        quality = e.quality or ""
         rows.append(f'<tr class="{_e(quality)}" data-estimate="{_e(name)}"><td>{_e(name)}</td>'
-                    f'{_num(e["value"], "value")}{_num(e.get("sigma"), "sigma", ".3g")}<td>{_e(e["unit"])}</td>'
-                    f'<td>{_e(quality)}</td>{_num(None if other is None else other["value"], "thesis")}'
+                    f'{_num(e.value, "value")}{_num(e.sigma, "sigma", ".3g")}<td>{_e(e.unit)}</td>'
+                    f'<td>{_e(quality)}</td>{_num(None if other is None else other.value, "thesis")}'
                     f'{_num(scenario.get(name), "truth")}{_num(true, "carried")}{_num(error, "error")}</tr>')
     notes = [f"<p>Beside the result: the {thesis_note} on the same capture"
              + (", and the truth of the simulation (CAPTURE.truth.json): the scenario's, and the one the data "
                 "carry (biases moved by temperature and by the session mean of the bias wander, which no "
                 "calibration of this capture can tell from the bias: what the estimate should find)."
                 if truth else "; no truth file beside the capture.") + "</p>"]
-    if thesis.get("warnings"):
-        notes.append("<p>Thesis method notes:</p><ul>" + "".join(f"<li>{_e(w)}</li>" for w in thesis["warnings"])
+    if solved and thesis.warnings:
+        notes.append("<p>Thesis method notes:</p><ul>" + "".join(f"<li>{_e(w)}</li>" for w in thesis.warnings)
                      + "</ul>")
     return f'<table id="estimates">{"".join(rows)}</table>' + "".join(notes)
 
 
-def _checks(result: dict) -> str:
-    checks = result.get("checks", {})
+def _checks(result: CalibrationResult) -> str:
+    checks = result.checks or {}
     lines = []
     earth = checks.get("earth_rate_horizontal_deg_h")
     if earth:
@@ -245,7 +246,7 @@ def _checks(result: dict) -> str:
     return "".join(f"<li>{_e(line)}</li>" for line in lines)
 
 
-def _stream(result: dict, whole: Session) -> str:
+def _stream(result: CalibrationResult, whole: Session) -> str:
     s = whole.stream
     duration = float(whole.time_s[-1]) + 1.0 / whole.rate_hz
     rows = [("datagrams", f"{s['datagrams']} datagrams"), ("CRC errors", f"{s['crc_errors']} spans"),
@@ -253,7 +254,7 @@ def _stream(result: dict, whole: Session) -> str:
             *([("datagrams with fault flags", f"{s['flagged_datagrams']} datagrams")]
               if "flagged_datagrams" in s else []),
             ("duration", f"{duration:.3f} s at {whole.rate_hz} Hz")]
-    sensor = result.get("sensor", {})
+    sensor = result.sensor
     rows += [(label, sensor[key]) for key, label in (("serial_number", "serial number"),
                                                      ("part_number", "part number"), ("datagram_id", "datagram"))
              if sensor.get(key)]
@@ -283,13 +284,13 @@ def _figure_html(figure: Figure, directory: str) -> str:
             f'File: <a href="{_e(file)}">{_e(file)}</a></figcaption></figure>')
 
 
-def render_html(result: dict, result_name: str, capture: str, whole: Session, segments, roles,
-                warm_up: tuple[float, str], figures: list[Figure], thesis: dict, truth: dict | None,
-                directory: str) -> str:
-    site = result["site"]
-    warnings = "".join(f'<li class="warning">{_e(w)}</li>' for w in result.get("warnings", [])) or "<li>none</li>"
+def render_html(result: CalibrationResult, result_name: str, capture: str, whole: Session, segments, roles,
+                warm_up: tuple[float, str], figures: list[Figure], thesis: CalibrationResult | str,
+                truth: dict | None, directory: str) -> str:
+    site = result.site
+    warnings = "".join(f'<li class="warning">{_e(w)}</li>' for w in result.warnings) or "<li>none</li>"
     warm_end, warm_label = warm_up
-    summary = (f"method {result.get('method')}; site latitude {site['latitude_deg']:.5f} deg, height "
+    summary = (f"method {result.method}; site latitude {site['latitude_deg']:.5f} deg, height "
                f"{site.get('height_m', 0.0):g} m, g0 {site.get('g0_m_s2', float('nan')):.5f} m/s^2; "
                f"{len(segments)} segments found; "
                + (f"{warm_label} up to {warm_end:.0f} s" if warm_end > whole.time_s[0]

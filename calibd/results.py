@@ -1,22 +1,29 @@
-"""The calibration result every method writes (schema calibd.result/1), and its safe storage.
+"""The calibration result every method writes (schema calibd.result/2), typed, and its safe storage.
 
 Estimates are kept in SI inside the code; here they become the units people read: degrees,
 deg/h for gyro biases, mg (1e-3 of the sensor's g, 9.80665 m/s^2) for accelerometer and
 inclinometer biases. A result file is replaced atomically and synced, so a crash never leaves
 a half-written or empty result where the last good one was.
+
+Version policy (for every file calibd writes, "NAME/N"): a reader reads its own version and
+older ones (fields they lack take their defaults), refuses a newer one with a message that
+says to upgrade calibd, and refuses other schemas. The version goes up when the content changes.
 """
 
 from __future__ import annotations
 
 import json
 import math
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from stim300.atomic import write_atomic
 
 from .frames import EARTH_RATE, STANDARD_GRAVITY, Site
 
-SCHEMA = "calibd.result/1"
+RESULT_SCHEMA = "calibd.result"
+RESULT_VERSION = 2  # 2: the same content as 1, written from the typed CalibrationResult
+SCHEMA = f"{RESULT_SCHEMA}/{RESULT_VERSION}"
 DEG = math.pi / 180
 _ANGLE = (1 / DEG, "deg")
 _GYRO = (3600 / DEG, "deg/h")
@@ -32,10 +39,108 @@ class ResultError(ValueError):
     """A result file that is missing, unreadable or not of this schema."""
 
 
-def estimate(name: str, value_si: float, sigma_si: float | None = None) -> dict:
-    factor, unit = ESTIMATES[name]
-    return {"value": float(value_si) * factor, "sigma": None if sigma_si is None else float(sigma_si) * factor,
-            "unit": unit}
+class SchemaError(ValueError):
+    """A document of another schema, or of a newer version than this calibd reads; one line."""
+
+
+def schema_version(schema, name: str, newest: int, what: str, aliases: tuple[str, ...] = ()) -> int:
+    """The version N of a document whose schema is "NAME/N" (or "ALIAS/N": a former name), by
+    the version policy: newer than `newest` or another schema is a SchemaError naming `what`."""
+    base, _, number = str(schema).rpartition("/")
+    if base not in (name, *aliases) or not number.isdigit() or int(number) < 1:
+        raise SchemaError(f"{what} is {schema!r}, not a {name} file")
+    if int(number) > newest:
+        raise SchemaError(f"{what} is {name}/{number}, newer than this calibd reads (up to {newest}): "
+                          "upgrade calibd")
+    return int(number)
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """One estimate in the units people read; quality "poor" when it is not to be used as it is."""
+
+    value: float
+    sigma: float | None
+    unit: str
+    quality: str | None = None
+
+    @classmethod
+    def from_si(cls, name: str, value_si: float, sigma_si: float | None = None) -> Estimate:
+        factor, unit = ESTIMATES[name]
+        return cls(float(value_si) * factor, None if sigma_si is None else float(sigma_si) * factor, unit)
+
+    def to_dict(self) -> dict:
+        return {"value": self.value, "sigma": self.sigma, "unit": self.unit,
+                **({"quality": self.quality} if self.quality else {})}
+
+
+# optional fields, written only when set: the method's own (joint: options, checks, bias_reference;
+# thesis: platform_rate_deg_s, earth_rate_diagnostic; thesis bench: turns_alpha_beta_deg), then
+# the daemon's (session, stale)
+_OPTIONAL = ("options", "checks", "bias_reference", "platform_rate_deg_s", "earth_rate_diagnostic",
+             "turns_alpha_beta_deg", "session", "stale")
+
+
+@dataclass(frozen=True)
+class CalibrationResult:
+    """What a method found on a session: estimates by name, the segments and data they rest on,
+    and what the reader must know (warnings). Changed by copies (`flag_poor`, `with_warning`,
+    `dataclasses.replace`), never in place."""
+
+    method: str
+    site: dict  # site_record
+    estimates: dict[str, Estimate]
+    segments: tuple[dict, ...] = ()
+    warnings: tuple[str, ...] = ()
+    sensor: dict = field(default_factory=dict)
+    stream: dict = field(default_factory=dict)
+    options: dict | None = None  # joint: the options it was solved with
+    checks: dict | None = None  # joint: model checks (Earth rate seen, chi-squares, turn angles)
+    bias_reference: str | None = None  # joint: "turn-on"
+    platform_rate_deg_s: float | None = None  # thesis real case
+    earth_rate_diagnostic: dict | None = None  # thesis real case
+    turns_alpha_beta_deg: list | None = None  # thesis bench: alpha and beta from each full turn
+    session: dict | None = None  # daemon: which session, how long, when solved
+    stale: dict | None = None  # daemon: why the result no longer applies
+    schema: str = SCHEMA
+
+    def flag_poor(self, names, why: str | None = None) -> CalibrationResult:
+        """The result with the estimates `names` flagged poor, and `why` among the warnings."""
+        estimates = {name: replace(e, quality="poor") if name in names else e for name, e in self.estimates.items()}
+        flagged = replace(self, estimates=estimates)
+        return flagged if why is None else flagged.with_warning(why)
+
+    def with_warning(self, text: str, first: bool = False) -> CalibrationResult:
+        return replace(self, warnings=(text, *self.warnings) if first else (*self.warnings, text))
+
+    def to_dict(self) -> dict:
+        doc = {"schema": self.schema, "method": self.method, "site": self.site,
+               "estimates": {name: e.to_dict() for name, e in self.estimates.items()},
+               "segments": list(self.segments), "warnings": list(self.warnings), "sensor": self.sensor,
+               "stream": self.stream}
+        return doc | {name: getattr(self, name) for name in _OPTIONAL if getattr(self, name) is not None}
+
+    @classmethod
+    def from_dict(cls, doc, where: str = "result") -> CalibrationResult:
+        """A result document of this or an older version; ResultError (one line) otherwise."""
+        if not isinstance(doc, dict):
+            raise ResultError(f"{where}: not a {RESULT_SCHEMA} result")
+        try:
+            schema_version(doc.get("schema"), RESULT_SCHEMA, RESULT_VERSION, where)
+        except SchemaError as exc:
+            raise ResultError(str(exc)) from None
+        estimates = doc.get("estimates")
+        if not (isinstance(estimates, dict) and estimates
+                and all(isinstance(e, dict) and {"value", "unit"} <= set(e) for e in estimates.values())):
+            raise ResultError(f"{where}: the result has no estimates (value and unit each)")
+        if not isinstance(doc.get("site"), dict) or not isinstance(doc.get("method"), str):
+            raise ResultError(f"{where}: the result has no site or no method")
+        known = {"method", "site", "sensor", "stream", *_OPTIONAL}
+        return cls(**{key: value for key, value in doc.items() if key in known},
+                   estimates={name: Estimate(e["value"], e.get("sigma"), e["unit"], e.get("quality"))
+                              for name, e in estimates.items()},
+                   segments=tuple(doc.get("segments", ())), warnings=tuple(doc.get("warnings", ())),
+                   schema=doc["schema"])
 
 
 def site_record(site: Site) -> dict:
@@ -44,32 +149,30 @@ def site_record(site: Site) -> dict:
 
 
 def make_result(method: str, site: Site, estimates: dict[str, tuple[float, float | None]], segments: list[dict],
-                warnings: list[str], sensor: dict, **extra) -> dict:
-    """The result document; `estimates` maps names of ESTIMATES to (value, sigma) in SI."""
+                warnings: list[str], sensor: dict, **extra) -> CalibrationResult:
+    """The result of a method; `estimates` maps names of ESTIMATES to (value, sigma) in SI."""
     unknown = set(estimates) - set(ESTIMATES)
     if unknown:
         raise ValueError(f"unknown estimate names: {sorted(unknown)}")
-    return {"schema": SCHEMA, "method": method, "site": site_record(site),
-            "estimates": {name: estimate(name, *pair) for name, pair in estimates.items()},
-            "segments": segments, "warnings": list(warnings), "sensor": sensor, **extra}
+    return CalibrationResult(method, site_record(site),
+                             {name: Estimate.from_si(name, *pair) for name, pair in estimates.items()},
+                             tuple(segments), tuple(warnings), sensor, **extra)
 
 
-def result_json(result: dict) -> bytes:
+def result_json(result: CalibrationResult) -> bytes:
     """The result file's bytes: JSON, one key a line, no NaN (a result with one is a bug)."""
-    return (json.dumps(result, indent=1, allow_nan=False) + "\n").encode()
+    return (json.dumps(result.to_dict(), indent=1, allow_nan=False) + "\n").encode()
 
 
-def write_result(path, result: dict) -> None:
+def write_result(path, result: CalibrationResult) -> None:
     write_atomic(path, result_json(result))
 
 
-def load_result(path) -> dict:
+def load_result(path) -> CalibrationResult:
     try:
-        result = json.loads(Path(path).read_text())
+        doc = json.loads(Path(path).read_text())
     except (OSError, UnicodeDecodeError) as exc:
         raise ResultError(f"{path}: cannot read: {exc}") from None
     except json.JSONDecodeError as exc:
         raise ResultError(f"{path}: not JSON: {exc}") from None
-    if not isinstance(result, dict) or result.get("schema") != SCHEMA:
-        raise ResultError(f"{path}: not a {SCHEMA} result")
-    return result
+    return CalibrationResult.from_dict(doc, str(path))

@@ -42,6 +42,11 @@ class Sensor:
     latency_us: int = 516
 
 
+TRUTH_SCHEMA = "calibd.truth"  # the truth file beside a simulated capture (calibd.sim.truth_record)
+TRUTH_VERSION = 1
+TRUTH_FORMER_NAMES = ("stim300-calib/truth",)  # its name before calibd.truth: read as the same version
+
+
 @dataclass(frozen=True)
 class Truth:
     """Biases at thermal equilibrium; attitude of the IMU at the home position (platform angle 0)."""

@@ -24,7 +24,7 @@ from stim300.special import Configuration, PartNumber, SerialNumber, encode_spec
 
 from .frames import EARTH_RATE, STANDARD_GRAVITY, euler_321, int_to_imu, nav_to_imu, r1, r2, r3
 from .noise import FLICKER_TAUS_S, flicker_sigma
-from .scenario import Scenario
+from .scenario import TRUTH_SCHEMA, TRUTH_VERSION, Scenario
 
 START_UP_S = 0.7  # gyro start-up period after power-on: status bit 6 set (DS §7.5.2.1)
 DEG = np.pi / 180
@@ -324,7 +324,7 @@ def truth_record(sim: Simulation, faults: dict) -> dict:
     lat = np.radians(site.latitude_deg)
     earth = EARTH_RATE / DEG * 3600 * np.array([np.cos(lat), np.sin(lat)])  # deg/h, horizontal and vertical
     return {
-        "schema": "stim300-calib/truth/1",
+        "schema": f"{TRUTH_SCHEMA}/{TRUTH_VERSION}",
         "scenario": scenario.name,
         "seed": scenario.seed,
         "units": {"angles": "deg", "gyro_bias": "deg/h", "acc_bias": "mg", "incl_bias": "mg", "time": "s",

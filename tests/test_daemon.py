@@ -22,6 +22,7 @@ from calibd.config import MethodConfig, WarmupConfig
 from calibd.daemon import Calibrator, ResultStore, State
 from calibd.frames import Site
 from calibd.live import configure_logging, replay, stream_faults
+from calibd.results import SCHEMA, CalibrationResult, Estimate
 from stim300.bulk import decode_capture
 from stim300.source import CaptureSource, PtySource
 
@@ -46,11 +47,11 @@ def test_warm_up_then_protocol_gives_a_result_near_the_truth():
     truth = json.loads((FIXTURES / "warmup_then_protocol_125hz.bin.truth.json").read_text())["truth"]
     calibrator, changes, results = run_replay("warmup_then_protocol_125hz", WarmupConfig(window_s=100.0))
     assert changes == [State.WARMING_UP, State.COLLECTING, State.SOLVED]
-    last = results[-1]["estimates"]
-    assert abs(last["yaw"]["value"] - truth["yaw_deg"]) < 3 * last["yaw"]["sigma"]
-    assert abs(last["pitch"]["value"] - truth["pitch_deg"]) < 0.01
+    last = results[-1].estimates
+    assert abs(last["yaw"].value - truth["yaw_deg"]) < 3 * last["yaw"].sigma
+    assert abs(last["pitch"].value - truth["pitch_deg"]) < 0.01
     # the solution improves as data arrives: the last yaw sigma is the smallest
-    assert last["yaw"]["sigma"] == min(r["estimates"]["yaw"]["sigma"] for r in results)
+    assert last["yaw"].sigma == min(r.estimates["yaw"].sigma for r in results)
 
 
 @pytest.mark.parametrize("window_s", [100.0, 600.0])
@@ -59,7 +60,7 @@ def test_no_session_starts_during_the_steep_part_of_the_warm_up(window_s):
     window, the session must leave out at least the first three time constants."""
     truth = json.loads((FIXTURES / "warmup_then_protocol_125hz.bin.truth.json").read_text())
     _, _, results = run_replay("warmup_then_protocol_125hz", WarmupConfig(window_s=window_s))
-    started = truth["duration_s"] - results[-1]["session"]["duration_s"]
+    started = truth["duration_s"] - results[-1].session["duration_s"]
     assert started >= 3 * truth["warmup"]["time_constant_s"]
 
 
@@ -90,7 +91,7 @@ def test_a_data_gap_starts_a_new_session_and_keeps_the_warm_up():
     after = events[before:]
     assert after[0][0] == State.FAULT and after[1][0] == State.COLLECTING and "gap" in after[1][1]
     assert State.WARMING_UP not in [state for state, _ in after]
-    assert calibrator.sessions == 2 and results and results[-1]["session"]["number"] == 2
+    assert calibrator.sessions == 2 and results and results[-1].session["number"] == 2
     waiting = [d for state, d in events if state == State.COLLECTING and "waiting for:" in d]
     assert waiting and re.match(r"collecting: \d+ s of data, \d+ static(s)? at \d/4 index headings", waiting[0])
 
@@ -133,17 +134,21 @@ def test_stream_faults_are_reported_as_they_grow():
     assert more == {"flagged_datagrams": 1} and again == counts
 
 
+def small_result(warning: str) -> CalibrationResult:
+    return CalibrationResult("joint", {}, {"yaw": Estimate(0.0, None, "deg")}, warnings=(warning,))
+
+
 def test_a_crash_while_writing_keeps_the_last_good_result(tmp_path, monkeypatch):
     store = ResultStore(tmp_path)
-    store.write_result({"schema": "calibd.result/1", "n": 1})
+    store.write_result(small_result("n = 1"))
 
     def crash(*args):
         raise OSError(28, "No space left on device")
 
     monkeypatch.setattr(stim300.atomic.os, "replace", crash)
     with pytest.raises(OSError):
-        store.write_result({"schema": "calibd.result/1", "n": 2})
-    assert json.loads((tmp_path / "result.json").read_text())["n"] == 1
+        store.write_result(small_result("n = 2"))
+    assert json.loads((tmp_path / "result.json").read_text())["warnings"] == ["n = 1"]
     assert not [p for p in tmp_path.rglob("*.part")]
 
 
@@ -152,11 +157,13 @@ def test_kill_9_while_writing_leaves_a_readable_result(tmp_path):
     root = str(Path(__file__).resolve().parents[1])
     script = (f"import sys; sys.path.insert(0, {root!r})\n"
               "from calibd.daemon import ResultStore\n"
+              "from calibd.results import CalibrationResult, Estimate\n"
+              "yaw = {'yaw': Estimate(0.0, None, 'deg')}\n"
               f"store = ResultStore({str(tmp_path)!r})\n"
               "n = 0\n"
               "while True:\n"
               "    n += 1\n"
-              "    store.write_result({'schema': 'calibd.result/1', 'n': n, 'pad': ['x' * 1000] * 200})\n")
+              "    store.write_result(CalibrationResult('joint', {}, yaw, warnings=(str(n),) + ('x' * 1000,) * 200))\n")
     rng = np.random.default_rng(7)
     for _ in range(5):
         writer = subprocess.Popen([sys.executable, "-c", script])
@@ -168,7 +175,7 @@ def test_kill_9_while_writing_leaves_a_readable_result(tmp_path):
         writer.kill()
         writer.wait()
         result = json.loads((tmp_path / "result.json").read_text())
-        assert result["schema"] == "calibd.result/1" and len(result["pad"]) == 200
+        assert result["schema"] == SCHEMA and len(result["warnings"]) == 201
 
 
 def test_replay_command_and_status(tmp_path, capsys):
@@ -328,14 +335,14 @@ def test_datagrams_the_sensor_flags_are_counted_and_warned_about(tmp_path):
     capture = tmp_path / "flagged.bin"
     capture.write_bytes(encode_samples(samples, 0xA7, info.format, False).tobytes())
     result = joint_real_case(load_session(str(capture)), SITE)
-    assert result["stream"]["flagged_datagrams"] == 10 and result["stream"]["fault_flags"] == ["X", "OVERLOAD"]
-    assert any(w.startswith("10 datagrams carry fault flags (X, OVERLOAD)") for w in result["warnings"])
+    assert result.stream["flagged_datagrams"] == 10 and result.stream["fault_flags"] == ["X", "OVERLOAD"]
+    assert any(w.startswith("10 datagrams carry fault flags (X, OVERLOAD)") for w in result.warnings)
 
     results = []
     calibrator = Calibrator(SITE, WarmupConfig(window_s=10.0), NO_TIMER, on_result=results.append)
     replay(CaptureSource(capture.read_bytes()), calibrator)
-    assert results[-1]["stream"]["flagged_datagrams"] == 10
-    assert any("fault flags (X, OVERLOAD)" in w for w in results[-1]["warnings"])
+    assert results[-1].stream["flagged_datagrams"] == 10
+    assert any("fault flags (X, OVERLOAD)" in w for w in results[-1].warnings)
 
 
 def test_segments_are_logged_once_each_when_final():
@@ -399,17 +406,17 @@ def test_a_replay_solves_at_the_end_of_the_data_as_calibrate_does(source):
     replay(source(data), calibrator)
     result = calibrator.result
     samples = decode_capture(data).samples
-    session_start_s = (len(samples) - 1) / 125 - result["session"]["duration_s"]  # no sample lost in this capture
+    session_start_s = (len(samples) - 1) / 125 - result.session["duration_s"]  # no sample lost in this capture
     reference = joint_real_case(load_session(str(HEADING137), session_start_s - 0.004), SITE_137)
     assert calibrator.state == State.SOLVED
-    assert [s["kind"] for s in result["segments"][-2:]] == ["turn", "static"]
-    assert abs(result["segments"][-2]["angle_deg"]) > 350
+    assert [s["kind"] for s in result.segments[-2:]] == ["turn", "static"]
+    assert abs(result.segments[-2]["angle_deg"]) > 350
 
     def spans(r):
-        return [(s["kind"], round(s["end_s"] - s["start_s"], 3)) for s in r["segments"]]
+        return [(s["kind"], round(s["end_s"] - s["start_s"], 3)) for s in r.segments]
     assert spans(result) == spans(reference)
-    for name, e in reference["estimates"].items():
-        assert abs(result["estimates"][name]["value"] - e["value"]) < 0.02 * e["sigma"], name
+    for name, e in reference.estimates.items():
+        assert abs(result.estimates[name].value - e.value) < 0.02 * e.sigma, name
 
 
 def test_the_replay_of_a_capture_that_needs_no_warm_up_gives_calibrates_result():
@@ -418,8 +425,8 @@ def test_the_replay_of_a_capture_that_needs_no_warm_up_gives_calibrates_result()
     calibrator = Calibrator(SITE_137, WarmupConfig(window_s=10.0), NO_TIMER)
     replay(CaptureSource(HEADING137.read_bytes()), calibrator)
     reference = joint_real_case(load_session(str(HEADING137)), SITE_137)
-    for name, e in reference["estimates"].items():
-        assert abs(calibrator.result["estimates"][name]["value"] - e["value"]) < 0.1 * e["sigma"], name
+    for name, e in reference.estimates.items():
+        assert abs(calibrator.result.estimates[name].value - e.value) < 0.1 * e.sigma, name
 
 
 @pytest.mark.parametrize("method", ["joint", "thesis"])
@@ -461,10 +468,10 @@ def test_a_restart_marks_the_last_result_stale_before_anything_else():
     assert kinds[:4] == [State.SOLVED, "result", "stale", State.RESTARTED]
     assert "result" not in kinds[3:]
     final, stale = after[1][1], after[2][1]
-    assert final["session"]["duration_s"] > 600  # the whole power-up, the final static included
-    assert "stale" not in final and stale["estimates"] == final["estimates"]
-    assert stale["stale"]["power_up"] == "previous" and "restarted" in stale["stale"]["reason"]
-    assert stale["warnings"][0].startswith("stale: the sensor restarted")
+    assert final.session["duration_s"] > 600  # the whole power-up, the final static included
+    assert final.stale is None and stale.estimates == final.estimates
+    assert stale.stale["power_up"] == "previous" and "restarted" in stale.stale["reason"]
+    assert stale.warnings[0].startswith("stale: the sensor restarted")
     assert calibrator.result is stale and "marked stale" in after[3][1]
 
 

@@ -11,6 +11,7 @@ from calibd.calibrate import joint_real_case, load_session
 from calibd.estimators.joint import JointInput, NoiseModel
 from calibd.frames import Site, int_to_imu, r3
 from calibd.noise import FLICKER_TAUS_S
+from calibd.results import CalibrationResult
 from calibd.scenario import load_scenario
 from calibd.sim import capture_bytes, simulate, truth_record
 
@@ -76,16 +77,16 @@ def truth(sim) -> dict:
     return out
 
 
-def calibrate_without(sim, first: int, count: int) -> dict:
+def calibrate_without(sim, first: int, count: int) -> CalibrationResult:
     """The joint result on the capture's bytes with `count` datagrams from `first` on never sent."""
     cut = replace(sim, samples=np.delete(sim.samples, np.arange(first, first + count)))
     return joint_real_case(load_session("cut.bin", data=capture_bytes(cut)[0]), sim.scenario.site)
 
 
-def assert_unflagged_within_3_sigma(result: dict, expected: dict) -> None:
-    for name, e in result["estimates"].items():
-        if e.get("quality") != "poor":
-            assert abs(e["value"] - expected[name]) < 3 * e["sigma"], (name, e, expected[name])
+def assert_unflagged_within_3_sigma(result: CalibrationResult, expected: dict) -> None:
+    for name, e in result.estimates.items():
+        if e.quality != "poor":
+            assert abs(e.value - expected[name]) < 3 * e.sigma, (name, e, expected[name])
 
 
 @pytest.mark.parametrize("turn,lost", [(0, 16), (1, 64), (2, 188), (4, 16), (4, 188)])
@@ -99,30 +100,30 @@ def test_an_unseen_loss_in_a_turn_is_found_corrected_and_named(thesis_sim, turn,
     result = calibrate_without(thesis_sim, first, lost)
     unseen_s = (lost - lost % CYCLE_DATAGRAMS) / 125
     missing_deg = np.sign(phase.angle_deg) * phase.peak_rate_deg_s * unseen_s
-    checked = result["checks"]["turn_angles"]
+    checked = result.checks["turn_angles"]
     assert [t["corrected"] for t in checked] == [k == turn for k in range(len(checked))]
     found = checked[turn]
     assert found["tilt_minus_gyro_deg"] == pytest.approx(missing_deg, abs=3 * found["sigma_deg"])
-    named = [w for w in result["warnings"] if LOST_WARNING in w]
+    named = [w for w in result.warnings if LOST_WARNING in w]
     assert len(named) == 1 and f"the turn from {found['start_s']:.1f} s" in named[0]
-    assert result["checks"]["force_static_chi2"]["p_value"] > 1e-3
-    assert not any(e.get("quality") for e in result["estimates"].values())
+    assert result.checks["force_static_chi2"]["p_value"] > 1e-3
+    assert not any(e.quality for e in result.estimates.values())
     assert_unflagged_within_3_sigma(result, truth(thesis_sim))
 
 
 def test_a_clean_session_is_left_as_it_is(thesis_sim):
     result = calibrate_without(thesis_sim, 0, 0)
-    assert not any(t["corrected"] for t in result["checks"]["turn_angles"])
-    assert all(t["sigma_deg"] < 0.5 for t in result["checks"]["turn_angles"])  # the tilt did check every turn
-    assert not any(LOST_WARNING in w or "could not be checked" in w for w in result["warnings"])
-    assert result["checks"]["force_static_chi2"]["p_value"] > 1e-3
+    assert not any(t["corrected"] for t in result.checks["turn_angles"])
+    assert all(t["sigma_deg"] < 0.5 for t in result.checks["turn_angles"])  # the tilt did check every turn
+    assert not any(LOST_WARNING in w or "could not be checked" in w for w in result.warnings)
+    assert result.checks["force_static_chi2"]["p_value"] > 1e-3
     assert_unflagged_within_3_sigma(result, truth(thesis_sim))
 
 
 def test_shipped_capture_raises_no_gap_warning():
     result = joint_real_case(load_session("fixtures/thesis_real_cw_125hz.bin"), Site(40.59129, g0=9.79956))
-    assert not any(t["corrected"] for t in result["checks"]["turn_angles"])
-    assert not any(LOST_WARNING in w for w in result["warnings"])
+    assert not any(t["corrected"] for t in result.checks["turn_angles"])
+    assert not any(LOST_WARNING in w for w in result.warnings)
 
 
 def test_statics_forces_that_do_not_fit_flag_the_estimates_poor(thesis_sim):
@@ -133,10 +134,10 @@ def test_statics_forces_that_do_not_fit_flag_the_estimates_poor(thesis_sim):
     inside = (session.time_s > phase.start_s) & (session.time_s < phase.end_s)
     session.acc[inside, 2] += 2e-3 * 9.80665
     result = joint_real_case(session, thesis_sim.scenario.site)
-    assert result["checks"]["force_static_chi2"]["p_value"] < 1e-3
-    assert any("accelerometer and inclinometer means do not fit" in w for w in result["warnings"])
-    assert {n for n, e in result["estimates"].items() if e.get("quality") == "poor"} >= {"pitch", "roll", "acc_bias_z"}
-    assert result["estimates"]["alpha"].get("quality") is None
+    assert result.checks["force_static_chi2"]["p_value"] < 1e-3
+    assert any("accelerometer and inclinometer means do not fit" in w for w in result.warnings)
+    assert {n for n, e in result.estimates.items() if e.quality == "poor"} >= {"pitch", "roll", "acc_bias_z"}
+    assert result.estimates["alpha"].quality is None
 
 
 def test_a_platform_axis_along_up_leaves_the_turns_unchecked():
@@ -146,9 +147,9 @@ def test_a_platform_axis_along_up_leaves_the_turns_unchecked():
                                                   beta_deg=0.0))
     sim = simulate(level)
     result = joint_real_case(load_session("level.bin", data=capture_bytes(sim)[0]), level.site)
-    assert not any(t["corrected"] for t in result["checks"]["turn_angles"])
-    assert all(t["sigma_deg"] is None for t in result["checks"]["turn_angles"])
-    assert any("5 of 5 turns' angles could not be checked" in w for w in result["warnings"])
+    assert not any(t["corrected"] for t in result.checks["turn_angles"])
+    assert all(t["sigma_deg"] is None for t in result.checks["turn_angles"])
+    assert any("5 of 5 turns' angles could not be checked" in w for w in result.warnings)
 
 
 def test_continuous_rotation_says_the_turns_went_unchecked():
@@ -156,8 +157,8 @@ def test_continuous_rotation_says_the_turns_went_unchecked():
     scenario = load_scenario("continuous")
     sim = simulate(replace(scenario, noise=replace(scenario.noise, enabled=False)))
     result = joint_real_case(load_session("continuous.bin", data=capture_bytes(sim)[0]), scenario.site)
-    assert "turn_angles" not in result["checks"]
-    assert any("the statics do not pin the turns' angles" in w for w in result["warnings"])
+    assert "turn_angles" not in result.checks
+    assert any("the statics do not pin the turns' angles" in w for w in result.warnings)
 
 
 def test_headings_are_counted_modulo_a_turn():
@@ -174,9 +175,9 @@ def test_one_index_position_leaves_the_turns_unchecked_and_is_solved():
     scenario = replace(THESIS, seed=7, segments=segments)
     sim = simulate(scenario)
     result = joint_real_case(load_session("one-index.bin", data=capture_bytes(sim)[0]), scenario.site)
-    assert any("statics at fewer than 3 headings" in w for w in result["warnings"])
-    assert not any(LOST_WARNING in w for w in result["warnings"])
+    assert any("statics at fewer than 3 headings" in w for w in result.warnings)
+    assert not any(LOST_WARNING in w for w in result.warnings)
     truth = scenario.truth
     for name in ("pitch", "roll", "yaw"):
-        e = result["estimates"][name]
-        assert abs(e["value"] - getattr(truth, f"{name}_deg")) < 3 * e["sigma"], name
+        e = result.estimates[name]
+        assert abs(e.value - getattr(truth, f"{name}_deg")) < 3 * e.sigma, name

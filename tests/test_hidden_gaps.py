@@ -18,6 +18,7 @@ from calibd.calibrate import joint_real_case, load_session
 from calibd.config import WarmupConfig
 from calibd.daemon import Calibrator
 from calibd.frames import Site
+from calibd.results import CalibrationResult
 from captures import exact_samples
 from stim300.bulk import decode_capture
 from stim300.cli import main as stim300_main
@@ -53,9 +54,9 @@ def cut_in_a_turn() -> tuple[np.ndarray, np.ndarray]:
     return samples, true_s
 
 
-def within_3_sigma(result: dict, name: str, value: float) -> bool:
-    e = result["estimates"][name]
-    return abs(e["value"] - value) < 3 * e["sigma"]
+def within_3_sigma(result: CalibrationResult, name: str, value: float) -> bool:
+    e = result.estimates[name]
+    return abs(e.value - value) < 3 * e.sigma
 
 
 def test_the_daemon_keeps_the_platform_angle_across_a_hidden_gap_in_a_turn():
@@ -65,12 +66,12 @@ def test_the_daemon_keeps_the_platform_angle_across_a_hidden_gap_in_a_turn():
     for start in range(0, len(samples), 25):  # 0.2 s batches, as the live loop drains its ring
         calibrator.feed(samples[start:start + 25], RATE_HZ)
     last = results[-1]
-    statics = [s for s in last["segments"] if s["kind"] == "static"]
+    statics = [s for s in last.segments if s["kind"] == "static"]
     assert [round(s["platform_angle_deg"]) for s in statics] == [0, -90, -180, -270, -360, -720]
     assert within_3_sigma(last, "yaw", truth()["yaw_deg"])
-    assert last["stream"]["hidden_gaps"] == 1 and last["stream"]["hidden_gap_s"] == pytest.approx(11 * CYCLE_S)
+    assert last.stream["hidden_gaps"] == 1 and last.stream["hidden_gap_s"] == pytest.approx(11 * CYCLE_S)
     assert any(w.startswith("time base corrected: the host clock shows 1.408 s of data lost in 1 gap ")
-               for w in last["warnings"])
+               for w in last.warnings)
 
 
 @pytest.fixture
@@ -102,7 +103,7 @@ def test_load_session_times_a_capture_from_its_read_log(capture_with_read_log, c
     assert session.stream["hidden_gaps"] == 1 and session.stream["hidden_gap_s"] == pytest.approx(1.408)
     result = joint_real_case(session, SITE)
     assert within_3_sigma(result, "yaw", truth()["yaw_deg"])
-    assert any(w.startswith("time base corrected") for w in result["warnings"])
+    assert any(w.startswith("time base corrected") for w in result.warnings)
     assert stim300_main(["info", str(path), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["hidden_gaps"] == 1 and info["hidden_gap_s"] == pytest.approx(1.408)

@@ -131,10 +131,10 @@ def test_quantised_capture_through_the_whole_path(tmp_path):
     scenario = quiet(THESIS)
     write_capture(scenario, tmp_path / "s.bin")
     result = joint_real_case(load_session(str(tmp_path / "s.bin")), scenario.site)
-    e = {k: v["value"] - scenario.truth.estimates()[k] for k, v in result["estimates"].items()}
+    e = {k: v.value - scenario.truth.estimates()[k] for k, v in result.estimates.items()}
     assert abs(e["yaw"]) < 0.55 and abs(e["pitch"]) < 1e-4 and abs(e["gyro_bias_y"]) < 0.11
-    assert result["method"] == "joint"
-    assert all(v["sigma"] is not None for v in result["estimates"].values())
+    assert result.method == "joint"
+    assert all(v.sigma is not None for v in result.estimates.values())
 
 
 def test_fixed_amplitude_agrees_with_free():

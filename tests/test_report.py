@@ -7,6 +7,7 @@ import json
 import re
 import shutil
 import sys
+from dataclasses import replace
 from html.parser import HTMLParser
 from pathlib import Path
 
@@ -126,7 +127,7 @@ def test_table_numbers_equal_the_result_file(rendered):
 
 def test_thesis_and_truth_columns(rendered):
     rows = parse(rendered["page"]).rows
-    thesis = thesis_real_case(rendered["session"], SITE)["estimates"]
+    thesis = thesis_real_case(rendered["session"], SITE).estimates
     record = json.loads(Path(CAPTURE + ".truth.json").read_text())
     truth, carried = record["truth"], record["bias_during_capture"]
     expected = {"pitch": (truth["pitch_deg"],) * 2, "yaw": (truth["yaw_deg"],) * 2, "beta": (truth["beta_deg"],) * 2,
@@ -136,10 +137,10 @@ def test_thesis_and_truth_columns(rendered):
     for name, (scenario, in_data) in expected.items():
         assert rows[name]["truth"][0] == scenario
         assert rows[name]["carried"][0] == in_data
-        assert rows[name]["error"][0] == pytest.approx(rendered["result"]["estimates"][name]["value"] - in_data)
+        assert rows[name]["error"][0] == pytest.approx(rendered["result"].estimates[name].value - in_data)
         assert abs(rows[name]["error"][0]) < 3 * rows[name]["sigma"][0]  # the joint 1-sigma is honest here
     for name, e in thesis.items():
-        assert rows[name]["thesis"][0] == pytest.approx(e["value"], rel=1e-12, abs=1e-12)
+        assert rows[name]["thesis"][0] == pytest.approx(e.value, rel=1e-12, abs=1e-12)
     assert "thesis-linear" in rendered["page"]
 
 
@@ -185,12 +186,10 @@ def test_analysis_starts_where_the_result_did():
     capture = str(FIXTURES / "warmup_then_protocol_125hz.bin")
     result = joint_real_case(load_session(capture, 450.0), SITE)
     assert analysis_start_s(result) == 450.0
-    del result["stream"]["start_s"]
-    start = analysis_start_s(result)
+    start = analysis_start_s(replace(result, stream={k: v for k, v in result.stream.items() if k != "start_s"}))
     assert start == pytest.approx(450.0, abs=1e-5)
     again = joint_real_case(load_session(capture, start), SITE)
-    del again["stream"]["start_s"]
-    assert again["segments"] == result["segments"] and again["estimates"] == result["estimates"]
+    assert again.segments == result.segments and again.estimates == result.estimates
 
 
 def run(argv, capsys):
@@ -209,7 +208,7 @@ def test_command_without_truth_file(rendered, tmp_path, capsys):
     assert (tmp_path / "r_files" / "earth_rate.png").exists()
     rows = parse((tmp_path / "r.html").read_text()).rows
     assert all(r["truth"] == r["carried"] == r["error"] == (None, "n/a") for r in rows.values())
-    assert rows["yaw"]["value"][0] == rendered["result"]["estimates"]["yaw"]["value"]
+    assert rows["yaw"]["value"][0] == rendered["result"].estimates["yaw"].value
 
 
 def test_matplotlib_missing_is_one_line(made, tmp_path, capsys, monkeypatch):
@@ -223,7 +222,7 @@ def test_matplotlib_missing_is_one_line(made, tmp_path, capsys, monkeypatch):
 @pytest.mark.parametrize("case, message", [
     ("missing result", "cannot read"),
     ("not json", "not JSON"),
-    ("other schema", "not a calibd.result/1 result"),
+    ("other schema", "is 'something/1', not a calibd.result file"),
     ("no estimates", "the result has no estimates"),
     ("missing capture", "no such file"),
     ("other capture", "not the result's capture"),
@@ -242,7 +241,7 @@ def test_bad_input_is_one_line(made, tmp_path, capsys, case, message):
         result.write_text('{"schema": "something/1"}')
     elif case == "no estimates":
         result = tmp_path / "empty.json"
-        result.write_text(json.dumps({"schema": "calibd.result/1", "site": made["result"]["site"]}))
+        result.write_text(json.dumps({"schema": "calibd.result/1", "method": "joint", "site": made["result"].site}))
     elif case == "missing capture":
         capture = tmp_path / "absent.bin"
     elif case == "other capture":

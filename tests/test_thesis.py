@@ -95,7 +95,7 @@ def quiet(scenario, sense):
 
 def errors(result, scenario) -> dict:
     truth = scenario.truth.estimates()
-    return {k: e["value"] - truth[k] for k, e in result["estimates"].items()}
+    return {k: e.value - truth[k] for k, e in result.estimates.items()}
 
 
 def model_yaw_deg(truth) -> float:
@@ -142,8 +142,8 @@ def test_nominal_chain_recovers_the_truth_within_its_model_error(session):
         assert abs(e[f"acc_bias_{a}"]) < 0.01  # mg
     assert abs(e["incl_bias_x"]) < 0.04 and abs(e["incl_bias_y"]) < 0.04
     assert e["incl_bias_z"] == pytest.approx(-scenario.truth.incl_bias_mg[2])  # assumed 0
-    assert result["method"] == "thesis-nominal" and result["schema"] == "calibd.result/1"
-    assert all(e["sigma"] is None for e in result["estimates"].values())
+    assert result.method == "thesis-nominal" and result.schema == "calibd.result/2"
+    assert all(e.sigma is None for e in result.estimates.values())
 
 
 def test_linear_chain_has_the_thesis_model_errors(session):
@@ -156,13 +156,13 @@ def test_linear_chain_has_the_thesis_model_errors(session):
     w = 27.93 * DEG * sense
     result = thesis_real_case(data, SITE)
     e = errors(result, scenario)
-    assert result["estimates"]["yaw"]["value"] == pytest.approx(0.0, abs=1e-9)
-    assert any("yaw is not observable" in warning for warning in result["warnings"])
+    assert result.estimates["yaw"].value == pytest.approx(0.0, abs=1e-9)
+    assert any("yaw is not observable" in warning for warning in result.warnings)
     d_alpha = (t.yaw_deg * DEG) * H / w  # rad
     d_beta = H * np.cos(t.yaw_deg * DEG) / w
     partial = unaveraged_bound(data) / abs(w) / DEG
     assert 0 < partial < 1e-3
-    assert any(f"up to {partial:.4f} deg on alpha and beta" in warning for warning in result["warnings"])
+    assert any(f"up to {partial:.4f} deg on alpha and beta" in warning for warning in result.warnings)
     assert e["alpha"] == pytest.approx(d_alpha / DEG, abs=5e-5 + partial)
     assert e["beta"] == pytest.approx(d_beta / DEG, abs=5e-4 + partial)
     d_incl_x = SITE.gravity * np.sin(e["beta"] * DEG) / STANDARD_GRAVITY * 1000  # mg, from the beta it has
@@ -173,8 +173,8 @@ def test_linear_chain_has_the_thesis_model_errors(session):
 def test_platform_rate_from_the_gyros_matches_the_command(session):
     scenario, data, sense = session
     result = thesis_real_case(data, SITE)
-    assert result["platform_rate_deg_s"] == pytest.approx(27.93 * sense, abs=2e-4)
-    roles = [s["role"] for s in result["segments"]]
+    assert result.platform_rate_deg_s == pytest.approx(27.93 * sense, abs=2e-4)
+    roles = [s["role"] for s in result.segments]
     assert roles == ["level static"] + [f"index position {k}" for k in range(1, 5)] + ["full turn"]
 
 
@@ -192,14 +192,14 @@ def test_bench_chain(tmp_path):
     partial = unaveraged_bound(load_session(str(tmp_path / "bench.bin")))
     assert abs(e["alpha"]) < 0.002
     assert abs(e["beta"]) < ((H + partial) / (27.93 * DEG) + 1e-5) / DEG
-    assert sum("not a whole revolution" in warning for warning in result["warnings"]) == 3
-    assert len(result["turns_alpha_beta_deg"]) == 3
+    assert sum("not a whole revolution" in warning for warning in result.warnings) == 3
+    assert len(result.turns_alpha_beta_deg) == 3
 
 
 def test_earth_rate_is_a_line_at_the_turn_frequency(session):
     scenario, data, sense = session
     turn_result = thesis_real_case(data, SITE)
-    turn = turn_result["segments"][-1]
+    turn = turn_result.segments[-1]
     rate_hz = data.rate_hz
     window = data.gyro[int(turn["start_s"] * rate_hz) + 200:int(turn["end_s"] * rate_hz) - 200]
     report = thesis.earth_rate_diagnostic(window, rate_hz, SITE, sigma_s=0.2)
@@ -248,16 +248,16 @@ def test_a_360_deg_turn_with_ramps_gives_a_result_and_bounds_its_earth_rate_term
     assert 325 < covered < 334 and yaw_bound == pytest.approx(4.8, abs=0.1)
     assert any(f"covers {covered:.0f} deg, not a whole revolution" in w and
                f"up to {bias_bound / DEG * 3600:.2f} deg/h on the gyro Y bias, so up to {yaw_bound:.1f} deg on yaw" in w
-               for w in result["warnings"])
+               for w in result.warnings)
     e = errors(result, scenario)
     assert 0.8 * yaw_bound < abs(e["yaw"]) < yaw_bound + model_yaw_deg(scenario.truth)
-    assert "quality" not in result["estimates"]["yaw"]  # a bound under 5 deg: the thesis's yaw as it is
+    assert result.estimates["yaw"].quality is None  # a bound under 5 deg: the thesis's yaw as it is
 
 
 def test_a_turn_covering_a_period_at_constant_rate_needs_no_warning(tmp_path):
     scenario = turn_across(720)
     _, result = nominal_run(scenario, tmp_path)
-    assert not any("not a whole revolution" in w for w in result["warnings"])
+    assert not any("not a whole revolution" in w for w in result.warnings)
     assert abs(errors(result, scenario)["yaw"]) < model_yaw_deg(scenario.truth)
 
 
@@ -294,8 +294,8 @@ def test_slow_ramps_leave_too_little_constant_rate_and_flag_yaw_and_gyro_y(tmp_p
     data, result = nominal_run(scenario, tmp_path)
     yaw_bound = thesis.unaveraged_earth_rate(covered_deg(data) * DEG, SITE) / H / DEG
     assert yaw_bound > 25
-    assert [n for n, e in result["estimates"].items() if e.get("quality") == "poor"] == ["yaw", "gyro_bias_y"]
-    assert any(f"so up to {yaw_bound:.1f} deg on yaw" in w for w in result["warnings"])
+    assert [n for n, e in result.estimates.items() if e.quality == "poor"] == ["yaw", "gyro_bias_y"]
+    assert any(f"so up to {yaw_bound:.1f} deg on yaw" in w for w in result.warnings)
     assert abs(errors(result, scenario)["yaw"]) < yaw_bound + model_yaw_deg(scenario.truth)
 
 
@@ -328,7 +328,7 @@ def test_calibrate_command_writes_the_result_schema(tmp_path, capsys):
                         "--alpha", "0.5934", "--beta", "-0.1196", "-o", str(out)])
     assert code == 0, capsys.readouterr().err
     result = json.loads(out.read_text())
-    assert result["schema"] == "calibd.result/1" and result["method"] == "thesis-nominal"
+    assert result["schema"] == "calibd.result/2" and result["method"] == "thesis-nominal"
     assert set(result["estimates"]) == {"pitch", "roll", "yaw", "alpha", "beta", "gyro_bias_x", "gyro_bias_y",
                                         "gyro_bias_z", "acc_bias_x", "acc_bias_y", "acc_bias_z", "incl_bias_x",
                                         "incl_bias_y", "incl_bias_z"}
@@ -352,10 +352,10 @@ def test_bench_fixture_calibrates_with_its_three_360_deg_turns():
     truth = json.loads(Path(f"{path}.truth.json").read_text())
     data = load_session(str(path))
     result = thesis_bench(data, SITE)
-    assert [s["role"] for s in result["segments"]][-3:] == ["full turn"] * 3
+    assert [s["role"] for s in result.segments][-3:] == ["full turn"] * 3
     bound = unaveraged_bound(data)
-    assert sum(f"up to {bound / DEG * 3600:.2f} deg/h" in w for w in result["warnings"]) == 3
-    value = {k: e["value"] for k, e in result["estimates"].items()}
+    assert sum(f"up to {bound / DEG * 3600:.2f} deg/h" in w for w in result.warnings) == 3
+    value = {k: e.value for k, e in result.estimates.items()}
     assert abs(value["alpha"] - truth["truth"]["alpha_deg"]) < 0.001 + bound / (27.93 * DEG) / DEG
     assert abs(value["beta"] - truth["truth"]["beta_deg"]) < 0.001 + (H + bound) / (27.93 * DEG) / DEG
     carried = truth["bias_during_capture"]
@@ -395,7 +395,7 @@ def test_sensitivity_report(capsys):
 
 def test_result_carries_the_earth_rate_diagnostic(session):
     _, data, _ = session
-    report = thesis_real_case(data, SITE)["earth_rate_diagnostic"]["full turn"]
+    report = thesis_real_case(data, SITE).earth_rate_diagnostic["full turn"]
     window_s = covered_deg(data) / 27.93  # the constant-rate part: one spectral bin is 1 / window_s
     assert report["peak_frequency_hz"][0] == pytest.approx(27.93 / 360, abs=1 / window_s)
     assert report["expected_amplitude_deg_h"] == pytest.approx(11.4217, abs=1e-3)

@@ -1,0 +1,98 @@
+"""The estimator seam: the registry names the methods, each says what a partial session still
+lacks (None once it holds the protocol) and solves through one call; the daemon, `calibd
+calibrate` and the configuration find methods there."""
+
+from pathlib import Path
+
+import pytest
+
+from calibd import config, estimators
+from calibd.calibrate import load_session, session_segments
+from calibd.config import WarmupConfig
+from calibd.daemon import Calibrator
+from calibd.estimators import ESTIMATORS, JointOptions, ThesisOptions, estimator
+from calibd.frames import Site
+from calibd.results import CalibrationResult
+from stim300.bulk import decode_capture
+
+FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
+SITE = Site(40.59129, g0=9.79956)
+
+
+@pytest.fixture(scope="module")
+def sessions():
+    """name -> (session, segments) of the fixtures each protocol's method is made for."""
+    out = {}
+    for name, capture in (("joint", "heading137_lat60_125hz"), ("thesis", "thesis_real_cw_125hz"),
+                          ("thesis-bench", "thesis_bench_125hz")):
+        session = load_session(str(FIXTURES / f"{capture}.bin"))
+        out[name] = session, session_segments(session)
+    return out
+
+
+def test_the_registry_lists_the_methods_and_the_daemon_runs_two():
+    assert list(ESTIMATORS) == ["joint", "thesis", "thesis-bench"]
+    assert all(estimator(name).name == name for name in ESTIMATORS)
+    assert config.METHODS == ("joint", "thesis")
+    with pytest.raises(KeyError, match="no method 'kalman' .known: joint, thesis, thesis-bench."):
+        estimator("kalman")
+
+
+def test_options_come_from_named_settings():
+    settings = {"fixed_amplitude": True, "drift": False, "alpha_deg": 0.5, "beta_deg": -0.1}
+    assert estimator("joint").options(settings) == JointOptions(True, False)
+    assert estimator("thesis").options(settings) == ThesisOptions((0.5, -0.1), None)
+    assert estimator("thesis").options({"alpha_deg": 0.5}) == ThesisOptions(None, None)  # both or neither
+    assert estimator("thesis-bench").options(settings) is None
+
+
+@pytest.mark.parametrize("name", list(ESTIMATORS))
+def test_missing_says_what_a_partial_session_lacks_and_none_on_a_complete_one(sessions, name):
+    session, segments = sessions[name]
+    method = estimator(name)
+    assert method.missing(segments) is None
+    first_turn = next(k for k, s in enumerate(segments) if s.kind == "turn")
+    partial = method.missing(segments[:first_turn])
+    assert partial and ("turn" in partial or " up" in partial), partial
+    result = method.solve(session, SITE, segments, method.options({}))
+    assert isinstance(result, CalibrationResult) and result.method.startswith(name.split("-")[0])
+
+
+def test_the_bench_names_the_positions_it_lacks(sessions):
+    _, segments = sessions["thesis-bench"]
+    lacking = estimator("thesis-bench").missing([s for s in segments if s.up != "-Z" and s.kind == "static"])
+    assert lacking == "a static with -Z up, a full turn (at least 350 deg)"
+
+
+def test_a_turn_still_under_way_does_not_complete_the_joint_protocol(sessions):
+    _, segments = sessions["joint"]
+    level_then_turn = segments[:2]
+    assert [s.kind for s in level_then_turn] == ["static", "turn"]
+    assert estimator("joint").missing(level_then_turn) == estimators.Joint.needs
+    assert estimator("joint").missing(segments[:3]) is None
+
+
+def test_the_daemon_asks_the_registry(monkeypatch):
+    """The daemon's method comes from the registry by name: a stand-in that always lacks something
+    is asked, never solved, and its answer is the daemon's status."""
+    class Lacking:
+        name = "joint"
+
+        def options(self, settings):
+            return None
+
+        def missing(self, segments):
+            return "a stand-in's needs"
+
+        def solve(self, *args):
+            raise AssertionError("solved although the protocol is incomplete")
+
+    monkeypatch.setitem(ESTIMATORS, "joint", Lacking())
+    samples, _ = decode_capture((FIXTURES / "heading137_lat60_125hz.bin").read_bytes())
+    details = []
+    calibrator = Calibrator(Site(60.0), WarmupConfig(window_s=10.0),
+                            on_state=lambda state, detail: details.append(detail))
+    calibrator.feed(samples, 125)
+    calibrator.finish()
+    assert calibrator.result is None
+    assert details[-1].endswith("; waiting for: a stand-in's needs"), details[-1]

@@ -1,0 +1,103 @@
+"""The typed calibration result: its JSON round-trips, its version policy (older read, newer and
+other schemas refused in one line), copies instead of in-place changes; the truth file's schema."""
+
+import json
+from pathlib import Path
+
+import pytest
+
+from calibd.frames import Site
+from calibd.report import read_truth
+from calibd.results import (SCHEMA, CalibrationResult, Estimate, ResultError, SchemaError, load_result, make_result,
+                            result_json, schema_version, write_result)
+
+FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
+DEG = 3.141592653589793 / 180
+
+
+def joint_like() -> CalibrationResult:
+    return make_result("joint", Site(60.0), {"yaw": (0.5 * DEG, 0.1 * DEG), "gyro_bias_x": (1e-6, None)},
+                       [{"kind": "static", "role": "static", "start_s": 0.0, "end_s": 60.0}], ["a warning"],
+                       {"serial_number": "N1"}, stream={"capture": "c.bin"}, options={"fixed_amplitude": False},
+                       checks={"static_chi2": {"chi2": 3.0, "dof": 4, "p_value": 0.5}}, bias_reference="turn-on")
+
+
+def test_estimates_are_in_the_units_people_read():
+    result = joint_like()
+    assert result.estimates["yaw"] == Estimate(pytest.approx(0.5), pytest.approx(0.1), "deg")
+    assert result.estimates["gyro_bias_x"].value == pytest.approx(1e-6 * 3600 / DEG)
+    assert result.estimates["gyro_bias_x"].unit == "deg/h" and result.estimates["gyro_bias_x"].sigma is None
+
+
+def test_a_result_round_trips_through_its_file(tmp_path):
+    result = joint_like().flag_poor(["yaw"], "yaw is poor")
+    write_result(tmp_path / "r.json", result)
+    assert load_result(tmp_path / "r.json") == result
+    doc = json.loads((tmp_path / "r.json").read_text())
+    assert doc["schema"] == SCHEMA == "calibd.result/2"
+    assert list(doc) == ["schema", "method", "site", "estimates", "segments", "warnings", "sensor", "stream",
+                         "options", "checks", "bias_reference"]  # unset fields are not written
+    assert doc["estimates"]["yaw"]["quality"] == "poor" and "quality" not in doc["estimates"]["gyro_bias_x"]
+
+
+def test_changes_are_copies():
+    result = joint_like()
+    flagged = result.flag_poor(["yaw"], "why")
+    assert result.estimates["yaw"].quality is None and result.warnings == ("a warning",)
+    assert flagged.estimates["yaw"].quality == "poor" and flagged.estimates["gyro_bias_x"].quality is None
+    assert flagged.warnings == ("a warning", "why")
+    assert result.with_warning("first", first=True).warnings == ("first", "a warning")
+
+
+def test_a_version_1_file_is_read(tmp_path):
+    """A result as calibd wrote it before the typed result: schema 1, no optional fields."""
+    doc = {"schema": "calibd.result/1", "method": "thesis-linear", "site": {"latitude_deg": 40.0},
+           "estimates": {"yaw": {"value": 0.0, "sigma": None, "unit": "deg"}}, "warnings": ["w"]}
+    path = tmp_path / "old.json"
+    path.write_text(json.dumps(doc))
+    result = load_result(path)
+    assert result.schema == "calibd.result/1" and result.method == "thesis-linear"
+    assert result.estimates["yaw"] == Estimate(0.0, None, "deg") and result.warnings == ("w",)
+    assert result.stream == {} and result.segments == () and result.checks is None and result.stale is None
+    assert json.loads(result_json(result)) == doc | {"segments": [], "sensor": {}, "stream": {}}
+
+
+@pytest.mark.parametrize("schema, message", [
+    ("calibd.result/3", "r.json is calibd.result/3, newer than this calibd reads (up to 2): upgrade calibd"),
+    ("calibd.noise/1", "r.json is 'calibd.noise/1', not a calibd.result file"),
+    ("calibd.result/x", "r.json is 'calibd.result/x', not a calibd.result file"),
+    (None, "r.json is None, not a calibd.result file"),
+])
+def test_newer_versions_and_other_schemas_are_refused_in_one_line(tmp_path, schema, message):
+    path = tmp_path / "r.json"
+    path.write_text(json.dumps(joint_like().to_dict() | {"schema": schema}))
+    with pytest.raises(ResultError) as refusal:
+        load_result(path)
+    assert str(refusal.value) == f"{path.parent}/{message}"
+
+
+def test_the_version_policy_reads_former_names():
+    assert schema_version("stim300-calib/truth/1", "calibd.truth", 1, "t", ("stim300-calib/truth",)) == 1
+    with pytest.raises(SchemaError, match="newer than this calibd reads"):
+        schema_version("calibd.truth/2", "calibd.truth", 1, "t")
+
+
+def test_the_truth_file_is_read_under_its_new_and_its_former_name(tmp_path):
+    source = FIXTURES / "heading137_lat60_125hz.bin.truth.json"
+    record = json.loads(source.read_text())
+    assert record["schema"] == "calibd.truth/1"
+    expected = read_truth(str(source).removesuffix(".truth.json"))
+    for schema, readable in (("stim300-calib/truth/1", True), ("calibd.truth/2", False)):
+        capture = tmp_path / f"{schema.replace('/', '_')}.bin"
+        Path(f"{capture}.truth.json").write_text(json.dumps(record | {"schema": schema}))
+        assert read_truth(str(capture)) == (expected if readable else None), schema
+
+
+def test_status_refuses_a_newer_result_in_one_line(tmp_path, capsys):
+    from calibd.cli import main as calibd_main
+
+    (tmp_path / "state.json").write_text(json.dumps({"state": "SOLVED", "detail": "solved", "updated": 0}))
+    (tmp_path / "result.json").write_text(json.dumps(joint_like().to_dict() | {"schema": "calibd.result/3"}))
+    assert calibd_main(["status", "--state-dir", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "calibd.result/3, newer than this calibd reads (up to 2): upgrade calibd" in err
