@@ -88,7 +88,7 @@ def test_the_daemon_asks_the_registry(monkeypatch):
             raise AssertionError("solved although the protocol is incomplete")
 
     monkeypatch.setitem(ESTIMATORS, "joint", Lacking())
-    samples, _ = decode_capture((FIXTURES / "heading137_lat60_125hz.bin").read_bytes())
+    samples = decode_capture((FIXTURES / "heading137_lat60_125hz.bin").read_bytes()).samples
     details = []
     calibrator = Calibrator(Site(60.0), WarmupConfig(window_s=10.0),
                             on_state=lambda state, detail: details.append(detail))
