@@ -11,7 +11,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import math
 import sys
 import time
 from dataclasses import replace
@@ -19,19 +18,36 @@ from pathlib import Path
 
 from stim300.cliutil import CommandParser, UsageError, read_input, run_command
 from stim300.progress import Progress
+from stim300.reads import load_reads
 
-from .calibrate import (CalibrationError, calibrate_capture, decode, joint_real_case, load_session, thesis_bench,
-                        thesis_real_case)
+from .calibrate import calibrate_capture, joint_real_case, thesis_bench, thesis_real_case
 from .config import ConfigError, DetectionConfig, MethodConfig, WarmupConfig, load_config
 from .daemon import Calibrator, ResultStore
+from .errors import CalibrationError
 from .estimators.joint import JointOptions
 from .estimators.thesis import sensitivity
 from .frames import STANDARD_GRAVITY, Site
 from .live import configure_logging, replay, replay_pty, run
 from .results import ResultError, load_result, write_result
 from .scenario import READY_MADE, ScenarioError, load_scenario
+from .session import Capture, Session, decode, power_up_session
+from .units import DEG
 
-DEG = math.pi / 180
+
+def open_capture(path: str, data: bytes | None = None) -> Capture:
+    """The capture at `path` (its bytes, when already read) decoded, its datagrams stamped by the
+    read log recorded beside it (PATH.reads.npy) when there is one. Capture files are read here
+    only: the rest of calibd takes decoded captures and sessions."""
+    if data is None:
+        with open(path, "rb") as f:
+            data = f.read()
+    return decode(data, str(path), load_reads(path))
+
+
+def load_session(path: str, start_s: float | None = 0.0, data: bytes | None = None,
+                 power_up: int | None = None) -> Session:
+    """One power-up of a capture (default the last) from `start_s` (None: where the warm-up ends)."""
+    return power_up_session(open_capture(path, data), power_up, start_s)
 
 
 def cmd_simulate(args) -> int:
@@ -130,7 +146,7 @@ def cmd_calibrate(args) -> int:
         raise UsageError("calibrate: --fixed-amplitude and --drift belong to --method joint")
     site = _site(args)
     try:
-        capture = decode(args.capture, read_input(args.capture))
+        capture = open_capture(args.capture, read_input(args.capture))
     except CalibrationError as exc:
         raise UsageError(str(exc)) from None  # it names the capture
 
@@ -253,7 +269,7 @@ def cmd_report(args) -> int:
 
     data = read_input(args.capture)
     try:
-        written = write_report(args.result, args.capture, args.output, data)
+        written = write_report(args.result, open_capture(args.capture, data), args.output)
     except (ResultError, ReportError, CalibrationError) as exc:
         raise UsageError(str(exc)) from None
     print(f"report: {written[0]}; figures: {', '.join(p.name for p in written[1:])} in {figures_dir(written[0])}/")

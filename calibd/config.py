@@ -14,6 +14,7 @@ from pathlib import Path
 
 from stim300.protocol import DEFAULT_BIT_RATE
 
+from .errors import CalibdError
 from .frames import Site
 from .scenario import _Table
 
@@ -23,7 +24,7 @@ JOINT_ONLY = ("fixed_amplitude", "drift")
 THESIS_ONLY = ("alpha_deg", "beta_deg")
 
 
-class ConfigError(ValueError):
+class ConfigError(CalibdError):
     """A configuration the daemon cannot run with; the message says where and why in one line."""
 
 

@@ -9,15 +9,15 @@ a half-written or empty result where the last good one was.
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 from stim300.atomic import write_atomic
 
+from .errors import CalibdError
 from .frames import EARTH_RATE, STANDARD_GRAVITY, Site
+from .units import DEG
 
 SCHEMA = "calibd.result/1"
-DEG = math.pi / 180
 _ANGLE = (1 / DEG, "deg")
 _GYRO = (3600 / DEG, "deg/h")
 _FORCE = (1000 / STANDARD_GRAVITY, "mg")
@@ -28,7 +28,7 @@ ESTIMATES = {"pitch": _ANGLE, "roll": _ANGLE, "yaw": _ANGLE, "alpha": _ANGLE, "b
              **{f"incl_bias_{a}": _FORCE for a in "xyz"}}
 
 
-class ResultError(ValueError):
+class ResultError(CalibdError):
     """A result file that is missing, unreadable or not of this schema."""
 
 

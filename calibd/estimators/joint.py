@@ -32,8 +32,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import CalibdError
 from ..frames import EARTH_RATE, STANDARD_GRAVITY, Site, euler_321, int_to_imu
-from ..noise import FLICKER_TAUS_S, allan_deviation, correlate, fit_noise_model, flicker_sigma
+from ..allan import FLICKER_TAUS_S, allan_deviation, correlate, fit_noise_model, flicker_sigma
 from ..scenario import Noise
 
 ESTIMATE_NAMES = ("pitch", "roll", "yaw", "alpha", "beta", "gyro_bias_x", "gyro_bias_y", "gyro_bias_z",
@@ -43,7 +44,7 @@ CHI_TOLERANCE = 1e-13  # rad: the largest change of chi between passes that coun
 FLICKER_BIN_S = 0.1  # flicker's fastest component (3 s) barely changes within a bin (3 % at most)
 
 
-class Underdetermined(ValueError):
+class Underdetermined(CalibdError):
     """The session's segments do not determine the fit (statics at too few platform angles):
     something the protocol lacks, told apart from a fault of the code."""
 
