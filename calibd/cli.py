@@ -11,6 +11,8 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import mmap
+import os
 import sys
 import time
 from dataclasses import replace
@@ -37,11 +39,26 @@ from .units import DEG
 def open_capture(path: str, data: bytes | None = None) -> Capture:
     """The capture at `path` (its bytes, when already read) decoded, its datagrams stamped by the
     read log recorded beside it (PATH.reads.npy) when there is one. Capture files are read here
-    only: the rest of calibd takes decoded captures and sessions."""
-    if data is None:
-        with open(path, "rb") as f:
-            data = f.read()
-    return decode(data, str(path), load_reads(path))
+    only: the rest of calibd takes decoded captures and sessions. A file is mapped, not read, and
+    the pages decoded are let go, so a long capture never sits in memory whole."""
+    reads = load_reads(path)
+    if data is not None:
+        return decode(data, str(path), reads)
+    try:
+        f = open(path, "rb")
+    except OSError:
+        read_input(path)  # raises the one-line UsageError that says why
+        raise
+    with f:
+        if not os.fstat(f.fileno()).st_size:
+            return decode(b"", str(path), reads)
+        with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as mapped:
+            def let_go(offset: int) -> None:
+                done = offset // mmap.PAGESIZE * mmap.PAGESIZE
+                if done:
+                    mapped.madvise(mmap.MADV_DONTNEED, 0, done)
+
+            return decode(mapped, str(path), reads, let_go)
 
 
 def load_session(path: str, start_s: float | None = 0.0, data: bytes | None = None,
@@ -146,7 +163,7 @@ def cmd_calibrate(args) -> int:
         raise UsageError("calibrate: --fixed-amplitude and --drift belong to --method joint")
     site = _site(args)
     try:
-        capture = open_capture(args.capture, read_input(args.capture))
+        capture = open_capture(args.capture)
     except CalibrationError as exc:
         raise UsageError(str(exc)) from None  # it names the capture
 
@@ -267,9 +284,8 @@ def cmd_status(args) -> int:
 def cmd_report(args) -> int:
     from .report import ReportError, figures_dir, write_report  # matplotlib only for this command
 
-    data = read_input(args.capture)
     try:
-        written = write_report(args.result, open_capture(args.capture, data), args.output)
+        written = write_report(args.result, open_capture(args.capture), args.output)
     except (ResultError, ReportError, CalibrationError) as exc:
         raise UsageError(str(exc)) from None
     print(f"report: {written[0]}; figures: {', '.join(p.name for p in written[1:])} in {figures_dir(written[0])}/")
@@ -311,7 +327,7 @@ def cmd_noise(args) -> int:
     from .noise import NoiseError, characterise, noise_record, noise_table
 
     try:
-        session = load_session(args.capture, args.start, read_input(args.capture))
+        session = load_session(args.capture, args.start)
     except CalibrationError as exc:
         raise UsageError(str(exc)) from None  # it names the capture
     try:

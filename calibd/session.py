@@ -13,9 +13,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from stim300.bulk import decode_capture
+from stim300.bulk import BulkDecoder
 from stim300.clock import counter_times
-from stim300.codec import fault_bits, start_up_rises
+from stim300.codec import SAMPLE_DTYPE, fault_bits, start_up_flags, start_up_rises
 from stim300.protocol import status_names
 
 from .config import WarmupConfig
@@ -25,7 +25,6 @@ from .units import DEG
 from .warmup import settling
 
 STORE_RATE_HZ = 125  # faster data is block-averaged to this (the thesis's rate)
-CHUNK_S = 60.0  # a capture is fed to the builder this much at a time: float64 temporaries stay small
 WARM_UP_RULE = WarmupConfig()  # the daemon's default: calibrate starts a power-up where it is met
 
 
@@ -44,13 +43,27 @@ class Session:
 
 
 @dataclass
+class PowerUp:
+    """One power-up of a capture as a session keeps it: its block means (timed by the counter over
+    the whole power-up), where its datagrams are in the capture, and the gaps its host read times
+    proved the counter could not see."""
+
+    data: SessionBuilder
+    first_datagram: int
+    datagrams: int
+    duration_s: float
+    gap_time_s: np.ndarray  # where each hidden gap was found (s since the power-up's first sample)
+    gap_s: np.ndarray  # the time each added
+    checked: bool  # host times were there to look for hidden gaps
+
+
+@dataclass
 class Capture:
     """A decoded capture cut at every sensor restart: each power-up has its own turn-on biases,
     counter and platform angle, so a calibration uses one of them, never a mix."""
 
     path: str
-    samples: np.ndarray  # stim300.codec.SAMPLE_DTYPE, every power-up in stream order
-    power_ups: list[tuple[int, int]]  # each power-up's samples [start, stop)
+    power_ups: list[PowerUp]
     rate_hz: int
     sensor: dict
     stream: dict  # the whole capture's stream statistics
@@ -120,6 +133,11 @@ class SessionBuilder:
             self._values.pop(0)
         self._flagged = [(t[t >= before_s], b[t >= before_s]) for t, b in self._flagged if t[-1] >= before_s]
 
+    def retime(self, time_s: np.ndarray) -> None:
+        """Replace times fed as sample numbers by those samples' times `time_s` (s)."""
+        self._time = [time_s[t.astype(np.int64)] for t in self._time]
+        self._flagged = [(time_s[t.astype(np.int64)], b) for t, b in self._flagged]
+
     def fault_summary(self, since_s: float = -np.inf) -> tuple[int, int]:
         """(samples the sensor flagged from `since_s` on, the union of their fault bits)."""
         bits = [b[t >= since_s] for t, b in self._flagged]
@@ -139,24 +157,129 @@ def hidden_gap_record(gap_s: list[float] | np.ndarray | None) -> dict:
     return {"hidden_gaps": len(gap_s), "hidden_gap_s": round(float(np.sum(gap_s)), 3)}
 
 
-def decode(data, name: str, reads: np.ndarray | None = None) -> Capture:
-    """Decode a capture's bytes (`name` says which capture in messages) and find its power-ups.
-    `reads`, the capture's read log, stamps each datagram with its host read time, so the time
-    base can include datagrams lost for whole counter cycles."""
-    samples, scanner = decode_capture(data, reads=reads)
-    if not len(samples):
+class _PowerUpReader:
+    """Decoded blocks of a capture in stream order -> one SessionBuilder per power-up, cut at every
+    sensor restart (a power-up datagram sequence, or the start-up bit coming on). The builders are
+    fed sample numbers as times: a power-up's times come from its counter as a whole (stim300.clock),
+    known at its end, when the block means are retimed. Only the counter (and the host read time,
+    with a read log) of every sample is kept until then: 1 (9) bytes a sample instead of 99."""
+
+    DECIDE_RATE_AFTER = 256  # datagrams: enough counter steps to tell the sample rate without a configuration
+
+    def __init__(self, name: str, with_host_times: bool):
+        self.name, self.with_host_times = name, with_host_times
+        self.rate_hz: int | None = None
+        self.power_ups: list[PowerUp] = []
+        self._seen = 0  # samples consumed
+        self._restarts_done = 0
+        self._start_up_before = True
+        self._waiting: list[np.ndarray] = []  # samples before the rate is known
+        self._open: tuple[SessionBuilder, int, list, list] | None = None  # builder, first, counters, host times
+
+    def consume(self, samples: np.ndarray, scanner) -> None:
+        if self.rate_hz is None:
+            self._check_format(samples, scanner)
+            fmt, stats = scanner.format, scanner.stats
+            if not (fmt.sample_rate_hz or stats.datagrams >= self.DECIDE_RATE_AFTER):
+                self._waiting.append(samples.copy())
+                return
+            self.rate_hz = fmt.sample_rate_hz or 2000 // stats.counter_step
+            waiting, self._waiting = self._waiting, []
+            for block in waiting:
+                self._cut_and_add(block, scanner)
+        self._cut_and_add(samples, scanner)
+
+    def finish(self, scanner) -> None:
+        if self.rate_hz is None and (self._waiting or scanner.stats.datagrams):
+            self.rate_hz = scanner.format.sample_rate_hz or 2000 // scanner.stats.counter_step
+            waiting, self._waiting = self._waiting, []
+            for block in waiting:
+                self._cut_and_add(block, scanner)
+        self._close()
+
+    def _check_format(self, samples: np.ndarray, scanner) -> None:
+        fmt = scanner.format
+        if fmt.gyro_unit.is_angle or fmt.acc_unit.is_velocity:
+            raise CalibrationError(f"{self.name}: calibration needs rate and acceleration outputs, "
+                                   f"not {fmt.gyro_unit.name} / {fmt.acc_unit.name}")
+        if np.isnan(samples["acc"][0, 0]) or np.isnan(samples["incl"][0, 0]):
+            raise CalibrationError(f"{self.name}: datagram 0x{fmt.datagram_id:02X} lacks accelerometers or "
+                                   "inclinometers")
+
+    def _cut_and_add(self, samples: np.ndarray, scanner) -> None:
+        restarts = scanner.stats.restart_datagrams
+        first = self._seen
+        cuts = {r - first for r in restarts[self._restarts_done:] if first <= r < first + len(samples)}
+        self._restarts_done = sum(1 for r in restarts if r < first + len(samples))
+        cuts |= set(start_up_rises(samples, self._start_up_before).tolist())
+        self._start_up_before = bool(start_up_flags(samples[-1:])[0])
+        bounds = sorted(cuts | {0, len(samples)})
+        for a, b in zip(bounds, bounds[1:]):
+            if a in cuts:
+                self._close()
+            self._add(samples[a:b])
+        self._seen += len(samples)
+
+    def _add(self, samples: np.ndarray) -> None:
+        if self._open is None:
+            self._open = (SessionBuilder(), self._seen, [], [])
+        builder, first, counters, host = self._open
+        start = sum(len(c) for c in counters)
+        builder.add(samples, np.arange(start, start + len(samples), dtype=np.float64), self.rate_hz)
+        counters.append(samples["counter"].copy())
+        if self.with_host_times:
+            host.append(samples["t_host"].copy())
+
+    def _close(self) -> None:
+        """The open power-up is complete: time it by its counter and retime its block means."""
+        if self._open is None:
+            return
+        builder, first, counters, host = self._open
+        self._open = None
+        counter = np.concatenate(counters)
+        times = counter_times(counter, self.rate_hz, np.concatenate(host) if host else None)
+        builder.retime(times.time_s)
+        self.power_ups.append(PowerUp(
+            builder, first, len(counter), float(times.time_s[-1]) + 1 / self.rate_hz,
+            times.time_s[times.gap_index], times.gap_s, times.checked))
+
+
+class _BlockDecoder(BulkDecoder):
+    """The bulk decoder handing each decoded block to `consume(samples, scanner)` instead of keeping
+    every sample (99 bytes each); `drop_before(offset)` is told how far the bytes are done with."""
+
+    def __init__(self, data, reads, consume, drop_before):
+        super().__init__(data, reads=reads)
+        self._out = np.empty(0, SAMPLE_DTYPE)  # a scratch block instead of a row for every datagram
+        self._consume, self._drop_before = consume, drop_before
+
+    def _decode(self, frames: np.ndarray, layout, start: int, length: int) -> None:
+        if len(self._out) < len(frames):
+            self._out = np.empty(len(frames), SAMPLE_DTYPE)
+        self._n = 0
+        super()._decode(frames, layout, start, length)
+        self._consume(self._out[:len(frames)], self.scanner)
+        self._drop_before(start)
+
+
+def decode(data, name: str, reads: np.ndarray | None = None, drop_before=lambda offset: None) -> Capture:
+    """Decode a capture's bytes (`name` says which capture in messages) into its power-ups, each
+    kept block-averaged as it is decoded. `reads`, the capture's read log, stamps each datagram
+    with its host read time, so the time base can include datagrams lost for whole counter
+    cycles. `drop_before(offset)`: the bytes before `offset` are done with (an mmap can let them go)."""
+    reader = _PowerUpReader(name, reads is not None)
+    decoder = _BlockDecoder(data, reads, reader.consume, drop_before)
+    try:
+        decoder.run()
+    finally:
+        decoder.release()
+    scanner = decoder.scanner
+    reader.finish(scanner)
+    if not reader.power_ups:
         raise CalibrationError(f"{name}: no STIM300 datagram found")
-    fmt = scanner.format
-    if fmt.gyro_unit.is_angle or fmt.acc_unit.is_velocity:
-        raise CalibrationError(f"{name}: calibration needs rate and acceleration outputs, "
-                               f"not {fmt.gyro_unit.name} / {fmt.acc_unit.name}")
-    if np.isnan(samples["acc"][0, 0]) or np.isnan(samples["incl"][0, 0]):
-        raise CalibrationError(f"{name}: datagram 0x{fmt.datagram_id:02X} lacks accelerometers or inclinometers")
-    stats = scanner.stats
-    rate = fmt.sample_rate_hz or 2000 // stats.counter_step
-    cuts = sorted({0, len(samples), *stats.restart_datagrams, *start_up_rises(samples).tolist()})
+    fmt, stats, rate = scanner.format, scanner.stats, reader.rate_hz
     return Capture(
-        path=str(name), samples=samples, power_ups=list(zip(cuts, cuts[1:])), rate_hz=rate,
+        path=str(name), power_ups=reader.power_ups, rate_hz=rate,
         sensor={"serial_number": scanner.serial_number.text if scanner.serial_number else None,
                 "part_number": str(scanner.part_number) if scanner.part_number else None,
                 "datagram_id": f"0x{fmt.datagram_id:02X}", "sample_rate_hz": rate},
@@ -166,21 +289,14 @@ def decode(data, name: str, reads: np.ndarray | None = None) -> Capture:
 
 def power_up_session(capture: Capture, number: int | None = None, start_s: float | None = 0.0) -> Session:
     """Power-up `number` (1-based; None: the last) from `start_s` (s since its first sample), or,
-    with `start_s` None, from where the warm-up rule says its temperature has settled. The samples
-    go through the SessionBuilder CHUNK_S at a time, as the daemon's batches do."""
+    with `start_s` None, from where the warm-up rule says its temperature has settled."""
     count = len(capture.power_ups)
     number = count if number is None else number
     if not 1 <= number <= count:
         raise CalibrationError(f"no power-up {number}: the capture has {count} (the sensor restarted "
                                f"{count - 1} times)")
-    first, stop = capture.power_ups[number - 1]
-    samples = capture.samples[first:stop]
-    times = counter_times(samples["counter"], capture.rate_hz, samples["t_host"])
-    builder = SessionBuilder()
-    chunk = max(1, int(CHUNK_S * capture.rate_hz))
-    for a in range(0, len(samples), chunk):
-        builder.add(samples[a:a + chunk], times.time_s[a:a + chunk], capture.rate_hz)
-    data = builder.arrays()
+    power_up = capture.power_ups[number - 1]
+    data = power_up.data.arrays()
     time_s = data["time_s"]
     temps = None if np.isnan(data["temp"]).all() else data["temp"]
     if start_s is not None:
@@ -197,14 +313,14 @@ def power_up_session(capture: Capture, number: int | None = None, start_s: float
     keep = time_s >= start_s
     if not keep.any():
         raise CalibrationError(f"start {start_s:g} s is past the end of power-up {number} of {count} "
-                               f"({times.time_s[-1]:.1f} s)")
-    hidden = times.gap_s[times.time_s[times.gap_index] > start_s] if times.checked else None
+                               f"({power_up.duration_s - 1 / capture.rate_hz:.1f} s)")
+    hidden = power_up.gap_s[power_up.gap_time_s > start_s] if power_up.checked else None
     return Session(
         time_s=time_s[keep], gyro=data["gyro"][keep], acc=data["acc"][keep], incl=data["incl"][keep],
         temperature_c=None if temps is None else temps[keep], rate_hz=stored_rate_hz(capture.rate_hz),
         sensor=capture.sensor,
         stream=capture.stream | {
             "start_s": float(start_s), "start_by": start_by,
-            "power_up": {"number": number, "count": count, "first_datagram": first, "datagrams": stop - first,
-                         "duration_s": float(times.time_s[-1]) + 1 / capture.rate_hz},
-            **fault_record(*builder.fault_summary(start_s)), **hidden_gap_record(hidden)})
+            "power_up": {"number": number, "count": count, "first_datagram": power_up.first_datagram,
+                         "datagrams": power_up.datagrams, "duration_s": power_up.duration_s},
+            **fault_record(*power_up.data.fault_summary(start_s)), **hidden_gap_record(hidden)})
