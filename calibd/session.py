@@ -175,10 +175,15 @@ class _PowerUpReader:
         self._start_up_before = True
         self._waiting: list[np.ndarray] = []  # samples before the rate is known
         self._open: tuple[SessionBuilder, int, list, list] | None = None  # builder, first, counters, host times
+        self.refusal: str | None = None  # why the capture cannot be calibrated (raised once the decoder is done)
 
     def consume(self, samples: np.ndarray, scanner) -> None:
+        if self.refusal:
+            return
         if self.rate_hz is None:
-            self._check_format(samples, scanner)
+            self.refusal = self._refusal(samples, scanner)
+            if self.refusal:
+                return
             fmt, stats = scanner.format, scanner.stats
             if not (fmt.sample_rate_hz or stats.datagrams >= self.DECIDE_RATE_AFTER):
                 self._waiting.append(samples.copy())
@@ -197,14 +202,14 @@ class _PowerUpReader:
                 self._cut_and_add(block, scanner)
         self._close()
 
-    def _check_format(self, samples: np.ndarray, scanner) -> None:
+    def _refusal(self, samples: np.ndarray, scanner) -> str | None:
         fmt = scanner.format
         if fmt.gyro_unit.is_angle or fmt.acc_unit.is_velocity:
-            raise CalibrationError(f"{self.name}: calibration needs rate and acceleration outputs, "
-                                   f"not {fmt.gyro_unit.name} / {fmt.acc_unit.name}")
+            return (f"{self.name}: calibration needs rate and acceleration outputs, "
+                    f"not {fmt.gyro_unit.name} / {fmt.acc_unit.name}")
         if np.isnan(samples["acc"][0, 0]) or np.isnan(samples["incl"][0, 0]):
-            raise CalibrationError(f"{self.name}: datagram 0x{fmt.datagram_id:02X} lacks accelerometers or "
-                                   "inclinometers")
+            return f"{self.name}: datagram 0x{fmt.datagram_id:02X} lacks accelerometers or inclinometers"
+        return None
 
     def _cut_and_add(self, samples: np.ndarray, scanner) -> None:
         restarts = scanner.stats.restart_datagrams
@@ -273,6 +278,8 @@ def decode(data, name: str, reads: np.ndarray | None = None, drop_before=lambda 
         decoder.run()
     finally:
         decoder.release()
+    if reader.refusal:
+        raise CalibrationError(reader.refusal)
     scanner = decoder.scanner
     reader.finish(scanner)
     if not reader.power_ups:

@@ -10,9 +10,12 @@ from pathlib import Path
 import pytest
 
 import calibd
+from captures import capture
 from calibd.cli import main as calibd_main
 from calibd.errors import CalibdError
 from calibd.results import SCHEMA as RESULT_SCHEMA
+from stim300.protocol import GyroUnit
+from stim300.special import Configuration, encode_special
 
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGES = ("calibd", "stim300")
@@ -110,3 +113,18 @@ def test_the_cycle_check_finds_a_cycle():
     graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}
     assert _cycle(graph) == ["a", "b", "c", "a"]
     assert _cycle({"a": {"b"}, "b": set(), "c": {"a", "b"}}) is None
+
+
+@pytest.mark.parametrize("datagram_id, units, says", [
+    (0x90, {}, "lacks accelerometers or inclinometers"),
+    (0xA7, {"gyro_unit": GyroUnit.INCREMENTAL_ANGLE}, "calibration needs rate and acceleration outputs"),
+])
+def test_a_capture_calibd_cannot_use_is_one_line(datagram_id, units, says, tmp_path, capsys):
+    """Refused while the mapped capture is being decoded: the decoder lets go of the file first."""
+    data, _, fmt = capture(300, datagram_id, False, rate=125, **units)
+    config = encode_special(Configuration.build(sample_rate_hz=125, **units), False) if units else b""
+    path = tmp_path / "c.bin"
+    path.write_bytes(config + data)
+    code = calibd_main(["calibrate", str(path), "--latitude", "40", "-o", str(tmp_path / "r.json")])
+    _, err = capsys.readouterr()
+    assert code == 2 and says in err and len(err.strip().splitlines()) == 1, err
