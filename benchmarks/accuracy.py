@@ -33,13 +33,15 @@ from pathlib import Path
 
 import numpy as np
 
-from calibd.calibrate import CalibrationError, Session, joint_fit, joint_real_case, thesis_real_case
+from calibd.calibrate import joint_fit, joint_real_case, thesis_real_case
+from calibd.errors import CalibrationError
 from calibd.estimators.joint import white_noise_bound
 from calibd.frames import NORMAL_GRAVITY_SIGMA, STANDARD_GRAVITY, Site, normal_gravity
 from calibd.scenario import Truth, load_scenario
+from calibd.session import Session
 from calibd.sim import simulate, truth_record
+from calibd.units import DEG
 
-DEG = np.pi / 180
 NAMES = ["pitch", "roll", "yaw", "alpha", "beta", "gyro_bias_x", "gyro_bias_y", "gyro_bias_z", "acc_bias_x",
          "acc_bias_y", "acc_bias_z", "incl_bias_x", "incl_bias_y", "incl_bias_z"]
 UNITS = {**{n: "deg" for n in NAMES[:5]}, **{n: "deg/h" for n in NAMES[5:8]}, **{n: "mg" for n in NAMES[8:]}}

@@ -19,7 +19,8 @@ from dataclasses import replace
 import numpy as np
 
 from accuracy import random_scenario
-from calibd.calibrate import joint_real_case, load_session
+from calibd.calibrate import joint_real_case
+from calibd.cli import load_session
 from calibd.sim import capture_bytes, simulate, truth_record
 
 CASES = ("clean", "index turn, 16 lost", "full turn, 188 lost")

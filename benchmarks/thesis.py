@@ -20,7 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from calibd.calibrate import load_session, thesis_real_case
+from calibd.calibrate import thesis_real_case
+from calibd.cli import load_session
 from calibd.frames import Site
 from calibd.scenario import load_scenario
 from calibd.sim import write_capture

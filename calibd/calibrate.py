@@ -1,8 +1,8 @@
-"""One-shot calibration of a capture: decode, find the segments, run a method, build the result.
+"""Calibration of a session: find the segments, run a method, build the result.
 
-The same functions serve `calibd calibrate` and the daemon on live data: the methods take
-decoded samples, never bytes. A capture is cut at every sensor restart and one power-up is
-calibrated, from where its warm-up ends.
+The same functions serve `calibd calibrate` and the daemon on live data: the methods take a
+session (calibd.session), never bytes. Of a capture, one power-up is calibrated, from where its
+warm-up ends.
 """
 
 from __future__ import annotations
@@ -12,25 +12,17 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.special import gammaincc
 
-from stim300.bulk import decode_capture
-from stim300.clock import CYCLE_S, counter_times
-from stim300.codec import fault_bits, start_up_rises
-from stim300.protocol import status_names
-from stim300.reads import load_reads
+from stim300.clock import CYCLE_S
 
 from . import detect, gaps
-from .config import WarmupConfig
+from .errors import CalibrationError
 from .estimators import joint, thesis
 from .frames import EARTH_RATE, STANDARD_GRAVITY, Site, int_to_imu
 from .results import CalibrationResult, make_result
+from .segments import segment_record, session_segments
+from .session import WARM_UP_RULE, Capture, Session, power_up_session
+from .units import DEG
 from .warmup import Settling, settling
-
-DEG = np.pi / 180
-WARM_UP_RULE = WarmupConfig()  # the daemon's default: calibrate starts a power-up where it is met
-
-
-class CalibrationError(ValueError):
-    """The data cannot give this calibration (missing segments, wrong protocol); one line."""
 
 
 class ProtocolIncomplete(CalibrationError):
@@ -39,111 +31,6 @@ class ProtocolIncomplete(CalibrationError):
     def __init__(self, reason: str, found: str):
         super().__init__(f"{reason}; found {found}")
         self.reason, self.found = reason, found
-
-
-@dataclass
-class Session:
-    """Decoded data in SI, with what is known of the sensor and the stream."""
-
-    time_s: np.ndarray
-    gyro: np.ndarray  # rad/s
-    acc: np.ndarray  # m/s^2
-    incl: np.ndarray  # m/s^2
-    temperature_c: np.ndarray | None  # mean of the gyro temperatures, when the datagram has them
-    rate_hz: int
-    sensor: dict
-    stream: dict
-
-
-@dataclass
-class Capture:
-    """A decoded capture cut at every sensor restart: each power-up has its own turn-on biases,
-    counter and platform angle, so a calibration uses one of them, never a mix."""
-
-    path: str
-    samples: np.ndarray  # stim300.codec.SAMPLE_DTYPE, every power-up in stream order
-    power_ups: list[tuple[int, int]]  # each power-up's samples [start, stop)
-    rate_hz: int
-    sensor: dict
-    stream: dict  # the whole capture's stream statistics
-
-
-def decode(path: str, data: bytes | None = None) -> Capture:
-    """Decode a capture (the file at `path`, or its bytes already read) and find its power-ups. The
-    read log beside a recorded capture (PATH.reads.npy) stamps each datagram with its host read
-    time, so the time base can include datagrams lost for whole counter cycles."""
-    if data is None:
-        with open(path, "rb") as f:
-            data = f.read()
-    decoded = decode_capture(data, reads=load_reads(path))
-    samples, info = decoded.samples, decoded.info
-    if not len(samples):
-        raise CalibrationError(f"{path}: no STIM300 datagram found")
-    fmt = info.format
-    if fmt.gyro_unit.is_angle or fmt.acc_unit.is_velocity:
-        raise CalibrationError(f"{path}: calibration needs rate and acceleration outputs, "
-                               f"not {fmt.gyro_unit.name} / {fmt.acc_unit.name}")
-    if np.isnan(samples["acc"][0, 0]) or np.isnan(samples["incl"][0, 0]):
-        raise CalibrationError(f"{path}: datagram 0x{fmt.datagram_id:02X} lacks accelerometers or inclinometers")
-    if info.rate_hz is None:
-        raise CalibrationError(f"{path}: sample rate unknown: no configuration datagram, and "
-                               f"{len(samples)} datagram(s) are too few to infer it from the counter")
-    stats = info.stats
-    cuts = sorted({0, len(samples), *stats.restart_datagrams, *start_up_rises(samples).tolist()})
-    return Capture(
-        path=str(path), samples=samples, power_ups=list(zip(cuts, cuts[1:])), rate_hz=info.rate_hz,
-        sensor=info.sensor_record(),
-        stream={"capture": str(path), "datagrams": stats.datagrams, "lost_samples": stats.lost_samples,
-                "crc_errors": stats.crc_errors, "restarts": stats.restarts})
-
-
-def power_up_session(capture: Capture, number: int | None = None, start_s: float | None = 0.0) -> Session:
-    """Power-up `number` (1-based; None: the last) from `start_s` (s since its first sample), or,
-    with `start_s` None, from where the warm-up rule says its temperature has settled."""
-    count = len(capture.power_ups)
-    number = count if number is None else number
-    if not 1 <= number <= count:
-        raise CalibrationError(f"no power-up {number}: the capture has {count} (the sensor restarted "
-                               f"{count - 1} times)")
-    first, stop = capture.power_ups[number - 1]
-    samples = capture.samples[first:stop]
-    times = counter_times(samples["counter"], capture.rate_hz, samples["t_host"])
-    time_s = times.time_s
-    temps = samples["temp_gyro"].mean(axis=1)
-    temps = None if np.isnan(temps).all() else temps.astype(np.float64)
-    if start_s is not None:
-        start_by = "the given start"
-    elif temps is None:
-        start_s, start_by = 0.0, "the first sample (no temperatures: the warm-up rule cannot be applied)"
-    else:
-        verdict = settling(time_s, temps, WARM_UP_RULE)
-        start_s = verdict.start_s
-        start_by = (f"warm-up rule: the temperature settled ({verdict.trend_c_per_h:+.2f} degC/h over "
-                    f"{WARM_UP_RULE.window_s:g} s)" if verdict.settled else
-                    f"warm-up rule: the temperature never settles, the calmest window ({verdict.trend_c_per_h:+.2f} "
-                    f"degC/h over {WARM_UP_RULE.window_s:g} s)")
-    keep = time_s >= start_s
-    if not keep.any():
-        raise CalibrationError(f"start {start_s:g} s is past the end of power-up {number} of {count} "
-                               f"({time_s[-1]:.1f} s)")
-    samples = samples[keep]
-    hidden = times.gap_s[time_s[times.gap_index] > start_s] if times.checked else None
-    return Session(
-        time_s=time_s[keep], gyro=samples["gyro"].astype(np.float64) * DEG,
-        acc=samples["acc"].astype(np.float64) * STANDARD_GRAVITY,
-        incl=samples["incl"].astype(np.float64) * STANDARD_GRAVITY,
-        temperature_c=None if temps is None else temps[keep], rate_hz=capture.rate_hz, sensor=capture.sensor,
-        stream=capture.stream | {
-            "start_s": float(start_s), "start_by": start_by,
-            "power_up": {"number": number, "count": count, "first_datagram": first, "datagrams": stop - first,
-                         "duration_s": float(time_s[-1]) + 1 / capture.rate_hz},
-            **fault_record(*fault_summary(samples)), **hidden_gap_record(hidden)})
-
-
-def load_session(path: str, start_s: float | None = 0.0, data: bytes | None = None,
-                 power_up: int | None = None) -> Session:
-    """One power-up of a capture (default the last) from `start_s` (None: where the warm-up ends)."""
-    return power_up_session(decode(path, data), power_up, start_s)
 
 
 def calibrate_capture(capture: Capture, solve, power_up: int | None = None,
@@ -171,29 +58,6 @@ def calibrate_capture(capture: Capture, solve, power_up: int | None = None,
                                       "the IMU warmed up, and biases move with temperature (record after the warm-up)")
         return result
     raise CalibrationError("; ".join(refusals))
-
-
-def fault_summary(samples: np.ndarray) -> tuple[int, int]:
-    """(samples the sensor flagged as faulty, the union of their fault bits)."""
-    bits = fault_bits(samples)
-    return int(np.count_nonzero(bits)), int(np.bitwise_or.reduce(bits)) if len(bits) else 0
-
-
-def fault_record(count: int, bits: int) -> dict:
-    return {"flagged_datagrams": count, "fault_flags": status_names(bits)}
-
-
-def hidden_gap_record(gap_s: list[float] | np.ndarray | None) -> dict:
-    """Gaps the datagram counter could not see (whole counter cycles), found from host read times
-    (`gap_s`: the time each added), or None where there were no host times to look with."""
-    if gap_s is None:
-        return {"hidden_gaps": None, "hidden_gap_s": None}
-    return {"hidden_gaps": len(gap_s), "hidden_gap_s": round(float(np.sum(gap_s)), 3)}
-
-
-def session_segments(session: Session) -> list[detect.Segment]:
-    """The statics and turns of a whole session (the daemon tracks them incrementally instead)."""
-    return detect.find_segments(session.gyro / DEG, session.acc / STANDARD_GRAVITY, session.rate_hz, session.time_s)
 
 
 def _lacking(what: str, segments: list[detect.Segment]) -> ProtocolIncomplete:
@@ -235,16 +99,6 @@ def _warm_up_warning(session: Session) -> list[str]:
         return [f"the first {early_s:.0f} s of the data are warm-up (the temperature settles within {rule} only "
                 f"from {verdict.start_s:.0f} s of the power-up): biases drift"]
     return []
-
-
-def _segment_record(seg: detect.Segment, role: str) -> dict:
-    record = {"kind": seg.kind, "role": role, "start_s": round(seg.start_s, 3), "end_s": round(seg.end_s, 3),
-              "platform_angle_deg": round(seg.platform_angle_deg, 3)}
-    if seg.kind == "turn":
-        record |= {"angle_deg": round(seg.angle_deg, 3), "rate_deg_s": round(seg.rate_deg_s, 4)}
-    elif seg.up:
-        record["up"] = seg.up
-    return record
 
 
 def _one_period(session: Session, turn: detect.Segment) -> tuple[slice, float]:
@@ -321,9 +175,9 @@ def thesis_real_case(session: Session, site: Site, alpha_beta_deg: tuple[float, 
                  "alpha": (est["alpha"], None), "beta": (est["beta"], None)}
     for name in ("gyro_bias", "acc_bias", "incl_bias"):
         estimates |= {f"{name}_{a}": (est[name][k], None) for k, a in enumerate("xyz")}
-    records = ([_segment_record(level, "level static")]
-               + [_segment_record(s, f"index position {k + 1}") for k, s in enumerate(index)]
-               + [_segment_record(turn, "full turn")])
+    records = ([segment_record(level, "level static")]
+               + [segment_record(s, f"index position {k + 1}") for k, s in enumerate(index)]
+               + [segment_record(turn, "full turn")])
     diagnostics = {role: _earth_rate_report(values, session.rate_hz, site)
                    for role, values in (("level static", session.gyro[level.start:level.stop]),
                                         ("full turn", session.gyro[window]))}
@@ -383,8 +237,8 @@ def thesis_bench(session: Session, site: Site, segments: list[detect.Segment] | 
     estimates = {"alpha": (alpha, None), "beta": (beta, None)}
     for name, values in biases.items():
         estimates |= {f"{name}_bias_{a}": (values[k], None) for k, a in enumerate("xyz")}
-    records = ([_segment_record(positions[axis], f"{axis} up") for axis in thesis.UP_AXES]
-               + [_segment_record(t, "full turn") for t in turns])
+    records = ([segment_record(positions[axis], f"{axis} up") for axis in thesis.UP_AXES]
+               + [segment_record(t, "full turn") for t in turns])
     return make_result("thesis-bench", site, estimates, records, warnings, session.sensor, stream=session.stream,
                        turns_alpha_beta_deg=[[a / DEG, b / DEG] for a, b in tilts])
 
@@ -481,7 +335,7 @@ def joint_real_case(session: Session, site: Site, options: joint.JointOptions = 
     used, fit = fitted.segments, fitted.fit
     warnings = _session_warnings(session) + _joint_warnings(fit, site) + _turn_angle_warnings(fitted, session)
     estimates = {name: (fit.estimates[name], fit.sigmas[name]) for name in joint.ESTIMATE_NAMES}
-    result = make_result("joint", site, estimates, [_segment_record(s, s.kind) for s in used], warnings,
+    result = make_result("joint", site, estimates, [segment_record(s, s.kind) for s in used], warnings,
                          session.sensor, stream=session.stream,
                          options={"fixed_amplitude": options.fixed_amplitude, "drift": options.drift},
                          checks=_joint_checks(fit, site) | _turn_angle_checks(fitted, session),

@@ -11,7 +11,8 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import math
+import mmap
+import os
 import sys
 import time
 from dataclasses import replace
@@ -20,19 +21,52 @@ from pathlib import Path
 from stim300.cliutil import CommandParser, read_input, run_command
 from stim300.errors import UsageError
 from stim300.progress import Progress
+from stim300.reads import load_reads
 from stim300.source import CaptureSource, PtySource
 
-from .calibrate import CalibrationError, calibrate_capture, decode, load_session
+from .calibrate import calibrate_capture
 from .config import METHODS, ConfigError, DetectionConfig, MethodConfig, WarmupConfig, load_config
 from .daemon import Calibrator, ResultStore
-from .estimators import estimator
+from .errors import CalibrationError
+from .methods import estimator
 from .estimators.thesis import sensitivity
 from .frames import STANDARD_GRAVITY, Site
 from .live import configure_logging, replay, run
 from .results import CalibrationResult, ResultError, load_result, write_result
 from .scenario import READY_MADE, ScenarioError, load_scenario
+from .session import Capture, Session, decode, power_up_session
+from .units import DEG
 
-DEG = math.pi / 180
+
+def open_capture(path: str, data: bytes | None = None) -> Capture:
+    """The capture at `path` (its bytes, when already read) decoded, its datagrams stamped by the
+    read log recorded beside it (PATH.reads.npy) when there is one. Capture files are read here
+    only: the rest of calibd takes decoded captures and sessions. A file is mapped, not read, and
+    the pages decoded are let go, so a long capture never sits in memory whole."""
+    reads = load_reads(path)
+    if data is not None:
+        return decode(data, str(path), reads)
+    try:
+        f = open(path, "rb")
+    except OSError:
+        read_input(path)  # raises the one-line UsageError that says why
+        raise
+    with f:
+        if not os.fstat(f.fileno()).st_size:
+            return decode(b"", str(path), reads)
+        with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as mapped:
+            def let_go(offset: int) -> None:
+                done = offset // mmap.PAGESIZE * mmap.PAGESIZE
+                if done:
+                    mapped.madvise(mmap.MADV_DONTNEED, 0, done)
+
+            return decode(mapped, str(path), reads, let_go)
+
+
+def load_session(path: str, start_s: float | None = 0.0, data: bytes | None = None,
+                 power_up: int | None = None) -> Session:
+    """One power-up of a capture (default the last) from `start_s` (None: where the warm-up ends)."""
+    return power_up_session(open_capture(path, data), power_up, start_s)
 
 
 def cmd_simulate(args) -> int:
@@ -132,7 +166,7 @@ def cmd_calibrate(args) -> int:
         raise UsageError("calibrate: --fixed-amplitude and --drift belong to --method joint")
     site = _site(args)
     try:
-        capture = decode(args.capture, read_input(args.capture))
+        capture = open_capture(args.capture)
     except CalibrationError as exc:
         raise UsageError(str(exc)) from None  # it names the capture
 
@@ -255,9 +289,8 @@ def cmd_status(args) -> int:
 def cmd_report(args) -> int:
     from .report import ReportError, figures_dir, write_report  # matplotlib only for this command
 
-    data = read_input(args.capture)
     try:
-        written = write_report(args.result, args.capture, args.output, data)
+        written = write_report(args.result, open_capture(args.capture), args.output)
     except (ResultError, ReportError, CalibrationError) as exc:
         raise UsageError(str(exc)) from None
     print(f"report: {written[0]}; figures: {', '.join(p.name for p in written[1:])} in {figures_dir(written[0])}/")
@@ -299,7 +332,7 @@ def cmd_noise(args) -> int:
     from .noise import NoiseError, characterise, noise_record, noise_table
 
     try:
-        session = load_session(args.capture, args.start, read_input(args.capture))
+        session = load_session(args.capture, args.start)
     except CalibrationError as exc:
         raise UsageError(str(exc)) from None  # it names the capture
     try:

@@ -14,7 +14,9 @@ from pathlib import Path
 
 from stim300.protocol import DEFAULT_BIT_RATE
 
-from .estimators import DAEMON_METHODS
+from .methods import DAEMON_METHODS
+from .warmup import WarmupConfig
+from .errors import CalibdError
 from .frames import Site
 from .scenario import _Table
 
@@ -24,7 +26,7 @@ JOINT_ONLY = ("fixed_amplitude", "drift")
 THESIS_ONLY = ("alpha_deg", "beta_deg")
 
 
-class ConfigError(ValueError):
+class ConfigError(CalibdError):
     """A configuration the daemon cannot run with; the message says where and why in one line."""
 
 
@@ -32,16 +34,6 @@ class ConfigError(ValueError):
 class SerialConfig:
     port: str  # device path or pyserial URL
     baudrate: int = DEFAULT_BIT_RATE
-
-
-@dataclass(frozen=True)
-class WarmupConfig:
-    """When the IMU counts as warmed up: biases follow temperature, so calibrating on a thermal
-    ramp gives biases that are wrong by the time they are used."""
-
-    max_slope_c_per_h: float = 1.0  # temperature trend over the window below which it is warm
-    window_s: float = 600.0  # the window the trend is fitted over
-    min_time_s: float = 0.0  # and at least this long since power-up
 
 
 @dataclass(frozen=True)

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, replace
 from datetime import datetime, timezone
 from enum import Enum
 from pathlib import Path
@@ -27,17 +27,17 @@ from stim300.clock import CounterClock
 from stim300.codec import start_up_flags, start_up_rises
 
 from . import detect
-from .calibrate import CalibrationError, Session, fault_record, fault_summary, hidden_gap_record
 from .config import DetectionConfig, MethodConfig, WarmupConfig
-from .estimators import estimator
+from .errors import CalibrationError
+from .methods import estimator
 from .frames import STANDARD_GRAVITY, Site
 from .results import CalibrationResult, result_json
+from .segments import segment_record
+from .session import Session, SessionBuilder, fault_record, hidden_gap_record, stored_rate_hz
+from .units import DEG
 from .warmup import settling
 
 log = structlog.get_logger("calibd")
-DEG = np.pi / 180
-STORE_RATE_HZ = 125  # faster data is block-averaged to this (the thesis's rate): averages of averages
-# keep the model exact, and the solver's work and memory follow the stored samples
 MAX_SESSION_S = 3600  # beyond this a session stops growing: bias instability floors yaw near 0.9 deg
 # for static protocols (calibd plan: 1.28 deg at 1 h for the thesis layout), and memory stays bounded
 WARM_CHECK_EVERY_S = 10.0  # how often (data time) the warm-up rule is evaluated
@@ -50,37 +50,6 @@ class State(str, Enum):
     SOLVED = "SOLVED"
     RESTARTED = "RESTARTED"
     FAULT = "FAULT"
-
-
-@dataclass
-class _Buffer:
-    """A growing, block-averaged record of the session (SI units)."""
-
-    time_s: list = field(default_factory=list)
-    gyro: list = field(default_factory=list)
-    acc: list = field(default_factory=list)
-    incl: list = field(default_factory=list)
-    temp: list = field(default_factory=list)
-
-    def add(self, t, gyro, acc, incl, temp) -> None:
-        for name, values in (("time_s", t), ("gyro", gyro), ("acc", acc), ("incl", incl), ("temp", temp)):
-            getattr(self, name).append(values)
-
-    def arrays(self, since_s: float = -np.inf) -> dict[str, np.ndarray]:
-        out = {name: np.concatenate(getattr(self, name)).astype(np.float64)
-               for name in ("time_s", "gyro", "acc", "incl", "temp")}
-        keep = out["time_s"] >= since_s
-        return {name: values[keep] for name, values in out.items()}
-
-    @property
-    def end_s(self) -> float:
-        return float(self.time_s[-1][-1]) if self.time_s else 0.0
-
-    def trim(self, before_s: float) -> None:
-        """Forget whole chunks that end before `before_s` (warm-up data nobody will use)."""
-        while self.time_s and self.time_s[0][-1] < before_s:
-            for name in ("time_s", "gyro", "acc", "incl", "temp"):
-                getattr(self, name).pop(0)
 
 
 class Calibrator:
@@ -147,10 +116,7 @@ class Calibrator:
         self._gap = False
         if self._session_start is not None and t[-1] - self._session_start > MAX_SESSION_S:
             return  # a session this long has said what it can: memory stays bounded
-        stored_t, stored_gyro = self._store(samples, t)
-        count, bits = fault_summary(samples)
-        if count:
-            self._flagged.append((float(t[0]), count, bits))
+        stored_t, stored_gyro = self._buffer.add(samples, t, rate_hz)
         now = self._buffer.end_s
         if self.state == State.WARMING_UP and now >= self._next_check:
             self._next_check = now + WARM_CHECK_EVERY_S
@@ -177,15 +143,13 @@ class Calibrator:
 
     # ------------------------------------------------------------------ internals
     def _reset_time(self) -> None:
-        self._buffer = _Buffer()
-        self._pending: list[np.ndarray] = []
+        self._buffer = SessionBuilder()  # block-averaged to calibd.session.STORE_RATE_HZ
         self._clock = CounterClock()
         self._hidden: list[tuple[float, float]] = []  # gaps the counter could not see: (time, seconds added)
         self._unchecked_until = -np.inf  # the end of the last batch without host times to look for them
         self._session_start: float | None = None
         self._tracker: detect.SegmentTracker | None = None
         self._gap = False
-        self._flagged: list[tuple[float, int, int]] = []  # per batch with faults: (time, samples flagged, bits)
         self._next_solve = 0.0
         self._next_check = 0.0
         self._solved_until = -np.inf  # data time of the last solve attempt
@@ -220,27 +184,6 @@ class Calibrator:
                         detail="datagrams lost for whole counter cycles: the host clock's time added")
         return times.time_s
 
-    def _store(self, samples: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Keep the session block-averaged to at most STORE_RATE_HZ (bounded memory at 2000 Hz);
-        returns the times (s) and gyro samples (deg/s) stored."""
-        k = max(1, self.rate_hz // STORE_RATE_HZ)
-        temp = np.nanmean(samples["temp_gyro"], axis=1) if not np.isnan(samples["temp_gyro"][0, 0]) \
-            else np.full(len(samples), np.nan)
-        block = np.column_stack([t, samples["gyro"] * DEG, samples["acc"] * STANDARD_GRAVITY,
-                                 samples["incl"] * STANDARD_GRAVITY, temp])
-        if self._pending:
-            block = np.concatenate([self._pending.pop(), block])
-        whole = len(block) // k * k
-        if whole < len(block):
-            self._pending.append(block[whole:])
-        if not whole:
-            return block[:0, 0], block[:0, 1:4] / DEG
-        mean = block[:whole].reshape(-1, k, block.shape[1]).mean(axis=1)
-        mean[:, 0] = block[:whole:k, 0]  # a block's time is its first sample's
-        values = mean[:, 1:].astype(np.float32)  # float32 keeps 1e-4 mg and 1e-5 deg/h: half the memory
-        self._buffer.add(mean[:, 0], values[:, 0:3], values[:, 3:6], values[:, 6:9], values[:, 9])
-        return mean[:, 0], mean[:, 1:4] / DEG
-
     def _stopped_moving(self, t: np.ndarray, gyro_deg_s: np.ndarray) -> bool:
         """Whether the platform moved since the segments were last looked at and has been quiet
         since for the settle time plus the minimum static, the least after which the detector
@@ -272,7 +215,7 @@ class Calibrator:
 
     @property
     def _stored_rate(self) -> int:
-        return self.rate_hz // max(1, self.rate_hz // STORE_RATE_HZ)
+        return stored_rate_hz(self.rate_hz)
 
     def _check_warm_up(self) -> None:
         """The warm-up rule (calibd.warmup) on the data since the last check's window: the session
@@ -296,7 +239,6 @@ class Calibrator:
 
     def _start_session(self, start_s: float, detail: str) -> None:
         self._buffer.trim(start_s)
-        self._flagged = [f for f in self._flagged if f[0] >= start_s]
         self._hidden = [h for h in self._hidden if h[0] >= start_s]
         self._session_start = start_s
         self._tracker = detect.SegmentTracker(self._stored_rate, **self.detection.options())
@@ -313,9 +255,8 @@ class Calibrator:
                                                    **self._fault_record()})
 
     def _fault_record(self) -> dict:
-        batches = [(count, bits) for t, count, bits in self._flagged if t >= self._session_start]
         hidden = [seconds for t, seconds in self._hidden if t > self._session_start]
-        return fault_record(sum(c for c, _ in batches), int(np.bitwise_or.reduce([b for _, b in batches] or [0]))) \
+        return fault_record(*self._buffer.fault_summary(self._session_start)) \
             | hidden_gap_record(None if self._unchecked_until >= self._session_start else hidden)
 
     def _segments(self) -> tuple[Session, list[detect.Segment]]:
@@ -370,14 +311,8 @@ class Calibrator:
 
 def _log_segment(seg: detect.Segment) -> None:
     """One event per segment of the session, in the session's time and platform angle."""
-    fields = {"kind": seg.kind, "start_s": round(seg.start_s, 2), "duration_s": round(seg.end_s - seg.start_s, 2),
-              "platform_angle_deg": round(seg.platform_angle_deg, 2)}
-    if seg.kind == "turn":
-        fields.update(angle_deg=round(seg.angle_deg, 2), rate_deg_s=round(seg.rate_deg_s, 3),
-                      cruise_angle_deg=round(seg.cruise_angle_deg, 1))
-    else:
-        fields.update(up=seg.up)
-    log.info("segment", **fields)
+    turn = {"cruise_angle_deg": round(seg.cruise_angle_deg, 3)} if seg.kind == "turn" else {}
+    log.info("segment", **segment_record(seg), duration_s=round(seg.end_s - seg.start_s, 3), **turn)
 
 
 def stale_result(result: CalibrationResult, reason: str) -> CalibrationResult:

@@ -12,15 +12,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .calibrate import CalibrationError, JointFit, Session, joint_fit
-from .estimators import estimator
+from .calibrate import JointFit, joint_fit
+from .errors import CalibrationError
+from .methods import estimator
 from .estimators.joint import alpha_beta
 from .frames import Site, int_to_imu
-from .noise import SQRT_S_PER_SQRT_H, NoiseError, characterise
 from .noise import UNITS as NOISE_UNITS
 from .results import CalibrationResult
+from .noise import NoiseError, characterise
+from .session import Session
+from .units import DEG, SQRT_S_PER_SQRT_H
 
-DEG = np.pi / 180
 DEG_H = 3600 / DEG  # rad/s -> deg/h
 TIMELINE_BINS = 1500  # plotted points per trace: min/max envelopes keep turns and spikes visible
 TURN_BIN_DEG = 30.0  # turn samples are averaged in bins of platform angle this wide

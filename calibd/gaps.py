@@ -22,7 +22,7 @@ from scipy.optimize import least_squares
 from scipy.special import gammaincc
 
 from .estimators.joint import JointInput, NoiseModel, Underdetermined, mean_variance
-from .noise import FLICKER_TAUS_S
+from .allan import FLICKER_TAUS_S
 from .frames import r3
 
 FOUND_SIGMAS = 4.0  # a correction this many sigma from zero is a loss (5 turns: 3e-4 false alarms a session)

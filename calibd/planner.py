@@ -18,14 +18,15 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from .errors import CalibdError
 from .estimators.joint import JointInput, SensorNoise, datasheet_noise, solve
 from .frames import STANDARD_GRAVITY, Site
 from .noise import SCHEMA as NOISE_FILE_SCHEMA
 from .results import ESTIMATES
 from .scenario import Noise, Segment, load_scenario
 from .sim import schedule, simulate
+from .units import DEG
 
-DEG = math.pi / 180
 MG = STANDARD_GRAVITY / 1000
 PROTOCOLS = ("thesis", "continuous", "index")
 WHAT_SCALES = {"thesis": "static durations scaled, turns kept", "index": "static durations scaled, turns kept",
@@ -42,7 +43,7 @@ NOISE_FILE_FIGURES = {  # sensor -> (random walk field, its unit, bias instabili
 }
 
 
-class PlanError(ValueError):
+class PlanError(CalibdError):
     """Input the planner cannot use; the message says what and where in one line."""
 
 

@@ -1,7 +1,7 @@
 """The calibration report: one self-contained HTML page, and its figures as PNG files beside it.
 
-A result file holds numbers; the report shows what they rest on. It re-reads the capture the
-result was made from, finds the segments again and draws the session's timeline, the Earth-rate
+A result file holds numbers; the report shows what they rest on. On the capture the result was
+made from (decoded by the caller), it finds the segments again and draws the session's timeline, the Earth-rate
 sinusoid the horizontal gyros see against the platform angle, and the Allan deviation of the
 static data; it tables every estimate with its 1-sigma beside the thesis method's value on the
 same capture and, for a simulated capture, the truth. `report.html` embeds the figures (data
@@ -25,20 +25,22 @@ from stim300.atomic import write_atomic
 from stim300.progress import Progress
 
 from . import detect
-from .calibrate import CalibrationError, Session, load_session, session_segments
-from .config import WarmupConfig
-from .estimators import estimator
+from .warmup import WarmupConfig
+from .errors import CalibdError, CalibrationError
+from .methods import estimator
 from .figures import Figure, allan_figure, earth_rate_figure, timeline_figure
 from .frames import Site
-from .results import CalibrationResult, load_result, schema_version
+from .results import CalibrationResult, SchemaError, load_result, schema_version
 from .scenario import TRUTH_FORMER_NAMES, TRUTH_SCHEMA, TRUTH_VERSION, Truth
+from .segments import segment_record, session_segments
+from .session import Capture, Session, power_up_session
 from .warmup import settling
 
 MATPLOTLIB_MISSING = "calibd report needs matplotlib: pip install 'stim300-calib[plot]'"
 STEPS = ("capture", "segments", "timeline", "Earth-rate fit", "Allan deviation", "thesis method", "files")
 
 
-class ReportError(ValueError):
+class ReportError(CalibdError):
     """The report cannot be made from these inputs (matplotlib missing, wrong capture, unwritable output)."""
 
 
@@ -48,10 +50,10 @@ def figures_dir(output) -> Path:
     return output.with_name(f"{output.stem}_files")
 
 
-def write_report(result_path, capture: str, output, data: bytes | None = None, stream=None) -> list[Path]:
-    """Render the report of the result at `result_path` on `capture` (its bytes in `data` when
-    already read) to `output` and its figures directory; returns the files written, the HTML
-    first. A progress bar goes to `stream` (stderr) when it is a terminal."""
+def write_report(result_path, capture: Capture, output, stream=None) -> list[Path]:
+    """Render the report of the result at `result_path` on the decoded `capture` to `output` and
+    its figures directory; returns the files written, the HTML first. A progress bar goes to
+    `stream` (stderr) when it is a terminal."""
     canvas = _agg_canvas()
     result = load_result(result_path)  # it checks the schema, the estimates and the site
     site = _site(result, result_path)
@@ -62,9 +64,9 @@ def write_report(result_path, capture: str, output, data: bytes | None = None, s
         skipped_s = float(result.stream.get("start_s") or 0.0)
         start_s = analysis_start_s(result)
         power_up = (result.stream.get("power_up") or {}).get("number")
-        whole = load_session(capture, 0.0, data, power_up)
-        _check_same_capture(result, whole, capture)
-        session = load_session(capture, start_s, data, power_up) if start_s > 0 else whole
+        whole = power_up_session(capture, power_up, 0.0)
+        _check_same_capture(result, whole, capture.path)
+        session = power_up_session(capture, power_up, start_s) if start_s > 0 else whole
         bar.update(1, STEPS[1])
         segments = session_segments(session)
         roles = detect.segment_roles(segments)
@@ -83,8 +85,8 @@ def write_report(result_path, capture: str, output, data: bytes | None = None, s
         except CalibrationError as exc:
             thesis = str(exc)
         bar.update(6, STEPS[6])
-        page = render_html(result, str(result_path), capture, whole, segments, roles, warm_up, figures, thesis,
-                           read_truth(capture), figures_dir(output).name)
+        page = render_html(result, str(result_path), capture.path, whole, segments, roles, warm_up, figures, thesis,
+                           read_truth(capture.path), figures_dir(output).name)
         written = _write(output, figures, page)
         bar.update(len(STEPS))
     return written
@@ -163,7 +165,7 @@ def read_truth(capture: str) -> tuple[dict[str, float], dict[str, float]] | None
         carried = Truth(**{f.name: getattr(truth, f.name) if f.name not in record.get("bias_during_capture", {})
                            else record["bias_during_capture"][f.name]["session"] for f in fields(Truth)})
         return truth.estimates(), carried.estimates()
-    except (OSError, ValueError, KeyError, TypeError):
+    except (OSError, ValueError, KeyError, TypeError, SchemaError):
         return None
 
 
@@ -266,11 +268,12 @@ def _segments_table(segments, roles) -> str:
            "<th>turn angle [deg]</th><th>rate [deg/s]</th><th>up</th></tr>"
     rows = [head]
     for k, (s, role) in enumerate(zip(segments, roles), 1):
-        turn = s.kind == "turn"
-        rows.append(f"<tr><td>{k}</td><td>{_e(role)}</td><td class='num'>{s.start_s:.3f}</td>"
-                    f"<td class='num'>{s.end_s:.3f}</td><td class='num'>{s.platform_angle_deg:.3f}</td>"
-                    f"<td class='num'>{f'{s.angle_deg:.3f}' if turn else ''}</td>"
-                    f"<td class='num'>{f'{s.rate_deg_s:.4f}' if turn else ''}</td><td>{_e(s.up or '')}</td></tr>")
+        r = segment_record(s, role)
+        turn = r["kind"] == "turn"
+        cells = [f"{r['start_s']:.3f}", f"{r['end_s']:.3f}", f"{r['platform_angle_deg']:.3f}",
+                 f"{r['angle_deg']:.3f}" if turn else "", f"{r['rate_deg_s']:.4f}" if turn else ""]
+        rows.append(f"<tr><td>{k}</td><td>{_e(role)}</td>" + "".join(f"<td class='num'>{c}</td>" for c in cells)
+                    + f"<td>{_e(r.get('up', ''))}</td></tr>")
     return '<table id="segments">' + "".join(rows) + "</table>"
 
 

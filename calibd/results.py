@@ -13,18 +13,18 @@ says to upgrade calibd, and refuses other schemas. The version goes up when the 
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from stim300.atomic import write_atomic
 
+from .errors import CalibdError
 from .frames import EARTH_RATE, STANDARD_GRAVITY, Site
+from .units import DEG
 
 RESULT_SCHEMA = "calibd.result"
 RESULT_VERSION = 2  # 2: the same content as 1, written from the typed CalibrationResult
 SCHEMA = f"{RESULT_SCHEMA}/{RESULT_VERSION}"
-DEG = math.pi / 180
 _ANGLE = (1 / DEG, "deg")
 _GYRO = (3600 / DEG, "deg/h")
 _FORCE = (1000 / STANDARD_GRAVITY, "mg")
@@ -35,11 +35,11 @@ ESTIMATES = {"pitch": _ANGLE, "roll": _ANGLE, "yaw": _ANGLE, "alpha": _ANGLE, "b
              **{f"incl_bias_{a}": _FORCE for a in "xyz"}}
 
 
-class ResultError(ValueError):
+class ResultError(CalibdError):
     """A result file that is missing, unreadable or not of this schema."""
 
 
-class SchemaError(ValueError):
+class SchemaError(CalibdError):
     """A document of another schema, or of a newer version than this calibd reads; one line."""
 
 

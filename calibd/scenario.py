@@ -16,6 +16,7 @@ from pathlib import Path
 
 from stim300.protocol import ACC_RANGE_LSB_EXP, NORMAL_LAYOUTS, SAMPLE_RATES_HZ
 
+from .errors import CalibdError
 from .frames import Site
 
 READY_MADE = ("thesis-real", "thesis-bench", "continuous")
@@ -24,7 +25,7 @@ ACC_UNITS = ("acceleration", "average", "incremental")
 UP_AXES = ("+Z", "-Z", "+Y", "-Y", "+X", "-X")
 
 
-class ScenarioError(ValueError):
+class ScenarioError(CalibdError):
     """A scenario that cannot be simulated; the message says where and why in one line."""
 
 

@@ -13,7 +13,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .config import WarmupConfig
+
+@dataclass(frozen=True)
+class WarmupConfig:
+    """When the IMU counts as warmed up: biases follow temperature, so calibrating on a thermal
+    ramp gives biases that are wrong by the time they are used."""
+
+    max_slope_c_per_h: float = 1.0  # temperature trend over the window below which it is warm
+    window_s: float = 600.0  # the window the trend is fitted over
+    min_time_s: float = 0.0  # and at least this long since power-up
+
 
 
 @dataclass(frozen=True)

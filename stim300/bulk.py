@@ -7,7 +7,8 @@ prefix in one go. The first datagram that does not verify goes back to the scann
 re-synchronises byte by byte exactly as it does on a live stream.
 
 `decode_capture` gives rows (SAMPLE_DTYPE), `decode_columns` one array per field: what writing
-tables wants (no strided passes over whole records).
+tables wants (no strided passes over whole records); `decode_blocks` hands the rows over block by
+block, for captures larger than their samples should take in memory.
 """
 
 from __future__ import annotations
@@ -33,9 +34,11 @@ _SHORTEST = min(layout.wire_length(False) for layout in NORMAL_LAYOUTS.values())
 
 class BulkDecoder:
     """Decode one capture held in memory (bytes, bytearray, mmap) into the storage `allocate(n)`
-    gives: SAMPLE_DTYPE rows or `codec.empty_columns`."""
+    gives: SAMPLE_DTYPE rows or `codec.empty_columns`; with `on_block`, into a scratch block
+    handed to `on_block(samples, scanner, offset)` as each is decoded, so memory stays one block
+    whatever the capture's size (`offset`: the bytes before it are done with)."""
 
-    def __init__(self, data, fmt: Format | None, reads: np.ndarray | None, allocate):
+    def __init__(self, data, fmt: Format | None, reads: np.ndarray | None, allocate, on_block=None):
         self._reads = reads
         self._raw = memoryview(data).cast("B")
         self._bytes = np.frombuffer(self._raw, np.uint8)
@@ -43,7 +46,8 @@ class BulkDecoder:
         self.scanner = Scanner(fmt, lambda offset, ident: self._found.append((offset, ident)))
         self.scanner.stats.bytes_in = len(self._raw)
         most = len(self._raw) // _SHORTEST + 1  # untouched rows cost address space only
-        self._out = allocate(most)
+        self._allocate, self._on_block = allocate, on_block
+        self._out = allocate(0 if on_block else most)
         self._n = 0
 
     def run(self) -> np.ndarray | dict[str, np.ndarray]:
@@ -129,9 +133,15 @@ class BulkDecoder:
         """Decode datagrams laid `length` bytes apart from byte `start`; with a read log, stamp
         each with the host time of the read that completed it."""
         n = len(frames)
+        if self._on_block is not None:
+            if len(self._out) < n:
+                self._out = self._allocate(n)
+            self._n = 0
         t_host = np.nan if self._reads is None else read_times(self._reads, start + length * np.arange(1, n + 1))
         decode_frames(frames, layout, self.scanner.format, self._rows(self._n, self._n + n), t_host)
         self._n += n
+        if self._on_block is not None:
+            self._on_block(self._rows(0, n), self.scanner, start)
 
 
 def decode_capture(data, fmt: Format | None = None, reads: np.ndarray | None = None) -> Capture:
@@ -146,6 +156,19 @@ def decode_columns(data, fmt: Format | None = None, reads: np.ndarray | None = N
         -> tuple[dict[str, np.ndarray], StreamInfo]:
     """`decode_capture` as one array per SAMPLE_DTYPE field (like `codec.empty_columns`)."""
     return _decode(data, fmt, reads, empty_columns)
+
+
+def decode_blocks(data, on_block, fmt: Format | None = None, reads: np.ndarray | None = None) -> StreamInfo:
+    """Decode a capture of any size in one block's memory: `on_block(samples, scanner, offset)` gets
+    each block of SAMPLE_DTYPE rows in stream order (a scratch buffer the next block overwrites:
+    copy what is kept), the scanner as of that block (format, running statistics), and the byte
+    offset before which the capture is done with (an mmap may let those pages go)."""
+    decoder = BulkDecoder(data, fmt, reads, partial(np.empty, dtype=SAMPLE_DTYPE), on_block)
+    try:
+        decoder.run()
+    finally:
+        decoder.release()
+    return stream_info(decoder.scanner)
 
 
 def _decode(data, fmt, reads, allocate):

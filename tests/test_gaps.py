@@ -7,10 +7,11 @@ import numpy as np
 import pytest
 
 from calibd import gaps
-from calibd.calibrate import joint_real_case, load_session
+from calibd.allan import FLICKER_TAUS_S
+from calibd.calibrate import joint_real_case
+from calibd.cli import load_session
 from calibd.estimators.joint import JointInput, NoiseModel
 from calibd.frames import Site, int_to_imu, r3
-from calibd.noise import FLICKER_TAUS_S
 from calibd.results import CalibrationResult
 from calibd.scenario import load_scenario
 from calibd.sim import capture_bytes, simulate, truth_record

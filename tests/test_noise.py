@@ -9,12 +9,14 @@ import allantools
 import numpy as np
 import pytest
 
-from calibd.calibrate import Session, load_session
+from calibd.allan import FLICKER_TAUS_S, allan_deviation, allan_edf, allan_gm, confidence_interval, flicker_sigma, \
+    pooled_allan_deviation
+from calibd.cli import load_session
 from calibd.cli import main as calibd_main
 from calibd.detect import Segment as Detected
-from calibd.noise import (CHANNELS, FLICKER_TAUS_S, M_S2_TO_MG, RAD_S_TO_DEG_H, NoiseError, allan_deviation,
-                          allan_edf, allan_gm, characterise, confidence_interval, flicker_sigma,
-                          pooled_allan_deviation)
+from calibd.noise import CHANNELS, NoiseError, characterise
+from calibd.session import Session
+from calibd.units import M_S2_TO_MG, RAD_S_TO_DEG_H
 from calibd.scenario import Segment, load_scenario
 from calibd.sim import write_capture
 

@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from calibd.calibrate import joint_fit, joint_real_case, load_session, thesis_real_case
+from calibd.calibrate import joint_fit, joint_real_case, thesis_real_case
+from calibd.cli import load_session, open_capture
 from calibd.cli import main as calibd_main
 from calibd.estimators.joint import JointOptions
 from calibd.frames import Site
@@ -86,7 +87,7 @@ def made(tmp_path_factory):
 @pytest.fixture(scope="module")
 def rendered(made):
     terminal = FakeTerminal()
-    written = write_report(made["path"], CAPTURE, made["dir"] / "report.html", stream=terminal)
+    written = write_report(made["path"], open_capture(CAPTURE), made["dir"] / "report.html", stream=terminal)
     return made | {"written": written, "bar": terminal.getvalue(), "page": (made["dir"] / "report.html").read_text()}
 
 

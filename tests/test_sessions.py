@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from calibd.cli import main as calibd_main
+from calibd.cli import open_capture
 from calibd.frames import normal_gravity
 from calibd.report import read_truth
 from calibd.scenario import Segment, load_scenario
@@ -187,7 +188,7 @@ def test_the_report_reads_the_power_up_the_result_used(level_only_bytes, tmp_pat
     capture.write_bytes(FULL.read_bytes() + level_only_bytes)
     code, result, _, err = calibrate(capsys, capture, tmp_path=tmp_path)
     assert code == 0 and result["stream"]["power_up"]["number"] == 1, err
-    write_report(tmp_path / "r.json", str(capture), tmp_path / "report.html")
+    write_report(tmp_path / "r.json", open_capture(str(capture)), tmp_path / "report.html")
     page = (tmp_path / "report.html").read_text()
     assert "The fit redone here gives a yaw" not in page  # the same data as the result's
     roles = re.findall(r"<tr><td>\d+</td><td>([a-z ]+)</td>", page.split('id="segments"')[1])

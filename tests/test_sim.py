@@ -9,7 +9,7 @@ import pytest
 
 from calibd.cli import main as calibd_main
 from calibd.frames import EARTH_RATE, STANDARD_GRAVITY, Site, euler_321, int_to_imu, nav_to_imu, nav_to_int
-from calibd.noise import FLICKER_TAUS_S, allan_deviation, allan_gm, flicker_sigma
+from calibd.allan import FLICKER_TAUS_S, allan_deviation, allan_gm, flicker_sigma
 from calibd.scenario import ScenarioError, Segment, load_scenario, parse_scenario
 from calibd.sim import capture_bytes, sensor_noise, simulate, truth_record
 from stim300.bulk import decode_capture

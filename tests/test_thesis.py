@@ -9,9 +9,11 @@ import numpy as np
 import pytest
 
 from calibd import detect
-from calibd.calibrate import (ProtocolIncomplete, Session, _one_period, load_session, session_segments, thesis_bench,
-                              thesis_real_case)
+from calibd.calibrate import ProtocolIncomplete, _one_period, thesis_bench, thesis_real_case
+from calibd.cli import load_session
 from calibd.cli import main as calibd_main
+from calibd.segments import session_segments
+from calibd.session import Session
 from calibd.estimators import thesis
 from calibd.frames import EARTH_RATE, STANDARD_GRAVITY, Site, int_to_imu, nav_to_imu
 from calibd.scenario import Segment, load_scenario

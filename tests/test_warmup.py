@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calibd.calibrate import load_session
+from calibd.cli import load_session
 from calibd.config import WarmupConfig
 from calibd.warmup import settling
 

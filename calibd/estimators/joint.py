@@ -32,9 +32,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import CalibdError
 from ..frames import EARTH_RATE, STANDARD_GRAVITY, Site, euler_321, int_to_imu
-from ..noise import FLICKER_TAUS_S, allan_deviation, correlate, fit_noise_model, flicker_sigma
+from ..allan import FLICKER_TAUS_S, allan_deviation, correlate, fit_noise_model, flicker_sigma
 from ..scenario import Noise
+from ..units import DEG
 
 ESTIMATE_NAMES = ("pitch", "roll", "yaw", "alpha", "beta", "gyro_bias_x", "gyro_bias_y", "gyro_bias_z",
                   "acc_bias_x", "acc_bias_y", "acc_bias_z", "incl_bias_x", "incl_bias_y", "incl_bias_z")
@@ -43,7 +45,7 @@ CHI_TOLERANCE = 1e-13  # rad: the largest change of chi between passes that coun
 FLICKER_BIN_S = 0.1  # flicker's fastest component (3 s) barely changes within a bin (3 % at most)
 
 
-class Underdetermined(ValueError):
+class Underdetermined(CalibdError):
     """The session's segments do not determine the fit (statics at too few platform angles):
     something the protocol lacks, told apart from a fault of the code."""
 
@@ -87,8 +89,8 @@ def datasheet_noise(figures: Noise, rate_hz: float) -> SensorNoise:
         flicker = flicker_sigma(density, instability) ** 2 if instability > 0 else 0.0
         return NoiseModel(density**2 * rate_hz, flicker)
 
-    deg, mg = np.pi / 180, STANDARD_GRAVITY / 1000
-    gyro = model(figures.gyro_arw_deg_sqrt_h / 60 * deg, figures.gyro_bias_instability_deg_h / 3600 * deg)
+    mg = STANDARD_GRAVITY / 1000
+    gyro = model(figures.gyro_arw_deg_sqrt_h / 60 * DEG, figures.gyro_bias_instability_deg_h / 3600 * DEG)
     return SensorNoise(gyro=gyro, acc=model(figures.acc_vrw_m_s_sqrt_h / 60, figures.acc_bias_instability_mg * mg),
                        incl=model(figures.incl_vrw_m_s_sqrt_h / 60, figures.incl_bias_instability_mg * mg))
 

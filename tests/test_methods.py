@@ -6,11 +6,12 @@ from pathlib import Path
 
 import pytest
 
-from calibd import config, estimators
-from calibd.calibrate import load_session, session_segments
+from calibd import config, methods
+from calibd.cli import load_session
+from calibd.segments import session_segments
 from calibd.config import WarmupConfig
 from calibd.daemon import Calibrator
-from calibd.estimators import ESTIMATORS, JointOptions, ThesisOptions, estimator
+from calibd.methods import ESTIMATORS, JointOptions, ThesisOptions, estimator
 from calibd.frames import Site
 from calibd.results import CalibrationResult
 from stim300.bulk import decode_capture
@@ -68,7 +69,7 @@ def test_a_turn_still_under_way_does_not_complete_the_joint_protocol(sessions):
     _, segments = sessions["joint"]
     level_then_turn = segments[:2]
     assert [s.kind for s in level_then_turn] == ["static", "turn"]
-    assert estimator("joint").missing(level_then_turn) == estimators.Joint.needs
+    assert estimator("joint").missing(level_then_turn) == methods.Joint.needs
     assert estimator("joint").missing(segments[:3]) is None
 
 

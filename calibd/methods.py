@@ -1,0 +1,113 @@
+"""The calibration methods behind one seam: an `Estimator` says what a session's segments still
+lack for its protocol and solves a session into a CalibrationResult. `calibd calibrate`, `calibd
+report` and the daemon find methods here by name; adding a method is one module and one line in
+ESTIMATORS.
+
+The entries wrap the method functions of calibd.calibrate (which build on the pure estimator
+mathematics of calibd.estimators)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+from . import detect
+from .calibrate import bench_positions, joint_real_case, thesis_bench, thesis_real_case
+from .estimators.joint import JointOptions
+from .estimators.thesis import UP_AXES
+
+
+class Estimator(Protocol):
+    name: str
+
+    def options(self, settings: Mapping[str, Any]) -> Any:
+        """This method's options from named settings (a MethodConfig's fields, the command line's);
+        settings of other methods are ignored."""
+
+    def missing(self, segments: list[detect.Segment]) -> str | None:
+        """What the protocol still lacks in these segments; None when they hold all it needs."""
+
+    def solve(self, session, site, segments: list[detect.Segment] | None, options):
+        """The CalibrationResult of a session (`segments`: its segments, None: found here);
+        CalibrationError when the data cannot give it."""
+
+
+def _through_last_static(segments: list[detect.Segment]) -> list[detect.Segment]:
+    """The segments up to the last static: a turn still under way counts once the platform stops."""
+    last = max((k for k, s in enumerate(segments) if s.kind == "static"), default=-1)
+    return segments[:last + 1]
+
+
+@dataclass(frozen=True)
+class ThesisOptions:
+    """The thesis real case: nominal with the interface tilt given, else linear."""
+
+    alpha_beta_deg: tuple[float, float] | None = None  # a-priori interface tilt alpha, beta (deg)
+    platform_rate_deg_s: float | None = None  # the full turn's rate from telemetry (default: from the gyros)
+
+
+class Joint:
+    """Every static and turning sample in one fit, with 1-sigma (the default method)."""
+
+    name = "joint"
+    needs = "a level static, then a turn and a static after it on the same mounting"
+
+    def options(self, settings: Mapping[str, Any]) -> JointOptions:
+        return JointOptions(bool(settings.get("fixed_amplitude")), bool(settings.get("drift")))
+
+    def missing(self, segments):
+        return None if detect.protocol_complete(_through_last_static(segments), self.name) else self.needs
+
+    def solve(self, session, site, segments, options: JointOptions):
+        return joint_real_case(session, site, options, segments)
+
+
+class Thesis:
+    """The thesis's real-case chain: level static, four index positions, a full turn."""
+
+    name = "thesis"
+    needs = (f"a level static, statics at four platform headings 90 deg apart and a full turn (at least "
+             f"{detect.FULL_TURN_MIN_DEG:.0f} deg) after it, then a static")
+
+    def options(self, settings: Mapping[str, Any]) -> ThesisOptions:
+        alpha, beta = settings.get("alpha_deg"), settings.get("beta_deg")
+        return ThesisOptions(None if alpha is None or beta is None else (alpha, beta),
+                             settings.get("platform_rate_deg_s"))
+
+    def missing(self, segments):
+        return None if detect.protocol_complete(_through_last_static(segments), self.name) else self.needs
+
+    def solve(self, session, site, segments, options: ThesisOptions):
+        return thesis_real_case(session, site, options.alpha_beta_deg, options.platform_rate_deg_s, segments)
+
+
+class ThesisBench:
+    """The thesis's bench campaign: six-position biases and alpha/beta from full turns."""
+
+    name = "thesis-bench"
+
+    def options(self, settings: Mapping[str, Any]) -> None:
+        return None
+
+    def missing(self, segments):
+        positions = bench_positions(segments)
+        lacking = [f"a static with {axis} up" for axis in UP_AXES if axis not in positions]
+        if not detect.full_turns(segments):
+            lacking.append(f"a full turn (at least {detect.FULL_TURN_MIN_DEG:.0f} deg)")
+        return ", ".join(lacking) or None
+
+    def solve(self, session, site, segments, options: None):
+        return thesis_bench(session, site, segments)
+
+
+ESTIMATORS: dict[str, Estimator] = {e.name: e for e in (Joint(), Thesis(), ThesisBench())}
+DAEMON_METHODS = ("joint", "thesis")  # those whose protocol the daemon knows complete (detect.protocol_complete)
+
+
+def estimator(name: str) -> Estimator:
+    """The method called `name`; KeyError naming the known ones otherwise."""
+    try:
+        return ESTIMATORS[name]
+    except KeyError:
+        raise KeyError(f"no method {name!r} (known: {', '.join(ESTIMATORS)})") from None

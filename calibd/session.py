@@ -1,0 +1,320 @@
+"""Sessions: decoded samples in SI units, block-averaged to at most STORE_RATE_HZ.
+
+One rule keeps a session, for the daemon on live data and for the one-shot commands on a
+capture: `SessionBuilder` takes batches of decoded samples with their times and keeps them
+block-averaged (averages of averages keep the estimators' models exact, and their work and
+memory follow the stored samples) in float32. A capture is cut at every sensor restart and
+one power-up makes a session, from where its warm-up ends or a given start.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from stim300.bulk import decode_blocks
+from stim300.capture import StreamInfo, stream_info
+from stim300.clock import counter_times
+from stim300.codec import fault_bits, start_up_flags, start_up_rises
+from stim300.protocol import status_names
+
+from .warmup import WarmupConfig
+from .errors import CalibrationError
+from .frames import STANDARD_GRAVITY
+from .units import DEG
+from .warmup import settling
+
+STORE_RATE_HZ = 125  # faster data is block-averaged to this (the thesis's rate)
+WARM_UP_RULE = WarmupConfig()  # the daemon's default: calibrate starts a power-up where it is met
+
+
+@dataclass
+class Session:
+    """Decoded data in SI, with what is known of the sensor and the stream."""
+
+    time_s: np.ndarray
+    gyro: np.ndarray  # rad/s
+    acc: np.ndarray  # m/s^2
+    incl: np.ndarray  # m/s^2
+    temperature_c: np.ndarray | None  # mean of the gyro temperatures, when the datagram has them
+    rate_hz: int
+    sensor: dict
+    stream: dict
+
+
+@dataclass
+class PowerUp:
+    """One power-up of a capture as a session keeps it: its block means (timed by the counter over
+    the whole power-up), where its datagrams are in the capture, and the gaps its host read times
+    proved the counter could not see."""
+
+    data: SessionBuilder
+    first_datagram: int
+    datagrams: int
+    duration_s: float
+    gap_time_s: np.ndarray  # where each hidden gap was found (s since the power-up's first sample)
+    gap_s: np.ndarray  # the time each added
+    checked: bool  # host times were there to look for hidden gaps
+
+
+@dataclass
+class Capture:
+    """A decoded capture cut at every sensor restart: each power-up has its own turn-on biases,
+    counter and platform angle, so a calibration uses one of them, never a mix."""
+
+    path: str
+    power_ups: list[PowerUp]
+    rate_hz: int
+    sensor: dict
+    stream: dict  # the whole capture's stream statistics
+
+
+def block_factor(rate_hz: int) -> int:
+    """Samples averaged into one stored sample."""
+    return max(1, rate_hz // STORE_RATE_HZ)
+
+
+def stored_rate_hz(rate_hz: int) -> int:
+    return rate_hz // block_factor(rate_hz)
+
+
+class SessionBuilder:
+    """A growing session, block-averaged to at most STORE_RATE_HZ and stored in float32 (1e-4 mg
+    and 1e-5 deg/h: half the memory). A block's time is its first sample's; samples short of a
+    whole block wait for the next batch. Fault flags are kept per flagged sample, so a session
+    cut at any time counts exactly its own."""
+
+    COLUMNS = ("time_s", "gyro", "acc", "incl", "temp")
+
+    def __init__(self) -> None:
+        self._time: list[np.ndarray] = []
+        self._values: list[np.ndarray] = []  # float32 (n, 10): gyro, acc, incl (SI), temperature
+        self._pending = np.zeros((0, 11))
+        self._flagged: list[tuple[np.ndarray, np.ndarray]] = []  # (times, fault bits) of flagged samples
+
+    def add(self, samples: np.ndarray, time_s: np.ndarray, rate_hz: int) -> tuple[np.ndarray, np.ndarray]:
+        """Store a batch (stim300.codec.SAMPLE_DTYPE, times in s); returns the times (s) and gyro
+        samples (deg/s) stored from it."""
+        k = block_factor(rate_hz)
+        bits = fault_bits(samples)
+        flagged = np.flatnonzero(bits)
+        if len(flagged):
+            self._flagged.append((time_s[flagged], bits[flagged]))
+        temp = np.nanmean(samples["temp_gyro"], axis=1) if not np.isnan(samples["temp_gyro"][0, 0]) \
+            else np.full(len(samples), np.nan)
+        block = np.column_stack([time_s, samples["gyro"] * DEG, samples["acc"] * STANDARD_GRAVITY,
+                                 samples["incl"] * STANDARD_GRAVITY, temp])
+        block = np.concatenate([self._pending, block])
+        whole = len(block) // k * k
+        self._pending = block[whole:]
+        mean = block[:whole].reshape(-1, k, block.shape[1]).mean(axis=1)
+        mean[:, 0] = block[:whole:k, 0]  # a block's time is its first sample's
+        if len(mean):
+            self._time.append(mean[:, 0])
+            self._values.append(mean[:, 1:].astype(np.float32))
+        return mean[:, 0], mean[:, 1:4] / DEG
+
+    def arrays(self, since_s: float = -np.inf) -> dict[str, np.ndarray]:
+        """The stored samples from `since_s` on, float64: time_s, gyro, acc, incl, temp."""
+        time_s = np.concatenate(self._time) if self._time else np.zeros(0)
+        keep = time_s >= since_s
+        values = np.concatenate(self._values)[keep].astype(np.float64) if self._values else np.zeros((0, 10))
+        return {"time_s": time_s[keep], "gyro": values[:, 0:3], "acc": values[:, 3:6], "incl": values[:, 6:9],
+                "temp": values[:, 9]}
+
+    @property
+    def end_s(self) -> float:
+        return float(self._time[-1][-1]) if self._time else 0.0
+
+    def trim(self, before_s: float) -> None:
+        """Forget whole batches that end before `before_s` (warm-up data nobody will use)."""
+        while self._time and self._time[0][-1] < before_s:
+            self._time.pop(0)
+            self._values.pop(0)
+        self._flagged = [(t[t >= before_s], b[t >= before_s]) for t, b in self._flagged if t[-1] >= before_s]
+
+    def retime(self, time_s: np.ndarray) -> None:
+        """Replace times fed as sample numbers by those samples' times `time_s` (s)."""
+        self._time = [time_s[t.astype(np.int64)] for t in self._time]
+        self._flagged = [(time_s[t.astype(np.int64)], b) for t, b in self._flagged]
+
+    def fault_summary(self, since_s: float = -np.inf) -> tuple[int, int]:
+        """(samples the sensor flagged from `since_s` on, the union of their fault bits)."""
+        bits = [b[t >= since_s] for t, b in self._flagged]
+        count = sum(len(b) for b in bits)
+        return count, int(np.bitwise_or.reduce(np.concatenate(bits))) if count else 0
+
+
+def fault_record(count: int, bits: int) -> dict:
+    return {"flagged_datagrams": count, "fault_flags": status_names(bits)}
+
+
+def hidden_gap_record(gap_s: list[float] | np.ndarray | None) -> dict:
+    """Gaps the datagram counter could not see (whole counter cycles), found from host read times
+    (`gap_s`: the time each added), or None where there were no host times to look with."""
+    if gap_s is None:
+        return {"hidden_gaps": None, "hidden_gap_s": None}
+    return {"hidden_gaps": len(gap_s), "hidden_gap_s": round(float(np.sum(gap_s)), 3)}
+
+
+class _PowerUpReader:
+    """Decoded blocks of a capture in stream order -> one SessionBuilder per power-up, cut at every
+    sensor restart (a power-up datagram sequence, or the start-up bit coming on). The builders are
+    fed sample numbers as times: a power-up's times come from its counter as a whole (stim300.clock),
+    known at its end, when the block means are retimed. Only the counter (and the host read time,
+    with a read log) of every sample is kept until then: 1 (9) bytes a sample instead of 99."""
+
+    DECIDE_RATE_AFTER = 256  # datagrams: enough counter steps to tell the sample rate without a configuration
+
+    def __init__(self, name: str, with_host_times: bool):
+        self.name, self.with_host_times = name, with_host_times
+        self.rate_hz: int | None = None
+        self.power_ups: list[PowerUp] = []
+        self._seen = 0  # samples consumed
+        self._restarts_done = 0
+        self._start_up_before = True
+        self._waiting: list[np.ndarray] = []  # samples before the rate is known
+        self._open: tuple[SessionBuilder, int, list, list] | None = None  # builder, first, counters, host times
+        self.refusal: str | None = None  # why the capture cannot be calibrated (raised once the decoder is done)
+
+    def consume(self, samples: np.ndarray, scanner) -> None:
+        if self.refusal:
+            return
+        if self.rate_hz is None:
+            self.refusal = self._refusal(samples, scanner)
+            if self.refusal:
+                return
+            fmt, stats = scanner.format, scanner.stats
+            if not (fmt.sample_rate_hz or stats.datagrams >= self.DECIDE_RATE_AFTER):
+                self._waiting.append(samples.copy())
+                return
+            self._rate_known(stream_info(scanner))
+        self._cut_and_add(samples, scanner.stats.restart_datagrams)
+
+    def finish(self, info: StreamInfo) -> None:
+        """The capture is decoded (`info`: the whole stream)."""
+        if self.rate_hz is None and self._waiting:
+            self._rate_known(info)
+        self._close()
+
+    def _rate_known(self, info: StreamInfo) -> None:
+        """The stream's rate is known: the blocks that waited for it go in."""
+        self.rate_hz = info.rate_hz
+        if self.rate_hz is None:
+            raise CalibrationError(f"{self.name}: sample rate unknown: no configuration datagram, and "
+                                   f"{info.stats.datagrams} datagram(s) are too few to infer it from the counter")
+        waiting, self._waiting = self._waiting, []
+        for block in waiting:
+            self._cut_and_add(block, info.stats.restart_datagrams)
+
+    def _refusal(self, samples: np.ndarray, scanner) -> str | None:
+        fmt = scanner.format
+        if fmt.gyro_unit.is_angle or fmt.acc_unit.is_velocity:
+            return (f"{self.name}: calibration needs rate and acceleration outputs, "
+                    f"not {fmt.gyro_unit.name} / {fmt.acc_unit.name}")
+        if np.isnan(samples["acc"][0, 0]) or np.isnan(samples["incl"][0, 0]):
+            return f"{self.name}: datagram 0x{fmt.datagram_id:02X} lacks accelerometers or inclinometers"
+        return None
+
+    def _cut_and_add(self, samples: np.ndarray, restarts) -> None:
+        """Add a block, cut at the restarts among `restarts` (each restarted sensor's first sample
+        number, as the decoder knows them so far) and at start-up bits coming on."""
+        first = self._seen
+        cuts = {r - first for r in restarts[self._restarts_done:] if first <= r < first + len(samples)}
+        self._restarts_done = sum(1 for r in restarts if r < first + len(samples))
+        cuts |= set(start_up_rises(samples, self._start_up_before).tolist())
+        self._start_up_before = bool(start_up_flags(samples[-1:])[0])
+        bounds = sorted(cuts | {0, len(samples)})
+        for a, b in zip(bounds, bounds[1:]):
+            if a in cuts:
+                self._close()
+            self._add(samples[a:b])
+        self._seen += len(samples)
+
+    def _add(self, samples: np.ndarray) -> None:
+        if self._open is None:
+            self._open = (SessionBuilder(), self._seen, [], [])
+        builder, first, counters, host = self._open
+        start = sum(len(c) for c in counters)
+        builder.add(samples, np.arange(start, start + len(samples), dtype=np.float64), self.rate_hz)
+        counters.append(samples["counter"].copy())
+        if self.with_host_times:
+            host.append(samples["t_host"].copy())
+
+    def _close(self) -> None:
+        """The open power-up is complete: time it by its counter and retime its block means."""
+        if self._open is None:
+            return
+        builder, first, counters, host = self._open
+        self._open = None
+        counter = np.concatenate(counters)
+        times = counter_times(counter, self.rate_hz, np.concatenate(host) if host else None)
+        builder.retime(times.time_s)
+        self.power_ups.append(PowerUp(
+            builder, first, len(counter), float(times.time_s[-1]) + 1 / self.rate_hz,
+            times.time_s[times.gap_index], times.gap_s, times.checked))
+
+
+def decode(data, name: str, reads: np.ndarray | None = None, drop_before=lambda offset: None) -> Capture:
+    """Decode a capture's bytes (`name` says which capture in messages) into its power-ups, each
+    kept block-averaged as it is decoded. `reads`, the capture's read log, stamps each datagram
+    with its host read time, so the time base can include datagrams lost for whole counter
+    cycles. `drop_before(offset)`: the bytes before `offset` are done with (an mmap can let them go)."""
+    reader = _PowerUpReader(name, reads is not None)
+
+    def on_block(samples, scanner, offset):
+        reader.consume(samples, scanner)
+        drop_before(offset)
+
+    info = decode_blocks(data, on_block, reads=reads)
+    if reader.refusal:
+        raise CalibrationError(reader.refusal)
+    if not info.stats.datagrams:
+        raise CalibrationError(f"{name}: no STIM300 datagram found")
+    reader.finish(info)
+    stats = info.stats
+    return Capture(
+        path=str(name), power_ups=reader.power_ups, rate_hz=reader.rate_hz,
+        sensor=info.sensor_record() | {"sample_rate_hz": reader.rate_hz},
+        stream={"capture": str(name), "datagrams": stats.datagrams, "lost_samples": stats.lost_samples,
+                "crc_errors": stats.crc_errors, "restarts": stats.restarts})
+
+
+def power_up_session(capture: Capture, number: int | None = None, start_s: float | None = 0.0) -> Session:
+    """Power-up `number` (1-based; None: the last) from `start_s` (s since its first sample), or,
+    with `start_s` None, from where the warm-up rule says its temperature has settled."""
+    count = len(capture.power_ups)
+    number = count if number is None else number
+    if not 1 <= number <= count:
+        raise CalibrationError(f"no power-up {number}: the capture has {count} (the sensor restarted "
+                               f"{count - 1} times)")
+    power_up = capture.power_ups[number - 1]
+    data = power_up.data.arrays()
+    time_s = data["time_s"]
+    temps = None if np.isnan(data["temp"]).all() else data["temp"]
+    if start_s is not None:
+        start_by = "the given start"
+    elif temps is None:
+        start_s, start_by = 0.0, "the first sample (no temperatures: the warm-up rule cannot be applied)"
+    else:
+        verdict = settling(time_s, temps, WARM_UP_RULE)
+        start_s = verdict.start_s
+        start_by = (f"warm-up rule: the temperature settled ({verdict.trend_c_per_h:+.2f} degC/h over "
+                    f"{WARM_UP_RULE.window_s:g} s)" if verdict.settled else
+                    f"warm-up rule: the temperature never settles, the calmest window ({verdict.trend_c_per_h:+.2f} "
+                    f"degC/h over {WARM_UP_RULE.window_s:g} s)")
+    keep = time_s >= start_s
+    if not keep.any():
+        raise CalibrationError(f"start {start_s:g} s is past the end of power-up {number} of {count} "
+                               f"({power_up.duration_s - 1 / capture.rate_hz:.1f} s)")
+    hidden = power_up.gap_s[power_up.gap_time_s > start_s] if power_up.checked else None
+    return Session(
+        time_s=time_s[keep], gyro=data["gyro"][keep], acc=data["acc"][keep], incl=data["incl"][keep],
+        temperature_c=None if temps is None else temps[keep], rate_hz=stored_rate_hz(capture.rate_hz),
+        sensor=capture.sensor,
+        stream=capture.stream | {
+            "start_s": float(start_s), "start_by": start_by,
+            "power_up": {"number": number, "count": count, "first_datagram": power_up.first_datagram,
+                         "datagrams": power_up.datagrams, "duration_s": power_up.duration_s},
+            **fault_record(*power_up.data.fault_summary(start_s)), **hidden_gap_record(hidden)})
