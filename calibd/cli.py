@@ -26,13 +26,13 @@ from stim300.source import CaptureSource, PtySource
 
 from .calibrate import calibrate_capture
 from .config import METHODS, ConfigError, DetectionConfig, MethodConfig, WarmupConfig, load_config
-from .daemon import Calibrator, ResultStore
+from .daemon import Calibrator, Callbacks, StateLog
 from .errors import CalibrationError
 from .methods import estimator
 from .estimators.thesis import sensitivity
 from .frames import STANDARD_GRAVITY, Site
 from .live import configure_logging, replay, run
-from .results import CalibrationResult, ResultError, load_result, write_result
+from .results import CalibrationResult, ResultError, ResultStore, load_result, write_result
 from .scenario import READY_MADE, ScenarioError, load_scenario
 from .session import Capture, Session, decode, power_up_session
 from .units import DEG
@@ -230,29 +230,21 @@ def cmd_replay(args) -> int:
     if args.warmup_window is not None:
         warmup = replace(warmup, window_s=args.warmup_window)
     data = read_input(args.capture)
-    store = ResultStore(args.state_dir) if args.state_dir else None
-
     last = [None]
 
-    def on_state(state, detail):
+    def print_state(state, detail):
         if state != last[0] or detail.startswith("solved"):
             print(f"[{state.value}] {detail}", flush=True)
             last[0] = state
-        if store:
-            store.write_state(state, detail, {"capture": args.capture})
 
-    def on_result(result):
-        if store:
-            store.write_result(result)
-
-    def on_stale(result):
+    def print_stale(result):
         print(f"[{result.stale['power_up']} power-up] {result.stale['reason']}", flush=True)
-        if store:
-            store.replace_result(result)
 
+    listeners = [StateLog(), Callbacks(state=print_state, stale=print_stale)]
+    if args.state_dir:
+        listeners.append(ResultStore(args.state_dir, {"capture": args.capture}))
     configure_logging(logging.WARNING)
-    calibrator = Calibrator(site, warmup, method, on_result=on_result, on_state=on_state, source=args.capture,
-                            detection=detection, on_stale=on_stale)
+    calibrator = Calibrator(site, warmup, method, listeners, source=args.capture, detection=detection)
     speed = None if args.speed == "max" else float(args.speed)
     source = PtySource(data, speed) if args.pty else CaptureSource(data, speed)
     with Progress("replay", len(data), "B") as bar:

@@ -26,7 +26,8 @@ from stim300.errors import PortError
 from stim300.source import PortSource, SampleSource
 
 from .config import ConfigError
-from .daemon import Calibrator, ResultStore, State
+from .daemon import Calibrator, Listener, State, StateLog
+from .results import ResultStore
 
 log = structlog.get_logger("calibd")
 POLL_S = 0.2  # how long one read of the source waits: batches of about this much data
@@ -67,6 +68,13 @@ def sd_notify(message: str) -> bool:
         except OSError:
             return False
     return True
+
+
+class SystemdStatus(Listener):
+    """systemd's status line (`systemctl status`): the state and its detail."""
+
+    def on_state(self, state: State, detail: str) -> None:
+        sd_notify(f"STATUS={state.value.lower()}: {detail}")
 
 
 def stream_faults(stats, before: dict, samples) -> tuple[dict, dict]:
@@ -133,15 +141,9 @@ def replay(source: SampleSource, calibrator: Calibrator, progress=None) -> None:
 def run(config, reload_config) -> int:
     """`calibd run`: until SIGTERM. `reload_config()` returns a fresh config (SIGHUP) or raises
     ConfigError, which leaves the daemon running on the configuration it has."""
-    store = ResultStore(config.state_dir)
-
-    def on_state(state: State, detail: str) -> None:
-        store.write_state(state, detail, {"port": config.serial.port})
-        sd_notify(f"STATUS={state.value.lower()}: {detail}")
-
-    calibrator = Calibrator(config.site, config.warmup, config.method, on_result=store.write_result,
-                            on_state=on_state, source=config.serial.port, detection=config.detection,
-                            on_stale=store.replace_result)
+    listeners = [StateLog(), ResultStore(config.state_dir, {"port": config.serial.port}), SystemdStatus()]
+    calibrator = Calibrator(config.site, config.warmup, config.method, listeners, source=config.serial.port,
+                            detection=config.detection)
     stopping = []
     signal.signal(signal.SIGTERM, lambda *_: stopping.append("SIGTERM"))
     signal.signal(signal.SIGINT, lambda *_: stopping.append("SIGINT"))

@@ -3,7 +3,8 @@
 Estimates are kept in SI inside the code; here they become the units people read: degrees,
 deg/h for gyro biases, mg (1e-3 of the sensor's g, 9.80665 m/s^2) for accelerometer and
 inclinometer biases. A result file is replaced atomically and synced, so a crash never leaves
-a half-written or empty result where the last good one was.
+a half-written or empty result where the last good one was; `ResultStore` keeps the daemon's
+state directory that way.
 
 Version policy (for every file calibd writes, "NAME/N"): a reader reads its own version and
 older ones (fields they lack take their defaults), refuses a newer one with a message that
@@ -13,7 +14,10 @@ says to upgrade calibd, and refuses other schemas. The version goes up when the 
 from __future__ import annotations
 
 import json
+import time
 from dataclasses import dataclass, field, replace
+from datetime import datetime, timezone
+from enum import Enum
 from pathlib import Path
 
 from stim300.atomic import write_atomic
@@ -176,3 +180,31 @@ def load_result(path) -> CalibrationResult:
     except json.JSONDecodeError as exc:
         raise ResultError(f"{path}: not JSON: {exc}") from None
     return CalibrationResult.from_dict(doc, str(path))
+
+
+class ResultStore:
+    """The daemon's state directory, a listener of its Calibrator: result.json (the last good
+    result, replaced atomically and synced, so a crash at any moment leaves it readable),
+    history/ (every result, timestamped) and state.json (what `calibd status` shows, with
+    `origin`: the port or capture the daemon reads)."""
+
+    def __init__(self, state_dir, origin: dict | None = None):
+        self.dir = Path(state_dir)
+        self.origin = origin or {}
+        (self.dir / "history").mkdir(parents=True, exist_ok=True)
+
+    def on_result(self, result: CalibrationResult) -> Path:
+        text = result_json(result)
+        stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S.%fZ")
+        write_atomic(self.dir / "history" / f"result-{stamp}.json", text)
+        write_atomic(self.dir / "result.json", text)
+        return self.dir / "result.json"
+
+    def on_stale(self, result: CalibrationResult) -> Path:
+        """Rewrite result.json only (the last result marked stale): history keeps it as it was made."""
+        write_atomic(self.dir / "result.json", result_json(result))
+        return self.dir / "result.json"
+
+    def on_state(self, state: Enum, detail: str) -> None:
+        record = {"state": state.value, "detail": detail, "updated": time.time(), **self.origin}
+        write_atomic(self.dir / "state.json", (json.dumps(record) + "\n").encode(), durable=False)

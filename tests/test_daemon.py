@@ -20,10 +20,10 @@ from calibd.cli import main as calibd_main
 from calibd.calibrate import joint_real_case
 from calibd.cli import load_session
 from calibd.config import MethodConfig, WarmupConfig
-from calibd.daemon import Calibrator, ResultStore, State
+from calibd.daemon import Calibrator, Callbacks, State
 from calibd.frames import Site
 from calibd.live import configure_logging, replay, stream_faults
-from calibd.results import SCHEMA, CalibrationResult, Estimate
+from calibd.results import SCHEMA, CalibrationResult, Estimate, ResultStore
 from stim300.bulk import decode_capture
 from stim300.source import CaptureSource, PtySource
 
@@ -37,8 +37,8 @@ SETTLE_AND_MIN_STATIC_S = 1.0 + 5.0  # the segment detector's defaults
 
 def run_replay(name: str, warmup: WarmupConfig = WarmupConfig()):
     states, results = [], []
-    calibrator = Calibrator(SITE, warmup, on_result=results.append,
-                            on_state=lambda state, detail: states.append(state))
+    listener = Callbacks(state=lambda state, detail: states.append(state), result=results.append)
+    calibrator = Calibrator(SITE, warmup, listeners=[listener])
     replay(CaptureSource((FIXTURES / f"{name}.bin").read_bytes()), calibrator)
     changes = [s for k, s in enumerate(states) if k == 0 or s != states[k - 1]]
     return calibrator, changes, results
@@ -76,8 +76,9 @@ def test_a_data_gap_starts_a_new_session_and_keeps_the_warm_up():
     collecting, the status says what the session has and what it still waits for."""
     samples = decode_capture((FIXTURES / "warmup_then_protocol_125hz.bin").read_bytes()).samples
     events, results = [], []
-    calibrator = Calibrator(SITE, WarmupConfig(window_s=100.0), on_result=results.append,
-                            on_state=lambda state, detail: events.append((state, detail)))
+    calibrator = Calibrator(SITE, WarmupConfig(window_s=100.0),
+                            listeners=[Callbacks(state=lambda state, detail: events.append((state, detail)),
+                                                 result=results.append)])
     chunks = iter(np.array_split(samples, len(samples) // 125))
     for chunk in chunks:
         calibrator.feed(chunk, 125)
@@ -104,7 +105,7 @@ def test_detection_settings_reach_the_session():
 
     states = []
     calibrator = Calibrator(SITE, WarmupConfig(window_s=100.0), detection=DetectionConfig(turn_threshold_deg_s=25.0),
-                            on_state=lambda state, detail: states.append(detail))
+                            listeners=[Callbacks(state=lambda state, detail: states.append(detail))])
     replay(CaptureSource((FIXTURES / "warmup_then_protocol_125hz.bin").read_bytes()), calibrator)
     assert calibrator.result is None and "0 index turns" in states[-1]
     assert run_replay("warmup_then_protocol_125hz", WarmupConfig(window_s=100.0))[2]
@@ -116,8 +117,8 @@ def test_2000_hz_is_stored_block_averaged_at_125_hz():
     calibrator = Calibrator(SITE)
     calibrator.feed(samples[:4003], 2000)
     calibrator.feed(samples[4003:8000], 2000)
-    stored = calibrator._buffer.arrays()
-    assert calibrator._stored_rate == 125 and len(stored["time_s"]) == 500
+    stored = calibrator.collector.data.arrays()
+    assert calibrator.collector.stored_rate_hz == 125 and len(stored["time_s"]) == 500
     assert stored["gyro"][:, 2].mean() == pytest.approx(np.radians(samples["gyro"][:8000, 2].astype(float)).mean())
     assert np.allclose(np.diff(stored["time_s"]), 1 / 125)
 
@@ -141,14 +142,14 @@ def small_result(warning: str) -> CalibrationResult:
 
 def test_a_crash_while_writing_keeps_the_last_good_result(tmp_path, monkeypatch):
     store = ResultStore(tmp_path)
-    store.write_result(small_result("n = 1"))
+    store.on_result(small_result("n = 1"))
 
     def crash(*args):
         raise OSError(28, "No space left on device")
 
     monkeypatch.setattr(stim300.atomic.os, "replace", crash)
     with pytest.raises(OSError):
-        store.write_result(small_result("n = 2"))
+        store.on_result(small_result("n = 2"))
     assert json.loads((tmp_path / "result.json").read_text())["warnings"] == ["n = 1"]
     assert not [p for p in tmp_path.rglob("*.part")]
 
@@ -157,14 +158,13 @@ def test_kill_9_while_writing_leaves_a_readable_result(tmp_path):
     """A writer killed at random moments: result.json is always a whole result."""
     root = str(Path(__file__).resolve().parents[1])
     script = (f"import sys; sys.path.insert(0, {root!r})\n"
-              "from calibd.daemon import ResultStore\n"
-              "from calibd.results import CalibrationResult, Estimate\n"
+              "from calibd.results import CalibrationResult, Estimate, ResultStore\n"
               "yaw = {'yaw': Estimate(0.0, None, 'deg')}\n"
               f"store = ResultStore({str(tmp_path)!r})\n"
               "n = 0\n"
               "while True:\n"
               "    n += 1\n"
-              "    store.write_result(CalibrationResult('joint', {}, yaw, warnings=(str(n),) + ('x' * 1000,) * 200))\n")
+              "    store.on_result(CalibrationResult('joint', {}, yaw, warnings=(str(n),) + ('x' * 1000,) * 200))\n")
     rng = np.random.default_rng(7)
     for _ in range(5):
         writer = subprocess.Popen([sys.executable, "-c", script])
@@ -340,7 +340,7 @@ def test_datagrams_the_sensor_flags_are_counted_and_warned_about(tmp_path):
     assert any(w.startswith("10 datagrams carry fault flags (X, OVERLOAD)") for w in result.warnings)
 
     results = []
-    calibrator = Calibrator(SITE, WarmupConfig(window_s=10.0), NO_TIMER, on_result=results.append)
+    calibrator = Calibrator(SITE, WarmupConfig(window_s=10.0), NO_TIMER, [Callbacks(result=results.append)])
     replay(CaptureSource(capture.read_bytes()), calibrator)
     assert results[-1].stream["flagged_datagrams"] == 10
     assert any("fault flags (X, OVERLOAD)" in w for w in results[-1].warnings)
@@ -440,7 +440,7 @@ def test_a_complete_protocol_is_solved_once_the_platform_has_settled(method):
     turns = [p for p in json.loads(Path(f"{HEADING137}.truth.json").read_text())["schedule"] if p["kind"] == "turn"]
     batch, now_s, solved_at_s = 25, [0.0], []
     calibrator = Calibrator(SITE_137, WarmupConfig(window_s=10.0), MethodConfig(method, resolve_every_s=1e9),
-                            on_result=lambda result: solved_at_s.append(now_s[0]))
+                            [Callbacks(result=lambda result: solved_at_s.append(now_s[0]))])
     for start in range(0, len(samples), batch):
         now_s[0] = min(start + batch, len(samples)) / 125
         calibrator.feed(samples[start:start + batch], 125)
@@ -457,9 +457,9 @@ def test_a_restart_marks_the_last_result_stale_before_anything_else():
     samples = decode_capture(HEADING137.read_bytes()).samples
     events = []
     calibrator = Calibrator(SITE_137, WarmupConfig(window_s=10.0), NO_TIMER,
-                            on_result=lambda result: events.append(("result", result)),
-                            on_stale=lambda result: events.append(("stale", result)),
-                            on_state=lambda state, detail: events.append((state, detail)))
+                            [Callbacks(result=lambda result: events.append(("result", result)),
+                                       stale=lambda result: events.append(("stale", result)),
+                                       state=lambda state, detail: events.append((state, detail)))])
     for chunk in np.array_split(samples, 60):
         calibrator.feed(chunk, 125)
     before = len(events)
@@ -537,9 +537,9 @@ def test_a_restart_seen_only_in_the_start_up_bit_starts_a_new_power_up():
     data = FIXTURES / "faults_125hz.bin"  # a sensor restart at 40 s
     decoded = decode_capture(data.read_bytes())
     samples, restart_at = decoded.samples, decoded.info.stats.restart_datagrams[0]
-    calibrator = Calibrator(Site(40.59129), WarmupConfig(window_s=10.0, min_time_s=0.0))
     states, batch = [], [0]
-    calibrator.on_state = lambda state, detail: states.append((state, batch[0]))
+    calibrator = Calibrator(Site(40.59129), WarmupConfig(window_s=10.0, min_time_s=0.0),
+                            listeners=[Callbacks(state=lambda state, detail: states.append((state, batch[0])))])
     for batch[0] in range(0, len(samples), 25):
         calibrator.feed(samples[batch[0]:batch[0] + 25], 125)  # no restart count: only the status bytes say it
     restarts = [start for state, start in states if state == State.RESTARTED]
@@ -603,9 +603,9 @@ def test_a_fault_inside_the_estimator_is_an_error_not_a_wait(monkeypatch, tmp_pa
     monkeypatch.setattr(joint, "solve", broken)
     configure_logging()
     samples = decode_capture(HEADING137.read_bytes()).samples
-    calibrator = Calibrator(Site(60.0), WarmupConfig(window_s=10.0, min_time_s=0.0))
     details = []
-    calibrator.on_state = lambda state, detail: details.append(detail)
+    calibrator = Calibrator(Site(60.0), WarmupConfig(window_s=10.0, min_time_s=0.0),
+                            listeners=[Callbacks(state=lambda state, detail: details.append(detail))])
     calibrator.feed(samples, 125)
     calibrator.finish()
     assert calibrator.result is None

@@ -17,7 +17,7 @@ import stim300.port as port
 from calibd.calibrate import joint_real_case
 from calibd.cli import load_session
 from calibd.config import WarmupConfig
-from calibd.daemon import Calibrator
+from calibd.daemon import Calibrator, Callbacks
 from calibd.frames import Site
 from calibd.results import CalibrationResult
 from captures import exact_samples
@@ -63,7 +63,7 @@ def within_3_sigma(result: CalibrationResult, name: str, value: float) -> bool:
 def test_the_daemon_keeps_the_platform_angle_across_a_hidden_gap_in_a_turn():
     samples, _ = cut_in_a_turn()
     results = []
-    calibrator = Calibrator(SITE, WarmupConfig(window_s=100.0), on_result=results.append)
+    calibrator = Calibrator(SITE, WarmupConfig(window_s=100.0), listeners=[Callbacks(result=results.append)])
     for start in range(0, len(samples), 25):  # 0.2 s batches, as the live loop drains its ring
         calibrator.feed(samples[start:start + 25], RATE_HZ)
     last = results[-1]

@@ -10,7 +10,7 @@ from calibd import config, methods
 from calibd.cli import load_session
 from calibd.segments import session_segments
 from calibd.config import WarmupConfig
-from calibd.daemon import Calibrator
+from calibd.daemon import Calibrator, Callbacks
 from calibd.methods import ESTIMATORS, JointOptions, ThesisOptions, estimator
 from calibd.frames import Site
 from calibd.results import CalibrationResult
@@ -92,7 +92,7 @@ def test_the_daemon_asks_the_registry(monkeypatch):
     samples = decode_capture((FIXTURES / "heading137_lat60_125hz.bin").read_bytes()).samples
     details = []
     calibrator = Calibrator(Site(60.0), WarmupConfig(window_s=10.0),
-                            on_state=lambda state, detail: details.append(detail))
+                            listeners=[Callbacks(state=lambda state, detail: details.append(detail))])
     calibrator.feed(samples, 125)
     calibrator.finish()
     assert calibrator.result is None

@@ -1,0 +1,169 @@
+"""The calibration daemon's state machine: decoded samples in, states and results out.
+
+`Calibrator` holds no I/O: the live loop (`calibd run`), the replay of a capture and the tests
+feed it the same batches of samples. States: STARTING -> WARMING_UP -> COLLECTING -> SOLVED,
+with RESTARTED (the sensor power-cycled: turn-on biases changed, a new session starts) and FAULT
+(no data). Once warmed up, it solves as soon as the method's protocol is complete (the platform
+stopped after a turn, and the session's segments hold what the method needs), again every
+`resolve_every_s` of new data, and once more at the end of the data (`finish`: the end of a
+replay, or a sensor restart, which ends the previous power-up's data). A restart marks the
+previous power-up's result stale at once (`stale_result`). The work is its collaborators':
+`Collector` (one power-up's data), `WarmWatch` (the warm-up rule), `SolveTrigger` (when to
+solve), `solve` (the method); the listeners hear what happens.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from ..config import DetectionConfig, MethodConfig
+from ..frames import Site
+from ..results import CalibrationResult
+from ..warmup import WarmupConfig
+from .collector import Collector, Restarts
+from .events import Listener, State
+from .solver import solve, stale_result
+from .trigger import SolveTrigger
+from .warmwatch import Warmth, WarmWatch
+
+
+class Calibrator:
+    """The daemon's states and their transitions; `listeners` hear every state, result and stale
+    result, in their order."""
+
+    def __init__(self, site: Site, warmup: WarmupConfig = WarmupConfig(), method: MethodConfig = MethodConfig(),
+                 listeners: Sequence[Listener] = (), source: str = "live",
+                 detection: DetectionConfig = DetectionConfig()):
+        self.configure(site, warmup, method, detection)
+        self.listeners = tuple(listeners)
+        self.source = source  # the port or capture, named in results
+        self.state = State.STARTING
+        self.detail = "waiting for data"
+        self.result: CalibrationResult | None = None
+        self.sessions = 0
+        self.sensor: dict = {}
+        self._restarts = Restarts()
+        self._new_power_up()
+
+    def configure(self, site: Site, warmup: WarmupConfig, method: MethodConfig,
+                  detection: DetectionConfig = DetectionConfig()) -> None:
+        """New settings (SIGHUP): they apply from the next solution on (detection: the next session)."""
+        self.site, self.warmup, self.method, self.detection = site, warmup, method, detection
+
+    def sensor_seen(self, identity: dict) -> None:
+        """The sensor as the stream names it (serial and part number, datagram, rate): results carry it."""
+        self.sensor = identity
+
+    def feed(self, samples: np.ndarray, rate_hz: int, restarts: int = 0) -> None:
+        """A batch of decoded samples (stim300.codec.SAMPLE_DTYPE) in stream order; `restarts` is
+        the stream parser's running count of sensor restarts."""
+        for restarted, piece in self._restarts.pieces(samples, restarts):
+            if restarted:
+                self._power_cycled()
+            if len(piece):
+                self._feed_power_up(piece, rate_hz)
+
+    def finish(self) -> None:
+        """The end of the data (a replay's last byte, or the sensor's power-up before a restart):
+        solve once more on all of the session, so its last segments (the full turn, the final
+        static) count, not only those of the last re-solve."""
+        if self.collector.session_start_s is not None and self._trigger.unsolved(self.collector.end_s):
+            self._solve()
+
+    def data_lost(self, seconds: float) -> None:
+        """The live loop saw no data for `seconds`: a fault until data flows again. The platform
+        may have turned meanwhile, so the platform angle is lost: a session being collected
+        starts again when data returns (the warm-up stands unless the sensor restarted)."""
+        self._set(State.FAULT, f"no data for {seconds:.0f} s (port lost or sensor off)")
+        self._gap = True
+
+    def _feed_power_up(self, samples: np.ndarray, rate_hz: int) -> None:
+        if np.isnan(samples["acc"][0, 0]) or np.isnan(samples["incl"][0, 0]):
+            self._set(State.FAULT, f"datagram 0x{samples['datagram_id'][0]:02X} has no accelerometers or "
+                                   "inclinometers: nothing to calibrate with")
+            return
+        t = self.collector.times(samples, rate_hz)
+        in_session = self.collector.session_start_s is not None
+        if self._gap and in_session:
+            self._start_session(float(t[0]), "data again after a gap: the platform angle was lost, "
+                                             "collecting a new session (warm-up stands)")
+        elif self.state in (State.STARTING, State.RESTARTED, State.FAULT):
+            self._set(*((State.COLLECTING, "data again") if in_session
+                        else (State.WARMING_UP, "waiting for the temperature to settle")))
+        self._gap = False
+        stored = self.collector.store(samples, t)
+        if stored is None:
+            return
+        now_s = self.collector.end_s
+        if self.state == State.WARMING_UP:
+            self._warmed(self._warm.look(self.collector.data, self.warmup))
+        elif self.state in (State.COLLECTING, State.SOLVED):
+            if self._trigger.timer_due(now_s):
+                self._solve()
+            elif self._trigger.stopped_moving(*stored, now_s, self.collector.tracker.settings,
+                                              self.collector.stored_rate_hz):
+                session, segments = self._look()
+                if self._trigger.protocol_done(segments, self.method.name):
+                    self._solve((session, segments))
+
+    def _warmed(self, warmth: Warmth | None) -> None:
+        if warmth is None:
+            return
+        if warmth.start_s is None:
+            self._set(State.WARMING_UP, warmth.detail)
+            return
+        self._start_session(warmth.start_s, warmth.detail)
+        self._solve()
+
+    def _new_power_up(self) -> None:
+        self.collector = Collector()
+        self._warm = WarmWatch()
+        self._trigger = SolveTrigger()
+        self._gap = False
+
+    def _power_cycled(self) -> None:
+        """A restart ends the previous power-up's data: solve it to its end, mark its result as
+        belonging to that power-up (turn-on biases change at every power-up), start afresh."""
+        self.finish()
+        reason = "sensor restarted: turn-on biases changed, starting a new session"
+        if self.result is not None and self.result.stale is None:
+            self.result = stale_result(self.result, "the sensor restarted after this result: it belongs to the "
+                                                    "previous power-up (turn-on biases change at every power-up)")
+            for listener in self.listeners:
+                listener.on_stale(self.result)
+            reason += "; the last result is the previous power-up's, marked stale"
+        self._set(State.RESTARTED, reason)
+        self._new_power_up()
+
+    def _start_session(self, start_s: float, detail: str) -> None:
+        self.collector.start_session(start_s, self.detection)
+        self._trigger.session_started(self.collector.end_s, self.method.resolve_every_s)
+        self.sessions += 1
+        self._set(State.COLLECTING, detail)
+
+    def _look(self):
+        """The session so far and its segments."""
+        session = self.collector.session(self.sensor, {"capture": self.source, "session": self.sessions})
+        return session, self.collector.segments(session)
+
+    def _solve(self, looked=None) -> None:
+        """Solve on the session so far (`looked`: it and its segments, when just looked at)."""
+        session, segments = looked or self._look()
+        self._trigger.solved(self.collector.end_s, self.method.resolve_every_s)
+        attempt = solve(session, segments, self.site, self.method, self.sessions)
+        if attempt.result is not None:
+            self.result = attempt.result
+            self._set(State.SOLVED, attempt.detail)
+            for listener in self.listeners:
+                listener.on_result(attempt.result)
+        elif attempt.failed:
+            self._set(self.state, attempt.detail)
+        elif self.state != State.SOLVED:
+            self._set(State.COLLECTING, attempt.detail)
+
+    def _set(self, state: State, detail: str) -> None:
+        self.state, self.detail = state, detail
+        for listener in self.listeners:
+            listener.on_state(state, detail)

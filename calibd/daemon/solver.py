@@ -1,0 +1,63 @@
+"""One solve of the session being collected: the method from the estimator registry (looked up
+at every solve, so a reload's method applies at once), the result decorated with the daemon's
+session record; and a result marked stale when the sensor restarts after it."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, replace
+from datetime import datetime, timezone
+
+import structlog
+
+from .. import detect
+from ..config import MethodConfig
+from ..errors import CalibrationError
+from ..frames import Site
+from ..methods import estimator
+from ..results import CalibrationResult
+from ..session import Session
+
+log = structlog.get_logger("calibd")
+
+
+@dataclass(frozen=True)
+class Attempt:
+    """What a solve gave: a result, or none and why (what the protocol lacks, what the data
+    cannot give, or a fault of calibd: `failed`); `detail` is what the status says."""
+
+    result: CalibrationResult | None
+    detail: str
+    failed: bool = False
+
+
+def solve(session: Session, segments: list[detect.Segment], site: Site, method: MethodConfig,
+          number: int) -> Attempt:
+    """Solve session `number` (its segments found) with the configured method."""
+    duration_s = float(session.time_s[-1])
+    chosen = estimator(method.name)
+    lacking = chosen.missing(segments)
+    if lacking is not None:
+        return Attempt(None, f"collecting: {duration_s:.0f} s of data, {detect.protocol_progress(segments)}; "
+                             f"waiting for: {lacking}")
+    try:
+        result = chosen.solve(session, site, segments, chosen.options(asdict(method)))
+    except CalibrationError as exc:
+        return Attempt(None, f"collecting: {duration_s:.0f} s of data; {exc}")
+    except Exception as exc:  # a fault of calibd, not of the data: said as such, and the daemon runs on
+        log.exception("solve_failed")
+        return Attempt(None, f"solve failed: {type(exc).__name__}: {exc} (a fault in calibd; the log has its "
+                             "traceback)", failed=True)
+    result = replace(result, session={"number": number, "duration_s": duration_s,
+                                      "solved_at": datetime.now(timezone.utc).isoformat(timespec="seconds")})
+    yaw = result.estimates["yaw"]
+    sigma = f" +- {yaw.sigma:.2f}" if yaw.sigma is not None else ""
+    return Attempt(result, f"solved on {duration_s:.0f} s: yaw {yaw.value:.2f}{sigma} deg")
+
+
+def stale_result(result: CalibrationResult, reason: str) -> CalibrationResult:
+    """The result marked as no longer applying: a `stale` record (why, since when, and that it
+    belongs to the previous power-up) and the reason first among the warnings, so a consumer
+    reading only result.json can tell."""
+    since = datetime.now(timezone.utc).isoformat(timespec="seconds")
+    return replace(result, stale={"power_up": "previous", "reason": reason, "since": since}).with_warning(
+        f"stale: {reason}", first=True)
