@@ -18,9 +18,11 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from .. import detect
 from ..config import DetectionConfig, MethodConfig
 from ..frames import Site
 from ..results import CalibrationResult
+from ..session import Session
 from ..warmup import WarmupConfig
 from .collector import Collector, Restarts
 from .events import Listener, State
@@ -118,7 +120,7 @@ class Calibrator:
         self._solve()
 
     def _new_power_up(self) -> None:
-        self.collector = Collector()
+        self.collector = Collector()  # this power-up's data
         self._warm = WarmWatch()
         self._trigger = SolveTrigger()
         self._gap = False
@@ -143,12 +145,12 @@ class Calibrator:
         self.sessions += 1
         self._set(State.COLLECTING, detail)
 
-    def _look(self):
+    def _look(self) -> tuple[Session, list[detect.Segment]]:
         """The session so far and its segments."""
         session = self.collector.session(self.sensor, {"capture": self.source, "session": self.sessions})
         return session, self.collector.segments(session)
 
-    def _solve(self, looked=None) -> None:
+    def _solve(self, looked: tuple[Session, list[detect.Segment]] | None = None) -> None:
         """Solve on the session so far (`looked`: it and its segments, when just looked at)."""
         session, segments = looked or self._look()
         self._trigger.solved(self.collector.end_s, self.method.resolve_every_s)
