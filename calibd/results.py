@@ -193,17 +193,15 @@ class ResultStore:
         self.origin = origin or {}
         (self.dir / "history").mkdir(parents=True, exist_ok=True)
 
-    def on_result(self, result: CalibrationResult) -> Path:
+    def on_result(self, result: CalibrationResult) -> None:
         text = result_json(result)
         stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S.%fZ")
         write_atomic(self.dir / "history" / f"result-{stamp}.json", text)
         write_atomic(self.dir / "result.json", text)
-        return self.dir / "result.json"
 
-    def on_stale(self, result: CalibrationResult) -> Path:
+    def on_stale(self, result: CalibrationResult) -> None:
         """Rewrite result.json only (the last result marked stale): history keeps it as it was made."""
         write_atomic(self.dir / "result.json", result_json(result))
-        return self.dir / "result.json"
 
     def on_state(self, state: Enum, detail: str) -> None:
         record = {"state": state.value, "detail": detail, "updated": time.time(), **self.origin}
