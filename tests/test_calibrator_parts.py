@@ -243,3 +243,18 @@ def test_listeners_hear_the_state_sequence_of_a_fixture_replay_in_their_order(tm
     written = json.loads((tmp_path / "result.json").read_text())
     assert written["estimates"]["yaw"]["value"] == calibrator.result.estimates["yaw"].value
     assert len(list((tmp_path / "history").iterdir())) == len(recorder.results)
+
+
+def test_systemds_status_line_is_a_listener(monkeypatch):
+    import socket
+    import tempfile
+
+    from calibd.live import SystemdStatus
+
+    with tempfile.TemporaryDirectory(dir="/tmp") as directory, \
+            socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as notify:
+        notify.bind(f"{directory}/notify")
+        monkeypatch.setenv("NOTIFY_SOCKET", f"{directory}/notify")
+        SystemdStatus().on_state(State.COLLECTING, "collecting: 12 s of data")
+        notify.settimeout(5.0)
+        assert notify.recv(256) == b"STATUS=collecting: collecting: 12 s of data"
