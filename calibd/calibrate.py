@@ -304,7 +304,7 @@ def _tilt_check(inp: joint.JointInput, fit: joint.JointResult, site: Site) -> ga
     a = int_to_imu(fit.estimates["alpha"], fit.estimates["beta"])
     try:
         return gaps.check_turn_angles(inp, fit.gyro.chi, a, site.gravity, fit.acc.noise, fit.incl.noise,
-                                      fit.incl.params[:2])
+                                      fit.incl.params[joint.TILT_PARAMS])
     except (joint.Underdetermined, np.linalg.LinAlgError):
         return None
 
@@ -392,7 +392,7 @@ def _turn_angle_warnings(fitted: JointFit, session: Session) -> list[str]:
                 "uncertainty is in the sigmas")
     unchecked = [t for t in fitted.turn_angles.turns if not t.checkable]
     if unchecked:
-        tilt_deg = np.degrees(np.arcsin(min(np.hypot(*fitted.fit.incl.params[:2]), 1.0)))
+        tilt_deg = np.degrees(np.arcsin(min(np.hypot(*fitted.fit.incl.params[joint.TILT_PARAMS]), 1.0)))
         warnings.append(f"{len(unchecked)} of {len(fitted.turn_angles.turns)} turns' angles could not be "
                         f"checked against the tilt (platform axis {tilt_deg:.3f} deg from Up, too little to see "
                         f"the angle to {np.degrees(gaps.CHECKABLE_SIGMA_RAD):.0f} deg): {unseen}")
