@@ -17,8 +17,8 @@ from calibd.estimators.joint import JointInput, datasheet_noise, solve, white_no
 from calibd.frames import STANDARD_GRAVITY, Site
 from calibd.scenario import Noise, load_scenario
 from calibd.sim import simulate
+from calibd.units import DEG
 
-DEG = math.pi / 180
 THESIS = load_scenario("thesis-real")
 SITE = THESIS.site
 STIM300 = Noise()

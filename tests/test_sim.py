@@ -12,9 +12,9 @@ from calibd.frames import EARTH_RATE, STANDARD_GRAVITY, Site, euler_321, int_to_
 from calibd.allan import FLICKER_TAUS_S, allan_deviation, allan_gm, flicker_sigma
 from calibd.scenario import ScenarioError, Segment, load_scenario, parse_scenario
 from calibd.sim import capture_bytes, sensor_noise, simulate, truth_record
+from calibd.units import DEG
 from stim300.bulk import decode_capture
 
-DEG = np.pi / 180
 GYRO_LSB, ACC_LSB, INCL_LSB = 2.0**-14, 2.0**-19, 2.0**-22
 
 

@@ -18,8 +18,8 @@ from calibd.estimators import thesis
 from calibd.frames import EARTH_RATE, STANDARD_GRAVITY, Site, int_to_imu, nav_to_imu
 from calibd.scenario import Segment, load_scenario
 from calibd.sim import write_capture
+from calibd.units import DEG
 
-DEG = np.pi / 180
 SITE = Site(40.59129, g0=9.79956)  # thesis Table 7.1
 H = EARTH_RATE * np.cos(np.radians(SITE.latitude_deg))  # horizontal Earth rate, rad/s
 V = EARTH_RATE * np.sin(np.radians(SITE.latitude_deg))
