@@ -18,7 +18,7 @@ from .methods import DAEMON_METHODS
 from .warmup import WarmupConfig
 from .errors import CalibdError
 from .frames import Site
-from .scenario import _Table
+from .scenario import _Table, site_from_table
 
 METHODS = DAEMON_METHODS  # the estimators (calibd.estimators) the daemon runs
 TABLES = ("serial", "site", "output", "warmup", "detection", "method")
@@ -106,14 +106,6 @@ def _serial(t: _ConfigTable) -> SerialConfig:
     return serial
 
 
-def _site(t: _ConfigTable) -> Site:
-    site = Site(t.require("latitude_deg", float, lambda v: -90 <= v <= 90, "a latitude in [-90, 90] deg"),
-                t.get("height_m", 0.0, float, lambda v: -500 <= v <= 9000, "a height in [-500, 9000] m"),
-                t.get("g0", None, float, lambda g: 9.7 <= g <= 9.9, "an Earth gravity in [9.7, 9.9] m/s^2"))
-    t.finish()
-    return site
-
-
 def _state_dir(t: _ConfigTable) -> Path:
     state_dir = Path(t.require("state_dir", str, _nonempty, "a directory path for the daemon's state"))
     t.finish()
@@ -177,7 +169,7 @@ def parse_config(data: dict, where: str) -> DaemonConfig:
     def table(name: str) -> _ConfigTable:
         return _ConfigTable(data.get(name, {}), f"{where} [{name}]")
 
-    return DaemonConfig(serial=_serial(table("serial")), site=_site(table("site")),
+    return DaemonConfig(serial=_serial(table("serial")), site=site_from_table(table("site")),
                         state_dir=_state_dir(table("output")), warmup=_warmup(table("warmup")),
                         method=_method(table("method")), detection=_detection(table("detection")))
 

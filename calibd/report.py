@@ -26,7 +26,7 @@ from stim300.progress import Progress
 
 from . import detect
 from .warmup import WarmupConfig
-from .errors import CalibdError, CalibrationError
+from .errors import CalibdError, CalibrationError, SiteError
 from .methods import estimator
 from .figures import Figure, allan_figure, earth_rate_figure, timeline_figure
 from .frames import Site
@@ -108,7 +108,7 @@ def _site(result: CalibrationResult, path) -> Site:
     try:
         site = result.site
         return Site(site["latitude_deg"], site.get("height_m", 0.0), site.get("g0_m_s2"))
-    except (KeyError, TypeError, ValueError) as exc:
+    except (KeyError, TypeError, SiteError) as exc:
         raise ReportError(f"{path}: no usable site in the result ({exc})") from None
 
 

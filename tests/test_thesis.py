@@ -371,7 +371,7 @@ def test_bench_fixture_calibrates_with_its_three_360_deg_turns():
     (["calibrate", FIXTURE, "-o", "r.json"], "required: --latitude"),
     (["calibrate", FIXTURE, "--method", "thesis", "--latitude", "40", "--alpha", "0.5", "-o", "r.json"],
      "both --alpha and --beta"),
-    (["calibrate", FIXTURE, "--latitude", "91", "-o", "r.json"], "outside [-90, 90] deg"),
+    (["calibrate", FIXTURE, "--latitude", "91", "-o", "r.json"], "91.0 is not a latitude in [-90, 90] deg"),
     (["calibrate", "fixtures/faults_125hz.bin", "--method", "thesis", "--latitude", "40", "-o", "r.json"],
      "not the thesis real-case"),
     (["calibrate", "fixtures/thesis_real_cw_125hz.bin", "--method", "thesis", "--bench", "--latitude", "40", "-o",
