@@ -25,10 +25,10 @@ import numpy as np
 
 from stim300.bulk import decode_capture
 from stim300.codec import SAMPLE_DTYPE, encode_samples
-from stim300.protocol import Format
+from stim300.protocol import COUNTER_MODULUS, INTERNAL_RATE_HZ, Format
 from stim300.stream import StreamParser
 
-RATE = 2000
+RATE = INTERNAL_RATE_HZ  # the fastest rate: one datagram per internal sample
 FMT = Format(datagram_id=0xA7, crlf=False, sample_rate_hz=RATE)
 
 
@@ -46,7 +46,7 @@ def make_capture(path: Path, seconds: float) -> None:
             s["incl"] = np.rint((rng.normal(0, 1e-4, (n, 3)) + [0, 0, 1]) / scales["incl"]) * scales["incl"]
             for block in ("temp_gyro", "temp_acc", "temp_incl"):
                 s[block] = 35.5
-            s["counter"] = (start + np.arange(n)) % 256
+            s["counter"] = (start + np.arange(n)) % COUNTER_MODULUS
             s["latency_us"] = 516
             f.write(encode_samples(s, 0xA7, FMT, False).tobytes())
 

@@ -20,9 +20,9 @@ from .estimators import joint, thesis
 from .frames import EARTH_RATE, STANDARD_GRAVITY, Site, int_to_imu
 from .results import CalibrationResult, make_result
 from .segments import segment_record, session_segments
-from .session import WARM_UP_RULE, Capture, Session, power_up_session
+from .session import Capture, Session, power_up_session
 from .units import DEG
-from .warmup import Settling, settling
+from .warmup import NOT_WARMED_UP, record_settling, warm_up_warnings
 
 
 class ProtocolIncomplete(CalibrationError):
@@ -52,10 +52,9 @@ def calibrate_capture(capture: Capture, solve, power_up: int | None = None,
             result = result.with_warning(
                 f"the sensor restarted after this power-up ({number} of {count}){passed_over}: these biases are "
                 "this power-up's, turn-on biases change at every restart")
-        verdict = _settling(session)
+        verdict = record_settling(session.time_s, session.temperature_c)
         if verdict is not None and not verdict.settled:
-            result = result.flag_poor(result.estimates, "every estimate is flagged poor: the data were taken while "
-                                      "the IMU warmed up, and biases move with temperature (record after the warm-up)")
+            result = result.flag_poor(result.estimates, NOT_WARMED_UP)
         return result
     raise CalibrationError("; ".join(refusals))
 
@@ -75,30 +74,7 @@ def _session_warnings(session: Session) -> list[str]:
         faults.append(f"time base corrected: the host clock shows {session.stream['hidden_gap_s']:.3f} s of data "
                       f"lost in {hidden} gap{'s' if hidden > 1 else ''} the datagram counter could not see (whole "
                       f"{CYCLE_S:.3f} s counter cycles); that time was added")
-    return faults + _warm_up_warning(session)
-
-
-def _settling(session: Session) -> Settling | None:
-    """The warm-up rule on the session's own data (None without temperatures)."""
-    if session.temperature_c is None or len(session.time_s) < 2:
-        return None
-    return settling(session.time_s, session.temperature_c, WARM_UP_RULE)
-
-
-def _warm_up_warning(session: Session) -> list[str]:
-    verdict = _settling(session)
-    if verdict is None:
-        return ["no temperatures in the datagram: warm-up cannot be checked"]
-    rule = f"{WARM_UP_RULE.max_slope_c_per_h:g} degC/h over {WARM_UP_RULE.window_s:g} s"
-    if not verdict.settled:
-        return [f"the temperature never settles in this power-up (calmest trend {verdict.trend_c_per_h:+.1f} degC/h "
-                f"from {verdict.start_s:.0f} s; warmed up means within {rule}): the IMU is not warmed up, biases "
-                "drift with temperature"]
-    early_s = verdict.start_s - session.time_s[0]
-    if early_s > 1.0:
-        return [f"the first {early_s:.0f} s of the data are warm-up (the temperature settles within {rule} only "
-                f"from {verdict.start_s:.0f} s of the power-up): biases drift"]
-    return []
+    return faults + warm_up_warnings(session.time_s, session.temperature_c)
 
 
 def _one_period(session: Session, turn: detect.Segment) -> tuple[slice, float]:
@@ -304,7 +280,7 @@ def _tilt_check(inp: joint.JointInput, fit: joint.JointResult, site: Site) -> ga
     a = int_to_imu(fit.estimates["alpha"], fit.estimates["beta"])
     try:
         return gaps.check_turn_angles(inp, fit.gyro.chi, a, site.gravity, fit.acc.noise, fit.incl.noise,
-                                      fit.incl.params[:2])
+                                      fit.incl.params[joint.TILT_PARAMS])
     except (joint.Underdetermined, np.linalg.LinAlgError):
         return None
 
@@ -392,7 +368,7 @@ def _turn_angle_warnings(fitted: JointFit, session: Session) -> list[str]:
                 "uncertainty is in the sigmas")
     unchecked = [t for t in fitted.turn_angles.turns if not t.checkable]
     if unchecked:
-        tilt_deg = np.degrees(np.arcsin(min(np.hypot(*fitted.fit.incl.params[:2]), 1.0)))
+        tilt_deg = np.degrees(np.arcsin(min(np.hypot(*fitted.fit.incl.params[joint.TILT_PARAMS]), 1.0)))
         warnings.append(f"{len(unchecked)} of {len(fitted.turn_angles.turns)} turns' angles could not be "
                         f"checked against the tilt (platform axis {tilt_deg:.3f} deg from Up, too little to see "
                         f"the angle to {np.degrees(gaps.CHECKABLE_SIGMA_RAD):.0f} deg): {unseen}")

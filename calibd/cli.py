@@ -27,10 +27,10 @@ from stim300.source import CaptureSource, PtySource
 from .calibrate import calibrate_capture
 from .config import METHODS, ConfigError, DetectionConfig, MethodConfig, WarmupConfig, load_config
 from .daemon import Calibrator, Callbacks, StateLog
-from .errors import CalibrationError
+from .errors import CalibrationError, SiteError
 from .methods import estimator
 from .estimators.thesis import sensitivity
-from .frames import STANDARD_GRAVITY, Site
+from .frames import STANDARD_GRAVITY, Site, site_value_error
 from .live import configure_logging, replay, run
 from .results import CalibrationResult, ResultError, ResultStore, load_result, write_result
 from .scenario import READY_MADE, ScenarioError, load_scenario
@@ -87,12 +87,16 @@ def cmd_simulate(args) -> int:
     return 0
 
 
+def _float(text: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+
+
 def _number(low: float, high: float, unit: str):
     def parse(text: str) -> float:
-        try:
-            value = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+        value = _float(text)
         if not (low <= value <= high):
             raise argparse.ArgumentTypeError(f"{text} is outside [{low:g}, {high:g}] {unit}")
         return value
@@ -105,17 +109,28 @@ def _positive_int(text: str) -> int:
     return int(text)
 
 
+def _site_value(field: str):
+    """An option's parser for the Site's `field`: the Site's own range and words."""
+    def parse(text: str) -> float:
+        value = _float(text)
+        reason = site_value_error(field, value)
+        if reason is not None:
+            raise argparse.ArgumentTypeError(reason)
+        return value
+    return parse
+
+
 def _add_site_options(p: argparse.ArgumentParser, required: bool) -> None:
-    p.add_argument("--latitude", type=_number(-90, 90, "deg"), required=required,
+    p.add_argument("--latitude", type=_site_value("latitude_deg"), required=required,
                    help="site latitude, deg" + ("" if required else " (without --config)"))
-    p.add_argument("--height", type=_number(-500, 9000, "m"), default=0.0, help="site height, m (default 0)")
-    p.add_argument("--g0", type=_number(9.7, 9.9, "m/s^2"), help="measured gravity, m/s^2 (default: normal gravity)")
+    p.add_argument("--height", type=_site_value("height_m"), default=0.0, help="site height, m (default 0)")
+    p.add_argument("--g0", type=_site_value("g0"), help="measured gravity, m/s^2 (default: normal gravity)")
 
 
 def _site(args) -> Site:
     try:
         return Site(args.latitude, args.height, args.g0)
-    except ValueError as exc:
+    except SiteError as exc:
         raise UsageError(str(exc)) from None
 
 

@@ -14,16 +14,14 @@ from pathlib import Path
 
 from stim300.protocol import DEFAULT_BIT_RATE
 
-from .methods import DAEMON_METHODS
+from .methods import DAEMON_METHODS, OptionError, estimator
 from .warmup import WarmupConfig
 from .errors import CalibdError
 from .frames import Site
-from .scenario import _Table
+from .scenario import _Table, site_from_table
 
 METHODS = DAEMON_METHODS  # the estimators (calibd.estimators) the daemon runs
 TABLES = ("serial", "site", "output", "warmup", "detection", "method")
-JOINT_ONLY = ("fixed_amplitude", "drift")
-THESIS_ONLY = ("alpha_deg", "beta_deg")
 
 
 class ConfigError(CalibdError):
@@ -52,7 +50,9 @@ class DetectionConfig:
 
 @dataclass(frozen=True)
 class MethodConfig:
-    """The estimator and its options (see `calibd calibrate --help` for what they mean)."""
+    """The estimator and its options (see `calibd calibrate --help` for what they mean): the
+    settings of every daemon method (calibd.methods, Estimator.settings), None or False where
+    not given, for the method's own Estimator.options."""
 
     name: str = "joint"
     fixed_amplitude: bool = False  # joint only
@@ -106,14 +106,6 @@ def _serial(t: _ConfigTable) -> SerialConfig:
     return serial
 
 
-def _site(t: _ConfigTable) -> Site:
-    site = Site(t.require("latitude_deg", float, lambda v: -90 <= v <= 90, "a latitude in [-90, 90] deg"),
-                t.get("height_m", 0.0, float, lambda v: -500 <= v <= 9000, "a height in [-500, 9000] m"),
-                t.get("g0", None, float, lambda g: 9.7 <= g <= 9.9, "an Earth gravity in [9.7, 9.9] m/s^2"))
-    t.finish()
-    return site
-
-
 def _state_dir(t: _ConfigTable) -> Path:
     state_dir = Path(t.require("state_dir", str, _nonempty, "a directory path for the daemon's state"))
     t.finish()
@@ -144,23 +136,24 @@ def _detection(t: _ConfigTable) -> DetectionConfig:
 
 
 def _method(t: _ConfigTable) -> MethodConfig:
+    """The method's name, its own settings as its Estimator declares them, and resolve_every_s;
+    a setting of another daemon method is refused, naming the method it belongs to."""
     d = MethodConfig()
     name = t.get("name", d.name, str, lambda n: n in METHODS, " or ".join(f'"{m}"' for m in METHODS))
-    flags = {key: t.get(key, getattr(d, key), bool) for key in JOINT_ONLY}
-    tilt = {key: t.get(key, None, float, lambda a: -10 <= a <= 10, "an interface tilt in [-10, 10] deg")
-            for key in THESIS_ONLY}
+    method = estimator(name)
+    own = {key: t.get(key, getattr(d, key), s.kind, s.check, s.expect) for key, s in method.settings.items()}
     resolve_every_s = t.get("resolve_every_s", d.resolve_every_s, float, _positive, "a positive interval in s")
+    owners = {key: other for other in METHODS for key in estimator(other).settings if key not in method.settings}
+    for key in t.data:
+        if key in owners:
+            t.fail(key, f"{t.data[key]!r} is not allowed with name = \"{name}\": it is an option of the "
+                        f"{owners[key]} method")
     t.finish()
-    for key in JOINT_ONLY if name == "thesis" else THESIS_ONLY:
-        if key in t.data:
-            why = "the joint method estimates alpha and beta itself" if name == "joint" \
-                else "fixed_amplitude and drift are options of the joint method"
-            t.fail(key, f"{t.data[key]!r} is not allowed with name = \"{name}\": {why}")
-    if (tilt["alpha_deg"] is None) != (tilt["beta_deg"] is None):
-        given, other = THESIS_ONLY if tilt["beta_deg"] is None else THESIS_ONLY[::-1]
-        t.fail(given, f"{tilt[given]!r} given without {other}: give both (a-priori tilt) or neither "
-                      "(tilt estimated from the data)")
-    return MethodConfig(name, resolve_every_s=resolve_every_s, **flags, **tilt)
+    try:
+        method.options(own)
+    except OptionError as exc:
+        t.fail(exc.key, exc.reason)
+    return MethodConfig(name, resolve_every_s=resolve_every_s, **own)
 
 
 def parse_config(data: dict, where: str) -> DaemonConfig:
@@ -177,7 +170,7 @@ def parse_config(data: dict, where: str) -> DaemonConfig:
     def table(name: str) -> _ConfigTable:
         return _ConfigTable(data.get(name, {}), f"{where} [{name}]")
 
-    return DaemonConfig(serial=_serial(table("serial")), site=_site(table("site")),
+    return DaemonConfig(serial=_serial(table("serial")), site=site_from_table(table("site")),
                         state_dir=_state_dir(table("output")), warmup=_warmup(table("warmup")),
                         method=_method(table("method")), detection=_detection(table("detection")))
 

@@ -15,7 +15,7 @@ import numpy as np
 from .calibrate import JointFit, joint_fit
 from .errors import CalibrationError
 from .methods import estimator
-from .estimators.joint import alpha_beta
+from .estimators.joint import AXIS_PARAMS, DRIFT_PARAMS, EARTH_RATE_PARAMS, OFFSET_PARAMS, alpha_beta, has_drift
 from .frames import Site, int_to_imu
 from .noise import UNITS as NOISE_UNITS
 from .results import CalibrationResult
@@ -121,9 +121,10 @@ def earth_term(params: np.ndarray, chi: np.ndarray) -> np.ndarray:
     """The joint model's Earth-rate term (estimators/joint.py), N x 3 in rad/s, at platform angles
     chi (rad): v1 (A0 cos chi - A1 sin chi) + v2 (A0 sin chi + A1 cos chi), A = R_int^IMU of the
     fitted axis."""
-    a = int_to_imu(*alpha_beta(params[2:5]))
+    a = int_to_imu(*alpha_beta(params[AXIS_PARAMS]))
     cos, sin = np.cos(chi)[:, None], np.sin(chi)[:, None]
-    return params[0] * (a[:, 0] * cos - a[:, 1] * sin) + params[1] * (a[:, 0] * sin + a[:, 1] * cos)
+    v1, v2 = params[EARTH_RATE_PARAMS]
+    return v1 * (a[:, 0] * cos - a[:, 1] * sin) + v2 * (a[:, 0] * sin + a[:, 1] * cos)
 
 
 def earth_rate_seen(fitted: JointFit) -> np.ndarray:
@@ -131,9 +132,9 @@ def earth_rate_seen(fitted: JointFit) -> np.ndarray:
     offsets c, a drift when fitted), N x 3 rad/s: what the model says is Earth rate plus noise."""
     g, inp = fitted.fit.gyro, fitted.inp
     p = g.params
-    rest = np.outer(g.chi_rate, p[2:5]) + p[5:8]
-    if len(p) > 8:
-        rest += np.outer(inp.time_s - inp.time_s.mean(), p[8:11])
+    rest = np.outer(g.chi_rate, p[AXIS_PARAMS]) + p[OFFSET_PARAMS]
+    if has_drift(p):
+        rest += np.outer(inp.time_s - inp.time_s.mean(), p[DRIFT_PARAMS])
     return inp.gyro - rest
 
 

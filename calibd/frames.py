@@ -10,12 +10,24 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .errors import SiteError
+
 EARTH_RATE = 7.2921150e-5  # rad/s (WGS84), = 15.0411 deg/h
 STANDARD_GRAVITY = 9.80665  # m/s^2 per g: the STIM300's g unit (k0 of the datasheet)
 # How far true gravity may lie from normal gravity at a site (1-sigma): the local free-air
 # anomaly, whose worldwide RMS is about 42 mGal (point anomaly variance 1795 mGal^2 in Tscherning
 # and Rapp's 1974 degree-variance model); mountains and trenches reach 100 mGal and more.
 NORMAL_GRAVITY_SIGMA = 4.2e-4  # m/s^2 (42 mGal, 0.043 mg)
+# The values a Site accepts; every way in (command-line options, configuration and scenario
+# files) refuses others with site_value_error's words.
+LATITUDE_RANGE_DEG = (-90.0, 90.0)
+HEIGHT_RANGE_M = (-500.0, 9000.0)  # below the Dead Sea shore to above any observatory
+G0_RANGE_M_S2 = (9.7, 9.9)  # Earth gravity anywhere near the surface
+SITE_RANGES = {  # Site field -> (range, unit, what the value is)
+    "latitude_deg": (LATITUDE_RANGE_DEG, "deg", "a latitude"),
+    "height_m": (HEIGHT_RANGE_M, "m", "a height"),
+    "g0": (G0_RANGE_M_S2, "m/s^2", "an Earth gravity"),
+}
 
 
 def _stack(rows) -> np.ndarray:
@@ -75,6 +87,14 @@ def normal_gravity(latitude_deg: float, height_m: float = 0.0) -> float:
     return float(surface - (3.087691e-6 - 4.3977e-9 * s2) * height_m + 0.72125e-12 * height_m**2)
 
 
+def site_value_error(field: str, value: float) -> str | None:
+    """Why `value` cannot be the Site's `field` (a key of SITE_RANGES), in one phrase; None when it can."""
+    (low, high), unit, what = SITE_RANGES[field]
+    if low <= value <= high:
+        return None
+    return f"{value!r} is not {what} in [{low:g}, {high:g}] {unit}"
+
+
 @dataclass(frozen=True)
 class Site:
     """Where the IMU is: latitude (and height) give gravity unless g0 is measured and given."""
@@ -84,10 +104,11 @@ class Site:
     g0: float | None = None  # m/s^2; None: normal gravity
 
     def __post_init__(self):
-        if not -90.0 <= self.latitude_deg <= 90.0:
-            raise ValueError(f"latitude {self.latitude_deg} deg is outside [-90, 90] deg")
-        if self.g0 is not None and not 9.7 <= self.g0 <= 9.9:
-            raise ValueError(f"g0 {self.g0} m/s^2 is not an Earth gravity (9.7 to 9.9 m/s^2)")
+        for name in SITE_RANGES:
+            value = getattr(self, name)
+            reason = None if value is None else site_value_error(name, value)
+            if reason is not None:
+                raise SiteError(name, reason)
 
     @property
     def gravity(self) -> float:

@@ -8,22 +8,42 @@ mathematics of calibd.estimators)."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, Protocol
 
 from . import detect
+from .errors import CalibdError
 from .calibrate import bench_positions, joint_real_case, thesis_bench, thesis_real_case
 from .estimators.joint import JointOptions
 from .estimators.thesis import UP_AXES
 
 
+class OptionError(CalibdError):
+    """Settings a method cannot take together: `key` names the one at fault, `reason` says why."""
+
+    def __init__(self, key: str, reason: str):
+        super().__init__(f"{key}: {reason}")
+        self.key, self.reason = key, reason
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One option a method takes from a configuration file: its kind, and the range it must lie in
+    (`check`) said in words (`expect`)."""
+
+    kind: type
+    check: Callable[[Any], bool] | None = None
+    expect: str = ""
+
+
 class Estimator(Protocol):
     name: str
+    settings: Mapping[str, Setting]  # the options a configuration file may set for this method
 
     def options(self, settings: Mapping[str, Any]) -> Any:
         """This method's options from named settings (a MethodConfig's fields, the command line's);
-        settings of other methods are ignored."""
+        settings of other methods are ignored. OptionError when its own do not go together."""
 
     def missing(self, segments: list[detect.Segment]) -> str | None:
         """What the protocol still lacks in these segments; None when they hold all it needs."""
@@ -52,6 +72,7 @@ class Joint:
 
     name = "joint"
     needs = "a level static, then a turn and a static after it on the same mounting"
+    settings = {"fixed_amplitude": Setting(bool), "drift": Setting(bool)}
 
     def options(self, settings: Mapping[str, Any]) -> JointOptions:
         return JointOptions(bool(settings.get("fixed_amplitude")), bool(settings.get("drift")))
@@ -69,9 +90,15 @@ class Thesis:
     name = "thesis"
     needs = (f"a level static, statics at four platform headings 90 deg apart and a full turn (at least "
              f"{detect.FULL_TURN_MIN_DEG:.0f} deg) after it, then a static")
+    settings = {key: Setting(float, lambda a: -10 <= a <= 10, "an interface tilt in [-10, 10] deg")
+                for key in ("alpha_deg", "beta_deg")}
 
     def options(self, settings: Mapping[str, Any]) -> ThesisOptions:
         alpha, beta = settings.get("alpha_deg"), settings.get("beta_deg")
+        if (alpha is None) != (beta is None):
+            given, other, value = ("alpha_deg", "beta_deg", alpha) if beta is None else ("beta_deg", "alpha_deg", beta)
+            raise OptionError(given, f"{value!r} given without {other}: give both (a-priori tilt) or neither "
+                                     "(tilt estimated from the data)")
         return ThesisOptions(None if alpha is None or beta is None else (alpha, beta),
                              settings.get("platform_rate_deg_s"))
 
@@ -86,6 +113,7 @@ class ThesisBench:
     """The thesis's bench campaign: six-position biases and alpha/beta from full turns."""
 
     name = "thesis-bench"
+    settings: Mapping[str, Setting] = {}
 
     def options(self, settings: Mapping[str, Any]) -> None:
         return None

@@ -25,7 +25,8 @@ from .segments import session_segments
 from .session import Session
 from .units import M_S2_TO_MG, RAD_S_TO_DEG_H, SQRT_S_PER_SQRT_H
 
-SCHEMA = "calibd.noise/1"
+NOISE_SCHEMA, NOISE_VERSION = "calibd.noise", 1  # the noise file's schema name and newest version
+SCHEMA = f"{NOISE_SCHEMA}/{NOISE_VERSION}"
 DETECTION_CONFIDENCE = 0.9  # a rise past the minimum counts when these intervals do not overlap (docs/noise.md)
 MIN_STATIC_S = 30.0  # taus to 7.5 s: the random walk is read at 1 s inside the data, not extrapolated
 RANDOM_WALK_TAU_S, RATE_RANDOM_WALK_TAU_S = 1.0, 3.0  # where IEEE 952 reads the -1/2 and +1/2 lines

@@ -21,8 +21,8 @@ import numpy as np
 from .errors import CalibdError
 from .estimators.joint import JointInput, SensorNoise, datasheet_noise, solve
 from .frames import STANDARD_GRAVITY, Site
-from .noise import SCHEMA as NOISE_FILE_SCHEMA
-from .results import ESTIMATES
+from .noise import NOISE_SCHEMA, NOISE_VERSION
+from .results import ESTIMATES, SchemaError, schema_version
 from .scenario import Noise, Segment, load_scenario
 from .sim import schedule, simulate
 from .units import DEG
@@ -124,9 +124,12 @@ def noise_from_json(data: bytes, where: str) -> Noise:
         doc = json.loads(data)
     except ValueError as exc:
         raise PlanError(f"{where}: not a JSON noise file: {exc}") from None
-    if not isinstance(doc, dict) or doc.get("schema") != NOISE_FILE_SCHEMA:
-        found = doc.get("schema") if isinstance(doc, dict) else None
-        raise PlanError(f"{where}: schema: {found!r} is not {NOISE_FILE_SCHEMA!r}")
+    if not isinstance(doc, dict):
+        raise PlanError(f"{where}: not a JSON object, expected a {NOISE_SCHEMA} file")
+    try:  # the version policy of result and truth files
+        schema_version(doc.get("schema"), NOISE_SCHEMA, NOISE_VERSION, f"{where}: schema")
+    except SchemaError as exc:
+        raise PlanError(str(exc)) from None
     channels = doc.get("channels")
     if not isinstance(channels, dict):
         raise PlanError(f"{where}: channels: missing or not an object")

@@ -25,8 +25,8 @@ from stim300.atomic import write_atomic
 from stim300.progress import Progress
 
 from . import detect
-from .warmup import WarmupConfig
-from .errors import CalibdError, CalibrationError
+from .warmup import warm_up_end_s, warm_up_label
+from .errors import CalibdError, CalibrationError, SiteError
 from .methods import estimator
 from .figures import Figure, allan_figure, earth_rate_figure, timeline_figure
 from .frames import Site
@@ -34,7 +34,6 @@ from .results import CalibrationResult, SchemaError, load_result, schema_version
 from .scenario import TRUTH_FORMER_NAMES, TRUTH_SCHEMA, TRUTH_VERSION, Truth
 from .segments import segment_record, session_segments
 from .session import Capture, Session, power_up_session
-from .warmup import settling
 
 MATPLOTLIB_MISSING = "calibd report needs matplotlib: pip install 'stim300-calib[plot]'"
 STEPS = ("capture", "segments", "timeline", "Earth-rate fit", "Allan deviation", "thesis method", "files")
@@ -71,7 +70,7 @@ def write_report(result_path, capture: Capture, output, stream=None) -> list[Pat
         segments = session_segments(session)
         roles = detect.segment_roles(segments)
         warm_up = (skipped_s, "warm-up skipped by the result") if skipped_s > 0 else (
-            _warm_up_end_s(whole), f"warm-up (temperature trend above {WarmupConfig().max_slope_c_per_h:g} degC/h)")
+            warm_up_end_s(whole.time_s, whole.temperature_c), warm_up_label())
         bar.update(2, STEPS[2])
         figures = [timeline_figure(canvas, whole, segments, roles, warm_up)]
         bar.update(3, STEPS[3])
@@ -108,7 +107,7 @@ def _site(result: CalibrationResult, path) -> Site:
     try:
         site = result.site
         return Site(site["latitude_deg"], site.get("height_m", 0.0), site.get("g0_m_s2"))
-    except (KeyError, TypeError, ValueError) as exc:
+    except (KeyError, TypeError, SiteError) as exc:
         raise ReportError(f"{path}: no usable site in the result ({exc})") from None
 
 
@@ -167,14 +166,6 @@ def read_truth(capture: str) -> tuple[dict[str, float], dict[str, float]] | None
         return truth.estimates(), carried.estimates()
     except (OSError, ValueError, KeyError, TypeError, SchemaError):
         return None
-
-
-def _warm_up_end_s(whole: Session) -> float:
-    """Where the warm-up rule ends the warm-up of the power-up (its end if it never settles)."""
-    if whole.temperature_c is None:
-        return float(whole.time_s[0])
-    verdict = settling(whole.time_s, whole.temperature_c)
-    return verdict.start_s if verdict.settled else float(whole.time_s[-1])
 
 
 CSS = """

@@ -16,7 +16,7 @@ from pathlib import Path
 
 from stim300.protocol import ACC_RANGE_LSB_EXP, NORMAL_LAYOUTS, SAMPLE_RATES_HZ
 
-from .errors import CalibdError
+from .errors import CalibdError, SiteError
 from .frames import Site
 
 READY_MADE = ("thesis-real", "thesis-bench", "continuous")
@@ -223,12 +223,16 @@ def _sensor(t: _Table) -> Sensor:
     return sensor
 
 
-def _site(t: _Table) -> Site:
-    lat = t.get("latitude_deg", None, float, lambda v: -90 <= v <= 90, "a latitude in [-90, 90] deg")
+def site_from_table(t: _Table) -> Site:
+    """The [site] table of a scenario or a daemon configuration; the Site checks the ranges, the
+    table says where."""
+    lat = t.get("latitude_deg", None, float)
     if lat is None:
         t.fail("latitude_deg", "missing: the site's latitude is needed for the Earth rate")
-    site = Site(lat, t.get("height_m", 0.0), t.get("g0", None, float, lambda g: 9.7 <= g <= 9.9,
-                                                     "an Earth gravity in m/s^2 (9.7 to 9.9)"))
+    try:
+        site = Site(lat, t.get("height_m", 0.0, float), t.get("g0", None, float))
+    except SiteError as exc:
+        t.fail(exc.field, exc.reason)
     t.finish()
     return site
 
@@ -287,7 +291,7 @@ def parse_scenario(data: dict, where: str) -> Scenario:
                     bit_flips=faults_t.get("bit_flips", 0, int, lambda v: v >= 0, "a count >= 0"),
                     restart_at_s=faults_t.get("restart_at_s", None, float, _positive, "a positive time in s"))
     faults_t.finish()
-    scenario = Scenario(name=name, seed=seed, sensor=_sensor(table("sensor")), site=_site(table("site")),
+    scenario = Scenario(name=name, seed=seed, sensor=_sensor(table("sensor")), site=site_from_table(table("site")),
                         truth=_fields(Truth, table("truth")), noise=_fields(Noise, table("noise")),
                         warmup=_fields(Warmup, table("warmup")), segments=segments, faults=faults)
     top.finish()

@@ -19,14 +19,12 @@ from stim300.clock import counter_times
 from stim300.codec import fault_bits, start_up_flags, start_up_rises
 from stim300.protocol import status_names
 
-from .warmup import WarmupConfig
 from .errors import CalibrationError
 from .frames import STANDARD_GRAVITY
 from .units import DEG
-from .warmup import settling
+from .warmup import WARM_UP_RULE, record_settling, start_words
 
 STORE_RATE_HZ = 125  # faster data is block-averaged to this (the thesis's rate)
-WARM_UP_RULE = WarmupConfig()  # the daemon's default: calibrate starts a power-up where it is met
 
 
 @dataclass
@@ -295,15 +293,9 @@ def power_up_session(capture: Capture, number: int | None = None, start_s: float
     temps = None if np.isnan(data["temp"]).all() else data["temp"]
     if start_s is not None:
         start_by = "the given start"
-    elif temps is None:
-        start_s, start_by = 0.0, "the first sample (no temperatures: the warm-up rule cannot be applied)"
     else:
-        verdict = settling(time_s, temps, WARM_UP_RULE)
-        start_s = verdict.start_s
-        start_by = (f"warm-up rule: the temperature settled ({verdict.trend_c_per_h:+.2f} degC/h over "
-                    f"{WARM_UP_RULE.window_s:g} s)" if verdict.settled else
-                    f"warm-up rule: the temperature never settles, the calmest window ({verdict.trend_c_per_h:+.2f} "
-                    f"degC/h over {WARM_UP_RULE.window_s:g} s)")
+        verdict = record_settling(time_s, temps, WARM_UP_RULE)
+        start_s, start_by = (0.0 if verdict is None else verdict.start_s), start_words(verdict, WARM_UP_RULE)
     keep = time_s >= start_s
     if not keep.any():
         raise CalibrationError(f"start {start_s:g} s is past the end of power-up {number} of {count} "

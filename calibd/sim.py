@@ -19,7 +19,7 @@ from scipy.signal import lfilter
 
 from stim300.atomic import write_atomic
 from stim300.codec import SAMPLE_DTYPE, encode_samples
-from stim300.protocol import NORMAL_LAYOUTS, AccUnit, Format, GyroUnit
+from stim300.protocol import COUNTER_MODULUS, INTERNAL_RATE_HZ, NORMAL_LAYOUTS, AccUnit, Format, GyroUnit, Status
 from stim300.special import Configuration, PartNumber, SerialNumber, encode_special
 
 from .allan import FLICKER_TAUS_S, flicker_sigma
@@ -215,15 +215,20 @@ def simulate(scenario: Scenario) -> Simulation:
     for cluster, offset in TEMP_OFFSETS_C.items():
         jitter = rng.standard_normal((n, 3)) * noise.temperature_noise_c if noise.enabled else 0.0
         samples["temp_" + cluster] = counts((temperature + offset)[:, None] + jitter, "temp")
-    starting = np.where(since_power_on < START_UP_S, 0x40, 0)
+    starting = np.where(since_power_on < START_UP_S, Status.START_UP, 0)
     for cluster in ("gyro", "acc", "incl"):
         samples["status_" + cluster] = starting
     samples["aux"] = np.nan
-    step = 2000 // rate
-    samples["counter"] = (np.arange(n) * step) % 256
+    samples["counter"] = counter_values(n, rate)
     samples["latency_us"] = sensor.latency_us
     return Simulation(scenario, samples, t_end, phases, temperature, {"gyro": gyro, "acc": acc, "incl": incl},
                       wander)
+
+
+def counter_values(n: int, rate_hz: int) -> np.ndarray:
+    """The datagram counter of n datagrams from power-up: it counts the internal samples, so it
+    steps by INTERNAL_RATE_HZ / rate_hz and wraps at COUNTER_MODULUS."""
+    return np.arange(n) * (INTERNAL_RATE_HZ // rate_hz) % COUNTER_MODULUS
 
 
 def sensor_format(scenario: Scenario) -> Format:
@@ -267,10 +272,10 @@ def capture_bytes(sim: Simulation) -> tuple[bytes, dict]:
     if faults.restart_at_s is not None and faults.restart_at_s < sim.time_s[-1]:
         restart = int(np.searchsorted(sim.time_s, faults.restart_at_s))
         after = np.arange(len(samples) - restart)
-        samples["counter"][restart:] = (after * (2000 // scenario.sensor.sample_rate_hz)) % 256
+        samples["counter"][restart:] = counter_values(len(after), scenario.sensor.sample_rate_hz)
         up = after * (1.0 / scenario.sensor.sample_rate_hz) < START_UP_S
         for cluster in ("gyro", "acc", "incl"):
-            samples["status_" + cluster][restart:][up] = 0x40
+            samples["status_" + cluster][restart:][up] = Status.START_UP
     frames = encode_samples(samples, scenario.sensor.datagram_id, fmt, scenario.sensor.crlf)
     n, length = frames.shape
     flipped = rng.choice(n, size=min(faults.bit_flips, n), replace=False)

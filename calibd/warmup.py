@@ -4,7 +4,8 @@ Biases follow temperature, so data from a sensor still warming up carry biases t
 by the time they are used. The rule (`WarmupConfig`): the settled part starts at the first
 window of `window_s` (the whole record when shorter) whose least-squares temperature trend is
 within `max_slope_c_per_h` and which ends at least `min_time_s` after power-up. The daemon
-applies it to the data so far, `calibd calibrate` and the report to a whole power-up.
+applies it to the data so far, `calibd calibrate` and the report to a whole power-up. The
+verdict's words (a session's start, its warnings, the report's label) are said here too.
 """
 
 from __future__ import annotations
@@ -23,6 +24,10 @@ class WarmupConfig:
     window_s: float = 600.0  # the window the trend is fitted over
     min_time_s: float = 0.0  # and at least this long since power-up
 
+
+WARM_UP_RULE = WarmupConfig()  # the daemon's default: calibrate starts a power-up where it is met
+NOT_WARMED_UP = ("every estimate is flagged poor: the data were taken while the IMU warmed up, and biases move "
+                 "with temperature (record after the warm-up)")
 
 
 @dataclass(frozen=True)
@@ -74,3 +79,59 @@ def _window_slopes_c_per_h(t: np.ndarray, temp: np.ndarray, width: int) -> np.nd
 
     st, sy, stt, sty = sums(t), sums(temp), sums(t * t), sums(t * temp)
     return (width * sty - st * sy) / (width * stt - st * st) * 3600
+
+
+def rule_words(rule: WarmupConfig = WARM_UP_RULE) -> str:
+    return f"{rule.max_slope_c_per_h:g} degC/h over {rule.window_s:g} s"
+
+
+def record_settling(time_s: np.ndarray, temperature_c: np.ndarray | None,
+                    rule: WarmupConfig = WARM_UP_RULE) -> Settling | None:
+    """The rule on a record's own temperatures; None when it has none to judge by (no
+    temperatures in the datagram, or fewer than two samples)."""
+    if temperature_c is None or len(time_s) < 2:
+        return None
+    return settling(time_s, temperature_c, rule)
+
+
+def start_words(verdict: Settling | None, rule: WarmupConfig = WARM_UP_RULE) -> str:
+    """Why a power-up's session starts where the rule put it (its `start_by`)."""
+    if verdict is None:
+        return "the first sample (no temperatures: the warm-up rule cannot be applied)"
+    if verdict.settled:
+        return (f"warm-up rule: the temperature settled ({verdict.trend_c_per_h:+.2f} degC/h over "
+                f"{rule.window_s:g} s)")
+    return (f"warm-up rule: the temperature never settles, the calmest window ({verdict.trend_c_per_h:+.2f} "
+            f"degC/h over {rule.window_s:g} s)")
+
+
+def warm_up_warnings(time_s: np.ndarray, temperature_c: np.ndarray | None,
+                     rule: WarmupConfig = WARM_UP_RULE) -> list[str]:
+    """What a record's temperatures say about its biases: not checkable, never settled, or
+    settled only after its start."""
+    verdict = record_settling(time_s, temperature_c, rule)
+    if verdict is None:
+        return ["no temperatures in the datagram: warm-up cannot be checked"]
+    if not verdict.settled:
+        return [f"the temperature never settles in this power-up (calmest trend {verdict.trend_c_per_h:+.1f} degC/h "
+                f"from {verdict.start_s:.0f} s; warmed up means within {rule_words(rule)}): the IMU is not warmed "
+                "up, biases drift with temperature"]
+    early_s = verdict.start_s - time_s[0]
+    if early_s > 1.0:
+        return [f"the first {early_s:.0f} s of the data are warm-up (the temperature settles within "
+                f"{rule_words(rule)} only from {verdict.start_s:.0f} s of the power-up): biases drift"]
+    return []
+
+
+def warm_up_end_s(time_s: np.ndarray, temperature_c: np.ndarray | None,
+                  rule: WarmupConfig = WARM_UP_RULE) -> float:
+    """Where the rule ends a record's warm-up: its start without temperatures, its end if it never settles."""
+    if temperature_c is None:
+        return float(time_s[0])
+    verdict = settling(time_s, temperature_c, rule)
+    return verdict.start_s if verdict.settled else float(time_s[-1])
+
+
+def warm_up_label(rule: WarmupConfig = WARM_UP_RULE) -> str:
+    """The report's name for the data before warm_up_end_s."""
+    return f"warm-up (temperature trend above {rule.max_slope_c_per_h:g} degC/h)"

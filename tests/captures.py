@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from stim300.codec import SAMPLE_DTYPE, encode_samples
-from stim300.protocol import INTERNAL_RATE_HZ, NORMAL_LAYOUTS, Format
+from stim300.protocol import COUNTER_MODULUS, INTERNAL_RATE_HZ, NORMAL_LAYOUTS, Format, Status
 
 
 def exact_samples(n: int, fmt: Format, datagram_id: int, rng: np.random.Generator, counter0: int = 0) -> np.ndarray:
@@ -18,7 +18,7 @@ def exact_samples(n: int, fmt: Format, datagram_id: int, rng: np.random.Generato
     for name in ("gyro", "acc", "incl"):
         if name in layout.clusters:
             s[name] = rng.integers(-(1 << 23), 1 << 23, (n, 3)) * scales[name]
-            s["status_" + name] = rng.choice([0, 0, 0, 0x40, 0x11], n)
+            s["status_" + name] = rng.choice([0, 0, 0, Status.START_UP, Status.OVERLOAD | Status.X], n)
         else:
             s[name] = np.nan
     for name in ("gyro", "acc", "incl"):
@@ -34,7 +34,7 @@ def exact_samples(n: int, fmt: Format, datagram_id: int, rng: np.random.Generato
     else:
         s["aux"] = np.nan
     step = INTERNAL_RATE_HZ // (fmt.sample_rate_hz or INTERNAL_RATE_HZ)
-    s["counter"] = (counter0 + step * np.arange(n)) % 256
+    s["counter"] = (counter0 + step * np.arange(n)) % COUNTER_MODULUS
     s["latency_us"] = rng.integers(0, 1 << 16, n)
     return s
 

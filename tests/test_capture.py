@@ -12,7 +12,7 @@ from captures import capture
 from stim300.bulk import decode_capture, decode_columns
 from stim300.capture import stream_info
 from stim300.codec import SAMPLE_DTYPE
-from stim300.protocol import Format
+from stim300.protocol import INTERNAL_RATE_HZ, Format
 from stim300.stream import StreamParser
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
@@ -34,7 +34,7 @@ def test_without_a_configuration_the_rate_comes_from_the_counter_step(rate_hz):
     data, samples, fmt = capture(50, rate=rate_hz)
     info = decode_capture(data, Format(datagram_id=fmt.datagram_id)).info
     assert info.format.sample_rate_hz is None
-    assert info.rate_hz == rate_hz and info.stats.counter_step == 2000 // rate_hz
+    assert info.rate_hz == rate_hz and info.stats.counter_step == INTERNAL_RATE_HZ // rate_hz
     assert info.sensor_record() == {"serial_number": None, "part_number": None, "datagram_id": "0xA7",
                                     "sample_rate_hz": rate_hz}
 

@@ -9,6 +9,7 @@ import pytest
 
 from captures import capture
 from stim300.cli import main
+from stim300.protocol import Status
 from stim300.special import Configuration, encode_special
 
 
@@ -84,7 +85,7 @@ def test_info_json(capture_file, capsys):
     assert info["duration_s"] == pytest.approx(300 / 125)
     assert info["configuration"]["sample_rate_hz"] == 125
     flags = info["status_flags"]
-    assert flags["gyro"]["START_UP"] == np.count_nonzero(truth["status_gyro"] == 0x40)
+    assert flags["gyro"]["START_UP"] == np.count_nonzero(truth["status_gyro"] == Status.START_UP)
     assert flags["acc"]["OVERLOAD"] == flags["acc"]["X"] == np.count_nonzero(truth["status_acc"] == 0x11)
     assert set(flags) == {"gyro", "acc", "incl", "temp_gyro", "temp_acc", "temp_incl"}
 

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from stim300.clock import CYCLE_S, CounterClock, counter_times, host_window
+from stim300.protocol import COUNTER_MODULUS, INTERNAL_RATE_HZ
 
 RATE_HZ = 125
 
@@ -27,8 +28,8 @@ def host_read_times(true_s: np.ndarray, rng, read_every_s: float = 0.004, stall_
 def stream(n: int, lost: dict[int, int], rate_hz: int = RATE_HZ):
     """Counters and true times of n sent datagrams, with lost[i] datagrams lost before the i-th."""
     index = np.arange(n) + np.cumsum([lost.get(i, 0) for i in range(n)])
-    step = 2000 // rate_hz
-    return ((index * step) % 256).astype(np.uint8), index / rate_hz
+    step = INTERNAL_RATE_HZ // rate_hz
+    return ((index * step) % COUNTER_MODULUS).astype(np.uint8), index / rate_hz
 
 
 @pytest.mark.parametrize("cycles", [1, 2, 12])
@@ -74,9 +75,9 @@ def test_host_times_faster_than_real_time_are_no_evidence():
 
 
 def test_without_host_times_the_counter_rules_as_before():
-    step = 2000 // RATE_HZ
+    step = INTERNAL_RATE_HZ // RATE_HZ
     sent = np.array([0, 1, 2, 5, 5 + 17, 5 + 17 + 16])  # 2 lost, then 16 (a whole cycle), then 15
-    counter = (sent * step % 256).astype(np.uint8)
+    counter = (sent * step % COUNTER_MODULUS).astype(np.uint8)
     expected = np.array([0, 1, 2, 5, 6, 6 + 16]) / RATE_HZ  # the whole cycle is invisible; a step
     # of 0 counts is read as one cycle
     for t_host in (None, np.full(6, np.nan)):

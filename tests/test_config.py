@@ -150,7 +150,7 @@ def replace_line(text: str, old: str, new: str) -> str:
     # method-option mixups
     ("beta_deg = -0.1125\n", "", "[method]", "alpha_deg", ["0.5964", "without beta_deg"]),
     ("alpha_deg = 0.5964\n", "", "[method]", "beta_deg", ["-0.1125", "without alpha_deg"]),
-    ('name = "thesis"', 'name = "joint"', "[method]", "alpha_deg", ["0.5964", '"joint"', "estimates alpha"]),
+    ('name = "thesis"', 'name = "joint"', "[method]", "alpha_deg", ["0.5964", '"joint"', "thesis method"]),
     ('name = "thesis"', 'name = "thesis"\ndrift = false', "[method]", "drift", ["False", '"thesis"', "joint"]),
     ('name = "thesis"', 'name = "thesis"\nfixed_amplitude = true', "[method]", "fixed_amplitude",
      ["True", '"thesis"']),

@@ -16,6 +16,7 @@ from calibd.scenario import load_scenario
 from calibd.sim import simulate
 from stim300.bulk import decode_capture
 from stim300.clock import counter_times
+from stim300.protocol import COUNTER_MODULUS, INTERNAL_RATE_HZ
 
 FIXTURES = Path(__file__).resolve().parent.parent / "fixtures"
 SETTLE_S = 1.0
@@ -170,16 +171,16 @@ def test_capture_with_lost_datagrams_is_one_static():
 
 @pytest.mark.parametrize("rate", [125, 2000])
 def test_counter_times_follow_the_counter_across_losses_and_the_wrap(rate):
-    step = 2000 // rate
-    cycle = 256 // step  # sample periods in one counter cycle
+    step = INTERNAL_RATE_HZ // rate
+    cycle = COUNTER_MODULUS // step  # sample periods in one counter cycle
     rng = np.random.default_rng(rate)
     gaps = rng.choice([1, 1, 1, 2, 3, cycle - 1, cycle], 30 * cycle)  # periods between received samples
     index = 7 + np.concatenate(([0], np.cumsum(gaps)))  # up to a cycle minus one sample lost, many wraps
-    times = counter_times(((index * step) % 256).astype(np.uint8), rate).time_s
+    times = counter_times(((index * step) % COUNTER_MODULUS).astype(np.uint8), rate).time_s
     assert np.allclose(times, (index - index[0]) / rate)
     assert np.diff(times).max() == pytest.approx(cycle / rate)
     # a whole cycle lost cannot be seen (documented): it reads as no loss
-    aliased = counter_times(np.array([0, (cycle + 1) * step]) % 256, rate).time_s
+    aliased = counter_times(np.array([0, (cycle + 1) * step]) % COUNTER_MODULUS, rate).time_s
     assert np.allclose(aliased, [0, 1 / rate])
     assert len(counter_times(np.zeros(0, np.uint8), rate).time_s) == 0
 

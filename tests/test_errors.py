@@ -60,8 +60,10 @@ def test_each_error_is_one_line_from_the_cli(error, argv, says, tmp_path, capsys
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
 
 
-def _imports(path: Path, module: str) -> set[str]:
-    """The project modules `module` (at `path`) imports at any depth of its body, lazy ones included."""
+def _imports(path: Path, module: str, modules) -> set[str]:
+    """The project modules `module` (at `path`) imports at any depth of its body, lazy ones included.
+    `from package import submodule` needs the submodule, not the package's other names: Python
+    binds it even while the package's __init__ is still running, so it is no edge to the package."""
     package = module if path.name == "__init__.py" else module.rsplit(".", 1)[0]
     found = set()
     for node in ast.walk(ast.parse(path.read_text())):
@@ -72,7 +74,8 @@ def _imports(path: Path, module: str) -> set[str]:
             if node.level:
                 parts = package.split(".")
                 base = ".".join(parts[:len(parts) - node.level + 1] + ([base] if base else []))
-            found |= {base} | {f"{base}.{alias.name}" for alias in node.names}
+            submodules = {f"{base}.{alias.name}" for alias in node.names}
+            found |= submodules if submodules <= set(modules) else {base} | submodules
     return found
 
 
@@ -83,7 +86,8 @@ def _graph() -> dict[str, set[str]]:
         for path in (ROOT / package).rglob("*.py"):
             parts = path.relative_to(ROOT).with_suffix("").parts
             modules[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
-    return {name: {m for m in _imports(path, name) if m in modules and m != name} for name, path in modules.items()}
+    return {name: {m for m in _imports(path, name, modules) if m in modules and m != name}
+            for name, path in modules.items()}
 
 
 def _cycle(graph: dict[str, set[str]]) -> list[str] | None:

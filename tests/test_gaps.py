@@ -15,8 +15,8 @@ from calibd.frames import Site, int_to_imu, r3
 from calibd.results import CalibrationResult
 from calibd.scenario import load_scenario
 from calibd.sim import capture_bytes, simulate, truth_record
+from calibd.units import DEG
 
-DEG = np.pi / 180
 THESIS = load_scenario("thesis-real")
 CYCLE_DATAGRAMS = 16  # the counter's 256 internal samples at 125 Hz (step 16)
 LOST_WARNING = "datagrams lost unseen by the counter"

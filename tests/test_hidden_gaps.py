@@ -26,7 +26,7 @@ from stim300.cli import main as stim300_main
 from stim300.clock import CYCLE_S, CounterClock, host_window
 from stim300.codec import SAMPLE_DTYPE, encode_samples
 from stim300.port import PortReader
-from stim300.protocol import Format
+from stim300.protocol import COUNTER_MODULUS, INTERNAL_RATE_HZ, Format
 from stim300.reads import READS_DTYPE, load_reads, reads_path
 from stim300.ringbuffer import RingBuffer
 from stim300.special import Configuration, encode_special
@@ -151,7 +151,7 @@ def sensor_bytes() -> tuple[bytes, np.ndarray]:
     for name in samples.dtype.names:
         if name.startswith("status"):
             samples[name] = 0  # a healthy sensor: no start-up bit, which would read as a restart
-    samples["counter"] = (SENT * 16) % 256
+    samples["counter"] = (SENT * (INTERNAL_RATE_HZ // RATE_HZ)) % COUNTER_MODULUS
     return encode_special(config, crlf=False), encode_samples(samples, fmt.datagram_id, fmt, crlf=False)
 
 

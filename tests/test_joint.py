@@ -18,8 +18,8 @@ from calibd.estimators.joint import (JointInput, JointOptions, NoiseModel, Senso
 from calibd.frames import EARTH_RATE, NORMAL_GRAVITY_SIGMA, STANDARD_GRAVITY, Site, int_to_imu
 from calibd.scenario import Noise, Segment, load_scenario
 from calibd.sim import simulate, truth_record, write_capture
+from calibd.units import DEG
 
-DEG = np.pi / 180
 DISPLAY = {"pitch": 1 / DEG, "roll": 1 / DEG, "yaw": 1 / DEG, "alpha": 1 / DEG, "beta": 1 / DEG}
 
 

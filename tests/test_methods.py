@@ -2,6 +2,8 @@
 lacks (None once it holds the protocol) and solves through one call; the daemon, `calibd
 calibrate` and the configuration find methods there."""
 
+import dataclasses
+import tomllib
 from pathlib import Path
 
 import pytest
@@ -9,9 +11,9 @@ import pytest
 from calibd import config, methods
 from calibd.cli import load_session
 from calibd.segments import session_segments
-from calibd.config import WarmupConfig
+from calibd.config import ConfigError, MethodConfig, WarmupConfig, parse_config
 from calibd.daemon import Calibrator, Callbacks
-from calibd.methods import ESTIMATORS, JointOptions, ThesisOptions, estimator
+from calibd.methods import DAEMON_METHODS, ESTIMATORS, JointOptions, OptionError, ThesisOptions, estimator
 from calibd.frames import Site
 from calibd.results import CalibrationResult
 from stim300.bulk import decode_capture
@@ -43,7 +45,8 @@ def test_options_come_from_named_settings():
     settings = {"fixed_amplitude": True, "drift": False, "alpha_deg": 0.5, "beta_deg": -0.1}
     assert estimator("joint").options(settings) == JointOptions(True, False)
     assert estimator("thesis").options(settings) == ThesisOptions((0.5, -0.1), None)
-    assert estimator("thesis").options({"alpha_deg": 0.5}) == ThesisOptions(None, None)  # both or neither
+    with pytest.raises(OptionError, match="alpha_deg: 0.5 given without beta_deg"):  # both or neither
+        estimator("thesis").options({"alpha_deg": 0.5})
     assert estimator("thesis-bench").options(settings) is None
 
 
@@ -97,3 +100,26 @@ def test_the_daemon_asks_the_registry(monkeypatch):
     calibrator.finish()
     assert calibrator.result is None
     assert details[-1].endswith("; waiting for: a stand-in's needs"), details[-1]
+
+
+def test_every_daemon_methods_settings_are_method_config_fields():
+    """The daemon passes its MethodConfig's fields to Estimator.options: a setting without a field is lost."""
+    fields = {f.name for f in dataclasses.fields(MethodConfig)}
+    for name in DAEMON_METHODS:
+        assert estimator(name).settings.keys() <= fields, name
+
+
+@pytest.mark.parametrize("name", DAEMON_METHODS)
+def test_the_configuration_takes_each_methods_settings_from_the_registry(name, tmp_path):
+    base = '[serial]\nport = "/dev/ttyUSB0"\n[site]\nlatitude_deg = 40\n[output]\nstate_dir = "s"\n'
+    for other in DAEMON_METHODS:
+        for key, setting in estimator(other).settings.items():
+            value = {bool: "true", float: "0.5"}[setting.kind]
+            pair = "\nbeta_deg = 0.5" if key == "alpha_deg" else "\nalpha_deg = 0.5" if key == "beta_deg" else ""
+            text = base + f'[method]\nname = "{name}"\n{key} = {value}{pair}\n'
+            if other == name:
+                assert getattr(parse_config(tomllib.loads(text), "c.toml").method, key) in (True, 0.5)
+            else:
+                with pytest.raises(ConfigError, match=f"c.toml \\[method\\] {key}: .* is not allowed with "
+                                                      f'name = "{name}": it is an option of the {other} method'):
+                    parse_config(tomllib.loads(text), "c.toml")

@@ -17,8 +17,8 @@ from calibd.estimators.joint import JointInput, datasheet_noise, solve, white_no
 from calibd.frames import STANDARD_GRAVITY, Site
 from calibd.scenario import Noise, load_scenario
 from calibd.sim import simulate
+from calibd.units import DEG
 
-DEG = math.pi / 180
 THESIS = load_scenario("thesis-real")
 SITE = THESIS.site
 STIM300 = Noise()
@@ -198,14 +198,16 @@ def test_plan_command_errors_are_one_line(argv, message, tmp_path, capsys, monke
 
 @pytest.mark.parametrize("content,message", [
     ("not json", "noise.json: not a JSON noise file"),
-    ({"schema": "calibd.result/1"}, "noise.json: schema: 'calibd.result/1' is not 'calibd.noise/1'"),
+    ({"schema": "calibd.result/1"}, "noise.json: schema is 'calibd.result/1', not a calibd.noise file"),
+    ({"schema": "calibd.noise/2"}, "noise.json: schema is calibd.noise/2, newer than this calibd reads (up to 1)"),
+    ([1, 2], "noise.json: not a JSON object, expected a calibd.noise file"),
     ({"schema": "calibd.noise/1"}, "noise.json: channels: missing"),
     ("drop:gyro_y", "noise.json: channels.gyro_y: missing"),
     ("acc_z__bias_instability__unit=ug", "noise.json: channels.acc_z.bias_instability.unit: 'ug' where 'mg'"),
     ("incl_x__random_walk__value=None", "noise.json: channels.incl_x.random_walk.value: None is not a non-negative"),
 ])
 def test_bad_noise_files_are_one_line(content, message, tmp_path, capsys):
-    if isinstance(content, dict) or content == "not json":
+    if isinstance(content, (dict, list)) or content == "not json":
         path = tmp_path / "noise.json"
         path.write_text(content if isinstance(content, str) else json.dumps(content))
     elif content.startswith("drop:"):

@@ -10,9 +10,9 @@ from calibd.frames import Site
 from calibd.report import read_truth
 from calibd.results import (SCHEMA, CalibrationResult, Estimate, ResultError, SchemaError, load_result, make_result,
                             result_json, schema_version, write_result)
+from calibd.units import DEG
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
-DEG = 3.141592653589793 / 180
 
 
 def joint_like() -> CalibrationResult:

@@ -12,9 +12,10 @@ from calibd.frames import EARTH_RATE, STANDARD_GRAVITY, Site, euler_321, int_to_
 from calibd.allan import FLICKER_TAUS_S, allan_deviation, allan_gm, flicker_sigma
 from calibd.scenario import ScenarioError, Segment, load_scenario, parse_scenario
 from calibd.sim import capture_bytes, sensor_noise, simulate, truth_record
+from calibd.units import DEG
 from stim300.bulk import decode_capture
+from stim300.protocol import Status
 
-DEG = np.pi / 180
 GYRO_LSB, ACC_LSB, INCL_LSB = 2.0**-14, 2.0**-19, 2.0**-22
 
 
@@ -132,7 +133,7 @@ def test_warm_up_moves_the_biases(thesis):
     first = np.array(record["bias_during_capture"]["gyro_bias_deg_h"]["first"])
     assert np.abs(first - scenario.truth.gyro_bias_deg_h).max() > 10  # 16 degC below settled at power-on
     assert samples["temp_acc"][0, 0] == pytest.approx(22.0, abs=0.1)
-    assert (samples["status_gyro"][:87] == 0x40).all() and (samples["status_gyro"][88:] == 0).all()
+    assert (samples["status_gyro"][:87] == Status.START_UP).all() and (samples["status_gyro"][88:] == 0).all()
 
 
 def test_faults_show_in_the_decoder_statistics(thesis):

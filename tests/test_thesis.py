@@ -18,8 +18,8 @@ from calibd.estimators import thesis
 from calibd.frames import EARTH_RATE, STANDARD_GRAVITY, Site, int_to_imu, nav_to_imu
 from calibd.scenario import Segment, load_scenario
 from calibd.sim import write_capture
+from calibd.units import DEG
 
-DEG = np.pi / 180
 SITE = Site(40.59129, g0=9.79956)  # thesis Table 7.1
 H = EARTH_RATE * np.cos(np.radians(SITE.latitude_deg))  # horizontal Earth rate, rad/s
 V = EARTH_RATE * np.sin(np.radians(SITE.latitude_deg))
@@ -371,7 +371,7 @@ def test_bench_fixture_calibrates_with_its_three_360_deg_turns():
     (["calibrate", FIXTURE, "-o", "r.json"], "required: --latitude"),
     (["calibrate", FIXTURE, "--method", "thesis", "--latitude", "40", "--alpha", "0.5", "-o", "r.json"],
      "both --alpha and --beta"),
-    (["calibrate", FIXTURE, "--latitude", "91", "-o", "r.json"], "outside [-90, 90] deg"),
+    (["calibrate", FIXTURE, "--latitude", "91", "-o", "r.json"], "91.0 is not a latitude in [-90, 90] deg"),
     (["calibrate", "fixtures/faults_125hz.bin", "--method", "thesis", "--latitude", "40", "-o", "r.json"],
      "not the thesis real-case"),
     (["calibrate", "fixtures/thesis_real_cw_125hz.bin", "--method", "thesis", "--bench", "--latitude", "40", "-o",

@@ -7,7 +7,8 @@ import pytest
 
 from calibd.cli import load_session
 from calibd.config import WarmupConfig
-from calibd.warmup import settling
+from calibd.warmup import (WARM_UP_RULE, record_settling, settling, start_words, warm_up_end_s, warm_up_label,
+                           warm_up_warnings)
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
 
@@ -64,3 +65,31 @@ def test_without_temperatures_only_time_since_power_up_counts(warming):
     assert settling(t, None).start_s == 0.0 and settling(t, None).trend_c_per_h is None
     assert settling(t, None, WarmupConfig(min_time_s=700.0)).start_s == pytest.approx(100.0, abs=1.5)
     assert not settling(t[t < 500], None, WarmupConfig(min_time_s=700.0)).settled
+
+
+def test_the_verdict_in_words(warming):
+    """The session's start, its warnings and the report's label all come from calibd.warmup."""
+    t, temp = warming
+    verdict = record_settling(t, temp)
+    assert verdict == settling(t, temp, WARM_UP_RULE)
+    assert start_words(verdict).startswith("warm-up rule: the temperature settled (+")
+    assert warm_up_end_s(t, temp) == verdict.start_s
+    [early] = warm_up_warnings(t, temp)
+    assert f"the first {verdict.start_s - t[0]:.0f} s of the data are warm-up" in early
+    assert "1 degC/h over 600 s" in early
+    late = t >= verdict.start_s
+    assert warm_up_warnings(t[late], temp[late]) == []
+    never = t < 400
+    [unsettled] = warm_up_warnings(t[never], temp[never])
+    assert "never settles" in unsettled and "not warmed up" in unsettled
+    assert "never settles" in start_words(record_settling(t[never], temp[never]))
+    assert warm_up_end_s(t[never], temp[never]) == t[never][-1]
+    assert "above 1 degC/h" in warm_up_label()
+
+
+def test_without_temperatures_the_rule_has_no_verdict(warming):
+    t, _ = warming
+    assert record_settling(t, None) is None and record_settling(t[:1], np.ones(1)) is None
+    assert warm_up_warnings(t, None) == ["no temperatures in the datagram: warm-up cannot be checked"]
+    assert "no temperatures" in start_words(None)
+    assert warm_up_end_s(t, None) == t[0]

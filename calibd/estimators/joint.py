@@ -44,6 +44,17 @@ MAX_ITERATIONS = 20  # chi depends on the fitted axis and Earth terms: iterate t
 CHI_TOLERANCE = 1e-13  # rad: the largest change of chi between passes that counts as converged
 FLICKER_BIN_S = 0.1  # flicker's fastest component (3 s) barely changes within a bin (3 % at most)
 
+# The fits' parameter vectors, named once for every reader (the fits, the chain, the figures).
+# Gyro fit: (v1, v2, k, c[, d]).
+EARTH_RATE_PARAMS = slice(0, 2)  # v1, v2: the horizontal Earth rate in the interface frame, rad/s
+AXIS_PARAMS = slice(2, 5)  # k: the platform axis in IMU axes (the gyros' rate coefficient)
+OFFSET_PARAMS = slice(5, 8)  # c = v3 k + b, rad/s
+DRIFT_PARAMS = slice(8, 11)  # d: a linear drift per channel, rad/s per s (JointOptions.drift only)
+GYRO_PARAM_COUNT = {False: OFFSET_PARAMS.stop, True: DRIFT_PARAMS.stop}  # by JointOptions.drift
+# Force fits (accelerometers, inclinometers): (u1, u2, b).
+TILT_PARAMS = slice(0, 2)  # u1, u2: the platform axis's tilt in the interface frame
+BIAS_PARAMS = slice(2, 5)  # b, m/s^2
+
 
 class Underdetermined(CalibdError):
     """The session's segments do not determine the fit (statics at too few platform angles):
@@ -153,10 +164,11 @@ def _gyro_designs(chi, chi_rate, tau, a, drift: bool) -> list[ChannelDesign]:
     designs = []
     for i in range(3):
         cols = [a[i, 0] * cos - a[i, 1] * sin, a[i, 0] * sin + a[i, 1] * cos, chi_rate, np.ones(len(chi))]
-        params = [0, 1, 2 + i, 5 + i]
+        params = [*range(EARTH_RATE_PARAMS.start, EARTH_RATE_PARAMS.stop), AXIS_PARAMS.start + i,
+                  OFFSET_PARAMS.start + i]
         if drift:
             cols.append(tau)
-            params.append(8 + i)
+            params.append(DRIFT_PARAMS.start + i)
         designs.append(ChannelDesign(np.array(params), np.column_stack(cols)))
     return designs
 
@@ -227,10 +239,10 @@ def fit_gyros(inp: JointInput, site: Site, options: JointOptions = JointOptions(
         previous = chi
         chi, chi_rate = _platform_angle(inp, axis, offset, static)
         designs = _gyro_designs(chi, chi_rate, tau, int_to_imu(*alpha_beta(axis)), options.drift)
-        gram, rhs = _normal_equations(designs, inp.gyro, 11 if options.drift else 8)
+        gram, rhs = _normal_equations(designs, inp.gyro, GYRO_PARAM_COUNT[options.drift])
         params, bread = _on_circle(gram, rhs, amplitude) if options.fixed_amplitude else _free(gram, rhs)
         residuals = np.column_stack([inp.gyro[:, i] - designs[i] @ params for i in range(3)])
-        k = params[2:5]
+        k = params[AXIS_PARAMS]
         axis = k / np.linalg.norm(k)
         offset = inp.gyro - residuals - np.outer(chi_rate, k)  # the fitted non-rotational part
         if np.max(np.abs(chi - previous)) < CHI_TOLERANCE:
@@ -238,10 +250,11 @@ def fit_gyros(inp: JointInput, site: Site, options: JointOptions = JointOptions(
     noise = noise or _fitted_noise(residuals, inp, least_flicker)
     cov = _covariance(designs, np.arange(len(inp.time_s)), inp, bread, noise)
     scale = _noise_scale(residuals, inp)
-    fitted = float(np.hypot(*params[:2]))
-    radial = params[:2] / fitted
+    fitted = float(np.hypot(*params[EARTH_RATE_PARAMS]))
+    radial = params[EARTH_RATE_PARAMS] / fitted
+    amplitude_var = radial @ cov[EARTH_RATE_PARAMS, EARTH_RATE_PARAMS] @ radial  # 0 when the amplitude is fixed
     return GyroFit(params, cov, chi, chi_rate, residuals.std(axis=0), scale, noise,
-                   (fitted, float(np.sqrt(max(radial @ cov[:2, :2] @ radial, 0.0)))),  # 0 when the amplitude is fixed
+                   (fitted, float(np.sqrt(max(amplitude_var, 0.0)))),
                    _static_chi2(residuals, inp, len(params) - 3, noise))
 
 
@@ -305,6 +318,11 @@ def _covariance(designs, rows: np.ndarray, inp: JointInput, bread: np.ndarray, n
                 meat[np.ix_(d.params, d.params)] += noise.flicker * grid[:, cols].T @ correlated[:, cols]
                 start += len(d.params)
     return bread @ meat @ bread
+
+
+def has_drift(gyro_params: np.ndarray) -> bool:
+    """Whether a gyro fit's parameters include the drift terms (JointOptions.drift)."""
+    return len(gyro_params) == GYRO_PARAM_COUNT[True]
 
 
 def alpha_beta(axis: np.ndarray) -> tuple[float, float]:
@@ -421,26 +439,26 @@ def _triad(primary_a, secondary_a, primary_b, secondary_b) -> np.ndarray:
 def estimates_from(gyro_params: np.ndarray, incl_params: np.ndarray, acc_params: np.ndarray, site: Site) -> dict:
     """Every estimate (SI) from the fitted parameters: a pure function, so its Jacobian carries the
     fits' covariances to the estimates."""
-    k = gyro_params[2:5]
+    k = gyro_params[AXIS_PARAMS]
     alpha, beta = alpha_beta(k)
     a = int_to_imu(alpha, beta)
     omega, up = site.earth_rate_nav, np.array([0.0, 0.0, 1.0])
-    u1, u2 = incl_params[:2]
+    u1, u2 = incl_params[TILT_PARAMS]
     u = np.array([u1, u2, np.sqrt(1 - u1**2 - u2**2)])  # Up in the interface frame
     horizontal = omega - (omega @ up) * up
     # v = R_NAV^int Omega. The fit gives v1, v2; v3 (along the interface z axis) hides in c and
     # follows from the attitude, which needs v across u: a fixed point, reached in a few passes.
     v3 = omega @ up
     for _ in range(4):
-        v = np.array([gyro_params[0], gyro_params[1], v3])
+        v = np.append(gyro_params[EARTH_RATE_PARAMS], v3)
         r_nav_int = _triad(u, v - (v @ u) * u, up, horizontal)
         v3 = (r_nav_int @ omega)[2]
     yaw, pitch, roll = euler_321(a @ r_nav_int)
-    gyro_bias = gyro_params[5:8] - v3 * a[:, 2]
+    gyro_bias = gyro_params[OFFSET_PARAMS] - v3 * a[:, 2]
     return {"pitch": float(pitch), "roll": float(roll), "yaw": float(yaw), "alpha": alpha, "beta": beta,
             **{f"gyro_bias_{x}": float(b) for x, b in zip("xyz", gyro_bias)},
-            **{f"acc_bias_{x}": float(b) for x, b in zip("xyz", acc_params[2:5])},
-            **{f"incl_bias_{x}": float(b) for x, b in zip("xyz", incl_params[2:5])}}
+            **{f"acc_bias_{x}": float(b) for x, b in zip("xyz", acc_params[BIAS_PARAMS])},
+            **{f"incl_bias_{x}": float(b) for x, b in zip("xyz", incl_params[BIAS_PARAMS])}}
 
 
 def _jacobian(f, x: np.ndarray, steps: np.ndarray) -> np.ndarray:
@@ -469,7 +487,7 @@ def solve(inp: JointInput, site: Site, options: JointOptions = JointOptions(),
     (whose flicker is at least the STIM300 datasheet's)."""
     least = datasheet_noise(Noise(), inp.rate_hz)
     gyro = fit_gyros(inp, site, options, noise and noise.gyro, least.gyro.flicker)
-    k = gyro.params[2:5]
+    k = gyro.params[AXIS_PARAMS]
     incl = fit_force(inp.incl, gyro.chi, inp, k, site.gravity, noise and noise.incl, least.incl.flicker)
     acc = fit_force(inp.acc, gyro.chi, inp, k, site.gravity, noise and noise.acc, least.acc.flicker)
     sizes = (len(gyro.params), len(incl.params))
@@ -496,7 +514,7 @@ def parameter_covariance(gyro: GyroFit, incl: ForceFit, acc: ForceFit, g0_sigma:
 
     def from_drivers(force: ForceFit) -> np.ndarray:
         m = np.zeros((len(force.params), p + 1))
-        m[:, 2:5] = force.sensitivity[:, :3]  # k is gyro params 2:5
+        m[:, AXIS_PARAMS] = force.sensitivity[:, :3]
         m[:, p] = force.sensitivity[:, 3]
         return m
 
@@ -520,7 +538,7 @@ def white_noise_bound(inp: JointInput, result: JointResult, site: Site, gyro_arw
     estimator reaches when the noise is white and the accelerometers are perfect."""
     p = len(result.gyro.params)
     designs = _gyro_designs(result.gyro.chi, result.gyro.chi_rate, inp.time_s - inp.time_s.mean(),
-                            int_to_imu(*alpha_beta(result.gyro.params[2:5])), p == 11)
+                            int_to_imu(*alpha_beta(result.gyro.params[AXIS_PARAMS])), has_drift(result.gyro.params))
     cov = np.linalg.inv(_gram(designs, p)) * gyro_arw_rad_sqrt_s**2 * inp.rate_hz
     jac = result.jacobian[:, :p]
     return dict(zip(result.estimates, np.sqrt(np.diag(jac @ cov @ jac.T)).tolist()))
