@@ -20,7 +20,7 @@ from .estimators import joint, thesis
 from .frames import EARTH_RATE, STANDARD_GRAVITY, Site, int_to_imu
 from .results import CalibrationResult, make_result
 from .segments import segment_record, session_segments
-from .session import Capture, Session, power_up_session
+from .session import CaptureSessions, Session, power_up_session
 from .units import DEG
 from .warmup import NOT_WARMED_UP, record_settling, warm_up_warnings
 
@@ -33,7 +33,7 @@ class ProtocolIncomplete(CalibrationError):
         self.reason, self.found = reason, found
 
 
-def calibrate_capture(capture: Capture, solve, power_up: int | None = None,
+def calibrate_capture(capture: CaptureSessions, solve, power_up: int | None = None,
                       start_s: float | None = None) -> CalibrationResult:
     """`solve(session) -> result` on power-up `power_up`, or on the last power-up that has what
     the method needs. Estimates of a power-up whose temperature never settles are flagged."""

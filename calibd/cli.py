@@ -34,18 +34,18 @@ from .frames import STANDARD_GRAVITY, Site, site_value_error
 from .live import configure_logging, replay, run
 from .results import CalibrationResult, ResultError, ResultStore, load_result, write_result
 from .scenario import READY_MADE, ScenarioError, load_scenario
-from .session import Capture, Session, decode, power_up_session
+from .session import CaptureSessions, Session, decode_sessions, power_up_session
 from .units import DEG
 
 
-def open_capture(path: str, data: bytes | None = None) -> Capture:
+def open_capture(path: str, data: bytes | None = None) -> CaptureSessions:
     """The capture at `path` (its bytes, when already read) decoded, its datagrams stamped by the
     read log recorded beside it (PATH.reads.npy) when there is one. Capture files are read here
     only: the rest of calibd takes decoded captures and sessions. A file is mapped, not read, and
     the pages decoded are let go, so a long capture never sits in memory whole."""
     reads = load_reads(path)
     if data is not None:
-        return decode(data, str(path), reads)
+        return decode_sessions(data, str(path), reads)
     try:
         f = open(path, "rb")
     except OSError:
@@ -53,14 +53,14 @@ def open_capture(path: str, data: bytes | None = None) -> Capture:
         raise
     with f:
         if not os.fstat(f.fileno()).st_size:
-            return decode(b"", str(path), reads)
+            return decode_sessions(b"", str(path), reads)
         with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as mapped:
             def let_go(offset: int) -> None:
                 done = offset // mmap.PAGESIZE * mmap.PAGESIZE
                 if done:
                     mapped.madvise(mmap.MADV_DONTNEED, 0, done)
 
-            return decode(mapped, str(path), reads, let_go)
+            return decode_sessions(mapped, str(path), reads, let_go)
 
 
 def load_session(path: str, start_s: float | None = 0.0, data: bytes | None = None,

@@ -33,7 +33,7 @@ from .frames import Site
 from .results import CalibrationResult, SchemaError, load_result, schema_version
 from .scenario import TRUTH_FORMER_NAMES, TRUTH_SCHEMA, TRUTH_VERSION, Truth
 from .segments import segment_record, session_segments
-from .session import Capture, Session, power_up_session
+from .session import CaptureSessions, Session, power_up_session
 
 MATPLOTLIB_MISSING = "calibd report needs matplotlib: pip install 'stim300-calib[plot]'"
 STEPS = ("capture", "segments", "timeline", "Earth-rate fit", "Allan deviation", "thesis method", "files")
@@ -49,7 +49,7 @@ def figures_dir(output) -> Path:
     return output.with_name(f"{output.stem}_files")
 
 
-def write_report(result_path, capture: Capture, output, stream=None) -> list[Path]:
+def write_report(result_path, capture: CaptureSessions, output, stream=None) -> list[Path]:
     """Render the report of the result at `result_path` on the decoded `capture` to `output` and
     its figures directory; returns the files written, the HTML first. A progress bar goes to
     `stream` (stderr) when it is a terminal."""

@@ -57,9 +57,10 @@ class PowerUp:
 
 
 @dataclass
-class Capture:
-    """A decoded capture cut at every sensor restart: each power-up has its own turn-on biases,
-    counter and platform angle, so a calibration uses one of them, never a mix."""
+class CaptureSessions:
+    """A capture as calibration keeps it (not `stim300.Capture`, which holds every sample): cut
+    at every sensor restart, each power-up block-averaged. Each power-up has its own turn-on
+    biases, counter and platform angle, so a calibration uses one of them, never a mix."""
 
     path: str
     power_ups: list[PowerUp]
@@ -254,7 +255,8 @@ class _PowerUpReader:
             times.time_s[times.gap_index], times.gap_s, times.checked))
 
 
-def decode(data, name: str, reads: np.ndarray | None = None, drop_before=lambda offset: None) -> Capture:
+def decode_sessions(data, name: str, reads: np.ndarray | None = None,
+                    drop_before=lambda offset: None) -> CaptureSessions:
     """Decode a capture's bytes (`name` says which capture in messages) into its power-ups, each
     kept block-averaged as it is decoded. `reads`, the capture's read log, stamps each datagram
     with its host read time, so the time base can include datagrams lost for whole counter
@@ -272,14 +274,14 @@ def decode(data, name: str, reads: np.ndarray | None = None, drop_before=lambda 
         raise CalibrationError(f"{name}: no STIM300 datagram found")
     reader.finish(info)
     stats = info.stats
-    return Capture(
+    return CaptureSessions(
         path=str(name), power_ups=reader.power_ups, rate_hz=reader.rate_hz,
         sensor=info.sensor_record() | {"sample_rate_hz": reader.rate_hz},
         stream={"capture": str(name), "datagrams": stats.datagrams, "lost_samples": stats.lost_samples,
                 "crc_errors": stats.crc_errors, "restarts": stats.restarts})
 
 
-def power_up_session(capture: Capture, number: int | None = None, start_s: float | None = 0.0) -> Session:
+def power_up_session(capture: CaptureSessions, number: int | None = None, start_s: float | None = 0.0) -> Session:
     """Power-up `number` (1-based; None: the last) from `start_s` (s since its first sample), or,
     with `start_s` None, from where the warm-up rule says its temperature has settled."""
     count = len(capture.power_ups)

@@ -28,7 +28,8 @@ def test_the_public_errors_share_calibds_root():
 
 
 def test_the_library_calibrates_a_capture_through_its_public_names():
-    capture = calibd.decode((ROOT / "fixtures" / "thesis_real_cw_125hz.bin").read_bytes(), "thesis_real_cw_125hz.bin")
+    path = ROOT / "fixtures" / "thesis_real_cw_125hz.bin"
+    capture = calibd.decode_sessions(path.read_bytes(), path.name)
     site = calibd.Site(40.59129, g0=9.79956)
     method = calibd.estimator("joint")
     result = calibd.calibrate_capture(capture, lambda s: method.solve(s, site, None, method.options({})), None, 0.0)
