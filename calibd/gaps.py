@@ -74,13 +74,20 @@ class TiltCheck:
         return float(gammaincc(self.dof / 2, self.chi2 / 2))
 
 
+# the check's parameter vector: the platform axis's tilt, both sensors' biases, then one angle
+# correction per turn (rad)
+TILT, ACC_BIAS, INCL_BIAS = slice(0, 2), slice(2, 5), slice(5, 8)
+CORRECTIONS_FROM = 8
+CORRECTIONS = slice(CORRECTIONS_FROM, None)
+
+
 def _model(params: np.ndarray, static_chi: np.ndarray, a: np.ndarray, g0: float) -> np.ndarray:
     """Static mean forces of both sensors, (2, S, 3): g0 A R3(chi + corrections so far) u + b."""
-    u1, u2 = params[:2]
+    u1, u2 = params[TILT]
     u = np.array([u1, u2, np.sqrt(1.0 - u1**2 - u2**2)])
-    chi = static_chi + np.concatenate(([0.0], np.cumsum(params[8:])))
+    chi = static_chi + np.concatenate(([0.0], np.cumsum(params[CORRECTIONS])))
     tilt = g0 * (a @ r3(chi) @ u)  # (S, 3)
-    return np.stack([tilt + params[2:5], tilt + params[5:8]])
+    return np.stack([tilt + params[ACC_BIAS], tilt + params[INCL_BIAS]])
 
 
 def check_turn_angles(inp: JointInput, chi: np.ndarray, a: np.ndarray, g0: float,
@@ -102,14 +109,15 @@ def check_turn_angles(inp: JointInput, chi: np.ndarray, a: np.ndarray, g0: float
         return np.concatenate([(w @ m).ravel() for w, m in zip(whiten, misfit)])
 
     start = np.concatenate([u0, means[0, 0] - g0 * a[:, 2], means[1, 0] - g0 * a[:, 2], np.zeros(len(statics) - 1)])
-    null = least_squares(lambda p: residuals(np.concatenate([p, start[8:]])), start[:8], method="lm")
-    free = least_squares(residuals, np.concatenate([null.x, start[8:]]), method="lm")
+    null = least_squares(lambda p: residuals(np.concatenate([p, start[CORRECTIONS]])), start[:CORRECTIONS_FROM],
+                         method="lm")  # no corrections: where the free fit starts
+    free = least_squares(residuals, np.concatenate([null.x, start[CORRECTIONS]]), method="lm")
     cov = np.linalg.pinv(free.jac.T @ free.jac)
-    sigmas = np.sqrt(np.clip(np.diag(cov)[8:], 0.0, None))
+    sigmas = np.sqrt(np.clip(np.diag(cov)[CORRECTIONS], 0.0, None))
     if not np.all(np.isfinite(sigmas)) or np.linalg.matrix_rank(free.jac) < len(free.x):
         sigmas = np.full(len(statics) - 1, np.inf)
     turns = tuple(TurnAngle(statics[k][1], statics[k + 1][0], float(static_chi[k + 1] - static_chi[k]),
-                            float(free.x[8 + k]), float(sigmas[k])) for k in range(len(statics) - 1))
+                            float(free.x[CORRECTIONS][k]), float(sigmas[k])) for k in range(len(statics) - 1))
     dof = means.size - 8
     return TiltCheck(turns, float(2 * null.cost), dof)
 
