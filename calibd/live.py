@@ -10,13 +10,11 @@ reader (`PtySource`).
 
 from __future__ import annotations
 
-import bisect
 import logging
 import os
 import signal
 import socket
 import sys
-from collections.abc import Sequence
 
 import numpy as np
 import structlog
@@ -90,16 +88,6 @@ def stream_faults(stats, before: dict, samples) -> tuple[dict, dict]:
     return now, increases
 
 
-def feed_power_ups(calibrator: Calibrator, samples: np.ndarray, first: int, rate: int,
-                   restart_datagrams: Sequence[int]) -> None:
-    """Feed a batch whose first sample is the stream's sample number `first`, cut where the sensor
-    restarted inside it (`restart_datagrams`: each restarted sensor's first sample number), so the
-    old power-up's last samples end its session instead of opening the new one's warm-up."""
-    cuts = [i - first for i in restart_datagrams if first < i < first + len(samples)]
-    for lo, hi in zip([0, *cuts], [*cuts, len(samples)]):
-        calibrator.feed(samples[lo:hi], rate, bisect.bisect_right(restart_datagrams, first + lo))
-
-
 def pump(source: SampleSource, calibrator: Calibrator, stop=lambda: False, on_step=None) -> None:
     """Source -> calibrator until `stop()` or the end of the stream, the one loop of `calibd run`
     and `calibd replay`: stream faults logged as they grow, ring overruns, silence beyond
@@ -118,7 +106,7 @@ def pump(source: SampleSource, calibrator: Calibrator, stop=lambda: False, on_st
             info = batch.info
             if len(batch.samples) and info.rate_hz:
                 calibrator.sensor_seen(info.sensor_record())
-                feed_power_ups(calibrator, batch.samples, batch.first, info.rate_hz, info.stats.restart_datagrams)
+                calibrator.feed(batch.samples, info.rate_hz, batch.first, info.stats.restart_datagrams)
                 fed = True
         silent_s = source.silent_s
         if not fed and not source.ended and silent_s > NO_DATA_S and calibrator.state != State.FAULT:

@@ -157,6 +157,28 @@ def hidden_gap_record(gap_s: list[float] | np.ndarray | None) -> dict:
     return {"hidden_gaps": len(gap_s), "hidden_gap_s": round(float(np.sum(gap_s)), 3)}
 
 
+class PowerUpCuts:
+    """Where the sensor restarted in a stream of sample batches: turn-on biases change at every
+    power-up, so the data of two power-ups never share a session. A restart is where the stream
+    parser saw the power-up datagrams (`restart_datagrams`: each restarted sensor's first sample
+    number in the stream) or, when those were lost, where the start-up status bit comes on after
+    samples without it. The one rule for captures and for the daemon's live batches."""
+
+    def __init__(self) -> None:
+        self._start_up_before = True  # whether the last sample had the start-up bit (none yet: as if)
+
+    def pieces(self, samples: np.ndarray, first: int, restart_datagrams) -> list[tuple[bool, np.ndarray]]:
+        """The batch (stream sample numbers from `first`) cut at each restart: (whether a new
+        power-up starts with the piece, the piece), in stream order."""
+        count = len(samples)
+        starts = {i - first for i in restart_datagrams if first <= i < first + count}
+        starts |= set(start_up_rises(samples, self._start_up_before).tolist())
+        if count:
+            self._start_up_before = bool(start_up_flags(samples[-1:])[0])
+        bounds = sorted(starts | {0, count})
+        return [(lo in starts, samples[lo:hi]) for lo, hi in zip(bounds, bounds[1:])]
+
+
 class _PowerUpReader:
     """Decoded blocks of a capture in stream order -> one SessionBuilder per power-up, cut at every
     sensor restart (a power-up datagram sequence, or the start-up bit coming on). The builders are
@@ -171,8 +193,7 @@ class _PowerUpReader:
         self.rate_hz: int | None = None
         self.power_ups: list[PowerUp] = []
         self._seen = 0  # samples consumed
-        self._restarts_done = 0
-        self._start_up_before = True
+        self._cuts = PowerUpCuts()
         self._waiting: list[np.ndarray] = []  # samples before the rate is known
         self._open: tuple[SessionBuilder, int, list, list] | None = None  # builder, first, counters, host times
         self.refusal: str | None = None  # why the capture cannot be calibrated (raised once the decoder is done)
@@ -217,18 +238,12 @@ class _PowerUpReader:
         return None
 
     def _cut_and_add(self, samples: np.ndarray, restarts) -> None:
-        """Add a block, cut at the restarts among `restarts` (each restarted sensor's first sample
-        number, as the decoder knows them so far) and at start-up bits coming on."""
-        first = self._seen
-        cuts = {r - first for r in restarts[self._restarts_done:] if first <= r < first + len(samples)}
-        self._restarts_done = sum(1 for r in restarts if r < first + len(samples))
-        cuts |= set(start_up_rises(samples, self._start_up_before).tolist())
-        self._start_up_before = bool(start_up_flags(samples[-1:])[0])
-        bounds = sorted(cuts | {0, len(samples)})
-        for a, b in zip(bounds, bounds[1:]):
-            if a in cuts:
+        """Add a block, cut at the sensor's restarts (`restarts`: each restarted sensor's first
+        sample number, as the decoder knows them so far)."""
+        for restarted, piece in self._cuts.pieces(samples, self._seen, restarts):
+            if restarted:
                 self._close()
-            self._add(samples[a:b])
+            self._add(piece)
         self._seen += len(samples)
 
     def _add(self, samples: np.ndarray) -> None:

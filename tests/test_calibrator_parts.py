@@ -12,7 +12,7 @@ from calibd.cli import load_session
 from calibd.config import MethodConfig, WarmupConfig
 from calibd.daemon import Calibrator, Listener, State, StateLog, stale_result
 from calibd.daemon import collector as collector_module
-from calibd.daemon.collector import Collector, Restarts
+from calibd.daemon.collector import Collector
 from calibd.daemon.solver import solve
 from calibd.daemon.trigger import SolveTrigger
 from calibd.daemon.warmwatch import WARM_CHECK_EVERY_S, WarmWatch
@@ -20,7 +20,7 @@ from calibd.frames import Site
 from calibd.live import configure_logging, replay
 from calibd.results import ResultStore
 from calibd.segments import session_segments
-from calibd.session import SessionBuilder
+from calibd.session import PowerUpCuts, SessionBuilder
 from calibd.warmup import settling
 from stim300.bulk import decode_capture
 from stim300.codec import SAMPLE_DTYPE
@@ -91,14 +91,14 @@ def test_the_re_solve_timer_counts_data_time_from_the_last_attempt():
 # ---- the collector across a restart ---------------------------------------------------------
 
 def collect(samples, restarts_at_batch=None, batch=25):
-    """Feed `samples` through Restarts into collectors as the Calibrator does: a new Collector at
-    every restart; `restarts_at_batch`: the parser's count becomes 1 from that sample on.
-    Returns the collectors and the sample numbers where each new power-up began."""
-    restarts, collectors, cut_at = Restarts(), [Collector()], []
+    """Feed `samples` through PowerUpCuts into collectors as the Calibrator does: a new Collector
+    at every restart; `restarts_at_batch`: the parser saw a restart's power-up datagrams before
+    that sample. Returns the collectors and the sample numbers where each new power-up began."""
+    cuts, collectors, cut_at = PowerUpCuts(), [Collector()], []
+    restart_datagrams = () if restarts_at_batch is None else (restarts_at_batch,)
     for start in range(0, len(samples), batch):
-        count = int(restarts_at_batch is not None and start >= restarts_at_batch)
         fed = start
-        for restarted, piece in restarts.pieces(samples[start:start + batch], count):
+        for restarted, piece in cuts.pieces(samples[start:start + batch], start, restart_datagrams):
             if restarted:
                 collectors.append(Collector())
                 cut_at.append(fed)

@@ -370,9 +370,9 @@ class CountingCalibrator:
     def sensor_seen(self, identity):
         self.sensor = identity
 
-    def feed(self, samples, rate_hz, restarts=0):
+    def feed(self, samples, rate_hz, first=0, restart_datagrams=()):
         self.samples += len(samples)
-        self.restarts = restarts
+        self.restarts = len(restart_datagrams)
 
     def data_lost(self, seconds):
         self.state = State.FAULT
@@ -463,7 +463,7 @@ def test_a_restart_marks_the_last_result_stale_before_anything_else():
     for chunk in np.array_split(samples, 60):
         calibrator.feed(chunk, 125)
     before = len(events)
-    calibrator.feed(samples[:2000], 125, restarts=1)
+    calibrator.feed(samples[:2000], 125, len(samples), (len(samples),))  # the stream goes on after a restart
     after = events[before:]
     kinds = [kind for kind, _ in after]
     assert kinds[:4] == [State.SOLVED, "result", "stale", State.RESTARTED]
@@ -504,8 +504,8 @@ def test_time_spent_solving_is_not_silence(monkeypatch):
     import calibd.live
 
     class Slow(CountingCalibrator):
-        def feed(self, samples, rate_hz, restarts=0):
-            super().feed(samples, rate_hz, restarts)
+        def feed(self, *args):
+            super().feed(*args)
             time.sleep(1.2)
 
     monkeypatch.setattr(calibd.live, "NO_DATA_S", 1.0)
@@ -515,20 +515,21 @@ def test_time_spent_solving_is_not_silence(monkeypatch):
 
 
 def test_a_batch_spanning_a_restart_is_cut_at_the_restart():
-    """Every sample of the first power-up reaches the calibrator before the restart is counted,
-    however the bytes fall into batches, so its session ends with all of its data."""
+    """Every sample of the first power-up reaches its session before the restart is acted on,
+    however the bytes fall into batches, so that session ends with all of its data."""
     first = HEADING137.read_bytes()
-    fed = []
+    fed, cuts_seen = [], []
 
-    class Recorder(CountingCalibrator):
-        def feed(self, samples, rate_hz, restarts=0):
-            super().feed(samples, rate_hz, restarts)
-            fed.append((len(samples), restarts))
+    class Recorder(Calibrator):
+        def _feed_power_up(self, samples, rate_hz):
+            fed.append(len(samples))
 
-    replay(CaptureSource(first + (FIXTURES / "faults_125hz.bin").read_bytes(), chunk_bytes=1 << 20), Recorder())
-    before_restart = sum(n for n, restarts in fed if restarts == 0)
-    assert before_restart == decode_capture(first).info.stats.datagrams
-    assert [r for _, r in fed] == sorted(r for _, r in fed)  # the count never goes back
+        def _power_cycled(self):
+            cuts_seen.append(sum(fed))
+
+    replay(CaptureSource(first + (FIXTURES / "faults_125hz.bin").read_bytes(), chunk_bytes=1 << 20),
+           Recorder(SITE, WarmupConfig(window_s=10.0), NO_TIMER))
+    assert cuts_seen[0] == decode_capture(first).info.stats.datagrams
 
 
 def test_a_restart_seen_only_in_the_start_up_bit_starts_a_new_power_up():

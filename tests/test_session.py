@@ -6,10 +6,11 @@ import numpy as np
 
 from calibd.cli import open_capture
 from calibd.frames import STANDARD_GRAVITY
-from calibd.session import STORE_RATE_HZ, SessionBuilder, power_up_session
+from calibd.session import STORE_RATE_HZ, PowerUpCuts, SessionBuilder, power_up_session
 from calibd.units import DEG
 from stim300.bulk import decode_capture
 from stim300.codec import SAMPLE_DTYPE
+from stim300.protocol import Status
 
 FIXTURE_2000HZ = Path(__file__).resolve().parent.parent / "fixtures" / "static_turn_2000hz.bin"
 
@@ -70,3 +71,24 @@ def test_a_2000_hz_capture_makes_a_125_hz_session():
     means = samples["gyro"][:len(samples) // 16 * 16].astype(np.float64).reshape(-1, 16, 3).mean(axis=1) * DEG
     assert np.allclose(session.gyro, means, rtol=1e-6, atol=1e-9)  # float32: 1e-10 rad/s at 1e-3 rad/s
     assert session.stream["power_up"]["duration_s"] == len(samples) / 2000
+
+
+def _lengths(pieces):
+    return [(new, len(piece)) for new, piece in pieces]
+
+
+def test_power_ups_are_cut_where_the_parser_saw_a_restart_or_the_start_up_bit_comes_on():
+    """One rule for captures and live batches: a restart position inside a batch or at its first
+    sample cuts it; so does the start-up bit coming on after samples without it (power-up
+    datagrams lost); both at one sample are one cut; the new power-up's own bit is no second."""
+    samples = np.zeros(100, SAMPLE_DTYPE)
+    samples["status_gyro"][:10] = Status.START_UP  # the first power-up's start-up: no cut
+    samples["status_gyro"][40:50] = Status.START_UP  # a restart the parser saw at 40
+    samples["status_gyro"][70:80] = Status.START_UP  # one only the status bit tells
+    cuts = PowerUpCuts()
+    assert _lengths(cuts.pieces(samples[:60], 0, (40,))) == [(False, 40), (True, 20)]
+    assert _lengths(cuts.pieces(samples[60:], 60, (40,))) == [(False, 10), (True, 30)]
+    at_batch_start = PowerUpCuts()
+    at_batch_start.pieces(samples[20:40], 20, ())
+    assert _lengths(at_batch_start.pieces(samples[40:60], 40, (40,))) == [(True, 20)]
+    assert _lengths(at_batch_start.pieces(samples[:0], 60, (40,))) == []

@@ -22,9 +22,9 @@ from .. import detect
 from ..config import DetectionConfig, MethodConfig
 from ..frames import Site
 from ..results import CalibrationResult
-from ..session import Session
+from ..session import PowerUpCuts, Session
 from ..warmup import WarmupConfig
-from .collector import Collector, Restarts
+from .collector import Collector
 from .events import Listener, State
 from .solver import solve, stale_result
 from .trigger import SolveTrigger
@@ -46,7 +46,7 @@ class Calibrator:
         self.result: CalibrationResult | None = None
         self.sessions = 0
         self.sensor: dict = {}
-        self._restarts = Restarts()
+        self._cuts = PowerUpCuts()
         self._new_power_up()
 
     def configure(self, site: Site, warmup: WarmupConfig, method: MethodConfig,
@@ -58,10 +58,11 @@ class Calibrator:
         """The sensor as the stream names it (serial and part number, datagram, rate): results carry it."""
         self.sensor = identity
 
-    def feed(self, samples: np.ndarray, rate_hz: int, restarts: int = 0) -> None:
-        """A batch of decoded samples (stim300.codec.SAMPLE_DTYPE) in stream order; `restarts` is
-        the stream parser's running count of sensor restarts."""
-        for restarted, piece in self._restarts.pieces(samples, restarts):
+    def feed(self, samples: np.ndarray, rate_hz: int, first: int = 0, restart_datagrams=()) -> None:
+        """A batch of decoded samples (stim300.codec.SAMPLE_DTYPE) in stream order: `first` is the
+        stream number of its first sample, `restart_datagrams` the stream number of each
+        restarted sensor's first sample (the stream parser's, so far)."""
+        for restarted, piece in self._cuts.pieces(samples, first, restart_datagrams):
             if restarted:
                 self._power_cycled()
             if len(piece):

@@ -1,8 +1,7 @@
-"""One power-up's data as the daemon collects it, and where one power-up ends.
+"""One power-up's data as the daemon collects it (where a power-up ends is
+`calibd.session.PowerUpCuts`, the rule captures are cut by too).
 
-`Restarts` cuts the stream into power-ups: the stream parser's count of restarts, or, when the
-power-up datagrams were lost, the start-up status bit coming on again. `Collector` keeps one
-power-up: its counter clock, its block-averaged store, the gaps the counter could not see, and
+`Collector` keeps one power-up: its counter clock, its block-averaged store, the gaps the counter could not see, and
 the session collected from it with its segments (each logged once it is final).
 """
 
@@ -12,7 +11,6 @@ import numpy as np
 import structlog
 
 from stim300.clock import CounterClock
-from stim300.codec import start_up_flags, start_up_rises
 
 from .. import detect
 from ..config import DetectionConfig
@@ -24,30 +22,6 @@ from ..units import DEG
 log = structlog.get_logger("calibd")
 MAX_SESSION_S = 3600  # beyond this a session stops growing: bias instability floors yaw near 0.9 deg
 # for static protocols (calibd plan: 1.28 deg at 1 h for the thesis layout), and memory stays bounded
-
-
-class Restarts:
-    """Where the sensor restarted in the stream: turn-on biases change at every power-up, so the
-    data of two power-ups never share a session."""
-
-    def __init__(self) -> None:
-        self._seen = 0  # the stream parser's restart count so far
-        self._start_up_before = True  # whether the last sample had the start-up bit (none yet: as if)
-
-    def pieces(self, samples: np.ndarray, restarts: int) -> list[tuple[bool, np.ndarray]]:
-        """The batch cut at each restart: (whether the sensor restarted before the piece, piece).
-        `restarts`: the stream parser's running count; a restart whose power-up datagrams were
-        lost shows as the start-up bit coming on after samples without it."""
-        restarted = restarts > self._seen
-        if restarted:
-            self._seen = restarts
-            self._start_up_before = True  # the new power-up's start-up bit is not a second restart
-        rises = start_up_rises(samples, self._start_up_before)
-        cuts = [0, *rises, len(samples)]
-        pieces = [(restarted or k > 0, samples[lo:hi]) for k, (lo, hi) in enumerate(zip(cuts, cuts[1:]))]
-        if len(samples):
-            self._start_up_before = bool(start_up_flags(samples[-1:])[0])
-        return pieces
 
 
 class Collector:
