@@ -108,14 +108,14 @@ def main() -> int:
         return 0
     averaged = json.loads(result_path.read_text())["estimates"]
     started = time.perf_counter()
-    full = joint_real_case(full_rate_session(path), sc.site)["estimates"]
+    full = joint_real_case(full_rate_session(path), sc.site).estimates
     print(f"full-rate joint fit in-process: {time.perf_counter() - started:.0f} s")
     worst = 0.0
     for name, e in full.items():
-        z = (averaged[name]["value"] - e["value"]) / e["sigma"]
+        z = (averaged[name]["value"] - e.value) / e.sigma
         worst = max(worst, abs(z))
-        print(f"  {name:12s} 125 Hz {averaged[name]['value']:12.5f}  2000 Hz {e['value']:12.5f} +- "
-              f"{e['sigma']:.3g} {e['unit']}  difference {z:+.3f} sigma")
+        print(f"  {name:12s} 125 Hz {averaged[name]['value']:12.5f}  2000 Hz {e.value:12.5f} +- "
+              f"{e.sigma:.3g} {e.unit}  difference {z:+.3f} sigma")
     print(f"largest difference {worst:.3f} sigma (target <= {AGREE_TARGET_SIGMA:g}: "
           f"{'met' if worst <= AGREE_TARGET_SIGMA else 'NOT met'})")
     return 0
