@@ -17,6 +17,7 @@ block, for captures larger than their samples should take in memory.
 
 from __future__ import annotations
 
+from bisect import bisect_left
 from dataclasses import dataclass
 from functools import partial
 
@@ -31,8 +32,8 @@ from .reads import read_times
 from .stream import Scanner, format_runs
 
 BLOCK = 65536  # datagrams checked and decoded together: keeps the columns in cache
-SYNC_RUN = 64  # datagrams the scanner accepts back to back before the vectorised path is tried: one
-# vectorised attempt costs about as much as this many scanner decisions, so only a run this long pays
+SYNC_RUN = 128  # datagrams the scanner accepts back to back before the vectorised path is tried: an
+# attempt that fails at once costs about as much as 30-60 scanner decisions, so a run this long pays for it
 SEARCH = 4096  # bytes searched at once for the next byte that can start a datagram
 _IS_ID = np.zeros(1 << 8, bool)  # per byte value: can a datagram start with it
 _IS_ID[list(NORMAL_LAYOUTS) + list(SPECIAL_IDS)] = True
@@ -105,7 +106,8 @@ class BulkDecoder:
             if start > pos:
                 scanner.stats.skipped_bytes += start - pos
                 pos, run = start, 0
-                continue
+                if pos == self._searched_to:  # no start in the searched window: search on
+                    continue
             before = len(found)
             pos = scanner.step(raw, pos, final=True)  # final=True always decides
             work.steps += 1
@@ -127,19 +129,18 @@ class BulkDecoder:
             self._starts = (np.flatnonzero(_IS_ID[self._bytes[pos:stop]]) + pos).tolist()
             self._next, self._searched_to = 0, stop
             self.work.searched += stop - pos
-        starts, k = self._starts, self._next
-        while k < len(starts) and starts[k] < pos:
-            k += 1
-        self._next = k
+        starts = self._starts
+        self._next = k = bisect_left(starts, pos, self._next)
         return starts[k] if k < len(starts) else self._searched_to
 
     def _fast_run(self, pos: int) -> int:
-        """Accept consecutive datagrams of the current format from `pos` in growing blocks;
-        return the offset after the last one that verifies."""
+        """Accept consecutive datagrams of the current format from `pos` in blocks growing from
+        SYNC_RUN (a block wastes at most what was accepted before it, plus one SYNC_RUN); return the
+        offset after the last one that verifies."""
         fmt = self.scanner.format
         layout = NORMAL_LAYOUTS[fmt.datagram_id]
         length = layout.wire_length(fmt.crlf)
-        block = 4 * SYNC_RUN
+        block = SYNC_RUN
         self.work.fast_runs += 1
         while True:
             count = min(block, (len(self._raw) - pos) // length)
