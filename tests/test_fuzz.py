@@ -15,7 +15,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from captures import capture, same_samples
-from stim300.bulk import SYNC_RUN, BulkDecoder, decode_capture
+from stim300 import bulk
+from stim300.bulk import SYNC_RUN, BulkDecoder, decode_blocks, decode_capture
 from stim300.capture import stream_info
 from stim300.codec import SAMPLE_DTYPE
 from stim300.protocol import NORMAL_LAYOUTS
@@ -108,8 +109,9 @@ def stream_decode(data: bytes, cuts: list[int]) -> tuple[np.ndarray, StreamParse
 
 
 def disagreement(data: bytes, cuts: list[int]) -> str | None:
-    """What differs between the stream parser (fed in chunks cut at `cuts`) and the bulk decoder:
-    rows, any Stats field, or the stream's description; None when they agree."""
+    """What differs between the stream parser (fed in chunks cut at `cuts`) and the bulk decoder
+    (whole, and block by block): rows, any Stats field, or the stream's description; None when
+    they agree."""
     samples, parser = stream_decode(data, cuts)
     decoder = BulkDecoder(data, None, None, lambda n: np.empty(n, SAMPLE_DTYPE))
     rows = decoder.run()
@@ -121,6 +123,12 @@ def disagreement(data: bytes, cuts: list[int]) -> str | None:
             return f"stats.{field.name}: stream {mine}, bulk {theirs}"
     if stream_info(parser) != stream_info(decoder.scanner):
         return "stream info"
+    blocks = []
+    info = decode_blocks(data, lambda samples, scanner, offset: blocks.append(samples.copy()))
+    if not same_samples(samples, np.concatenate([np.empty(0, SAMPLE_DTYPE), *blocks])):
+        return f"rows by blocks: stream {len(samples)}, bulk {sum(map(len, blocks))}"
+    if info != stream_info(parser):
+        return "stream info by blocks"
     return None
 
 
@@ -188,3 +196,17 @@ def test_a_clean_capture_goes_the_vectorised_way():
     assert decoder.work.steps == SYNC_RUN  # the scanner only finds the stream's step
     assert decoder.work.fast_runs == 1
     assert decoder.work.checked == 20_000 - SYNC_RUN
+
+
+def test_scattered_datagrams_are_handed_over_in_bounded_blocks(monkeypatch):
+    """Datagrams the scanner accepts one by one (a stray byte after each) are decoded in batches,
+    but never more than BLOCK at once: decode_blocks keeps its memory bound."""
+    monkeypatch.setattr(bulk, "BLOCK", 50)
+    data, truth, _ = capture(400, 0x90, False)
+    frames = np.frombuffer(data, np.uint8).reshape(400, -1)
+    scattered = np.hstack([frames, np.zeros((400, 1), np.uint8)]).tobytes()
+    blocks = []
+    info = decode_blocks(scattered, lambda samples, scanner, offset: blocks.append(samples.copy()))
+    assert same_samples(np.concatenate(blocks), truth)
+    assert max(map(len, blocks)) <= 50 and len(blocks) >= 8
+    assert info.stats.skipped_bytes == 400
