@@ -1,10 +1,10 @@
 """Fuzzing the decoders at length, and what garbage costs the bulk decoder against the stream parser.
 
 Runs --count of the cases of tests/test_fuzz.py (random bytes, mutated captures, garbage runs after a
-valid header, each under a random chunking) and counts exceptions and disagreements between the
-stream parser and the bulk decoder (rows and every Stats field). Then decodes garbage both ways and
-prints the CPU time per MB, the stream parser fed 4096-byte chunks as a serial read would deliver
-them, both measured in this run (target: bulk <= 2x stream):
+valid header, each under a random chunking, with each format a user may give) and counts exceptions
+and disagreements between the stream parser and the bulk decoder (rows and every Stats field). Then
+decodes garbage both ways and prints the CPU time per MB, the stream parser fed 4096-byte chunks as
+a serial read would deliver them, both measured in this run (target: bulk <= 2x stream):
 
 - random bytes after a valid header;
 - a run of 0xA7 bytes after a valid header (every byte starts a candidate datagram);
@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 from captures import capture  # noqa: E402
 from stim300.bulk import SYNC_RUN, decode_capture  # noqa: E402
 from stim300.stream import StreamParser  # noqa: E402
-from test_fuzz import CASES, bursts, chunking, disagreement  # noqa: E402
+from test_fuzz import CASES, GIVEN_FORMATS, bursts, chunking, disagreement  # noqa: E402
 
 
 def fuzz(count: int, seed: int) -> None:
@@ -43,7 +43,7 @@ def fuzz(count: int, seed: int) -> None:
         data = CASES[kinds[k % len(kinds)]](rng)
         total += len(data)
         try:
-            what = disagreement(data, chunking(rng, len(data)))
+            what = disagreement(data, chunking(rng, len(data)), GIVEN_FORMATS[k // len(kinds) % len(GIVEN_FORMATS)])
         except Exception as exc:  # noqa: BLE001 - counting is the point
             what, kind = f"{type(exc).__name__}: {exc}", "exception"
         else:

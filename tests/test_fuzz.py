@@ -19,7 +19,7 @@ from stim300 import bulk
 from stim300.bulk import SYNC_RUN, BulkDecoder, decode_blocks, decode_capture
 from stim300.capture import stream_info
 from stim300.codec import SAMPLE_DTYPE
-from stim300.protocol import NORMAL_LAYOUTS
+from stim300.protocol import NORMAL_LAYOUTS, Format
 from stim300.special import Configuration, PartNumber, SerialNumber, encode_special
 from stim300.stream import StreamParser, Stats
 
@@ -89,6 +89,8 @@ def garbage_runs(rng: np.random.Generator) -> bytes:
 
 
 CASES = {"random": random_bytes, "mutated": mutated, "garbage": garbage_runs}
+GIVEN_FORMATS = (None, Format(crlf=True), Format(datagram_id=0xA7, crlf=False, sample_rate_hz=2000),
+                 Format(sample_rate_hz=125))  # what a user may say of a capture without configuration
 
 
 def chunking(rng: np.random.Generator, size: int) -> list[int]:
@@ -100,20 +102,20 @@ def chunking(rng: np.random.Generator, size: int) -> list[int]:
     return sorted(set(cuts))
 
 
-def stream_decode(data: bytes, cuts: list[int]) -> tuple[np.ndarray, StreamParser]:
-    parser = StreamParser()
+def stream_decode(data: bytes, cuts: list[int], fmt: Format | None) -> tuple[np.ndarray, StreamParser]:
+    parser = StreamParser(fmt)
     edges = [0, *cuts, len(data)]
     parts = [parser.feed(data[a:b]) for a, b in zip(edges, edges[1:])]
     parts.append(parser.finish())
     return np.concatenate(parts), parser
 
 
-def disagreement(data: bytes, cuts: list[int]) -> str | None:
+def disagreement(data: bytes, cuts: list[int], fmt: Format | None = None) -> str | None:
     """What differs between the stream parser (fed in chunks cut at `cuts`) and the bulk decoder
-    (whole, and block by block): rows, any Stats field, or the stream's description; None when
-    they agree."""
-    samples, parser = stream_decode(data, cuts)
-    decoder = BulkDecoder(data, None, None, lambda n: np.empty(n, SAMPLE_DTYPE))
+    (whole, and block by block), both told `fmt`: rows, any Stats field, or the stream's
+    description; None when they agree."""
+    samples, parser = stream_decode(data, cuts, fmt)
+    decoder = BulkDecoder(data, fmt, None, lambda n: np.empty(n, SAMPLE_DTYPE))
     rows = decoder.run()
     if not same_samples(samples, rows):
         return f"rows: stream {len(samples)}, bulk {len(rows)}"
@@ -124,7 +126,7 @@ def disagreement(data: bytes, cuts: list[int]) -> str | None:
     if stream_info(parser) != stream_info(decoder.scanner):
         return "stream info"
     blocks = []
-    info = decode_blocks(data, lambda samples, scanner, offset: blocks.append(samples.copy()))
+    info = decode_blocks(data, lambda samples, scanner, offset: blocks.append(samples.copy()), fmt)
     if not same_samples(samples, np.concatenate([np.empty(0, SAMPLE_DTYPE), *blocks])):
         return f"rows by blocks: stream {len(samples)}, bulk {sum(map(len, blocks))}"
     if info != stream_info(parser):
@@ -133,11 +135,11 @@ def disagreement(data: bytes, cuts: list[int]) -> str | None:
 
 
 @settings(max_examples=300, deadline=None)
-@given(st.sampled_from(sorted(CASES)), st.integers(0, 2**63 - 1))
-def test_stream_and_bulk_agree_on_any_input_and_chunking(kind, seed):
+@given(st.sampled_from(sorted(CASES)), st.sampled_from(GIVEN_FORMATS), st.integers(0, 2**63 - 1))
+def test_stream_and_bulk_agree_on_any_input_and_chunking(kind, fmt, seed):
     rng = np.random.default_rng(seed)
     data = CASES[kind](rng)
-    assert disagreement(data, chunking(rng, len(data))) is None
+    assert disagreement(data, chunking(rng, len(data)), fmt) is None
 
 
 def test_a_requested_part_number_then_data_then_a_serial_number_is_no_restart():
