@@ -12,7 +12,9 @@ a serial read would deliver them, both measured in this run (target: bulk <= 2x 
 - a clean 0xA7 capture with a bit flip every SYNC_RUN + 1 datagrams (each run just long enough to
   try the vectorised path, which then fails at once: its worst case).
 
-    python benchmarks/fuzz.py [--count 20000] [--seed 0]
+    python benchmarks/fuzz.py [--count 20000] [--seed 0] [--workers 1]
+
+1e6 inputs take a few CPU-hours (about 10 ms each on one core).
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -32,27 +35,36 @@ from stim300.stream import StreamParser  # noqa: E402
 from test_fuzz import CASES, GIVEN_FORMATS, bursts, chunking, disagreement  # noqa: E402
 
 
-def fuzz(count: int, seed: int) -> None:
+def fuzz_range(seed: int, start: int, stop: int) -> tuple[int, int, int, str | None]:
+    """Inputs start..stop-1: (bytes, exceptions, disagreements, the first failure)."""
     kinds = sorted(CASES)
-    failures: dict[str, int] = {"exception": 0, "disagreement": 0}
-    first: str | None = None
-    total = 0
-    t = time.perf_counter()
-    for k in range(count):
+    total, exceptions, disagreements, first = 0, 0, 0, None
+    for k in range(start, stop):
         rng = np.random.default_rng([seed, k])
-        data = CASES[kinds[k % len(kinds)]](rng)
+        kind, fmt = kinds[k % len(kinds)], GIVEN_FORMATS[k // len(kinds) % len(GIVEN_FORMATS)]
+        data = CASES[kind](rng)
         total += len(data)
         try:
-            what = disagreement(data, chunking(rng, len(data)), GIVEN_FORMATS[k // len(kinds) % len(GIVEN_FORMATS)])
+            what = disagreement(data, chunking(rng, len(data)), fmt)
         except Exception as exc:  # noqa: BLE001 - counting is the point
-            what, kind = f"{type(exc).__name__}: {exc}", "exception"
+            exceptions += 1
+            what = f"{type(exc).__name__}: {exc}"
         else:
-            kind = "disagreement"
-        if what:
-            failures[kind] += 1
-            first = first or f"input {k} ({kinds[k % len(kinds)]}, seed [{seed}, {k}]): {what}"
+            disagreements += what is not None
+        if what and first is None:
+            first = f"input {k} ({kind}, format {fmt}, seed [{seed}, {k}]): {what}"
+    return total, exceptions, disagreements, first
+
+
+def fuzz(count: int, seed: int, workers: int) -> None:
+    t = time.perf_counter()
+    edges = np.linspace(0, count, 8 * workers + 1).astype(int).tolist()
+    with ProcessPoolExecutor(workers) as pool:
+        results = list(pool.map(fuzz_range, [seed] * (len(edges) - 1), edges[:-1], edges[1:]))
+    total, exceptions, disagreements = (sum(r[i] for r in results) for i in range(3))
     print(f"fuzz: {count} inputs ({total / 1e6:.1f} MB) in {time.perf_counter() - t:.0f} s: "
-          f"{failures['exception']} exceptions, {failures['disagreement']} disagreements")
+          f"{exceptions} exceptions, {disagreements} disagreements")
+    first = next((r[3] for r in results if r[3]), None)
     if first:
         print(f"  first: {first}")
 
@@ -99,8 +111,9 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--count", type=int, default=20_000, help="fuzz inputs (default 20000)")
     ap.add_argument("--seed", type=int, default=0, help="seed of the fuzz inputs (default 0)")
+    ap.add_argument("--workers", type=int, default=1, help="processes for the fuzz inputs (default 1)")
     args = ap.parse_args()
-    fuzz(args.count, args.seed)
+    fuzz(args.count, args.seed, args.workers)
     garbage_speed()
     return 0
 
