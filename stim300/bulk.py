@@ -37,6 +37,7 @@ SYNC_RUN = 128  # datagrams the scanner accepts back to back before the vectoris
 SEARCH = 4096  # bytes searched at once for the next byte that can start a datagram
 _IS_ID = np.zeros(1 << 8, bool)  # per byte value: can a datagram start with it
 _IS_ID[list(NORMAL_LAYOUTS) + list(SPECIAL_IDS)] = True
+_CAN_START = tuple(_IS_ID.tolist())  # the same for one byte at a time, at Python speed
 _SHORTEST = min(layout.wire_length(False) for layout in NORMAL_LAYOUTS.values())
 
 
@@ -102,8 +103,8 @@ class BulkDecoder:
         raw, end, scanner, found, work = self._raw, len(self._raw), self.scanner, self._found, self.work
         run = 0
         while pos < end:
-            start = self._next_start(pos)
-            if start > pos:
+            if not _CAN_START[raw[pos]]:
+                start = self._next_start(pos)
                 scanner.stats.skipped_bytes += start - pos
                 pos, run = start, 0
                 if pos == self._searched_to:  # no start in the searched window: search on
