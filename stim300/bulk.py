@@ -1,10 +1,14 @@
 """Whole-capture decoding at numpy speed, with exactly the stream parser's results.
 
 The stream parser's `Scanner` decides everything it would decide; this module only adds a fast
-path: from an offset where a datagram of the current format starts, it checks a block of
-consecutive datagrams at once (id byte, CRC by column tables, CR LF) and decodes the valid
-prefix in one go. The first datagram that does not verify goes back to the scanner, which
-re-synchronises byte by byte exactly as it does on a live stream.
+path. Once the scanner has accepted `SYNC_RUN` datagrams back to back, the stream is taken to be
+in step: from there a block of consecutive datagrams of the current format is checked at once
+(id byte, CR LF, CRC by column tables) and its valid prefix decoded in one go. The first datagram
+that does not verify goes back to the scanner, which re-synchronises exactly as it does on a live
+stream; over bytes that cannot start a datagram it jumps with a vectorised search.
+
+What the scanner accepts is decoded in batches, so garbage costs what it costs the stream parser
+and the vectorised path only runs where a run of good datagrams pays for it.
 
 `decode_capture` gives rows (SAMPLE_DTYPE), `decode_columns` one array per field: what writing
 tables wants (no strided passes over whole records); `decode_blocks` hands the rows over block by
@@ -13,6 +17,8 @@ block, for captures larger than their samples should take in memory.
 
 from __future__ import annotations
 
+from bisect import bisect_left
+from dataclasses import dataclass
 from functools import partial
 
 import numpy as np
@@ -23,13 +29,27 @@ from .codec import SAMPLE_DTYPE, decode_frames, empty_columns
 from .crc import crc_columns
 from .protocol import CR_LF, NORMAL_LAYOUTS, SPECIAL_IDS, Format
 from .reads import read_times
-from .stream import WAIT, Scanner
+from .stream import Scanner, format_runs
 
 BLOCK = 65536  # datagrams checked and decoded together: keeps the columns in cache
-FIRST_BLOCK = 64  # a block after a re-synchronisation starts small, in case the stream is noisy
+SYNC_RUN = 128  # datagrams the scanner accepts back to back before the vectorised path is tried: an
+# attempt that fails at once costs about as much as 30-60 scanner decisions, so a run this long pays for it
+SEARCH = 4096  # bytes searched at once for the next byte that can start a datagram
 _IS_ID = np.zeros(1 << 8, bool)  # per byte value: can a datagram start with it
 _IS_ID[list(NORMAL_LAYOUTS) + list(SPECIAL_IDS)] = True
+_CAN_START = tuple(_IS_ID.tolist())  # the same for one byte at a time, at Python speed
 _SHORTEST = min(layout.wire_length(False) for layout in NORMAL_LAYOUTS.values())
+
+
+@dataclass
+class Work:
+    """What a decode cost, counted in steps rather than seconds, so that a test can bound the
+    work per byte on any input and a decoder gone quadratic fails it on any machine."""
+
+    steps: int = 0  # scanner decisions
+    searched: int = 0  # bytes looked at for the next possible datagram start
+    fast_runs: int = 0  # vectorised attempts
+    checked: int = 0  # datagrams whose CRC the vectorised path computed
 
 
 class BulkDecoder:
@@ -42,26 +62,29 @@ class BulkDecoder:
         self._reads = reads
         self._raw = memoryview(data).cast("B")
         self._bytes = np.frombuffer(self._raw, np.uint8)
-        self._found: list[tuple[int, int]] = []
-        self.scanner = Scanner(fmt, lambda offset, ident: self._found.append((offset, ident)))
+        self._found: list[tuple[int, int, Format]] = []  # accepted by the scanner, not yet decoded
+        self.scanner = Scanner(fmt, self._found_normal)
         self.scanner.stats.bytes_in = len(self._raw)
+        self.work = Work()
+        self._starts: list[int] = []  # offsets that can start a datagram, in the searched window
+        self._next = 0  # index into _starts
+        self._searched_to = 0  # end of the searched window
         most = len(self._raw) // _SHORTEST + 1  # untouched rows cost address space only
         self._allocate, self._on_block = allocate, on_block
         self._out = allocate(0 if on_block else most)
         self._n = 0
 
+    def _found_normal(self, offset: int, ident: int) -> None:
+        self._found.append((offset, ident, self.scanner.format))
+
     def run(self) -> np.ndarray | dict[str, np.ndarray]:
         """All normal samples in stream order (scanner statistics in `self.scanner.stats`)."""
         pos, end = 0, len(self._raw)
-        block = FIRST_BLOCK
         while pos < end:
-            taken = self._fast_run(pos, block)
-            if taken:
-                pos = taken
-                block = min(block * 4, BLOCK)
-                continue
-            pos = self._scalar_step(pos)
-            block = FIRST_BLOCK
+            pos = self._scan(pos)
+            if pos < end:
+                pos = self._fast_run(pos)
+        self._flush()
         return self._rows(0, self._n)
 
     def _rows(self, start: int, stop: int):
@@ -74,71 +97,105 @@ class BulkDecoder:
         self._bytes = None
         self._raw.release()
 
-    def _scalar_step(self, pos: int) -> int:
-        """One scanner decision at `pos`, after jumping over bytes that cannot start a datagram."""
-        candidates = np.flatnonzero(_IS_ID[self._bytes[pos:pos + 4096]])
-        jump = int(candidates[0]) if len(candidates) else min(4096, len(self._raw) - pos)
-        self.scanner.stats.skipped_bytes += jump
-        pos += jump
-        if pos >= len(self._raw):
-            return pos
-        nxt = self.scanner.step(self._raw, pos, final=True)
-        assert nxt != WAIT  # final=True always decides
-        for offset, ident in self._found:
-            layout = NORMAL_LAYOUTS[ident]
-            frames = self._bytes[offset:offset + layout.pre_crc][None, :]
-            self._decode(frames, layout, offset, layout.wire_length(self.scanner.format.crlf is True))
-        self._found.clear()
-        return nxt
+    def _scan(self, pos: int) -> int:
+        """Scanner decisions from `pos` until it has accepted SYNC_RUN normal datagrams back to back
+        (return the offset after them) or the capture ends."""
+        raw, end, scanner, found, work = self._raw, len(self._raw), self.scanner, self._found, self.work
+        run = 0
+        while pos < end:
+            if not _CAN_START[raw[pos]]:
+                start = self._next_start(pos)
+                scanner.stats.skipped_bytes += start - pos
+                pos, run = start, 0
+                if pos == self._searched_to:  # no start in the searched window: search on
+                    continue
+            before = len(found)
+            pos = scanner.step(raw, pos, final=True)  # final=True always decides
+            work.steps += 1
+            if len(found) == before:
+                run = 0
+                continue
+            run += 1
+            if run >= SYNC_RUN:
+                break
+            if len(found) >= BLOCK:
+                self._flush()
+        return pos
 
-    def _fast_run(self, pos: int, block: int) -> int:
-        """Accept consecutive datagrams of the current format from `pos`; return the new offset
-        (0 when not even the first one verifies, or the format is not settled)."""
+    def _next_start(self, pos: int) -> int:
+        """The first offset from `pos` whose byte can start a datagram (the end of the searched
+        window when it has none); each byte is searched once."""
+        if pos >= self._searched_to:
+            stop = min(pos + SEARCH, len(self._raw))
+            self._starts = (np.flatnonzero(_IS_ID[self._bytes[pos:stop]]) + pos).tolist()
+            self._next, self._searched_to = 0, stop
+            self.work.searched += stop - pos
+        starts = self._starts
+        self._next = k = bisect_left(starts, pos, self._next)
+        return starts[k] if k < len(starts) else self._searched_to
+
+    def _fast_run(self, pos: int) -> int:
+        """Accept consecutive datagrams of the current format from `pos` in blocks growing from
+        SYNC_RUN (a block wastes at most what was accepted before it, plus one SYNC_RUN); return the
+        offset after the last one that verifies."""
         fmt = self.scanner.format
-        if fmt.datagram_id is None or fmt.crlf is None:
-            return 0
         layout = NORMAL_LAYOUTS[fmt.datagram_id]
         length = layout.wire_length(fmt.crlf)
-        start = pos
+        block = SYNC_RUN
+        self.work.fast_runs += 1
         while True:
             count = min(block, (len(self._raw) - pos) // length)
             if count <= 0:
                 break
             frames = as_strided(self._bytes[pos:], shape=(count, length), strides=(length, 1), writeable=False)
-            valid = self._verify(frames, layout, fmt.crlf)
-            good = count if valid.all() else int(np.argmin(valid))
+            good = self._verified(frames, layout, fmt.crlf)
             if good:
+                self._flush()
                 self.scanner.count_counters(frames[:good, layout.counter_offset])
-                self._decode(frames[:good], layout, pos, length)
+                self._emit(frames[:good], layout, fmt, pos + length * np.arange(1, good + 1), pos)
                 pos += good * length
             if good < count:
                 break
             block = min(block * 4, BLOCK)
-        return pos if pos > start else 0
+        return pos
 
-    @staticmethod
-    def _verify(frames: np.ndarray, layout, crlf: bool) -> np.ndarray:
-        pre = layout.pre_crc
+    def _verified(self, frames: np.ndarray, layout, crlf: bool) -> int:
+        """How many leading frames are valid datagrams; the CRC is only computed up to the first
+        wrong id or CR LF, so a block that runs into garbage costs little more than its good part."""
+        framed = frames[:, 0] == layout.datagram_id
+        if crlf:
+            framed &= (frames[:, -2] == CR_LF[0]) & (frames[:, -1] == CR_LF[1])
+        count = len(frames) if framed.all() else int(np.argmin(framed))
+        if not count:
+            return 0
+        self.work.checked += count
+        frames, pre = frames[:count], layout.pre_crc
         sent = frames[:, pre].astype(np.uint32) << 24
         sent |= frames[:, pre + 1].astype(np.uint32) << 16
         sent |= frames[:, pre + 2].astype(np.uint32) << 8
         sent |= frames[:, pre + 3]
         valid = crc_columns(frames, pre) == sent
-        valid &= frames[:, 0] == layout.datagram_id
-        if crlf:
-            valid &= (frames[:, -2] == CR_LF[0]) & (frames[:, -1] == CR_LF[1])
-        return valid
+        return count if valid.all() else int(np.argmin(valid))
 
-    def _decode(self, frames: np.ndarray, layout, start: int, length: int) -> None:
-        """Decode datagrams laid `length` bytes apart from byte `start`; with a read log, stamp
-        each with the host time of the read that completed it."""
+    def _flush(self) -> None:
+        """Decode what the scanner accepted since the last flush, a run of one format at a time."""
+        found = self._found[:]
+        self._found.clear()  # the list itself stays: the scan loop holds it
+        for layout, fmt, offsets, _, _ in format_runs(found):
+            frames = self._bytes[offsets[:, None] + np.arange(layout.pre_crc)]
+            self._emit(frames, layout, fmt, offsets + layout.wire_length(fmt.crlf), int(offsets[0]))
+
+    def _emit(self, frames: np.ndarray, layout, fmt: Format, ends: np.ndarray, start: int) -> None:
+        """Decode datagrams (rows of `frames`, the first starting at byte `start`, each ending at
+        `ends`) into the output; with a read log, stamp each with the host time of the read that
+        completed it."""
         n = len(frames)
         if self._on_block is not None:
             if len(self._out) < n:
                 self._out = self._allocate(n)
             self._n = 0
-        t_host = np.nan if self._reads is None else read_times(self._reads, start + length * np.arange(1, n + 1))
-        decode_frames(frames, layout, self.scanner.format, self._rows(self._n, self._n + n), t_host)
+        t_host = np.nan if self._reads is None else read_times(self._reads, ends)
+        decode_frames(frames, layout, fmt, self._rows(self._n, self._n + n), t_host)
         self._n += n
         if self._on_block is not None:
             self._on_block(self._rows(0, n), self.scanner, start)

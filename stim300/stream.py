@@ -191,6 +191,7 @@ class Scanner:
         self.stats.counter_steps += np.bincount(steps, minlength=COUNTER_MODULUS)
         self.stats.datagrams += len(counters)
         self.last_counter = int(counters[-1])
+        self._after_part_number = False
 
     def _accept_special(self, frame: bytes) -> None:
         self.stats.special_datagrams += 1
@@ -227,6 +228,20 @@ class Scanner:
     def advance(self, consumed: int) -> None:
         """The owner dropped `consumed` bytes from the front of its buffer."""
         self._consumed += consumed
+
+
+def format_runs(found: list[tuple[int, int, Format]]):
+    """Accepted datagrams, (offset, id, format) in stream order, as runs of one id and format that
+    decode together: (layout, format, offsets array, start, stop) with found[start:stop] the run."""
+    start = 0
+    while start < len(found):
+        _, ident, fmt = found[start]
+        stop = start + 1
+        while stop < len(found) and found[stop][1] == ident and found[stop][2] is fmt:
+            stop += 1
+        offsets = np.fromiter((f[0] for f in found[start:stop]), np.int64, stop - start)
+        yield NORMAL_LAYOUTS[ident], fmt, offsets, start, stop
+        start = stop
 
 
 class StreamParser:
@@ -280,16 +295,8 @@ class StreamParser:
         if not found:
             return out
         view = np.frombuffer(buf, np.uint8)
-        start = 0
-        while start < len(found):  # runs of one id and format decode together
-            _, ident, fmt = found[start]
-            stop = start + 1
-            while stop < len(found) and found[stop][1] == ident and found[stop][2] is fmt:
-                stop += 1
-            layout = NORMAL_LAYOUTS[ident]
-            offsets = np.fromiter((f[0] for f in found[start:stop]), np.int64, stop - start)
+        for layout, fmt, offsets, start, stop in format_runs(found):
             frames = view[offsets[:, None] + np.arange(layout.pre_crc)]
             decode_frames(frames, layout, fmt, out[start:stop], t_host)
-            start = stop
         del view
         return out

@@ -9,9 +9,9 @@ from captures import capture, same_samples
 from stim300.bulk import decode_capture
 from stim300.capture import stream_info
 from stim300.crc import datagram_crc
-from stim300.protocol import CONFIGURATION, NORMAL_LAYOUTS, Format
+from stim300.protocol import CONFIGURATION, NORMAL_LAYOUTS, SERIAL_NUMBER, Format
 from stim300.special import Configuration, PartNumber, SerialNumber, encode_special
-from stim300.stream import StreamParser
+from stim300.stream import Scanner, StreamParser
 
 LONGEST = max(layout.wire_length(True) for layout in NORMAL_LAYOUTS.values())
 
@@ -245,3 +245,16 @@ def test_undecodable_configuration_is_counted_not_raised():
     assert same_samples(samples, truth)
     assert parser.stats.undecodable_specials == 1
     assert parser.scanner.configuration is None
+
+
+def test_a_run_counted_at_once_ends_the_power_up_sequence_as_single_datagrams_do():
+    """A part number, normal data taken by the bulk decoder's vectorised path, then a serial
+    number: the serial number was requested, not a restart (as when the scanner takes the data)."""
+    scanner = Scanner(None, lambda offset, ident: None)
+    scanner.count_counters(np.arange(10, dtype=np.uint8))
+    for special in (PartNumber("84167-4400003-321", "K"), SerialNumber("N25582405002002")):
+        frame = encode_special(special, False)
+        if special.kind is SERIAL_NUMBER:
+            scanner.count_counters(np.arange(10, 20, dtype=np.uint8))
+        assert scanner.step(frame, 0, final=True) == len(frame)
+    assert (scanner.stats.restarts, scanner.stats.special_datagrams) == (0, 2)
