@@ -46,7 +46,7 @@ def break_by_file(state_dir: Path) -> None:
 
 
 def break_result_json(state_dir: Path) -> None:
-    (state_dir / "result.json").unlink()
+    (state_dir / "result.json").unlink(missing_ok=True)
     (state_dir / "result.json").mkdir()
 
 
@@ -298,10 +298,13 @@ def test_a_silent_sensor_keeps_the_watchdog_fed_and_is_a_fault_at_warning(tmp_pa
     assert any(line.startswith("<6>") and '"event": "started"' in line for line in lines)
 
 
-def test_calibd_run_rides_out_its_state_dir_replaced_by_a_file(tmp_path):
-    """The state directory turns into a file right after READY=1: the daemon calibrates on, logs
-    one state_dir_error, says "degraded" in systemd's status; once the file is gone the
-    directory is made again, the recovery logged, and the result written."""
+@pytest.mark.parametrize("breakage", ["replaced_by_a_file", "result_json_a_directory", "removed"])
+def test_calibd_run_rides_out_a_broken_state_dir(tmp_path, breakage):
+    """Right after READY=1 the state directory becomes a file, or result.json a directory (what
+    a read-only directory does to a daemon not running as root), or the directory is deleted:
+    the daemon calibrates on, logs one state_dir_error, says "degraded" in systemd's status;
+    once repaired (a deleted directory: at once, made again) the recovery is logged and the
+    result written."""
     samples = decode_capture(HEADING137.read_bytes()).samples
     data = HEADING137.read_bytes()
     per_sample = len(data) // len(samples)
@@ -311,24 +314,36 @@ def test_calibd_run_rides_out_its_state_dir_replaced_by_a_file(tmp_path):
     state_dir = tmp_path / "state"
     daemon, log = _calibd_run(_config(tmp_path, link, state_dir), {"NOTIFY_SOCKET": str(notify.path)}), []
     deadline = time.monotonic() + 90
+    speed = 100 * 125 * per_sample  # 100 times real time
     try:
         _read_log_until(daemon, log, "started", 1, deadline)
-        break_by_file(state_dir)
-        speed = 100 * 125 * per_sample  # 100 times real time
+        if breakage == "removed":
+            shutil.rmtree(state_dir)
+        else:
+            (break_by_file if breakage == "replaced_by_a_file" else break_result_json)(state_dir)
+        def repaired_after_the_error():
+            _read_log_until(daemon, log, "state_dir_error", 1, deadline)
+            repair(state_dir)
+            _read_log_until(daemon, log, "state_dir_recovered", 1, deadline)
+
         _write_paced(master, data[:100 * 125 * per_sample], speed, deadline)
-        _read_log_until(daemon, log, "state_dir_error", 1, deadline)
-        state_dir.unlink()
-        _read_log_until(daemon, log, "state_dir_recovered", 1, deadline)
+        if breakage == "replaced_by_a_file":  # state.json is written from the first batch on
+            repaired_after_the_error()
         _write_paced(master, data[100 * 125 * per_sample:], speed, deadline)
+        if breakage == "result_json_a_directory":  # result.json at the first solve
+            repaired_after_the_error()
         _read_log_until(daemon, log, "solved", 1, deadline)
         daemon.send_signal(signal.SIGTERM)
         assert daemon.wait(timeout=20) == 0
         log.append(daemon.stderr.read().decode())
     finally:
         _stop(daemon, master, slave)
-    text = "".join(log)
-    assert text.count('"event": "state_dir_error"') == 1 and "Traceback" not in text
-    assert any("; degraded: cannot write results (" in m for m in notify.drain())
+    text, statuses = "".join(log), [m for m in notify.drain() if m.startswith("STATUS=")]
+    assert "Traceback" not in text
+    errors = 0 if breakage == "removed" else 1
+    assert text.count('"event": "state_dir_error"') == errors
+    assert sum("; degraded: cannot write results (" in m for m in statuses) >= errors
+    assert "degraded" not in statuses[-1]
     assert json.loads((state_dir / "result.json").read_text())["method"] == "joint"
     assert "degraded" not in json.loads((state_dir / "state.json").read_text())
 
