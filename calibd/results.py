@@ -324,13 +324,11 @@ class ResultStore:
         if self._poor(new):
             return (f"the new result has poor estimates ({', '.join(self._poor(new))}): "
                     "result.json keeps the better one")
-        yaw_new, yaw_kept = new.estimates.get("yaw"), kept.estimates.get("yaw")
-        shorter = (new.session or {}).get("duration_s", 0) < (kept.session or {}).get("duration_s", 0)
-        if shorter and yaw_new and yaw_kept and None not in (yaw_new.sigma, yaw_kept.sigma) \
-                and yaw_new.sigma > yaw_kept.sigma:
-            return (f"the new result's yaw sigma {yaw_new.sigma:.2f} deg on {new.session['duration_s']:.0f} s is "
-                    f"larger than result.json's {yaw_kept.sigma:.2f} deg on {kept.session['duration_s']:.0f} s: "
-                    "result.json keeps the better one")
+        new_s, kept_s = ((r.session or {}).get("duration_s", 0.0) for r in (new, kept))
+        new_sigma, kept_sigma = (getattr(r.estimates.get("yaw"), "sigma", None) for r in (new, kept))
+        if new_s < kept_s and None not in (new_sigma, kept_sigma) and new_sigma > kept_sigma:
+            return (f"the new result's yaw sigma {new_sigma:.2f} deg on {new_s:.0f} s is larger than "
+                    f"result.json's {kept_sigma:.2f} deg on {kept_s:.0f} s: result.json keeps the better one")
         return None
 
     @staticmethod
@@ -341,9 +339,9 @@ class ResultStore:
     def on_stale(self, result: CalibrationResult) -> None:
         """Rewrite result.json only, as the result it holds marked stale with `result`'s record
         and warning (history keeps it as it was made); a new power-up's result replaces it."""
-        kept = self._kept if self._kept is not None else result
-        marked = replace(kept, stale=result.stale,
-                         warnings=(*[w for w in result.warnings if w.startswith("stale:")][:1], *kept.warnings))
+        marked = result if self._kept is None else replace(
+            self._kept, stale=result.stale,
+            warnings=(*[w for w in result.warnings if w.startswith("stale:")][:1], *self._kept.warnings))
         self._kept, self._held_back = marked, None
         self._write(self.dir / "result.json", result_json(marked))
 

@@ -11,6 +11,7 @@ import signal
 import socket
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -182,9 +183,20 @@ def test_a_poorer_result_of_the_same_power_up_goes_to_history_only(tmp_path, cap
     store.on_result(result(5.0, 100.0))
     store.on_stale(stale_result(result(5.0, 100.0), "the sensor restarted"))
     stale = json.loads((tmp_path / "result.json").read_text())
-    assert stale["estimates"]["yaw"]["sigma"] == 0.9 and stale["warnings"][0] == "stale: the sensor restarted"
+    assert stale["estimates"]["yaw"]["sigma"] == 0.9 and stale["warnings"] == ["stale: the sensor restarted"]
     store.on_result(result(5.0, 100.0, poor=True))
     assert kept_sigma(tmp_path) == 5.0
+
+
+def test_a_stale_result_is_marked_once_and_a_result_without_a_session_counts_as_shorter(tmp_path):
+    store = ResultStore(tmp_path)
+    store.on_stale(stale_result(result(), "the sensor restarted"))  # nothing kept yet: the one given
+    assert json.loads((tmp_path / "result.json").read_text())["warnings"] == ["stale: the sensor restarted"]
+    store.on_state(State.SOLVED, "solved")
+    store.on_result(result(1.0))
+    store.on_result(replace(result(2.0), session=None))  # no session: taken as 0 s long, so shorter
+    held_back = json.loads((tmp_path / "state.json").read_text())["held_back"]
+    assert kept_sigma(tmp_path) == 1.0 and "on 0 s is larger" in held_back
 
 
 @pytest.mark.parametrize("content, why", [
