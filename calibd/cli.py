@@ -32,7 +32,7 @@ from .methods import estimator
 from .estimators.thesis import sensitivity
 from .frames import STANDARD_GRAVITY, Site, site_value_error
 from .live import configure_logging, replay, run
-from .results import CalibrationResult, ResultError, ResultStore, load_result, write_result
+from .results import CalibrationResult, ResultError, ResultStore, StateDirError, load_result, write_result
 from .scenario import READY_MADE, ScenarioError, load_scenario
 from .session import CaptureSessions, Session, decode_sessions, power_up_session
 from .units import DEG
@@ -257,7 +257,10 @@ def cmd_replay(args) -> int:
 
     listeners = [StateLog(), Callbacks(state=print_state, stale=print_stale)]
     if args.state_dir:
-        listeners.append(ResultStore(args.state_dir, {"capture": args.capture}))
+        try:
+            listeners.append(ResultStore(args.state_dir, {"capture": args.capture}))
+        except StateDirError as exc:
+            raise UsageError(str(exc)) from None
     configure_logging(logging.WARNING)
     calibrator = Calibrator(site, warmup, method, listeners, source=args.capture, detection=detection)
     speed = None if args.speed == "max" else float(args.speed)
@@ -272,14 +275,37 @@ def cmd_replay(args) -> int:
     return 0
 
 
+def _load_state(state_file: Path) -> dict:
+    """The daemon's state.json: an object with its state (text), detail (text) and time of update
+    (s since the epoch); UsageError (one line) for anything else."""
+    def refuse(why: str):
+        return UsageError(f"{state_file}: not a calibd state file: {why}")
+    try:
+        state = json.loads(state_file.read_text())
+    except (OSError, UnicodeDecodeError) as exc:
+        raise refuse(f"cannot read it ({getattr(exc, 'strerror', None) or exc})") from None
+    except json.JSONDecodeError as exc:
+        raise refuse(f"not JSON ({exc})") from None
+    if not isinstance(state, dict):
+        raise refuse(f"a JSON {type(state).__name__}, not an object")
+    wrong = [key for key, kind in (("state", str), ("detail", str), ("updated", (int, float)))
+             if not isinstance(state.get(key), kind) or isinstance(state.get(key), bool)]
+    if wrong:
+        raise refuse(f"no valid {', '.join(wrong)}")
+    return state
+
+
 def cmd_status(args) -> int:
     directory = Path(args.state_dir)
     state_file = directory / "state.json"
-    if not state_file.exists():
+    if not os.path.lexists(state_file):  # Path.exists raises where the directory cannot be read
         raise UsageError(f"{directory}: no state.json (is calibd running with this state directory?)")
-    state = json.loads(state_file.read_text())
-    age = time.time() - state.get("updated", time.time())
+    state = _load_state(state_file)
+    age = time.time() - state["updated"]
     print(f"state: {state['state']} ({state['detail']}), updated {age:.0f} s ago")
+    for key in ("degraded", "held_back"):
+        if isinstance(state.get(key), str):
+            print(f"{key.replace('_', ' ')}: {state[key]}")
     if not (directory / "result.json").exists():
         print("no result yet")
         return 0

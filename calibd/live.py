@@ -15,6 +15,7 @@ import os
 import signal
 import socket
 import sys
+import time
 
 import numpy as np
 import structlog
@@ -25,7 +26,7 @@ from stim300.source import PortSource, SampleSource
 
 from .config import ConfigError
 from .daemon import Calibrator, Listener, State, StateLog
-from .results import ResultStore
+from .results import ResultStore, StateDirError
 
 log = structlog.get_logger("calibd")
 POLL_S = 0.2  # how long one read of the source waits: batches of about this much data
@@ -42,11 +43,23 @@ class _Stderr:
         sys.stderr.flush()
 
 
+# syslog priority of each log level: journald files a line by its "<N>" prefix
+PRIORITY = {"critical": 2, "exception": 3, "error": 3, "warning": 4, "info": 6, "debug": 7}
+
+
+def journal_priority(logger, method: str, line: str) -> str:
+    """The rendered line prefixed with its syslog priority, so `journalctl -p warning` finds the
+    warnings among the JSON lines of stderr."""
+    return f"<{PRIORITY.get(method, 6)}>{line}"
+
+
 def configure_logging(level: int = logging.INFO) -> None:
     """JSON lines on stderr for journald when not on a terminal (a traceback as a field of its
-    line), readable lines on one (the console renderer prints tracebacks itself)."""
+    line), each with its "<N>" priority when stderr is journald's ($JOURNAL_STREAM); readable
+    lines on a terminal (the console renderer prints tracebacks itself)."""
+    prefix = [journal_priority] if os.environ.get("JOURNAL_STREAM") else []
     renderers = [structlog.dev.ConsoleRenderer()] if sys.stderr.isatty() else \
-        [structlog.processors.format_exc_info, structlog.processors.JSONRenderer()]
+        [structlog.processors.format_exc_info, structlog.processors.JSONRenderer(), *prefix]
     structlog.configure(processors=[structlog.processors.add_log_level, structlog.processors.TimeStamper("iso"),
                                     *renderers],
                         wrapper_class=structlog.make_filtering_bound_logger(level),
@@ -54,7 +67,8 @@ def configure_logging(level: int = logging.INFO) -> None:
 
 
 def sd_notify(message: str) -> bool:
-    """Tell systemd (Type=notify) something; a no-op outside systemd."""
+    """Tell systemd (Type=notify) something; a no-op outside systemd. Never blocks: a notify
+    socket that is not read (full queue) drops the message rather than stall the loop."""
     address = os.environ.get("NOTIFY_SOCKET")
     if not address:
         return False
@@ -62,17 +76,50 @@ def sd_notify(message: str) -> bool:
         address = "\0" + address[1:]
     with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as sock:
         try:
-            sock.sendto(message.encode(), address)
+            sock.sendto(message.encode(), socket.MSG_DONTWAIT, address)
         except OSError:
             return False
     return True
 
 
 class SystemdStatus(Listener):
-    """systemd's status line (`systemctl status`): the state and its detail."""
+    """systemd's status line (`systemctl status`): the state and its detail, and while results
+    cannot be written, "degraded: ..." (`degraded`, the ResultStore's `on_health`)."""
+
+    def __init__(self) -> None:
+        self._line = ""
+        self._degraded: str | None = None
 
     def on_state(self, state: State, detail: str) -> None:
-        sd_notify(f"STATUS={state.value.lower()}: {detail}")
+        self._line = f"{state.value.lower()}: {detail}"
+        self._send()
+
+    def degraded(self, why: str | None) -> None:
+        self._degraded = why
+        self._send()
+
+    def _send(self) -> None:
+        sd_notify(f"STATUS={self._line}" + (f"; degraded: {self._degraded}" if self._degraded else ""))
+
+
+class Watchdog:
+    """systemd's watchdog proves the loop alive, data or not: WATCHDOG=1 at a `kick` once half
+    of $WATCHDOG_USEC (set by systemd when the unit has WatchdogSec=) has passed since the last.
+    Silence of the sensor is the FAULT state, not a hung daemon."""
+
+    def __init__(self, clock=time.monotonic) -> None:
+        usec = os.environ.get("WATCHDOG_USEC", "")
+        pid = os.environ.get("WATCHDOG_PID", "")
+        mine = usec.isdigit() and int(usec) > 0 and (not pid or pid == str(os.getpid()))
+        self.interval_s = int(usec) / 2e6 if mine else None  # None: no watchdog
+        self._clock = clock
+        self._last_s = -float("inf")
+
+    def kick(self) -> None:
+        now_s = self._clock()
+        if self.interval_s is not None and now_s - self._last_s >= self.interval_s:
+            sd_notify("WATCHDOG=1")
+            self._last_s = now_s
 
 
 def stream_faults(stats, before: dict, samples) -> tuple[dict, dict]:
@@ -129,26 +176,29 @@ def replay(source: SampleSource, calibrator: Calibrator, progress=None) -> None:
 def run(config, reload_config) -> int:
     """`calibd run`: until SIGTERM. `reload_config()` returns a fresh config (SIGHUP) or raises
     ConfigError, which leaves the daemon running on the configuration it has."""
-    listeners = [StateLog(), ResultStore(config.state_dir, {"port": config.serial.port}), SystemdStatus()]
-    calibrator = Calibrator(config.site, config.warmup, config.method, listeners, source=config.serial.port,
-                            detection=config.detection)
+    status = SystemdStatus()
+    try:
+        store = ResultStore(config.state_dir, {"port": config.serial.port}, on_health=status.degraded)
+        source = PortSource(config.serial.port, config.serial.baudrate)
+    except (StateDirError, PortError) as exc:  # before READY=1: systemd sees the start fail
+        log.error("start_failed", error=str(exc))
+        print(f"calibd: {exc}", file=sys.stderr)
+        return 1
+    calibrator = Calibrator(config.site, config.warmup, config.method, [StateLog(), store, status],
+                            source=config.serial.port, detection=config.detection)
     stopping = []
     signal.signal(signal.SIGTERM, lambda *_: stopping.append("SIGTERM"))
     signal.signal(signal.SIGINT, lambda *_: stopping.append("SIGINT"))
     reload_requested = []
     signal.signal(signal.SIGHUP, lambda *_: reload_requested.append(True))
-    try:
-        source = PortSource(config.serial.port, config.serial.baudrate)
-    except PortError as exc:
-        log.error("port_error", error=str(exc))
-        print(f"calibd: {exc}", file=sys.stderr)
-        return 1
+    watchdog = Watchdog()
     sd_notify("READY=1")
     log.info("started", port=config.serial.port, state_dir=str(config.state_dir))
 
     def on_step(fed: bool) -> None:
-        if fed:
-            sd_notify("WATCHDOG=1")
+        watchdog.kick()
+        if store.degraded:
+            store.retry()
         if reload_requested:
             reload_requested.clear()
             try:

@@ -78,6 +78,7 @@ def test_unit_has_the_required_settings():
     assert settings[("Service", "NotifyAccess")] == "main"
     assert settings[("Service", "WatchdogSec")] == "30"
     assert settings[("Service", "Restart")] == "on-failure"
+    assert settings[("Service", "SyslogLevelPrefix")] == "yes"  # the daemon's "<N>" priorities
     assert settings[("Service", "ExecStart")] == \
         "/usr/local/bin/calibd run --config /etc/calibd/%i.toml --port /dev/%i"
     assert settings[("Unit", "BindsTo")] == settings[("Unit", "After")] == "dev-%i.device"

@@ -61,14 +61,15 @@ class Callbacks(Listener):
 
 
 class StateLog(Listener):
-    """The structured log: a `state` event at each change of state, a `solved` event per result."""
+    """The structured log: a `state` event at each change of state (FAULT at warning level: the
+    data stopped), a `solved` event per result."""
 
     def __init__(self) -> None:
         self._state = State.STARTING
 
     def on_state(self, state: State, detail: str) -> None:
         if state != self._state:
-            log.info("state", state=state.value, detail=detail)
+            (log.warning if state == State.FAULT else log.info)("state", state=state.value, detail=detail)
         self._state = state
 
     def on_result(self, result: CalibrationResult) -> None:
