@@ -192,6 +192,9 @@ class StateDirError(CalibdError):
     symlink where a file or history/ belongs); one line."""
 
 
+MAX_PENDING_HISTORY = 100  # history entries held while the state directory cannot be written
+
+
 class ResultStore:
     """The daemon's state directory, a listener of its Calibrator: result.json (the best result
     of the power-up, replaced atomically and synced, so a crash at any moment leaves it
@@ -264,6 +267,11 @@ class ResultStore:
     def _write(self, path: Path, data: bytes, durable: bool = True) -> None:
         self._pending.pop(path, None)  # newest content last: history keeps its order
         self._pending[path] = (data, durable)
+        waiting = [p for p in self._pending if p.parent.name == "history"]
+        for dropped in waiting[:-MAX_PENDING_HISTORY]:  # a long outage: memory stays bounded
+            del self._pending[dropped]
+            log.warning("history_dropped", path=str(dropped), detail="the state directory has been unusable "
+                        f"for {MAX_PENDING_HISTORY} results; the oldest waiting one is not kept")
         self._flush()
 
     def _flush(self) -> None:

@@ -379,3 +379,20 @@ def test_calibd_run_ends_before_ready_on_a_problem_found_at_start(tmp_path, prob
     assert len(err) == 1 and err[0].startswith("calibd: ") and "Traceback" not in err[0]
     assert (str(state_dir) if problem == "state_dir" else str(link)) in err[0]
     assert "READY=1" not in notify.drain()
+
+
+def test_a_long_outage_holds_only_the_newest_history_entries(tmp_path, monkeypatch):
+    """While the state directory stays unusable, the history entries waiting to be written are
+    bounded (memory stays bounded over a long outage): the oldest go, with a warning; the
+    newest and result.json are written when it comes back."""
+    monkeypatch.setattr(calibd.results, "MAX_PENDING_HISTORY", 3)
+    state_dir = tmp_path / "state"
+    store = ResultStore(state_dir)
+    break_by_file(state_dir)
+    with capture_logs() as logs:
+        for sigma in (1.5, 1.4, 1.3, 1.2, 1.0):
+            store.on_result(result(sigma, duration_s=700.0))
+    assert [e["event"] for e in logs].count("history_dropped") == 2
+    repair(state_dir)
+    store.retry()
+    assert kept_sigma(state_dir) == 1.0 and len(list((state_dir / "history").iterdir())) == 3
