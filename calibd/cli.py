@@ -18,7 +18,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from stim300.cliutil import CommandParser, read_input, run_command
+from stim300.cliutil import CommandParser, RunError, input_file, read_input, run_command, write_error
 from stim300.errors import UsageError
 from stim300.progress import Progress
 from stim300.reads import load_reads
@@ -46,11 +46,11 @@ def open_capture(path: str, data: bytes | None = None) -> CaptureSessions:
     reads = load_reads(path)
     if data is not None:
         return decode_sessions(data, str(path), reads)
+    input_file(path)
     try:
         f = open(path, "rb")
-    except OSError:
-        read_input(path)  # raises the one-line UsageError that says why
-        raise
+    except OSError as exc:
+        raise UsageError(f"{path}: cannot read: {(exc.strerror or str(exc)).lower()}") from None
     with f:
         if not os.fstat(f.fileno()).st_size:
             return decode_sessions(b"", str(path), reads)
@@ -80,7 +80,7 @@ def cmd_simulate(args) -> int:
     try:
         record = write_capture(scenario, args.output)
     except OSError as exc:
-        raise UsageError(f"{args.output}: cannot write: {(exc.strerror or str(exc)).lower()}") from None
+        raise write_error(args.output, exc) from None
     print(f"{scenario.name}: {record['samples']} samples, {record['duration_s']:.1f} s at "
           f"{scenario.sensor.sample_rate_hz} Hz -> {args.output} (+ .truth.json) in "
           f"{time.perf_counter() - started:.1f} s", file=sys.stderr)
@@ -199,7 +199,7 @@ def cmd_calibrate(args) -> int:
     try:
         write_result(args.output, result)
     except OSError as exc:
-        raise UsageError(f"{args.output}: cannot write: {(exc.strerror or str(exc)).lower()}") from None
+        raise write_error(args.output, exc) from None
     print(_summary(result))
     return 0
 
@@ -266,8 +266,7 @@ def cmd_replay(args) -> int:
         replay(source, calibrator, progress=lambda done, total: bar.update(done))
     if calibrator.result is None or calibrator.result.stale is not None:
         stale = " (the last result is the previous power-up's, marked stale)" if calibrator.result else ""
-        print(f"no result for the last power-up{stale}: {calibrator.detail}")
-        return 1
+        raise RunError(f"{args.capture}: no result for the last power-up{stale}: {calibrator.detail}")
     print(_summary(calibrator.result))
     return 0
 
@@ -296,6 +295,7 @@ def cmd_status(args) -> int:
 def cmd_report(args) -> int:
     from .report import ReportError, figures_dir, write_report  # matplotlib only for this command
 
+    input_file(args.result, "result file")
     try:
         written = write_report(args.result, open_capture(args.capture), args.output)
     except (ResultError, ReportError, CalibrationError) as exc:
@@ -346,13 +346,13 @@ def cmd_noise(args) -> int:
         channels = characterise(session)
     except NoiseError as exc:
         raise UsageError(f"{args.capture}: {exc}") from None
-    print(f"{args.capture}: {noise_table(channels)}")
     if args.output:
         document = json.dumps(noise_record(session, channels, args.capture), indent=1) + "\n"
         try:
             write_atomic(args.output, document.encode())
         except OSError as exc:
-            raise UsageError(f"{args.output}: cannot write: {(exc.strerror or str(exc)).lower()}") from None
+            raise write_error(args.output, exc) from None
+    print(f"{args.capture}: {noise_table(channels)}")
     return 0
 
 

@@ -178,6 +178,8 @@ def parse_config(data: dict, where: str) -> DaemonConfig:
 def load_config(path: str | Path) -> DaemonConfig:
     """Read and validate the configuration file at `path`; any problem is a one-line ConfigError."""
     where = str(path)
+    if Path(path).exists() and not (Path(path).is_file() or Path(path).is_dir()):
+        raise ConfigError(f"{where}: not a regular file (a device or FIFO), expected a TOML configuration file")
     try:
         text = Path(path).read_text(encoding="utf-8")
     except FileNotFoundError:

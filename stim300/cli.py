@@ -13,14 +13,13 @@ import os
 import sys
 import time
 from contextlib import contextmanager
-from pathlib import Path
 
 import numpy as np
 
 from .atomic import atomic_file
 from .bulk import decode_columns
 from .capture import StreamInfo
-from .cliutil import CommandParser, run_command
+from .cliutil import CommandParser, input_file, run_command, write_error
 from .clock import counter_times
 from .errors import UsageError
 from .progress import Progress
@@ -82,13 +81,9 @@ def _format(args) -> Format:
 @contextmanager
 def _mapped(path: str):
     """The capture's bytes, memory-mapped (no copy of a large file)."""
-    p = Path(path)
-    if not p.exists():
-        raise UsageError(f"{path}: no such file")
-    if p.is_dir():
-        raise UsageError(f"{path}: is a directory, expected a capture file")
+    input_file(path)
     try:
-        with open(p, "rb") as f:
+        with open(path, "rb") as f:
             if os.fstat(f.fileno()).st_size == 0:
                 raise UsageError(f"{path}: empty file, no STIM300 data")
             with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as m:
@@ -153,7 +148,7 @@ def _output(path: str):
         with atomic_file(path, durable=False) as f:
             yield f
     except OSError as exc:
-        raise UsageError(f"{path}: cannot write: {(exc.strerror or str(exc)).lower()}") from None
+        raise write_error(path, exc) from None
 
 
 def _write_csv(f, cols: dict[str, np.ndarray]) -> None:

@@ -1,0 +1,128 @@
+"""Every command, on every bad input: exit 2 (input) or 1 (run), one line on stderr naming the
+thing, no traceback, no file left behind, no device or FIFO replaced."""
+
+from __future__ import annotations
+
+import os
+import stat
+from pathlib import Path
+
+import pytest
+
+from calibd.cli import main as calibd_main
+from captures import capture
+from stim300.cli import main as stim300_main
+from stim300.codec import encode_samples
+from stim300.special import Configuration, encode_special
+
+FIXTURES = Path(__file__).parent.parent / "fixtures"
+GOOD = FIXTURES / "heading137_lat60_125hz.bin"  # calibrates, and has statics long enough for `noise`
+
+
+def _inputs(d: Path) -> dict[str, Path]:
+    """Bad (and good) inputs by name, built in `d`."""
+    config = encode_special(Configuration.build(sample_rate_hz=125, crlf=True), True)
+    data, samples, fmt = capture(300, 0x93, True, rate=125)
+    datagram = len(data) // 300
+    stuck = samples.copy()
+    stuck["counter"] = 7
+    external = encode_special(Configuration.build(sample_rate_hz=None, crlf=True), True)
+    files = {
+        "one.bin": data[:datagram],
+        "one_cfg.bin": config + data[:datagram],
+        "stuck.bin": encode_samples(stuck, 0x93, fmt, True).tobytes(),
+        "external.bin": external + data[:datagram],
+        "text.bin": b"not a STIM300 capture\n" * 100,
+        "empty.bin": b"",
+    }
+    for name, content in files.items():
+        (d / name).write_bytes(content)
+    os.mkfifo(d / "fifo")
+    os.mkfifo(d / "fifo.csv")
+    (d / "dir").mkdir()
+    return {name.split(".")[0]: d / name for name in files} | {
+        "fifo": d / "fifo", "fifo_csv": d / "fifo.csv", "dir": d / "dir"}
+
+
+def _run(main, argv, capsys):
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+CALIBRATE = ["calibrate", "{capture}", "-o", "{out}/r.json", "--latitude", "60"]
+
+CASES = {  # name: (program, argv with {placeholders}, exit status, text in the one stderr line)
+    # inputs that are not regular files are refused, never read until memory runs out
+    "calibrate /dev/zero": ("calibd", ["calibrate", "/dev/zero", "-o", "{out}/r.json", "--latitude", "60"], 2,
+                            "/dev/zero: not a regular file"),
+    "calibrate fifo": ("calibd", ["calibrate", "{fifo}", "-o", "{out}/r.json", "--latitude", "60"], 2,
+                       "not a regular file"),
+    "replay /dev/zero": ("calibd", ["replay", "/dev/zero", "--latitude", "60"], 2, "/dev/zero: not a regular file"),
+    "noise /dev/zero": ("calibd", ["noise", "/dev/zero"], 2, "/dev/zero: not a regular file"),
+    "report /dev/zero result": ("calibd", ["report", "/dev/zero", GOOD, "-o", "{out}/r.html"], 2,
+                                "/dev/zero: not a regular file"),
+    "report /dev/zero capture": ("calibd", ["report", "{result}", "/dev/zero", "-o", "{out}/r.html"], 2,
+                                 "/dev/zero: not a regular file"),
+    "run config /dev/zero": ("calibd", ["run", "--config", "/dev/zero"], 2, "/dev/zero: not a regular file"),
+    "simulate scenario /dev/zero": ("calibd", ["simulate", "/dev/zero", "-o", "{out}/c.bin"], 2,
+                                    "/dev/zero: no such scenario file"),
+    "plan noise /dev/zero": ("calibd", ["plan", "--latitude", "60", "--protocol", "thesis", "--noise", "/dev/zero"],
+                             2, "/dev/zero: not a regular file"),
+    "info /dev/zero": ("stim300", ["info", "/dev/zero"], 2, "/dev/zero: not a regular file"),
+    "decode fifo": ("stim300", ["decode", "{fifo}", "-o", "{out}/t.npz"], 2, "not a regular file"),
+    "calibrate directory": ("calibd", ["calibrate", "{dir}", "-o", "{out}/r.json", "--latitude", "60"], 2,
+                            "is a directory"),
+    # captures the calibration cannot use
+    "calibrate one datagram": ("calibd", CALIBRATE, 2, "too few to infer it"),
+    "noise one datagram": ("calibd", ["noise", "{one}"], 2, "too few to infer it"),
+    "calibrate one datagram + configuration": ("calibd", [*CALIBRATE[:1], "{one_cfg}", *CALIBRATE[2:]], 2,
+                                               "no static segment"),
+    "calibrate stuck counter": ("calibd", [*CALIBRATE[:1], "{stuck}", *CALIBRATE[2:]], 2,
+                                "does not step at any STIM300 rate"),
+    "noise stuck counter": ("calibd", ["noise", "{stuck}"], 2, "does not step at any STIM300 rate"),
+    "calibrate external trigger": ("calibd", [*CALIBRATE[:1], "{external}", *CALIBRATE[2:]], 2,
+                                   "sample rate unknown"),
+    "noise external trigger": ("calibd", ["noise", "{external}"], 2, "sample rate unknown"),
+    "replay not STIM300": ("calibd", ["replay", "{text}", "--latitude", "60"], 1, "no result for the last power-up"),
+    # outputs: a device or FIFO is written in place, never replaced; a directory is refused
+    "calibrate -o /dev/full": ("calibd", ["calibrate", GOOD, "-o", "/dev/full", "--latitude", "60"], 1,
+                               "/dev/full: cannot write: no space left on device"),
+    "calibrate -o fifo": ("calibd", ["calibrate", GOOD, "-o", "{fifo}", "--latitude", "60"], 1,
+                          "a FIFO that no process reads"),
+    "calibrate -o directory": ("calibd", ["calibrate", GOOD, "-o", "{dir}", "--latitude", "60"], 2,
+                               "cannot write: is a directory"),
+    "noise -o /dev/full": ("calibd", ["noise", GOOD, "-o", "/dev/full"], 1, "no space left on device"),
+    "decode -o fifo": ("stim300", ["decode", GOOD, "-o", "{fifo_csv}"], 1, "a FIFO that no process reads"),
+}
+
+
+@pytest.fixture(scope="module")
+def result_file(tmp_path_factory):
+    """A real result of GOOD, for the report cases."""
+    path = tmp_path_factory.mktemp("result") / "result.json"
+    assert calibd_main(["calibrate", str(GOOD), "-o", str(path), "--latitude", "60"]) == 0
+    return path
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_bad_input_is_one_line_and_leaves_nothing(name, tmp_path, capsys, request):
+    program, argv, status, text = CASES[name]
+    ins = tmp_path / "in"
+    ins.mkdir()
+    places = {k: str(v) for k, v in _inputs(ins).items()}
+    out = tmp_path / "out"
+    out.mkdir()
+    places |= {"out": str(out), "capture": places["one"]}
+    if any("{result}" in str(a) for a in argv):
+        places["result"] = str(request.getfixturevalue("result_file"))
+    kinds = {p: stat.S_IFMT(os.lstat(p).st_mode) for p in ("/dev/null", "/dev/full", places["fifo"])}
+    main = calibd_main if program == "calibd" else stim300_main
+    code, stdout, err = _run(main, [str(a).format(**places) for a in argv], capsys)
+    lines = err.strip().splitlines()
+    assert code == status, err
+    assert len(lines) == 1, err
+    assert text in lines[0] and "Traceback" not in err and "internal error" not in err
+    assert list(out.iterdir()) == []  # no partial output, no .part
+    assert not [p for p in ins.iterdir() if p.name.endswith(".part") or p.name.startswith(".")]
+    assert {p: stat.S_IFMT(os.lstat(p).st_mode) for p in kinds} == kinds  # devices and FIFOs stay what they were
