@@ -79,6 +79,8 @@ def cmd_simulate(args) -> int:
     started = time.perf_counter()
     try:
         record = write_capture(scenario, args.output)
+    except ScenarioError as exc:  # what only the simulation finds: its size, faults it cannot apply
+        raise UsageError(f"{args.scenario}: {exc}") from None
     except OSError as exc:
         raise write_error(args.output, exc) from None
     print(f"{scenario.name}: {record['samples']} samples, {record['duration_s']:.1f} s at "

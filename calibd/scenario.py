@@ -14,7 +14,9 @@ from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
+from stim300.errors import FormatError
 from stim300.protocol import ACC_RANGE_LSB_EXP, NORMAL_LAYOUTS, SAMPLE_RATES_HZ
+from stim300.special import PartNumber, SerialNumber
 
 from .errors import CalibdError, SiteError
 from .frames import Site
@@ -215,11 +217,18 @@ def _sensor(t: _Table) -> Sensor:
         gyro_unit=t.get("gyro_unit", d.gyro_unit, str, lambda u: u in GYRO_UNITS, f"one of {', '.join(GYRO_UNITS)}"),
         acc_unit=t.get("acc_unit", d.acc_unit, str, lambda u: u in ACC_UNITS, f"one of {', '.join(ACC_UNITS)}"),
         part_number=t.get("part_number", d.part_number, str),
-        revision=t.get("revision", d.revision, str, lambda r: len(r) == 1, "one character"),
+        revision=t.get("revision", d.revision, str, lambda r: len(r) == 1 and ord(r) <= 0xFF,
+                       "one character U+0000..U+00FF"),
         serial_number=t.get("serial_number", d.serial_number, str),
         latency_us=t.get("latency_us", d.latency_us, int, lambda v: 0 <= v < 65536, "0 to 65535 us"),
     )
     t.finish()
+    for key, special in (("part_number", lambda: PartNumber(sensor.part_number, sensor.revision)),
+                         ("serial_number", lambda: SerialNumber(sensor.serial_number))):
+        try:
+            special()  # the identity datagrams' own rules (stim300.special), not a copy of them
+        except FormatError as exc:
+            t.fail(key, str(exc))
     return sensor
 
 

@@ -19,6 +19,10 @@ FIXTURES = Path(__file__).parent.parent / "fixtures"
 GOOD = FIXTURES / "heading137_lat60_125hz.bin"  # calibrates, and has statics long enough for `noise`
 
 
+def _scenario(tables: str) -> bytes:
+    return ('seed = 1\n[site]\nlatitude_deg = 60\n' + tables).encode()
+
+
 def _inputs(d: Path) -> dict[str, Path]:
     """Bad (and good) inputs by name, built in `d`."""
     config = encode_special(Configuration.build(sample_rate_hz=125, crlf=True), True)
@@ -34,6 +38,11 @@ def _inputs(d: Path) -> dict[str, Path]:
         "external.bin": external + data[:datagram],
         "text.bin": b"not a STIM300 capture\n" * 100,
         "empty.bin": b"",
+        "huge.toml": _scenario('[[segments]]\ntype = "turn"\nangle_deg = 1e9\npeak_rate_deg_s = 1\n'
+                               'accel_deg_s2 = 1\n'),
+        "serial.toml": _scenario('[sensor]\nserial_number = "X1"\n[[segments]]\ntype = "static"\n'
+                                 'duration_s = 1\n'),
+        "drop.toml": _scenario('[faults]\ndrop = 125\n[[segments]]\ntype = "static"\nduration_s = 1\n'),
     }
     for name, content in files.items():
         (d / name).write_bytes(content)
@@ -85,6 +94,13 @@ CASES = {  # name: (program, argv with {placeholders}, exit status, text in the 
                                    "sample rate unknown"),
     "noise external trigger": ("calibd", ["noise", "{external}"], 2, "sample rate unknown"),
     "replay not STIM300": ("calibd", ["replay", "{text}", "--latitude", "60"], 1, "no result for the last power-up"),
+    # scenarios the simulator cannot make
+    "simulate 1e9 deg turn": ("calibd", ["simulate", "{huge}", "-o", "{out}/c.bin"], 2,
+                              "more than the simulator's 10,000,000 samples"),
+    "simulate bad serial number": ("calibd", ["simulate", "{serial}", "-o", "{out}/c.bin"], 2,
+                                   "[sensor] serial_number: serial number must be"),
+    "simulate drop every sample": ("calibd", ["simulate", "{drop}", "-o", "{out}/c.bin"], 2,
+                                   "[faults] drop: 125 is not fewer than the 125 samples"),
     # outputs: a device or FIFO is written in place, never replaced; a directory is refused
     "calibrate -o /dev/full": ("calibd", ["calibrate", GOOD, "-o", "/dev/full", "--latitude", "60"], 1,
                                "/dev/full: cannot write: no space left on device"),
