@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import mmap
 import os
 import sys
@@ -274,8 +275,8 @@ def _positive(kind):
             value = kind(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-        if value <= 0:
-            raise argparse.ArgumentTypeError(f"{text!r} must be positive")
+        if not (value > 0 and math.isfinite(value)):  # nan would record forever
+            raise argparse.ArgumentTypeError(f"{text!r} must be a positive finite number")
         return value
     return parse
 

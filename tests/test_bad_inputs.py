@@ -3,8 +3,14 @@ thing, no traceback, no file left behind, no device or FIFO replaced."""
 
 from __future__ import annotations
 
+import json
 import os
+import signal
 import stat
+import subprocess
+import sys
+import time
+import tty
 from pathlib import Path
 
 import pytest
@@ -94,6 +100,21 @@ CASES = {  # name: (program, argv with {placeholders}, exit status, text in the 
                                    "sample rate unknown"),
     "noise external trigger": ("calibd", ["noise", "{external}"], 2, "sample rate unknown"),
     "replay not STIM300": ("calibd", ["replay", "{text}", "--latitude", "60"], 1, "no result for the last power-up"),
+    # a result.json of the wrong kinds of values
+    "report estimate value a string": ("calibd", ["report", "{result_value_text}", GOOD, "-o", "{out}/r.html"], 2,
+                                       'estimates.pitch.value is "x", expected a number'),
+    "report sigma a list": ("calibd", ["report", "{result_sigma_list}", GOOD, "-o", "{out}/r.html"], 2,
+                            "estimates.yaw.sigma is [], expected a number or null"),
+    "report latitude null": ("calibd", ["report", "{result_latitude_null}", GOOD, "-o", "{out}/r.html"], 2,
+                             "site.latitude_deg is null, expected a number"),
+    "report power-up a string": ("calibd", ["report", "{result_power_up_text}", GOOD, "-o", "{out}/r.html"], 2,
+                                 "stream.power_up is"),
+    # stim300 record
+    "record --duration nan": ("stim300", ["record", "/dev/null", "-o", "{out}/c.bin", "--duration", "nan"], 2,
+                              "'nan' must be a positive finite number"),
+    "record -o /dev/null": ("stim300", ["record", "/dev/null", "-o", "/dev/null"], 2,
+                            "/dev/null: not a regular file"),
+    "record -o fifo": ("stim300", ["record", "/dev/null", "-o", "{fifo}"], 2, "not a regular file"),
     # scenarios the simulator cannot make
     "simulate 1e9 deg turn": ("calibd", ["simulate", "{huge}", "-o", "{out}/c.bin"], 2,
                               "more than the simulator's 10,000,000 samples"),
@@ -113,6 +134,20 @@ CASES = {  # name: (program, argv with {placeholders}, exit status, text in the 
 }
 
 
+def _results(good: Path, d: Path) -> dict[str, str]:
+    """The good result, and copies of it with one field of the wrong kind."""
+    places = {"result": str(good)}
+    for name, edit in {"value_text": lambda r: r["estimates"]["pitch"].update(value="x"),
+                       "sigma_list": lambda r: r["estimates"]["yaw"].update(sigma=[]),
+                       "latitude_null": lambda r: r["site"].update(latitude_deg=None),
+                       "power_up_text": lambda r: r["stream"].update(power_up="first")}.items():
+        record = json.loads(good.read_text())
+        edit(record)
+        (d / f"{name}.json").write_text(json.dumps(record))
+        places[f"result_{name}"] = str(d / f"{name}.json")
+    return places
+
+
 @pytest.fixture(scope="module")
 def result_file(tmp_path_factory):
     """A real result of GOOD, for the report cases."""
@@ -130,8 +165,8 @@ def test_bad_input_is_one_line_and_leaves_nothing(name, tmp_path, capsys, reques
     out = tmp_path / "out"
     out.mkdir()
     places |= {"out": str(out), "capture": places["one"]}
-    if any("{result}" in str(a) for a in argv):
-        places["result"] = str(request.getfixturevalue("result_file"))
+    if any("{result" in str(a) for a in argv):
+        places |= _results(request.getfixturevalue("result_file"), ins)
     kinds = {p: stat.S_IFMT(os.lstat(p).st_mode) for p in ("/dev/null", "/dev/full", places["fifo"])}
     main = calibd_main if program == "calibd" else stim300_main
     code, stdout, err = _run(main, [str(a).format(**places) for a in argv], capsys)
@@ -142,3 +177,32 @@ def test_bad_input_is_one_line_and_leaves_nothing(name, tmp_path, capsys, reques
     assert list(out.iterdir()) == []  # no partial output, no .part
     assert not [p for p in ins.iterdir() if p.name.endswith(".part") or p.name.startswith(".")]
     assert {p: stat.S_IFMT(os.lstat(p).st_mode) for p in kinds} == kinds  # devices and FIFOs stay what they were
+
+
+def test_record_killed_by_sigterm_keeps_the_bytes(tmp_path):
+    """SIGTERM (kill, systemd) ends a recording as Ctrl-C does: the bytes read so far are in OUT,
+    its read log beside it, no .part left; it once left a 0-byte .part."""
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    out = tmp_path / "imu.bin"
+    data = bytes(range(256)) * 20
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path))
+    recorder = subprocess.Popen([sys.executable, "-m", "stim300.cli", "record", os.ttyname(slave), "-o", str(out)],
+                                stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        assert recorder.stderr.readline().startswith("recorded 0 B")  # the port is open: what follows is read
+        os.write(master, data)
+        deadline = time.monotonic() + 10
+        part = tmp_path / "imu.bin.part"
+        while time.monotonic() < deadline and not (part.exists() and recorder.stderr.readline().startswith(
+                f"recorded {len(data)} B")):
+            pass
+        recorder.send_signal(signal.SIGTERM)
+        assert recorder.wait(10) == 0
+    finally:
+        recorder.kill()
+        os.close(master)
+        os.close(slave)
+    assert out.read_bytes() == data
+    assert (tmp_path / "imu.bin.reads.npy").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["imu.bin", "imu.bin.reads.npy"]
