@@ -25,7 +25,7 @@ from stim300.reads import load_reads
 from stim300.source import CaptureSource, PtySource
 
 from .calibrate import calibrate_capture
-from .config import METHODS, ConfigError, DetectionConfig, MethodConfig, WarmupConfig, load_config
+from .config import METHODS, WARMUP_WINDOW_S, ConfigError, DetectionConfig, MethodConfig, WarmupConfig, load_config
 from .daemon import Calibrator, Callbacks, StateLog
 from .errors import CalibrationError, SiteError
 from .methods import estimator
@@ -406,7 +406,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--speed", type=_speed, default="max", help="N times real time, or max (default)")
     p.add_argument("--pty", action="store_true",
                    help="write the capture into a pseudo-terminal read by the daemon's own port reader")
-    p.add_argument("--warmup-window", type=_number(1, 1e6, "s"),
+    p.add_argument("--warmup-window", type=_number(*WARMUP_WINDOW_S, "s"),
                    help="seconds of settled temperature that end the warm-up (default 600)")
     p.add_argument("--state-dir", help="also write result.json, history/ and state.json there")
     p.set_defaults(func=cmd_replay)
