@@ -24,8 +24,8 @@ from .cliutil import CommandParser, input_file, run_command, write_error
 from .clock import counter_times
 from .errors import UsageError
 from .progress import Progress
-from .protocol import (ACC_RANGE_LSB_EXP, DEFAULT_BIT_RATE, NORMAL_LAYOUTS, SAMPLE_RATES_HZ, AccUnit, Format, GyroUnit,
-                       Status)
+from .protocol import (ACC_RANGE_LSB_EXP, COUNTER_MODULUS, DEFAULT_BIT_RATE, INTERNAL_RATE_HZ, NORMAL_LAYOUTS,
+                       SAMPLE_RATES_HZ, AccUnit, Format, GyroUnit, Status)
 from .reads import load_reads
 
 AXES = "xyz"
@@ -94,13 +94,38 @@ def _mapped(path: str):
 
 
 def _decode(path: str, fmt: Format) -> tuple[dict[str, np.ndarray], StreamInfo]:
-    """Samples (columns) and stream info; with the capture's read log, samples carry host times."""
+    """Samples (columns) and stream info; with the capture's read log, samples carry host times.
+    A given format option the data overrode is said on stderr; a given rate the counter
+    contradicts is refused."""
     with _mapped(path) as data:
         samples, info = decode_columns(data, fmt, reads=load_reads(path))
     if info.stats.datagrams == 0:
         raise UsageError(f"{path}: no STIM300 datagram found in {info.stats.bytes_in} bytes "
                          "(not a STIM300 capture, or a format the options do not describe)")
+    source = "its configuration datagram says" if info.configuration else "its datagrams are"
+    if fmt.datagram_id is not None and info.format.datagram_id != fmt.datagram_id:
+        print(f"stim300: {path}: --datagram 0x{fmt.datagram_id:02X} not used: {source} "
+              f"0x{info.format.datagram_id:02X}", file=sys.stderr)
+    if fmt.sample_rate_hz is not None and info.rate_hz != fmt.sample_rate_hz:
+        print(f"stim300: {path}: --rate {fmt.sample_rate_hz} not used: {source} {info.rate_hz} Hz", file=sys.stderr)
+    elif fmt.sample_rate_hz is not None:
+        _check_given_rate(path, fmt.sample_rate_hz, samples["counter"])
     return samples, info
+
+
+def _check_given_rate(path: str, rate_hz: int, counter: np.ndarray) -> None:
+    """Refuse a --rate the counter contradicts: 2000 Hz given for 125 Hz data would count 15 lost
+    samples at every datagram. The counter's most common step is its rate (a restart or a loss
+    makes other steps, rarely)."""
+    steps = np.bincount(np.diff(counter.astype(np.int64)) % COUNTER_MODULUS, minlength=COUNTER_MODULUS)
+    steps[0] = 0  # a stuck counter says nothing of the rate
+    if not steps.any():
+        return
+    step = int(np.argmax(steps))
+    if step != INTERNAL_RATE_HZ // rate_hz:
+        seen = f"{INTERNAL_RATE_HZ // step} Hz" if INTERNAL_RATE_HZ // step in SAMPLE_RATES_HZ else "no STIM300 rate"
+        raise UsageError(f"{path}: --rate {rate_hz} disagrees with the datagram counter, which mostly steps by "
+                         f"{step} ({seen}): give the capture's rate or leave --rate out")
 
 
 def columns(samples) -> dict[str, np.ndarray]:

@@ -43,6 +43,7 @@ def _inputs(d: Path) -> dict[str, Path]:
         "stuck.bin": encode_samples(stuck, 0x93, fmt, True).tobytes(),
         "external.bin": external + data[:datagram],
         "text.bin": b"not a STIM300 capture\n" * 100,
+        "rate125.bin": data,
         "empty.bin": b"",
         "huge.toml": _scenario('[[segments]]\ntype = "turn"\nangle_deg = 1e9\npeak_rate_deg_s = 1\n'
                                'accel_deg_s2 = 1\n'),
@@ -115,6 +116,12 @@ CASES = {  # name: (program, argv with {placeholders}, exit status, text in the 
     "record -o /dev/null": ("stim300", ["record", "/dev/null", "-o", "/dev/null"], 2,
                             "/dev/null: not a regular file"),
     "record -o fifo": ("stim300", ["record", "/dev/null", "-o", "{fifo}"], 2, "not a regular file"),
+    # a format option the data contradict
+    "info --rate 2000 on 125 Hz data": ("stim300", ["info", "{rate125}", "--rate", "2000"], 2,
+                                        "--rate 2000 disagrees with the datagram counter, which mostly steps by 16 "
+                                        "(125 Hz)"),
+    "decode --rate 250 on 125 Hz data": ("stim300", ["decode", "{rate125}", "--rate", "250", "-o", "{out}/t.npz"],
+                                         2, "--rate 250 disagrees"),
     # scenarios the simulator cannot make
     "simulate 1e9 deg turn": ("calibd", ["simulate", "{huge}", "-o", "{out}/c.bin"], 2,
                               "more than the simulator's 10,000,000 samples"),
