@@ -18,7 +18,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from stim300.cliutil import CommandParser, RunError, input_file, read_input, run_command, write_error
+from stim300.cliutil import CommandParser, RunError, input_file, not_an_input, read_input, run_command, write_error
 from stim300.errors import UsageError
 from stim300.progress import Progress
 from stim300.reads import load_reads
@@ -70,6 +70,8 @@ def load_session(path: str, start_s: float | None = 0.0, data: bytes | None = No
 
 
 def cmd_simulate(args) -> int:
+    not_an_input(args.output, args.scenario)
+    not_an_input(f"{args.output}.truth.json", args.scenario)
     try:
         scenario = load_scenario(args.scenario)
     except ScenarioError as exc:
@@ -182,6 +184,7 @@ def cmd_calibrate(args) -> int:
     if args.method == "thesis" and (args.fixed_amplitude or args.drift):
         raise UsageError("calibrate: --fixed-amplitude and --drift belong to --method joint")
     site = _site(args)
+    not_an_input(args.output, args.capture)
     try:
         capture = open_capture(args.capture)
     except CalibrationError as exc:
@@ -298,6 +301,7 @@ def cmd_report(args) -> int:
     from .report import ReportError, figures_dir, write_report  # matplotlib only for this command
 
     input_file(args.result, "result file")
+    not_an_input(args.output, args.result, args.capture)
     try:
         written = write_report(args.result, open_capture(args.capture), args.output)
     except (ResultError, ReportError, CalibrationError) as exc:
@@ -340,6 +344,8 @@ def cmd_noise(args) -> int:
 
     from .noise import NoiseError, characterise, noise_record, noise_table
 
+    if args.output:
+        not_an_input(args.output, args.capture)
     try:
         session = load_session(args.capture, args.start)
     except CalibrationError as exc:

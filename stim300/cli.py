@@ -20,7 +20,7 @@ import numpy as np
 from .atomic import atomic_file
 from .bulk import decode_columns
 from .capture import StreamInfo
-from .cliutil import CommandParser, input_file, run_command, write_error
+from .cliutil import CommandParser, input_file, not_an_input, run_command, write_error
 from .clock import counter_times
 from .errors import UsageError
 from .progress import Progress
@@ -195,6 +195,7 @@ def cmd_decode(args) -> int:
     out = args.output
     if not (out.endswith(".npz") or out.endswith(".csv")):
         raise UsageError(f"{out}: output must end in .npz or .csv")
+    not_an_input(out, args.capture)
     started = time.perf_counter()
     samples, info = _decode(args.capture, _format(args))
     cols = columns(samples)

@@ -45,6 +45,18 @@ def read_input(path: str, what: str = "capture file") -> bytes:
         raise UsageError(f"{path}: cannot read: {(exc.strerror or str(exc)).lower()}") from None
 
 
+def not_an_input(output, *inputs) -> None:
+    """Refuse an output that is one of the command's inputs (or a link to it): `-o CAPTURE` would
+    replace the capture with what was made from it."""
+    for given in inputs:
+        try:
+            same = given is not None and os.path.samefile(output, given)
+        except OSError:
+            same = False  # the output does not exist yet
+        if same:
+            raise UsageError(f"{output}: is the input {given}: writing it would destroy the input")
+
+
 def write_error(path, exc: OSError) -> Exception:
     """The one-line error for an output that cannot be written: a directory or a missing parent
     is the user's (UsageError, exit 2); a full disk or a FIFO nobody reads is the run's (exit 1)."""

@@ -213,3 +213,33 @@ def test_record_killed_by_sigterm_keeps_the_bytes(tmp_path):
     assert out.read_bytes() == data
     assert (tmp_path / "imu.bin.reads.npy").exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["imu.bin", "imu.bin.reads.npy"]
+
+
+@pytest.mark.parametrize("command", [
+    ["calibrate", "{capture}", "-o", "{capture}", "--latitude", "60"],
+    ["calibrate", "{capture}", "-o", "{link}", "--latitude", "60"],
+    ["noise", "{capture}", "-o", "{capture}"],
+    ["report", "{capture}.json", "{capture}", "-o", "{capture}"],
+    ["simulate", "{scenario}", "-o", "{scenario}"],
+])
+def test_an_output_that_is_an_input_is_refused(command, tmp_path, capsys):
+    """`-o` naming the command's own input (or a link to it) would replace the capture with what
+    was made from it: refused before anything is read, and the input is as it was."""
+    capture, scenario, link = tmp_path / "c.bin", tmp_path / "s.toml", tmp_path / "link.bin"
+    capture.write_bytes(GOOD.read_bytes()[:200_000])
+    (tmp_path / "c.bin.json").write_text("{}")
+    scenario.write_bytes(_scenario('[[segments]]\ntype = "static"\nduration_s = 1\n'))
+    link.symlink_to(capture)
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    argv = [a.format(capture=capture, scenario=scenario, link=link) for a in command]
+    code, _, err = _run(calibd_main, argv, capsys)
+    assert code == 2 and len(err.splitlines()) == 1 and "writing it would destroy the input" in err
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+
+
+def test_decode_onto_its_input_is_refused(tmp_path, capsys):
+    capture = tmp_path / "c.csv"
+    capture.write_bytes(GOOD.read_bytes()[:100_000])
+    code, _, err = _run(stim300_main, ["decode", capture, "-o", capture], capsys)
+    assert code == 2 and "writing it would destroy the input" in err
+    assert capture.read_bytes() == GOOD.read_bytes()[:100_000]
