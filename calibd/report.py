@@ -160,7 +160,7 @@ def _check_fields(result: CalibrationResult, path) -> None:
     for k, segment in enumerate(result.segments):
         fields_.append((f"segments[{k}]", segment, _record, "an object"))
         if isinstance(segment, dict):
-            fields_ += [(f"segments[{k}].{key}", segment.get(key), *maybe_number) for key in ("start_s", "end_s")]
+            fields_ += [(f"segments[{k}].{key}", segment.get(key, 0.0), *number) for key in ("start_s", "end_s")]
     checks = result.checks if isinstance(result.checks, dict) else {}
     for check, keys in (("earth_rate_horizontal_deg_h", ("fitted", "sigma", "expected")),
                         ("static_chi2", ("chi2", "dof", "p_value"))):

@@ -110,6 +110,10 @@ CASES = {  # name: (program, argv with {placeholders}, exit status, text in the 
                              "site.latitude_deg is null, expected a number"),
     "report power-up a string": ("calibd", ["report", "{result_power_up_text}", GOOD, "-o", "{out}/r.html"], 2,
                                  "stream.power_up is"),
+    "report segments a number": ("calibd", ["report", "{result_segments_number}", GOOD, "-o", "{out}/r.html"], 2,
+                                 "segments is 1, expected a list"),
+    "report segment start null": ("calibd", ["report", "{result_segment_start_null}", GOOD, "-o", "{out}/r.html"],
+                                  2, "segments[0].start_s is null, expected a number"),
     # stim300 record
     "record --duration nan": ("stim300", ["record", "/dev/null", "-o", "{out}/c.bin", "--duration", "nan"], 2,
                               "'nan' must be a positive finite number"),
@@ -147,7 +151,9 @@ def _results(good: Path, d: Path) -> dict[str, str]:
     for name, edit in {"value_text": lambda r: r["estimates"]["pitch"].update(value="x"),
                        "sigma_list": lambda r: r["estimates"]["yaw"].update(sigma=[]),
                        "latitude_null": lambda r: r["site"].update(latitude_deg=None),
-                       "power_up_text": lambda r: r["stream"].update(power_up="first")}.items():
+                       "power_up_text": lambda r: r["stream"].update(power_up="first"),
+                       "segments_number": lambda r: r.update(segments=1),
+                       "segment_start_null": lambda r: r["segments"][0].update(start_s=None)}.items():
         record = json.loads(good.read_text())
         edit(record)
         (d / f"{name}.json").write_text(json.dumps(record))
