@@ -364,15 +364,19 @@ def cmd_noise(args) -> int:
     return 0
 
 
+SPEED_RANGE = (1e-3, 1e6)  # times real time: slower would take years, faster is `max`
+
+
 def _speed(text: str) -> str:
     if text == "max":
         return text
     try:
-        if float(text) > 0:
+        if SPEED_RANGE[0] <= float(text) <= SPEED_RANGE[1]:  # nan and inf fail too
             return text
     except ValueError:
         pass
-    raise argparse.ArgumentTypeError(f"{text!r} is not 'max' or a positive factor of real time")
+    raise argparse.ArgumentTypeError(f"{text!r} is not 'max' or a factor of real time in "
+                                     f"[{SPEED_RANGE[0]:g}, {SPEED_RANGE[1]:g}]")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -89,6 +89,10 @@ CASES = {  # name: (program, argv with {placeholders}, exit status, text in the 
     "decode fifo": ("stim300", ["decode", "{fifo}", "-o", "{out}/t.npz"], 2, "not a regular file"),
     "calibrate directory": ("calibd", ["calibrate", "{dir}", "-o", "{out}/r.json", "--latitude", "60"], 2,
                             "is a directory"),
+    # option values out of range
+    "replay --speed 1e-300": ("calibd", ["replay", GOOD, "--latitude", "60", "--speed", "1e-300"], 2,
+                              "'1e-300' is not 'max' or a factor of real time in [0.001, 1e+06]"),
+    "replay --speed nan": ("calibd", ["replay", GOOD, "--latitude", "60", "--speed", "nan"], 2, "'nan' is not"),
     # captures the calibration cannot use
     "calibrate one datagram": ("calibd", CALIBRATE, 2, "too few to infer it"),
     "noise one datagram": ("calibd", ["noise", "{one}"], 2, "too few to infer it"),
