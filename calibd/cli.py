@@ -348,8 +348,9 @@ def cmd_noise(args) -> int:
         not_an_input(args.output, args.capture)
     try:
         session = load_session(args.capture, args.start)
-    except CalibrationError as exc:
-        raise UsageError(str(exc)) from None  # it names the capture
+    except CalibrationError as exc:  # a decoding refusal names the capture, a power-up's does not
+        text = str(exc)
+        raise UsageError(text if text.startswith(f"{args.capture}:") else f"{args.capture}: {text}") from None
     try:
         channels = characterise(session)
     except NoiseError as exc:

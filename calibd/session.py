@@ -235,7 +235,9 @@ class _PowerUpReader:
         n = info.stats.datagrams
         why = (f"{n} datagram(s) are too few to infer it from the counter" if n < self.DECIDE_RATE_AFTER else
                f"the counter of its {n} datagrams does not step at any STIM300 rate (stuck or externally triggered)")
-        return f"{self.name}: sample rate unknown: no configuration datagram, and {why}"
+        said = ("its configuration datagram says the sensor is externally triggered" if info.configuration
+                else "no configuration datagram")
+        return f"{self.name}: sample rate unknown: {said}, and {why}"
 
     def _refusal(self, samples: np.ndarray, scanner) -> str | None:
         fmt = scanner.format

@@ -13,12 +13,14 @@ import time
 import tty
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from calibd.cli import main as calibd_main
-from captures import capture
+from captures import capture, exact_samples
 from stim300.cli import main as stim300_main
 from stim300.codec import encode_samples
+from stim300.protocol import Format
 from stim300.special import Configuration, encode_special
 
 FIXTURES = Path(__file__).parent.parent / "fixtures"
@@ -27,6 +29,15 @@ GOOD = FIXTURES / "heading137_lat60_125hz.bin"  # calibrates, and has statics lo
 
 def _scenario(tables: str) -> bytes:
     return ('seed = 1\n[site]\nlatitude_deg = 60\n' + tables).encode()
+
+
+def _quiet_capture(n: int) -> bytes:
+    """n datagrams at 125 Hz with no status bit set (no start-up bit: one power-up)."""
+    fmt = Format(datagram_id=0xA7, crlf=True, sample_rate_hz=125)
+    samples = exact_samples(n, fmt, 0xA7, np.random.default_rng(3))
+    for cluster in ("gyro", "acc", "incl"):
+        samples["status_" + cluster] = 0
+    return encode_samples(samples, 0xA7, fmt, True).tobytes()
 
 
 def _inputs(d: Path) -> dict[str, Path]:
@@ -42,6 +53,7 @@ def _inputs(d: Path) -> dict[str, Path]:
         "one_cfg.bin": config + data[:datagram],
         "stuck.bin": encode_samples(stuck, 0x93, fmt, True).tobytes(),
         "external.bin": external + data[:datagram],
+        "short_cfg.bin": config + _quiet_capture(100),
         "text.bin": b"not a STIM300 capture\n" * 100,
         "rate125.bin": data,
         "empty.bin": b"",
@@ -101,8 +113,12 @@ CASES = {  # name: (program, argv with {placeholders}, exit status, text in the 
     "calibrate stuck counter": ("calibd", [*CALIBRATE[:1], "{stuck}", *CALIBRATE[2:]], 2,
                                 "does not step at any STIM300 rate"),
     "noise stuck counter": ("calibd", ["noise", "{stuck}"], 2, "does not step at any STIM300 rate"),
+    "calibrate 0.8 s of data": ("calibd", [*CALIBRATE[:1], "{short_cfg}", *CALIBRATE[2:]], 2, "no static segment"),
+    "noise start past the end": ("calibd", ["noise", "{short_cfg}", "--start", "5"], 2,
+                                 "short_cfg.bin: start 5 s is past the end of power-up 1 of 1"),
     "calibrate external trigger": ("calibd", [*CALIBRATE[:1], "{external}", *CALIBRATE[2:]], 2,
-                                   "sample rate unknown"),
+                                   "sample rate unknown: its configuration datagram says the sensor is externally "
+                                   "triggered"),
     "noise external trigger": ("calibd", ["noise", "{external}"], 2, "sample rate unknown"),
     "replay not STIM300": ("calibd", ["replay", "{text}", "--latitude", "60"], 1, "no result for the last power-up"),
     # a result.json of the wrong kinds of values
