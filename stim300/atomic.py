@@ -24,17 +24,17 @@ def atomic_file(path, durable: bool = True):
     costs seconds). Raises OSError (e.g. missing directory, no permission, a full device); the
     temporary file never outlives a failure.
     """
-    target = Path(os.path.realpath(path))
     try:
-        mode = os.stat(target).st_mode
+        mode = os.stat(path).st_mode  # through links: /dev/stdout -> /proc/self/fd/1 -> a pipe
     except FileNotFoundError:
         mode = None
     if mode is not None and stat.S_ISDIR(mode):
         raise IsADirectoryError(21, "is a directory", str(path))
     if mode is not None and not stat.S_ISREG(mode):
-        with _in_place(target) as f:
+        with _in_place(path) as f:  # opened by its own name: a pipe behind /dev/stdout has no path
             yield f
         return
+    target = Path(os.path.realpath(path))  # a link stays a link; its target is replaced
     tmp = target.with_name(f".{target.name}.{secrets.token_hex(4)}.part")
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)  # the umask applies, as for open()
     try:
@@ -50,7 +50,7 @@ def atomic_file(path, durable: bool = True):
 
 
 @contextmanager
-def _in_place(target: Path):
+def _in_place(target):
     """A device or FIFO opened for writing, never created or renamed over. Opened without
     blocking, so a FIFO nobody reads fails at once (ENXIO) instead of hanging; the writes then
     block as usual. Every write error (ENOSPC from /dev/full) is raised by the close at the latest."""

@@ -269,3 +269,21 @@ def test_decode_onto_its_input_is_refused(tmp_path, capsys):
     code, _, err = _run(stim300_main, ["decode", capture, "-o", capture], capsys)
     assert code == 2 and "writing it would destroy the input" in err
     assert capture.read_bytes() == GOOD.read_bytes()[:100_000]
+
+
+def test_output_to_dev_stdout_and_through_a_link(tmp_path):
+    """`-o /dev/stdout` into a pipe writes the pipe (its /proc link names no file to rename onto);
+    an output that is a symbolic link keeps the link and replaces its target."""
+    from stim300.atomic import write_atomic
+
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path))
+    piped = subprocess.run([sys.executable, "-m", "calibd.cli", "noise", str(GOOD), "-o", "/dev/stdout"],
+                           capture_output=True, text=True, env=env)
+    assert piped.returncode == 0, piped.stderr
+    assert json.loads(piped.stdout[:piped.stdout.rindex("}") + 1])["schema"] == "calibd.noise/1"
+    target, link = tmp_path / "target.json", tmp_path / "link.json"
+    target.write_text("old")
+    link.symlink_to(target)
+    write_atomic(link, b"new")
+    assert link.is_symlink() and target.read_text() == "new"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["link.json", "target.json"]
