@@ -25,6 +25,11 @@ READY_MADE = ("thesis-real", "thesis-bench", "continuous")
 GYRO_UNITS = ("rate", "average", "incremental")
 ACC_UNITS = ("acceleration", "average", "incremental")
 UP_AXES = ("+Z", "-Z", "+Y", "-Y", "+X", "-X")
+MAX_RATE_DEG_S = 400.0  # the STIM300 gyros' range
+MAX_ACCEL_DEG_S2 = 10_000.0
+WARMUP_RANGES = {  # [warmup] key: (low, high, unit); beyond, exp() overflows or the model means nothing
+    "power_on_s": (0.0, 1e9, "s"), "time_constant_s": (1.0, 1e7, "s"),
+    "ambient_c": (-60.0, 100.0, "degC"), "settled_c": (-60.0, 100.0, "degC")}
 
 
 class ScenarioError(CalibdError):
@@ -261,8 +266,10 @@ def _segment(t: _Table) -> Segment:
         t.fail("type", "missing (static, turn or position)")
     if kind == "turn":
         seg = Segment(kind, angle_deg=t.get("angle_deg", None, float, lambda a: a != 0, "a non-zero angle"),
-                      peak_rate_deg_s=t.get("peak_rate_deg_s", None, float, _positive, "a positive rate in deg/s"),
-                      accel_deg_s2=t.get("accel_deg_s2", None, float, _positive, "a positive acceleration"),
+                      peak_rate_deg_s=t.get("peak_rate_deg_s", None, float, lambda r: 0 < r <= MAX_RATE_DEG_S,
+                                            f"a rate in (0, {MAX_RATE_DEG_S:g}] deg/s (the gyros' range)"),
+                      accel_deg_s2=t.get("accel_deg_s2", None, float, lambda a: 0 < a <= MAX_ACCEL_DEG_S2,
+                                         f"an acceleration in (0, {MAX_ACCEL_DEG_S2:g}] deg/s^2"),
                       ripple=t.get("ripple", 0.0, float, lambda r: 0 <= r < 0.5, "a relative ripple in [0, 0.5)"))
         for key in ("angle_deg", "peak_rate_deg_s", "accel_deg_s2"):
             if getattr(seg, key) is None:
@@ -304,8 +311,10 @@ def parse_scenario(data: dict, where: str) -> Scenario:
                         truth=_fields(Truth, table("truth")), noise=_fields(Noise, table("noise")),
                         warmup=_fields(Warmup, table("warmup")), segments=segments, faults=faults)
     top.finish()
-    if scenario.warmup.time_constant_s <= 0:
-        raise ScenarioError(f"{where} [warmup] time_constant_s: must be positive")
+    for key, (low, high, unit) in WARMUP_RANGES.items():
+        value = getattr(scenario.warmup, key)
+        if not low <= value <= high:
+            raise ScenarioError(f"{where} [warmup] {key}: {value!r} is not in [{low:g}, {high:g}] {unit}")
     return scenario
 
 

@@ -218,3 +218,23 @@ def test_simulate_refuses_a_truth_json_cannot_hold(tmp_path, capsys, monkeypatch
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "nan.toml: the truth is not finite" in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["nan.toml"]
+
+
+@pytest.mark.parametrize("table, key, value, message", [
+    ("segments", "peak_rate_deg_s", 1e308, r"peak_rate_deg_s: 1e\+308 is not a rate in \(0, 400\] deg/s"),
+    ("segments", "accel_deg_s2", 1e9, r"accel_deg_s2: 1000000000.0 is not an acceleration in \(0, 10000\] deg/s\^2"),
+    ("warmup", "power_on_s", -1e308, r"\[warmup\] power_on_s: -1e\+308 is not in \[0, 1e\+09\] s"),
+    ("warmup", "time_constant_s", 0.0, r"\[warmup\] time_constant_s: 0.0 is not in \[1, 1e\+07\] s"),
+    ("warmup", "settled_c", 1e6, r"\[warmup\] settled_c: 1000000.0 is not in \[-60, 100\] degC"),
+])
+def test_motion_and_warm_up_out_of_range_are_refused(table, key, value, message):
+    """A peak rate of 1e308 deg/s overflowed the turn's profile, a power-on time of -1e308 s the
+    temperature's exponential: refused with the key and the range."""
+    turn = {"type": "turn", "angle_deg": 90.0, "peak_rate_deg_s": 10.0, "accel_deg_s2": 5.0}
+    data = {"site": {"latitude_deg": 10}, "segments": [turn]}
+    if table == "segments":
+        turn[key] = value
+    else:
+        data[table] = {key: value}
+    with pytest.raises(ScenarioError, match=message):
+        parse_scenario(data, "x.toml")
