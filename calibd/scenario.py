@@ -27,9 +27,23 @@ ACC_UNITS = ("acceleration", "average", "incremental")
 UP_AXES = ("+Z", "-Z", "+Y", "-Y", "+X", "-X")
 MAX_RATE_DEG_S = 400.0  # the STIM300 gyros' range
 MAX_ACCEL_DEG_S2 = 10_000.0
-WARMUP_RANGES = {  # [warmup] key: (low, high, unit); beyond, exp() overflows or the model means nothing
-    "power_on_s": (0.0, 1e9, "s"), "time_constant_s": (1.0, 1e7, "s"),
-    "ambient_c": (-60.0, 100.0, "degC"), "settled_c": (-60.0, 100.0, "degC")}
+NOISE_MAX = 1000.0  # each noise figure, in its unit (as `calibd plan`'s options)
+RANGES = {  # table: {key: (low, high, unit)} for every number of the truth, noise and warm-up; beyond,
+    # the model means nothing, or exp() and the sensor's counts overflow
+    "truth": {"yaw_deg": (-360.0, 360.0, "deg"), "pitch_deg": (-90.0, 90.0, "deg"), "roll_deg": (-180.0, 180.0, "deg"),
+              "alpha_deg": (-10.0, 10.0, "deg"), "beta_deg": (-10.0, 10.0, "deg"),
+              "gyro_bias_deg_h": (-36000.0, 36000.0, "deg/h"), "acc_bias_mg": (-1000.0, 1000.0, "mg"),
+              "incl_bias_mg": (-1000.0, 1000.0, "mg")},
+    "noise": {key: (0.0, 10.0 if key == "temperature_noise_c" else NOISE_MAX, "")
+              for key in ("gyro_arw_deg_sqrt_h", "gyro_bias_instability_deg_h", "acc_vrw_m_s_sqrt_h",
+                          "acc_bias_instability_mg", "incl_vrw_m_s_sqrt_h", "incl_bias_instability_mg",
+                          "temperature_noise_c")},
+    "warmup": {"power_on_s": (0.0, 1e9, "s"), "time_constant_s": (1.0, 1e7, "s"),
+               "ambient_c": (-60.0, 100.0, "degC"), "settled_c": (-60.0, 100.0, "degC"),
+               "gyro_tempco_deg_h_per_c": (-100.0, 100.0, "deg/h/degC"),
+               "acc_tempco_mg_per_c": (-100.0, 100.0, "mg/degC"), "incl_tempco_mg_per_c": (-100.0, 100.0, "mg/degC")},
+}
+MAX_GARBAGE_BYTES = 1_000_000
 
 
 class ScenarioError(CalibdError):
@@ -303,7 +317,8 @@ def parse_scenario(data: dict, where: str) -> Scenario:
     faults_t = table("faults")
     faults = Faults(drop=faults_t.get("drop", 0, int, lambda v: v >= 0, "a count >= 0"),
                     garbage_bursts=faults_t.get("garbage_bursts", 0, int, lambda v: v >= 0, "a count >= 0"),
-                    garbage_max_bytes=faults_t.get("garbage_max_bytes", 100, int, _positive, "a positive size"),
+                    garbage_max_bytes=faults_t.get("garbage_max_bytes", 100, int, lambda v: 0 < v <= MAX_GARBAGE_BYTES,
+                                                   f"a size in [1, {MAX_GARBAGE_BYTES}] B"),
                     bit_flips=faults_t.get("bit_flips", 0, int, lambda v: v >= 0, "a count >= 0"),
                     restart_at_s=faults_t.get("restart_at_s", None, float, _positive, "a positive time in s"))
     faults_t.finish()
@@ -311,10 +326,12 @@ def parse_scenario(data: dict, where: str) -> Scenario:
                         truth=_fields(Truth, table("truth")), noise=_fields(Noise, table("noise")),
                         warmup=_fields(Warmup, table("warmup")), segments=segments, faults=faults)
     top.finish()
-    for key, (low, high, unit) in WARMUP_RANGES.items():
-        value = getattr(scenario.warmup, key)
-        if not low <= value <= high:
-            raise ScenarioError(f"{where} [warmup] {key}: {value!r} is not in [{low:g}, {high:g}] {unit}")
+    for table, ranges in RANGES.items():
+        for key, (low, high, unit) in ranges.items():
+            value = getattr(getattr(scenario, table), key)
+            if not all(low <= v <= high for v in (value if isinstance(value, tuple) else (value,))):
+                raise ScenarioError(f"{where} [{table}] {key}: {value!r} is not in [{low:g}, {high:g}]"
+                                    + (f" {unit}" if unit else ""))
     return scenario
 
 

@@ -226,10 +226,15 @@ def test_simulate_refuses_a_truth_json_cannot_hold(tmp_path, capsys, monkeypatch
     ("warmup", "power_on_s", -1e308, r"\[warmup\] power_on_s: -1e\+308 is not in \[0, 1e\+09\] s"),
     ("warmup", "time_constant_s", 0.0, r"\[warmup\] time_constant_s: 0.0 is not in \[1, 1e\+07\] s"),
     ("warmup", "settled_c", 1e6, r"\[warmup\] settled_c: 1000000.0 is not in \[-60, 100\] degC"),
+    ("warmup", "gyro_tempco_deg_h_per_c", [1e308, 0, 0], r"gyro_tempco_deg_h_per_c: \(1e\+308, 0.0, 0.0\) is not in"),
+    ("truth", "gyro_bias_deg_h", [1e308, 0, 0], r"\[truth\] gyro_bias_deg_h: .* is not in \[-36000, 36000\] deg/h"),
+    ("noise", "gyro_bias_instability_deg_h", 1e308, r"\[noise\] gyro_bias_instability_deg_h: 1e\+308 is not in"),
+    ("faults", "garbage_max_bytes", 2**62, r"\[faults\] garbage_max_bytes: 4611686018427387904 is not a size in"),
 ])
-def test_motion_and_warm_up_out_of_range_are_refused(table, key, value, message):
+def test_values_out_of_range_are_refused(table, key, value, message):
     """A peak rate of 1e308 deg/s overflowed the turn's profile, a power-on time of -1e308 s the
-    temperature's exponential: refused with the key and the range."""
+    temperature's exponential, a bias instability of 1e308 deg/h the noise model, a garbage burst
+    of 2**62 B the memory: refused with the key and the range."""
     turn = {"type": "turn", "angle_deg": 90.0, "peak_rate_deg_s": 10.0, "accel_deg_s2": 5.0}
     data = {"site": {"latitude_deg": 10}, "segments": [turn]}
     if table == "segments":
