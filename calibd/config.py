@@ -95,6 +95,7 @@ class _ConfigTable(_Table):
 DAY_S = 86400.0
 WARMUP_WINDOW_S = (1.0, DAY_S)  # `calibd replay --warmup-window` takes the same range
 RESOLVE_EVERY_S = (1.0, DAY_S)
+MAX_BIT_RATE = 10_000_000  # far above the STIM300's fastest (1843200 bit/s)
 
 
 def _within(low: float, high: float, low_open: bool = False):
@@ -117,7 +118,8 @@ def _positive(x) -> bool:
 def _serial(t: _ConfigTable) -> SerialConfig:
     serial = SerialConfig(
         port=t.require("port", str, _nonempty, "a device path such as \"/dev/ttyUSB0\" or a pyserial URL"),
-        baudrate=t.get("baudrate", DEFAULT_BIT_RATE, int, _positive, "a positive bit rate"))
+        baudrate=t.get("baudrate", DEFAULT_BIT_RATE, int, _within(0, MAX_BIT_RATE, True),
+                       _range_words("a positive bit rate", 0, MAX_BIT_RATE, "bit/s", True)))
     t.finish()
     return serial
 

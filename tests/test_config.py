@@ -138,6 +138,7 @@ def replace_line(text: str, old: str, new: str) -> str:
     ("height_m = 12.5", "height_m = 9500", "[site]", "height_m", ["9500", "[-500, 9000]"]),
     ("g0 = 9.79956", "g0 = 9.5", "[site]", "g0", ["9.5", "9.7"]),
     ("baudrate = 460800", "baudrate = 0", "[serial]", "baudrate", ["0", "positive"]),
+    ("baudrate = 460800", "baudrate = 4611686018427387904", "[serial]", "baudrate", ["(0, 1e+07] bit/s"]),
     ('port = "/dev/ttyUSB0"', 'port = " "', "[serial]", "port", ["' '", "device path"]),
     ('state_dir = "/var/lib/calibd/ttyUSB0"', 'state_dir = ""', "[output]", "state_dir", ["''", "directory"]),
     ("max_slope_c_per_h = 0.5", "max_slope_c_per_h = 0", "[warmup]", "max_slope_c_per_h", ["0", "positive"]),
