@@ -8,7 +8,7 @@ import os
 import stat
 import sys
 
-from .errors import UsageError
+from .errors import Stim300Error, UsageError
 
 
 class CommandParser(argparse.ArgumentParser):
@@ -16,7 +16,7 @@ class CommandParser(argparse.ArgumentParser):
         raise UsageError(f"{self.prog}: {message}")
 
 
-class RunError(Exception):
+class RunError(Stim300Error):
     """The input was fine but the work failed (an output that cannot be written): one line, exit 1."""
 
 
