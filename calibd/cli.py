@@ -18,14 +18,14 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from stim300.cliutil import CommandParser, read_input, run_command
+from stim300.cliutil import CommandParser, RunError, input_file, not_an_input, read_input, run_command, write_error
 from stim300.errors import UsageError
 from stim300.progress import Progress
 from stim300.reads import load_reads
 from stim300.source import CaptureSource, PtySource
 
 from .calibrate import calibrate_capture
-from .config import METHODS, ConfigError, DetectionConfig, MethodConfig, WarmupConfig, load_config
+from .config import METHODS, WARMUP_WINDOW_S, ConfigError, DetectionConfig, MethodConfig, WarmupConfig, load_config
 from .daemon import Calibrator, Callbacks, StateLog
 from .errors import CalibrationError, SiteError
 from .methods import estimator
@@ -46,11 +46,11 @@ def open_capture(path: str, data: bytes | None = None) -> CaptureSessions:
     reads = load_reads(path)
     if data is not None:
         return decode_sessions(data, str(path), reads)
+    input_file(path)
     try:
         f = open(path, "rb")
-    except OSError:
-        read_input(path)  # raises the one-line UsageError that says why
-        raise
+    except OSError as exc:
+        raise UsageError(f"{path}: cannot read: {(exc.strerror or str(exc)).lower()}") from None
     with f:
         if not os.fstat(f.fileno()).st_size:
             return decode_sessions(b"", str(path), reads)
@@ -70,6 +70,8 @@ def load_session(path: str, start_s: float | None = 0.0, data: bytes | None = No
 
 
 def cmd_simulate(args) -> int:
+    not_an_input(args.output, args.scenario)
+    not_an_input(f"{args.output}.truth.json", args.scenario)
     try:
         scenario = load_scenario(args.scenario)
     except ScenarioError as exc:
@@ -79,8 +81,10 @@ def cmd_simulate(args) -> int:
     started = time.perf_counter()
     try:
         record = write_capture(scenario, args.output)
+    except ScenarioError as exc:  # what only the simulation finds: its size, faults it cannot apply
+        raise UsageError(f"{args.scenario}: {exc}") from None
     except OSError as exc:
-        raise UsageError(f"{args.output}: cannot write: {(exc.strerror or str(exc)).lower()}") from None
+        raise write_error(args.output, exc) from None
     print(f"{scenario.name}: {record['samples']} samples, {record['duration_s']:.1f} s at "
           f"{scenario.sensor.sample_rate_hz} Hz -> {args.output} (+ .truth.json) in "
           f"{time.perf_counter() - started:.1f} s", file=sys.stderr)
@@ -180,6 +184,7 @@ def cmd_calibrate(args) -> int:
     if args.method == "thesis" and (args.fixed_amplitude or args.drift):
         raise UsageError("calibrate: --fixed-amplitude and --drift belong to --method joint")
     site = _site(args)
+    not_an_input(args.output, args.capture)
     try:
         capture = open_capture(args.capture)
     except CalibrationError as exc:
@@ -199,7 +204,7 @@ def cmd_calibrate(args) -> int:
     try:
         write_result(args.output, result)
     except OSError as exc:
-        raise UsageError(f"{args.output}: cannot write: {(exc.strerror or str(exc)).lower()}") from None
+        raise write_error(args.output, exc) from None
     print(_summary(result))
     return 0
 
@@ -269,8 +274,7 @@ def cmd_replay(args) -> int:
         replay(source, calibrator, progress=lambda done, total: bar.update(done))
     if calibrator.result is None or calibrator.result.stale is not None:
         stale = " (the last result is the previous power-up's, marked stale)" if calibrator.result else ""
-        print(f"no result for the last power-up{stale}: {calibrator.detail}")
-        return 1
+        raise RunError(f"{args.capture}: no result for the last power-up{stale}: {calibrator.detail}")
     print(_summary(calibrator.result))
     return 0
 
@@ -322,6 +326,8 @@ def cmd_status(args) -> int:
 def cmd_report(args) -> int:
     from .report import ReportError, figures_dir, write_report  # matplotlib only for this command
 
+    input_file(args.result, "result file")
+    not_an_input(args.output, args.result, args.capture)
     try:
         written = write_report(args.result, open_capture(args.capture), args.output)
     except (ResultError, ReportError, CalibrationError) as exc:
@@ -364,33 +370,40 @@ def cmd_noise(args) -> int:
 
     from .noise import NoiseError, characterise, noise_record, noise_table
 
+    if args.output:
+        not_an_input(args.output, args.capture)
     try:
         session = load_session(args.capture, args.start)
-    except CalibrationError as exc:
-        raise UsageError(str(exc)) from None  # it names the capture
+    except CalibrationError as exc:  # a decoding refusal names the capture, a power-up's does not
+        text = str(exc)
+        raise UsageError(text if text.startswith(f"{args.capture}:") else f"{args.capture}: {text}") from None
     try:
         channels = characterise(session)
     except NoiseError as exc:
         raise UsageError(f"{args.capture}: {exc}") from None
-    print(f"{args.capture}: {noise_table(channels)}")
     if args.output:
         document = json.dumps(noise_record(session, channels, args.capture), indent=1) + "\n"
         try:
             write_atomic(args.output, document.encode())
         except OSError as exc:
-            raise UsageError(f"{args.output}: cannot write: {(exc.strerror or str(exc)).lower()}") from None
+            raise write_error(args.output, exc) from None
+    print(f"{args.capture}: {noise_table(channels)}")
     return 0
+
+
+SPEED_RANGE = (1e-3, 1e6)  # times real time: slower would take years, faster is `max`
 
 
 def _speed(text: str) -> str:
     if text == "max":
         return text
     try:
-        if float(text) > 0:
+        if SPEED_RANGE[0] <= float(text) <= SPEED_RANGE[1]:  # nan and inf fail too
             return text
     except ValueError:
         pass
-    raise argparse.ArgumentTypeError(f"{text!r} is not 'max' or a positive factor of real time")
+    raise argparse.ArgumentTypeError(f"{text!r} is not 'max' or a factor of real time in "
+                                     f"[{SPEED_RANGE[0]:g}, {SPEED_RANGE[1]:g}]")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -430,7 +443,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--speed", type=_speed, default="max", help="N times real time, or max (default)")
     p.add_argument("--pty", action="store_true",
                    help="write the capture into a pseudo-terminal read by the daemon's own port reader")
-    p.add_argument("--warmup-window", type=_number(1, 1e6, "s"),
+    p.add_argument("--warmup-window", type=_number(*WARMUP_WINDOW_S, "s"),
                    help="seconds of settled temperature that end the warm-up (default 600)")
     p.add_argument("--state-dir", help="also write result.json, history/ and state.json there")
     p.set_defaults(func=cmd_replay)

@@ -90,6 +90,23 @@ class _ConfigTable(_Table):
         return value
 
 
+# Sane ranges: a value far outside is a typo or a unit mistake, and 1e-300 or 1e308 would make the
+# daemon re-solve without pause or never end its warm-up.
+DAY_S = 86400.0
+WARMUP_WINDOW_S = (1.0, DAY_S)  # `calibd replay --warmup-window` takes the same range
+RESOLVE_EVERY_S = (1.0, DAY_S)
+MAX_BIT_RATE = 10_000_000  # far above the STIM300's fastest (1843200 bit/s)
+
+
+def _within(low: float, high: float, low_open: bool = False):
+    """A check that a value lies in [low, high] ((low, high] with `low_open`)."""
+    return lambda v: (low < v if low_open else low <= v) and v <= high
+
+
+def _range_words(what: str, low: float, high: float, unit: str, low_open: bool = False) -> str:
+    return f"{what} in {'(' if low_open else '['}{low:g}, {high:g}] {unit}"
+
+
 def _nonempty(s: str) -> bool:
     return s.strip() != ""
 
@@ -101,7 +118,8 @@ def _positive(x) -> bool:
 def _serial(t: _ConfigTable) -> SerialConfig:
     serial = SerialConfig(
         port=t.require("port", str, _nonempty, "a device path such as \"/dev/ttyUSB0\" or a pyserial URL"),
-        baudrate=t.get("baudrate", DEFAULT_BIT_RATE, int, _positive, "a positive bit rate"))
+        baudrate=t.get("baudrate", DEFAULT_BIT_RATE, int, _within(0, MAX_BIT_RATE, True),
+                       _range_words("a positive bit rate", 0, MAX_BIT_RATE, "bit/s", True)))
     t.finish()
     return serial
 
@@ -115,22 +133,25 @@ def _state_dir(t: _ConfigTable) -> Path:
 def _warmup(t: _ConfigTable) -> WarmupConfig:
     d = WarmupConfig()
     warmup = WarmupConfig(
-        max_slope_c_per_h=t.get("max_slope_c_per_h", d.max_slope_c_per_h, float, _positive,
-                                "a positive temperature slope in degC/h"),
-        window_s=t.get("window_s", d.window_s, float, _positive, "a positive duration in s"),
-        min_time_s=t.get("min_time_s", d.min_time_s, float, lambda v: v >= 0, "a duration >= 0 s"))
+        max_slope_c_per_h=t.get("max_slope_c_per_h", d.max_slope_c_per_h, float, _within(0, 100, True),
+                                _range_words("a positive temperature slope", 0, 100, "degC/h", True)),
+        window_s=t.get("window_s", d.window_s, float, _within(*WARMUP_WINDOW_S),
+                       _range_words("a duration", *WARMUP_WINDOW_S, "s")),
+        min_time_s=t.get("min_time_s", d.min_time_s, float, _within(0, 7 * DAY_S),
+                         _range_words("a duration", 0, 7 * DAY_S, "s")))
     t.finish()
     return warmup
 
 
 def _detection(t: _ConfigTable) -> DetectionConfig:
-    def positive(key: str, unit: str, allow_zero: bool = False):
-        return t.get(key, None, float, (lambda v: v >= 0) if allow_zero else _positive,
-                     f"a {'non-negative' if allow_zero else 'positive'} {unit}")
-    detection = DetectionConfig(turn_threshold_deg_s=positive("turn_threshold_deg_s", "rate in deg/s"),
-                                remount_g=positive("remount_g", "acceleration step in g"),
-                                min_static_s=positive("min_static_s", "duration in s"),
-                                settle_s=positive("settle_s", "duration in s", allow_zero=True))
+    def positive(key: str, what: str, high: float, unit: str, allow_zero: bool = False):
+        words = f"a {'non-negative' if allow_zero else 'positive'} {what}"
+        return t.get(key, None, float, _within(0, high, not allow_zero),
+                     _range_words(words, 0, high, unit, not allow_zero))
+    detection = DetectionConfig(turn_threshold_deg_s=positive("turn_threshold_deg_s", "rate", 1000, "deg/s"),
+                                remount_g=positive("remount_g", "acceleration step", 10, "g"),
+                                min_static_s=positive("min_static_s", "duration", DAY_S, "s"),
+                                settle_s=positive("settle_s", "duration", 3600, "s", allow_zero=True))
     t.finish()
     return detection
 
@@ -142,7 +163,8 @@ def _method(t: _ConfigTable) -> MethodConfig:
     name = t.get("name", d.name, str, lambda n: n in METHODS, " or ".join(f'"{m}"' for m in METHODS))
     method = estimator(name)
     own = {key: t.get(key, getattr(d, key), s.kind, s.check, s.expect) for key, s in method.settings.items()}
-    resolve_every_s = t.get("resolve_every_s", d.resolve_every_s, float, _positive, "a positive interval in s")
+    resolve_every_s = t.get("resolve_every_s", d.resolve_every_s, float, _within(*RESOLVE_EVERY_S),
+                            _range_words("an interval", *RESOLVE_EVERY_S, "s"))
     owners = {key: other for other in METHODS for key in estimator(other).settings if key not in method.settings}
     for key in t.data:
         if key in owners:
@@ -178,6 +200,8 @@ def parse_config(data: dict, where: str) -> DaemonConfig:
 def load_config(path: str | Path) -> DaemonConfig:
     """Read and validate the configuration file at `path`; any problem is a one-line ConfigError."""
     where = str(path)
+    if Path(path).exists() and not (Path(path).is_file() or Path(path).is_dir()):
+        raise ConfigError(f"{where}: not a regular file (a device or FIFO), expected a TOML configuration file")
     try:
         text = Path(path).read_text(encoding="utf-8")
     except FileNotFoundError:

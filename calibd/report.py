@@ -17,6 +17,7 @@ from __future__ import annotations
 import base64
 import html
 import json
+import math
 import os
 from dataclasses import fields
 from pathlib import Path
@@ -55,6 +56,7 @@ def write_report(result_path, capture: CaptureSessions, output, stream=None) -> 
     `stream` (stderr) when it is a terminal."""
     canvas = _agg_canvas()
     result = load_result(result_path)  # it checks the schema, the estimates and the site
+    _check_fields(result, result_path)
     site = _site(result, result_path)
     output = Path(output)
     _check_writable(output)
@@ -109,6 +111,66 @@ def _site(result: CalibrationResult, path) -> Site:
         return Site(site["latitude_deg"], site.get("height_m", 0.0), site.get("g0_m_s2"))
     except (KeyError, TypeError, SiteError) as exc:
         raise ReportError(f"{path}: no usable site in the result ({exc})") from None
+
+
+def _number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _optional(check):
+    return lambda value: value is None or check(value)
+
+
+def _text(value) -> bool:
+    return isinstance(value, str)
+
+
+def _record(value) -> bool:
+    return isinstance(value, dict)
+
+
+def _power_up(value) -> bool:
+    number = value.get("number") if isinstance(value, dict) else None
+    return isinstance(value, dict) and isinstance(number, int) and not isinstance(number, bool) and number >= 1
+
+
+def _check_fields(result: CalibrationResult, path) -> None:
+    """The fields the report reads, of the kinds it reads them as: a hand-edited or foreign
+    result.json is refused in one line naming the field, not a traceback halfway through."""
+    number, maybe_number = (_number, "a number"), (_optional(_number), "a number or null")
+    stream = result.stream if isinstance(result.stream, dict) else {}
+    fields_ = [("stream", result.stream, _optional(_record), "an object"),
+               ("sensor", result.sensor, _optional(_record), "an object"),
+               ("checks", result.checks, _optional(_record), "an object"),
+               ("options", result.options, _optional(_record), "an object"),
+               ("site.latitude_deg", result.site.get("latitude_deg"), *number),
+               ("site.height_m", result.site.get("height_m", 0.0), *number),
+               ("site.g0_m_s2", result.site.get("g0_m_s2", 0.0), *number),
+               ("stream.start_s", stream.get("start_s"), *maybe_number),
+               ("stream.datagrams", stream.get("datagrams"), _optional(lambda v: _number(v) and v == int(v)),
+                "a whole number or null"),
+               ("stream.power_up", stream.get("power_up"), _optional(_power_up),
+                "null or an object whose number is a whole number >= 1")]
+    for name, e in result.estimates.items():
+        fields_ += [(f"estimates.{name}.value", e.value, *number),
+                    (f"estimates.{name}.sigma", e.sigma, *maybe_number),
+                    (f"estimates.{name}.unit", e.unit, _text, "a string"),
+                    (f"estimates.{name}.quality", e.quality, _optional(_text), "a string or null")]
+    fields_ += [(f"warnings[{k}]", w, _text, "a string") for k, w in enumerate(result.warnings)]
+    for k, segment in enumerate(result.segments):
+        fields_.append((f"segments[{k}]", segment, _record, "an object"))
+        if isinstance(segment, dict):
+            fields_ += [(f"segments[{k}].{key}", segment.get(key, 0.0), *number) for key in ("start_s", "end_s")]
+    checks = result.checks if isinstance(result.checks, dict) else {}
+    for check, keys in (("earth_rate_horizontal_deg_h", ("fitted", "sigma", "expected")),
+                        ("static_chi2", ("chi2", "dof", "p_value"))):
+        if checks.get(check):
+            fields_.append((f"checks.{check}", checks[check], _record, "an object"))
+            if isinstance(checks[check], dict):
+                fields_ += [(f"checks.{check}.{key}", checks[check].get(key), *number) for key in keys]
+    for where, value, check, expect in fields_:
+        if not check(value):
+            raise ReportError(f"{path}: {where} is {json.dumps(value)[:40]}, expected {expect}")
 
 
 def _check_writable(output: Path) -> None:

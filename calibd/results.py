@@ -144,6 +144,9 @@ class CalibrationResult:
             raise ResultError(f"{where}: the result has no estimates (value and unit each)")
         if not isinstance(doc.get("site"), dict) or not isinstance(doc.get("method"), str):
             raise ResultError(f"{where}: the result has no site or no method")
+        for key in ("segments", "warnings"):
+            if not isinstance(doc.get(key, []), list):
+                raise ResultError(f"{where}: {key} is {json.dumps(doc[key])[:40]}, expected a list")
         known = {"method", "site", "sensor", "stream", *_OPTIONAL}
         return cls(**{key: value for key, value in doc.items() if key in known},
                    estimates={name: Estimate(e["value"], e.get("sigma"), e["unit"], e.get("quality"))

@@ -14,7 +14,9 @@ from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
+from stim300.errors import FormatError
 from stim300.protocol import ACC_RANGE_LSB_EXP, NORMAL_LAYOUTS, SAMPLE_RATES_HZ
+from stim300.special import PartNumber, SerialNumber
 
 from .errors import CalibdError, SiteError
 from .frames import Site
@@ -23,6 +25,25 @@ READY_MADE = ("thesis-real", "thesis-bench", "continuous")
 GYRO_UNITS = ("rate", "average", "incremental")
 ACC_UNITS = ("acceleration", "average", "incremental")
 UP_AXES = ("+Z", "-Z", "+Y", "-Y", "+X", "-X")
+MAX_RATE_DEG_S = 400.0  # the STIM300 gyros' range
+MAX_ACCEL_DEG_S2 = 10_000.0
+NOISE_MAX = 1000.0  # each noise figure, in its unit (as `calibd plan`'s options)
+RANGES = {  # table: {key: (low, high, unit)} for every number of the truth, noise and warm-up; beyond,
+    # the model means nothing, or exp() and the sensor's counts overflow
+    "truth": {"yaw_deg": (-360.0, 360.0, "deg"), "pitch_deg": (-90.0, 90.0, "deg"), "roll_deg": (-180.0, 180.0, "deg"),
+              "alpha_deg": (-10.0, 10.0, "deg"), "beta_deg": (-10.0, 10.0, "deg"),
+              "gyro_bias_deg_h": (-36000.0, 36000.0, "deg/h"), "acc_bias_mg": (-1000.0, 1000.0, "mg"),
+              "incl_bias_mg": (-1000.0, 1000.0, "mg")},
+    "noise": {key: (0.0, 10.0 if key == "temperature_noise_c" else NOISE_MAX, "")
+              for key in ("gyro_arw_deg_sqrt_h", "gyro_bias_instability_deg_h", "acc_vrw_m_s_sqrt_h",
+                          "acc_bias_instability_mg", "incl_vrw_m_s_sqrt_h", "incl_bias_instability_mg",
+                          "temperature_noise_c")},
+    "warmup": {"power_on_s": (0.0, 1e9, "s"), "time_constant_s": (1.0, 1e7, "s"),
+               "ambient_c": (-60.0, 100.0, "degC"), "settled_c": (-60.0, 100.0, "degC"),
+               "gyro_tempco_deg_h_per_c": (-100.0, 100.0, "deg/h/degC"),
+               "acc_tempco_mg_per_c": (-100.0, 100.0, "mg/degC"), "incl_tempco_mg_per_c": (-100.0, 100.0, "mg/degC")},
+}
+MAX_GARBAGE_BYTES = 1_000_000
 
 
 class ScenarioError(CalibdError):
@@ -215,11 +236,18 @@ def _sensor(t: _Table) -> Sensor:
         gyro_unit=t.get("gyro_unit", d.gyro_unit, str, lambda u: u in GYRO_UNITS, f"one of {', '.join(GYRO_UNITS)}"),
         acc_unit=t.get("acc_unit", d.acc_unit, str, lambda u: u in ACC_UNITS, f"one of {', '.join(ACC_UNITS)}"),
         part_number=t.get("part_number", d.part_number, str),
-        revision=t.get("revision", d.revision, str, lambda r: len(r) == 1, "one character"),
+        revision=t.get("revision", d.revision, str, lambda r: len(r) == 1 and ord(r) <= 0xFF,
+                       "one character U+0000..U+00FF"),
         serial_number=t.get("serial_number", d.serial_number, str),
         latency_us=t.get("latency_us", d.latency_us, int, lambda v: 0 <= v < 65536, "0 to 65535 us"),
     )
     t.finish()
+    for key, special in (("part_number", lambda: PartNumber(sensor.part_number, sensor.revision)),
+                         ("serial_number", lambda: SerialNumber(sensor.serial_number))):
+        try:
+            special()  # the identity datagrams' own rules (stim300.special), not a copy of them
+        except FormatError as exc:
+            t.fail(key, str(exc))
     return sensor
 
 
@@ -252,8 +280,10 @@ def _segment(t: _Table) -> Segment:
         t.fail("type", "missing (static, turn or position)")
     if kind == "turn":
         seg = Segment(kind, angle_deg=t.get("angle_deg", None, float, lambda a: a != 0, "a non-zero angle"),
-                      peak_rate_deg_s=t.get("peak_rate_deg_s", None, float, _positive, "a positive rate in deg/s"),
-                      accel_deg_s2=t.get("accel_deg_s2", None, float, _positive, "a positive acceleration"),
+                      peak_rate_deg_s=t.get("peak_rate_deg_s", None, float, lambda r: 0 < r <= MAX_RATE_DEG_S,
+                                            f"a rate in (0, {MAX_RATE_DEG_S:g}] deg/s (the gyros' range)"),
+                      accel_deg_s2=t.get("accel_deg_s2", None, float, lambda a: 0 < a <= MAX_ACCEL_DEG_S2,
+                                         f"an acceleration in (0, {MAX_ACCEL_DEG_S2:g}] deg/s^2"),
                       ripple=t.get("ripple", 0.0, float, lambda r: 0 <= r < 0.5, "a relative ripple in [0, 0.5)"))
         for key in ("angle_deg", "peak_rate_deg_s", "accel_deg_s2"):
             if getattr(seg, key) is None:
@@ -287,7 +317,8 @@ def parse_scenario(data: dict, where: str) -> Scenario:
     faults_t = table("faults")
     faults = Faults(drop=faults_t.get("drop", 0, int, lambda v: v >= 0, "a count >= 0"),
                     garbage_bursts=faults_t.get("garbage_bursts", 0, int, lambda v: v >= 0, "a count >= 0"),
-                    garbage_max_bytes=faults_t.get("garbage_max_bytes", 100, int, _positive, "a positive size"),
+                    garbage_max_bytes=faults_t.get("garbage_max_bytes", 100, int, lambda v: 0 < v <= MAX_GARBAGE_BYTES,
+                                                   f"a size in [1, {MAX_GARBAGE_BYTES}] B"),
                     bit_flips=faults_t.get("bit_flips", 0, int, lambda v: v >= 0, "a count >= 0"),
                     restart_at_s=faults_t.get("restart_at_s", None, float, _positive, "a positive time in s"))
     faults_t.finish()
@@ -295,8 +326,12 @@ def parse_scenario(data: dict, where: str) -> Scenario:
                         truth=_fields(Truth, table("truth")), noise=_fields(Noise, table("noise")),
                         warmup=_fields(Warmup, table("warmup")), segments=segments, faults=faults)
     top.finish()
-    if scenario.warmup.time_constant_s <= 0:
-        raise ScenarioError(f"{where} [warmup] time_constant_s: must be positive")
+    for table, ranges in RANGES.items():
+        for key, (low, high, unit) in ranges.items():
+            value = getattr(getattr(scenario, table), key)
+            if not all(low <= v <= high for v in (value if isinstance(value, tuple) else (value,))):
+                raise ScenarioError(f"{where} [{table}] {key}: {value!r} is not in [{low:g}, {high:g}]"
+                                    + (f" {unit}" if unit else ""))
     return scenario
 
 

@@ -209,7 +209,11 @@ class _PowerUpReader:
             if not (fmt.sample_rate_hz or stats.datagrams >= self.DECIDE_RATE_AFTER):
                 self._waiting.append(samples.copy())
                 return
-            self._rate_known(stream_info(scanner))
+            info = stream_info(scanner)
+            if info.rate_hz is None:  # refused once decoding ends: raising here would leave a mapped capture held
+                self.refusal = self._unknown_rate(info)
+                return
+            self._rate_known(info)
         self._cut_and_add(samples, scanner.stats.restart_datagrams)
 
     def finish(self, info: StreamInfo) -> None:
@@ -222,11 +226,18 @@ class _PowerUpReader:
         """The stream's rate is known: the blocks that waited for it go in."""
         self.rate_hz = info.rate_hz
         if self.rate_hz is None:
-            raise CalibrationError(f"{self.name}: sample rate unknown: no configuration datagram, and "
-                                   f"{info.stats.datagrams} datagram(s) are too few to infer it from the counter")
+            raise CalibrationError(self._unknown_rate(info))
         waiting, self._waiting = self._waiting, []
         for block in waiting:
             self._cut_and_add(block, info.stats.restart_datagrams)
+
+    def _unknown_rate(self, info: StreamInfo) -> str:
+        n = info.stats.datagrams
+        why = (f"{n} datagram(s) are too few to infer it from the counter" if n < self.DECIDE_RATE_AFTER else
+               f"the counter of its {n} datagrams does not step at any STIM300 rate (stuck or externally triggered)")
+        said = ("its configuration datagram says the sensor is externally triggered" if info.configuration
+                else "no configuration datagram")
+        return f"{self.name}: sample rate unknown: {said}, and {why}"
 
     def _refusal(self, samples: np.ndarray, scanner) -> str | None:
         fmt = scanner.format

@@ -24,9 +24,10 @@ from stim300.special import Configuration, PartNumber, SerialNumber, encode_spec
 
 from .allan import FLICKER_TAUS_S, flicker_sigma
 from .frames import EARTH_RATE, STANDARD_GRAVITY, euler_321, int_to_imu, nav_to_imu, r1, r2, r3
-from .scenario import TRUTH_SCHEMA, TRUTH_VERSION, Scenario
+from .scenario import TRUTH_SCHEMA, TRUTH_VERSION, Scenario, ScenarioError
 from .units import DEG
 
+MAX_SAMPLES = 10_000_000  # about 1.4 h at 2000 Hz, 22 h at 125 Hz: the simulator holds some 1 kB a sample
 START_UP_S = 0.7  # gyro start-up period after power-on: status bit 6 set (DS §7.5.2.1)
 TEMP_OFFSETS_C = {"gyro": 0.6, "acc": 0.0, "incl": 0.3}  # clusters sit at slightly different temperatures
 MOUNTS = {"+Z": np.eye(3), "-Z": r1(np.pi), "+Y": r1(np.pi / 2), "-Y": r1(-np.pi / 2),
@@ -157,12 +158,28 @@ def _attitude_truth(scenario: Scenario) -> tuple[np.ndarray, np.ndarray, tuple[f
     return r_int_imu, r_nav_int, (float(g1) / DEG, float(g2) / DEG, float(g3) / DEG)
 
 
+def simulated_samples(scenario: Scenario, phases: list[Phase]) -> int:
+    """Samples the scenario's schedule needs; ScenarioError past MAX_SAMPLES (a day-long turn at
+    2000 Hz would ask for hundreds of GiB) or when the faults drop every sample."""
+    rate = scenario.sensor.sample_rate_hz
+    duration_s = phases[-1].end_s
+    if not duration_s * rate <= MAX_SAMPLES:
+        hours = MAX_SAMPLES / rate / 3600
+        raise ScenarioError(f"{duration_s:.6g} s at {rate} Hz is more than the simulator's "
+                            f"{MAX_SAMPLES:,} samples ({hours:.1f} h at {rate} Hz): shorten the segments")
+    n = int(round(duration_s * rate))
+    if scenario.faults.drop >= n:
+        raise ScenarioError(f"[faults] drop: {scenario.faults.drop} is not fewer than the "
+                            f"{n} samples simulated")
+    return n
+
+
 def simulate(scenario: Scenario) -> Simulation:
     sensor, site, truth = scenario.sensor, scenario.site, scenario.truth
     rate = sensor.sample_rate_hz
     dt = 1.0 / rate
     phases = schedule(scenario)
-    n = int(round(phases[-1].end_s * rate))
+    n = simulated_samples(scenario, phases)
     rng = np.random.default_rng(scenario.seed)
     t_end = np.arange(1, n + 1) * dt  # sample k averages over [k dt, (k + 1) dt) and is sent at its end
     t_mid = t_end - dt / 2
@@ -358,6 +375,11 @@ def write_capture(scenario: Scenario, path) -> dict:
     sim = simulate(scenario)
     data, faults = capture_bytes(sim)
     record = truth_record(sim, faults)
+    try:
+        truth = json.dumps(record, indent=1, allow_nan=False) + "\n"  # strict JSON: no NaN or Infinity
+    except ValueError:
+        raise ScenarioError("the truth is not finite (a value out of range): "
+                            "nothing written") from None
     write_atomic(path, data)
-    write_atomic(f"{path}.truth.json", (json.dumps(record, indent=1) + "\n").encode())
+    write_atomic(f"{path}.truth.json", truth.encode())
     return record

@@ -98,6 +98,8 @@ def start_words(verdict: Settling | None, rule: WarmupConfig = WARM_UP_RULE) -> 
     """Why a power-up's session starts where the rule put it (its `start_by`)."""
     if verdict is None:
         return "the first sample (no temperatures: the warm-up rule cannot be applied)"
+    if verdict.trend_c_per_h is None:  # under 2 s of data: no trend to judge, time alone decided
+        return "warm-up rule: too little data for a temperature trend (under 2 s), from the first sample"
     if verdict.settled:
         return (f"warm-up rule: the temperature settled ({verdict.trend_c_per_h:+.2f} degC/h over "
                 f"{rule.window_s:g} s)")

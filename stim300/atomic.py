@@ -1,9 +1,16 @@
-"""Files that appear whole or not at all: written beside the target, renamed into place."""
+"""Files that appear whole or not at all: written beside the target, renamed into place.
+
+A target that exists and is not a regular file (a device such as /dev/null, a FIFO, a
+terminal) is written in place instead: renaming onto it would replace the device node itself,
+so `-o /dev/null` run as root would destroy /dev/null. A symbolic link is followed, so the link
+stays and its target is replaced. A directory is refused.
+"""
 
 from __future__ import annotations
 
 import os
 import secrets
+import stat
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -14,12 +21,20 @@ def atomic_file(path, durable: bool = True):
 
     `durable` also syncs the data to disk before the rename, so a power cut leaves the old
     file or the new one; bulk outputs that can be made again skip it (syncing hundreds of MB
-    costs seconds). Raises OSError (e.g. missing directory, no permission); the temporary
-    file never outlives a failure.
+    costs seconds). Raises OSError (e.g. missing directory, no permission, a full device); the
+    temporary file never outlives a failure.
     """
-    target = Path(path)
-    if target.is_dir():
-        raise IsADirectoryError(21, "is a directory", str(target))
+    try:
+        mode = os.stat(path).st_mode  # through links: /dev/stdout -> /proc/self/fd/1 -> a pipe
+    except FileNotFoundError:
+        mode = None
+    if mode is not None and stat.S_ISDIR(mode):
+        raise IsADirectoryError(21, "is a directory", str(path))
+    if mode is not None and not stat.S_ISREG(mode):
+        with _in_place(path) as f:  # opened by its own name: a pipe behind /dev/stdout has no path
+            yield f
+        return
+    target = Path(os.path.realpath(path))  # a link stays a link; its target is replaced
     tmp = target.with_name(f".{target.name}.{secrets.token_hex(4)}.part")
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)  # the umask applies, as for open()
     try:
@@ -32,6 +47,17 @@ def atomic_file(path, durable: bool = True):
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+
+
+@contextmanager
+def _in_place(target):
+    """A device or FIFO opened for writing, never created or renamed over. Opened without
+    blocking, so a FIFO nobody reads fails at once (ENXIO) instead of hanging; the writes then
+    block as usual. Every write error (ENOSPC from /dev/full) is raised by the close at the latest."""
+    fd = os.open(target, os.O_WRONLY | os.O_NONBLOCK | os.O_NOCTTY)
+    os.set_blocking(fd, True)
+    with os.fdopen(fd, "wb") as f:
+        yield f
 
 
 def write_atomic(path, data: bytes, durable: bool = True) -> None:

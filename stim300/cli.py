@@ -8,24 +8,24 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import mmap
 import os
 import sys
 import time
 from contextlib import contextmanager
-from pathlib import Path
 
 import numpy as np
 
 from .atomic import atomic_file
 from .bulk import decode_columns
 from .capture import StreamInfo
-from .cliutil import CommandParser, run_command
+from .cliutil import CommandParser, input_file, not_an_input, run_command, write_error
 from .clock import counter_times
 from .errors import UsageError
 from .progress import Progress
-from .protocol import (ACC_RANGE_LSB_EXP, DEFAULT_BIT_RATE, NORMAL_LAYOUTS, SAMPLE_RATES_HZ, AccUnit, Format, GyroUnit,
-                       Status)
+from .protocol import (ACC_RANGE_LSB_EXP, COUNTER_MODULUS, DEFAULT_BIT_RATE, INTERNAL_RATE_HZ, NORMAL_LAYOUTS,
+                       SAMPLE_RATES_HZ, AccUnit, Format, GyroUnit, Status)
 from .reads import load_reads
 
 AXES = "xyz"
@@ -82,13 +82,9 @@ def _format(args) -> Format:
 @contextmanager
 def _mapped(path: str):
     """The capture's bytes, memory-mapped (no copy of a large file)."""
-    p = Path(path)
-    if not p.exists():
-        raise UsageError(f"{path}: no such file")
-    if p.is_dir():
-        raise UsageError(f"{path}: is a directory, expected a capture file")
+    input_file(path)
     try:
-        with open(p, "rb") as f:
+        with open(path, "rb") as f:
             if os.fstat(f.fileno()).st_size == 0:
                 raise UsageError(f"{path}: empty file, no STIM300 data")
             with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as m:
@@ -98,13 +94,38 @@ def _mapped(path: str):
 
 
 def _decode(path: str, fmt: Format) -> tuple[dict[str, np.ndarray], StreamInfo]:
-    """Samples (columns) and stream info; with the capture's read log, samples carry host times."""
+    """Samples (columns) and stream info; with the capture's read log, samples carry host times.
+    A given format option the data overrode is said on stderr; a given rate the counter
+    contradicts is refused."""
     with _mapped(path) as data:
         samples, info = decode_columns(data, fmt, reads=load_reads(path))
     if info.stats.datagrams == 0:
         raise UsageError(f"{path}: no STIM300 datagram found in {info.stats.bytes_in} bytes "
                          "(not a STIM300 capture, or a format the options do not describe)")
+    source = "its configuration datagram says" if info.configuration else "its datagrams are"
+    if fmt.datagram_id is not None and info.format.datagram_id != fmt.datagram_id:
+        print(f"stim300: {path}: --datagram 0x{fmt.datagram_id:02X} not used: {source} "
+              f"0x{info.format.datagram_id:02X}", file=sys.stderr)
+    if fmt.sample_rate_hz is not None and info.rate_hz != fmt.sample_rate_hz:
+        print(f"stim300: {path}: --rate {fmt.sample_rate_hz} not used: {source} {info.rate_hz} Hz", file=sys.stderr)
+    elif fmt.sample_rate_hz is not None:
+        _check_given_rate(path, fmt.sample_rate_hz, samples["counter"])
     return samples, info
+
+
+def _check_given_rate(path: str, rate_hz: int, counter: np.ndarray) -> None:
+    """Refuse a --rate the counter contradicts: 2000 Hz given for 125 Hz data would count 15 lost
+    samples at every datagram. The counter's most common step is its rate (a restart or a loss
+    makes other steps, rarely)."""
+    steps = np.bincount(np.diff(counter.astype(np.int64)) % COUNTER_MODULUS, minlength=COUNTER_MODULUS)
+    steps[0] = 0  # a stuck counter says nothing of the rate
+    if not steps.any():
+        return
+    step = int(np.argmax(steps))
+    if step != INTERNAL_RATE_HZ // rate_hz:
+        seen = f"{INTERNAL_RATE_HZ // step} Hz" if INTERNAL_RATE_HZ // step in SAMPLE_RATES_HZ else "no STIM300 rate"
+        raise UsageError(f"{path}: --rate {rate_hz} disagrees with the datagram counter, which mostly steps by "
+                         f"{step} ({seen}): give the capture's rate or leave --rate out")
 
 
 def columns(samples) -> dict[str, np.ndarray]:
@@ -153,7 +174,7 @@ def _output(path: str):
         with atomic_file(path, durable=False) as f:
             yield f
     except OSError as exc:
-        raise UsageError(f"{path}: cannot write: {(exc.strerror or str(exc)).lower()}") from None
+        raise write_error(path, exc) from None
 
 
 def _write_csv(f, cols: dict[str, np.ndarray]) -> None:
@@ -174,6 +195,7 @@ def cmd_decode(args) -> int:
     out = args.output
     if not (out.endswith(".npz") or out.endswith(".csv")):
         raise UsageError(f"{out}: output must end in .npz or .csv")
+    not_an_input(out, args.capture)
     started = time.perf_counter()
     samples, info = _decode(args.capture, _format(args))
     cols = columns(samples)
@@ -279,8 +301,8 @@ def _positive(kind):
             value = kind(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-        if value <= 0:
-            raise argparse.ArgumentTypeError(f"{text!r} must be positive")
+        if not (value > 0 and math.isfinite(value)):  # nan would record forever
+            raise argparse.ArgumentTypeError(f"{text!r} must be a positive finite number")
         return value
     return parse
 

@@ -13,9 +13,11 @@ from __future__ import annotations
 
 import errno
 import os
+import signal
 import sys
 import threading
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -203,21 +205,52 @@ class PortReader:
 
 def record(url: str, output_path, baudrate: int = DEFAULT_BIT_RATE, duration_s: float | None = None,
            max_bytes: int | None = None) -> int:
-    """Copy raw bytes from the port to `output_path` until duration, max_bytes or Ctrl-C.
+    """Copy raw bytes from the port to `output_path` until duration, max_bytes, Ctrl-C or SIGTERM.
 
     Bytes go to OUT.part, renamed to OUT at the end whatever stopped the recording (a port
     error included), so a file named OUT is always complete. The host time of every read goes
     to OUT.reads.npy (`stim300.reads`), put in place just before OUT. Progress goes to stderr
-    about once a second. Returns the exit status: 0, or 1 after a port or file error (one line
-    on stderr).
+    about once a second. Returns the exit status: 0, 1 after a port or file error, 2 for an OUT
+    that is a directory, device or FIFO (renaming onto it would replace it); errors are one
+    line on stderr.
     """
     out = Path(output_path)
     part = out.with_name(out.name + ".part")
+    if out.exists() and not out.is_file():  # renaming OUT.part onto a device would replace the node
+        kind = "a directory" if out.is_dir() else "not a regular file (a device or FIFO)"
+        print(f"stim300 record: {out}: {kind}: a recording goes to a new or regular file", file=sys.stderr)
+        return 2
     try:
         ser = open_serial(url, baudrate)
     except PortError as exc:
         print(f"stim300 record: {exc}", file=sys.stderr)
         return 1
+    with _sigterm_as_ctrl_c():
+        return _record(ser, url, out, part, duration_s, max_bytes)
+
+
+@contextmanager
+def _sigterm_as_ctrl_c():
+    """SIGTERM (kill, systemd stopping a unit) ends a recording as Ctrl-C does: the bytes read so
+    far are written and the file put in place, not lost in a buffer of a killed process. Only
+    the first: a second one while the file is being finished is ignored."""
+    if threading.current_thread() is not threading.main_thread():
+        yield  # signal handlers belong to the main thread
+        return
+
+    def interrupt(signum, frame):
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _record(ser: serial.Serial, url: str, out: Path, part: Path, duration_s: float | None,
+            max_bytes: int | None) -> int:
     total, status = 0, 0
     reads = ReadLog()
     start = time.monotonic()
@@ -244,7 +277,7 @@ def record(url: str, output_path, baudrate: int = DEFAULT_BIT_RATE, duration_s: 
                         total += len(data)
                         reads.add(total, returned)
             except KeyboardInterrupt:
-                pass  # Ctrl-C is how an open-ended recording ends: keep what we have
+                pass  # Ctrl-C (or SIGTERM) is how an open-ended recording ends: keep what we have
         with atomic_file(reads_path(out)) as f:
             np.save(f, reads.table())
         part.replace(out)

@@ -130,3 +130,26 @@ def test_console_script_reports_errors_without_traceback(tmp_path):
                             capture_output=True, text=True)
     assert result.returncode == 2
     assert result.stderr.strip() == f"stim300: {tmp_path / 'nope.bin'}: no such file"
+
+
+@pytest.mark.parametrize("option, note", [
+    (["--datagram", "0x93"], "--datagram 0x93 not used: its configuration datagram says 0xA7"),
+    (["--rate", "2000"], "--rate 2000 not used: its configuration datagram says 125 Hz"),
+])
+def test_format_options_the_data_override_are_said(option, note, capture_file, capsys):
+    """The options describe captures without a configuration datagram; one that has one wins,
+    and the user is told in one line rather than left to believe the option applied."""
+    path, _ = capture_file
+    code, out, err = run(["info", path, "--json", *option], capsys)
+    assert code == 0 and json.loads(out)["sample_rate_hz"] == 125
+    assert err.strip().splitlines() == [f"stim300: {path}: {note}"]
+
+
+def test_a_rate_the_counter_confirms_is_taken(tmp_path, capsys):
+    data, _, _ = capture(40, 0x93, True, rate=250)
+    path = tmp_path / "c.bin"
+    path.write_bytes(data)
+    code, out, err = run(["info", path, "--json", "--rate", "250"], capsys)
+    assert code == 0 and err == ""
+    info = json.loads(out)
+    assert info["sample_rate_hz"] == 250 and info["lost_samples"] == 0

@@ -494,8 +494,8 @@ def test_replay_of_two_power_ups_leaves_the_first_ones_result_marked_stale(tmp_p
     state_dir = tmp_path / "state"
     code = calibd_main(["replay", str(capture), "--latitude", "60", "--warmup-window", "10",
                         "--state-dir", str(state_dir)])
-    out = capsys.readouterr().out
-    assert code == 1 and "no result for the last power-up (the last result is the previous power-up's" in out
+    err = capsys.readouterr().err
+    assert code == 1 and "no result for the last power-up (the last result is the previous power-up's" in err
     result = json.loads((state_dir / "result.json").read_text())
     assert result["stale"]["power_up"] == "previous" and result["warnings"][0].startswith("stale:")
     history = sorted((state_dir / "history").iterdir())

@@ -221,7 +221,7 @@ def test_matplotlib_missing_is_one_line(made, tmp_path, capsys, monkeypatch):
 
 
 @pytest.mark.parametrize("case, message", [
-    ("missing result", "cannot read"),
+    ("missing result", "no such file"),
     ("not json", "not JSON"),
     ("other schema", "is 'something/1', not a calibd.result file"),
     ("no estimates", "the result has no estimates"),

@@ -178,3 +178,68 @@ def test_calibd_simulate_writes_capture_and_truth(tmp_path, capsys):
     assert truth["site"]["g0"] == pytest.approx(9.80619, abs=1e-4)  # normal gravity at 45 deg
     assert calibd_main(["simulate", str(tmp_path / "nope.toml"), "-o", str(out)]) == 2
     assert "no such scenario file" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("sensor, message", [
+    ({"part_number": "84167-440000"}, r"\[sensor\] part_number: part number must look like"),
+    ({"part_number": "84167-440000X-321"}, r"\[sensor\] part_number: part number digit"),
+    ({"serial_number": "N123"}, r"\[sensor\] serial_number: serial number must be 'N' \+ 14 digits"),
+    ({"serial_number": "N2558240500200Z"}, r"\[sensor\] serial_number: serial number digit"),
+    ({"revision": "KK"}, r"\[sensor\] revision: 'KK' is not one character"),
+    ({"revision": "\u0394"}, r"\[sensor\] revision: .* is not one character U\+0000..U\+00FF"),
+])
+def test_sensor_identity_the_datagrams_cannot_carry_is_refused(sensor, message):
+    """The part and serial number datagrams' own rules, at load time, not as a traceback mid-simulation."""
+    with pytest.raises(ScenarioError, match=message):
+        parse_scenario({"site": {"latitude_deg": 10}, "sensor": sensor,
+                        "segments": [{"type": "static", "duration_s": 1}]}, "x.toml")
+
+
+def test_simulation_size_and_drop_are_bounded(thesis):
+    """A turn of 1e9 deg would need 1e9 s of samples: refused before any array is made; dropping
+    every sample is refused, as a capture with no datagram would be no capture."""
+    huge = replace(thesis, segments=(Segment("turn", angle_deg=1e9, peak_rate_deg_s=1, accel_deg_s2=1),))
+    with pytest.raises(ScenarioError, match=r"1e\+09 s at 125 Hz is more than the simulator's 10,000,000 samples"):
+        simulate(huge)
+    short = replace(thesis, segments=(Segment("static", duration_s=2.0),))
+    with pytest.raises(ScenarioError, match=r"\[faults\] drop: 250 is not fewer than the 250 samples"):
+        simulate(replace(short, faults=replace(short.faults, drop=250)))
+    assert len(simulate(replace(short, faults=replace(short.faults, drop=249))).samples) == 250
+
+
+def test_simulate_refuses_a_truth_json_cannot_hold(tmp_path, capsys, monkeypatch):
+    """A truth record with NaN or infinity (once written for a scenario that dropped every sample)
+    is refused: strict JSON has neither, and neither the capture nor its truth is written."""
+    import calibd.sim
+    monkeypatch.setattr(calibd.sim, "truth_record", lambda sim, faults: {"samples": 1, "duration_s": float("nan")})
+    scenario = tmp_path / "nan.toml"
+    scenario.write_text('[site]\nlatitude_deg = 45\n[[segments]]\ntype = "static"\nduration_s = 1\n')
+    assert calibd_main(["simulate", str(scenario), "-o", str(tmp_path / "nan.bin")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "nan.toml: the truth is not finite" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["nan.toml"]
+
+
+@pytest.mark.parametrize("table, key, value, message", [
+    ("segments", "peak_rate_deg_s", 1e308, r"peak_rate_deg_s: 1e\+308 is not a rate in \(0, 400\] deg/s"),
+    ("segments", "accel_deg_s2", 1e9, r"accel_deg_s2: 1000000000.0 is not an acceleration in \(0, 10000\] deg/s\^2"),
+    ("warmup", "power_on_s", -1e308, r"\[warmup\] power_on_s: -1e\+308 is not in \[0, 1e\+09\] s"),
+    ("warmup", "time_constant_s", 0.0, r"\[warmup\] time_constant_s: 0.0 is not in \[1, 1e\+07\] s"),
+    ("warmup", "settled_c", 1e6, r"\[warmup\] settled_c: 1000000.0 is not in \[-60, 100\] degC"),
+    ("warmup", "gyro_tempco_deg_h_per_c", [1e308, 0, 0], r"gyro_tempco_deg_h_per_c: \(1e\+308, 0.0, 0.0\) is not in"),
+    ("truth", "gyro_bias_deg_h", [1e308, 0, 0], r"\[truth\] gyro_bias_deg_h: .* is not in \[-36000, 36000\] deg/h"),
+    ("noise", "gyro_bias_instability_deg_h", 1e308, r"\[noise\] gyro_bias_instability_deg_h: 1e\+308 is not in"),
+    ("faults", "garbage_max_bytes", 2**62, r"\[faults\] garbage_max_bytes: 4611686018427387904 is not a size in"),
+])
+def test_values_out_of_range_are_refused(table, key, value, message):
+    """A peak rate of 1e308 deg/s overflowed the turn's profile, a power-on time of -1e308 s the
+    temperature's exponential, a bias instability of 1e308 deg/h the noise model, a garbage burst
+    of 2**62 B the memory: refused with the key and the range."""
+    turn = {"type": "turn", "angle_deg": 90.0, "peak_rate_deg_s": 10.0, "accel_deg_s2": 5.0}
+    data = {"site": {"latitude_deg": 10}, "segments": [turn]}
+    if table == "segments":
+        turn[key] = value
+    else:
+        data[table] = {key: value}
+    with pytest.raises(ScenarioError, match=message):
+        parse_scenario(data, "x.toml")
