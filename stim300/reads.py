@@ -42,9 +42,13 @@ class ReadLog:
 def load_reads(capture) -> np.ndarray | None:
     """The capture's read log (READS_DTYPE rows), or None when it has none, it is unreadable, or
     it does not end where the capture does (not this capture's: a capture from elsewhere, or
-    one edited since, decodes as before, on the counter alone)."""
+    one edited since, decodes as before, on the counter alone). Only a regular file is read: a
+    FIFO of that name would block, a device never end."""
+    path = reads_path(capture)
+    if not path.is_file():
+        return None
     try:
-        rows = np.load(reads_path(capture), allow_pickle=False)
+        rows = np.load(path, allow_pickle=False)
         size = Path(capture).stat().st_size
     except (OSError, ValueError):
         return None

@@ -139,6 +139,14 @@ def test_a_read_log_that_does_not_end_with_the_capture_is_not_used(capture_with_
     assert load_session(str(path)).stream["hidden_gaps"] is None
 
 
+def test_a_read_log_that_is_not_a_regular_file_is_not_read(capture_with_read_log):
+    """A FIFO where the read log belongs would block a reader forever: it is passed over."""
+    path, _ = capture_with_read_log
+    reads_path(path).unlink()
+    os.mkfifo(reads_path(path))
+    assert load_reads(path) is None
+
+
 SENT = np.r_[0:150, 166:316]  # datagrams 150..165 lost: one whole counter cycle at 125 Hz
 
 
