@@ -278,7 +278,7 @@ def _config(tmp_path: Path, link: Path, state_dir: Path, latitude: float = 60.0)
     config = tmp_path / "calibd.toml"
     config.write_text(f'[serial]\nport = "{link}"\n[site]\nlatitude_deg = {latitude}\n'
                       f'[output]\nstate_dir = "{state_dir}"\n[warmup]\nwindow_s = 10\nmin_time_s = 0\n'
-                      '[method]\nresolve_every_s = 1e9\n')
+                      '[method]\nresolve_every_s = 86400\n')
     return config
 
 
