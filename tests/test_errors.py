@@ -132,3 +132,29 @@ def test_a_capture_calibd_cannot_use_is_one_line(datagram_id, units, says, tmp_p
     code = calibd_main(["calibrate", str(path), "--latitude", "40", "-o", str(tmp_path / "r.json")])
     _, err = capsys.readouterr()
     assert code == 2 and says in err and len(err.strip().splitlines()) == 1, err
+
+
+BYTE_READERS = {"read_bytes", "mmap", "load_reads", "decode_capture", "decode_columns", "BulkDecoder"}
+
+
+def _reads_bytes(tree: ast.AST) -> list[str]:
+    """The ways a module gets at a file's bytes: the names above, or open(..., "rb"...)."""
+    found = []
+    for node in ast.walk(tree):
+        name = node.attr if isinstance(node, ast.Attribute) else node.id if isinstance(node, ast.Name) else None
+        if name in BYTE_READERS:
+            found.append(f"{name} (line {node.lineno})")
+        if isinstance(node, ast.Call) and getattr(node.func, "id", None) == "open":
+            modes = [a.value for a in node.args[1:2] + [k.value for k in node.keywords if k.arg == "mode"]
+                     if isinstance(a, ast.Constant)]
+            if any("b" in str(m) for m in modes):
+                found.append(f"open(..., {modes[0]!r}) (line {node.lineno})")
+    return found
+
+
+def test_only_the_command_line_opens_capture_files():
+    """Calibration code takes decoded captures, sessions and batches; only calibd/cli.py reads a
+    capture's bytes (the check can fail: it finds cli.py's own)."""
+    sources = {p.relative_to(ROOT).as_posix(): ast.parse(p.read_text()) for p in (ROOT / "calibd").rglob("*.py")}
+    assert _reads_bytes(sources.pop("calibd/cli.py"))
+    assert {path: found for path, tree in sources.items() if (found := _reads_bytes(tree))} == {}
