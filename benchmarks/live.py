@@ -36,8 +36,10 @@ BARE_READER = ("import serial, sys, time\n"
                "    s.read(max(1, s.in_waiting)); time.sleep(0.004)\n")
 
 
-def cpu_seconds(pid: int) -> float:
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+def cpu_seconds(pid: int, thread: int | None = None) -> float:
+    """CPU time (user + system, s) of process `pid`, or of its thread `thread` alone."""
+    stat = Path(f"/proc/{pid}/stat" if thread is None else f"/proc/{pid}/task/{thread}/stat")
+    fields = stat.read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
@@ -48,20 +50,29 @@ def rss_mb(pid: int) -> float:
     return float("nan")
 
 
-def capture_2000hz(seconds: float) -> bytes:
+def usage(pid: int) -> tuple[float, float, float, float]:
+    """(wall s, CPU s, RSS MB, main thread's CPU s): the rest of the CPU is the port reader thread's."""
+    return time.monotonic(), cpu_seconds(pid), rss_mb(pid), cpu_seconds(pid, pid)
+
+
+def capture_2000hz(seconds: float) -> tuple[bytes, float]:
+    """A 2000 Hz stream `seconds` long (30 s static, then a 90 deg turn and a static every minute,
+    the last static to the end) and its duration in data time (s), which the feed paces by."""
     base = load_scenario("thesis-real")
-    turns = int(seconds // 60)
-    segments = [Segment("static", duration_s=30)]
-    for _ in range(turns):
+    turns = max(0, int((seconds - 30) // 60))
+    segments = [Segment("static", duration_s=30 + (seconds - 30) * (turns == 0))]
+    for k in range(turns):  # a 5.5 s turn and 54.5 s static make a minute
+        rest_s = seconds - 30 - 60 * turns if k == turns - 1 else 0.0
         segments += [Segment("turn", angle_deg=90, peak_rate_deg_s=20, accel_deg_s2=20),
-                     Segment("static", duration_s=54.5)]
+                     Segment("static", duration_s=54.5 + rest_s)]
     scenario = replace(base, sensor=replace(base.sensor, sample_rate_hz=2000), segments=tuple(segments))
-    data, _ = capture_bytes(simulate(scenario))
-    return data
+    sim = simulate(scenario)
+    data, _ = capture_bytes(sim)
+    return data, float(sim.time_s[-1] - sim.time_s[0]) + 1 / 2000
 
 
 def feed(master: int, data: bytes, rate_bytes_s: float, process, samples: list) -> None:
-    """Write `data` paced in real time; every 10 s record (wall, cpu, rss) of `process`."""
+    """Write `data` paced in real time; every 10 s record (wall, cpu, rss, main thread's cpu) of `process`."""
     start = time.monotonic()
     next_sample = start
     for offset in range(0, len(data), 4096):
@@ -71,11 +82,12 @@ def feed(master: int, data: bytes, rate_bytes_s: float, process, samples: list) 
             if select.select([], [master], [], 1.0)[1]:
                 view = view[os.write(master, view):]
         if time.monotonic() >= next_sample:
-            samples.append((time.monotonic(), cpu_seconds(process.pid), rss_mb(process.pid)))
+            samples.append(usage(process.pid))
             next_sample += 10.0
 
 
 def measure(command: list[str], data: bytes, seconds: float) -> list:
+    """Run `command` on a pty fed `data` over `seconds` (its data time: real time)."""
     master, slave = os.openpty()
     tty.setraw(master)
     tty.setraw(slave)
@@ -91,7 +103,7 @@ def measure(command: list[str], data: bytes, seconds: float) -> list:
         samples = []
         try:
             feed(master, data, len(data) / seconds, process, samples)
-            samples.append((time.monotonic(), cpu_seconds(process.pid), rss_mb(process.pid)))
+            samples.append(usage(process.pid))
         finally:
             process.send_signal(signal.SIGTERM)
             process.wait(timeout=30)
@@ -104,17 +116,18 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=600.0, help="real-time feed length (default 600 s)")
     args = ap.parse_args()
-    data = capture_2000hz(args.seconds)
-    print(f"2000 Hz 0xA7 stream, {args.seconds:.0f} s, {len(data) / 1e6:.1f} MB, fed in real time through a pty")
+    data, seconds = capture_2000hz(args.seconds)
+    print(f"2000 Hz 0xA7 stream, {seconds:.0f} s, {len(data) / 1e6:.1f} MB, fed in real time through a pty")
     runs = {"bare pyserial reader": [sys.executable, "-c", BARE_READER, "{port}", "{seconds}"],
             "calibd run": [sys.executable, "-m", "calibd.cli", "run", "--config", "{config}"]}
     cpu = {}
     for name, command in runs.items():
-        samples = measure(command, data, args.seconds)
-        (t0, c0, m0), (t1, c1, m1) = samples[0], samples[-1]
+        samples = measure(command, data, seconds)
+        (t0, c0, m0, main0), (t1, c1, m1, main1) = samples[0], samples[-1]
         cpu[name] = 100 * (c1 - c0) / (t1 - t0)
-        print(f"{name}: {cpu[name]:.1f}% of one core; RSS {m0:.0f} MB -> {m1:.0f} MB "
-              f"(max {max(s[2] for s in samples):.0f} MB)")
+        main = 100 * (main1 - main0) / (t1 - t0)
+        print(f"{name}: {cpu[name]:.1f}% of one core (main thread {main:.1f}%, other threads "
+              f"{cpu[name] - main:.1f}%); RSS {m0:.0f} MB -> {m1:.0f} MB (max {max(s[2] for s in samples):.0f} MB)")
         minutes = [max(s[2] for s in samples if t0 + 60 * k <= s[0] < t0 + 60 * (k + 1))
                    for k in range(int((t1 - t0) // 60))]
         print(f"  RSS max per minute: {' '.join(f'{m:.0f}' for m in minutes)} MB")

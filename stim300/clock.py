@@ -97,6 +97,8 @@ def _hidden_cycles(offset_s: np.ndarray, window: int) -> np.ndarray:
     n = len(offset_s)
     judged = n - window + 1
     cycles = np.zeros(n, np.int64)
+    if judged < 2 or np.ptp(offset_s) < CYCLE_S / 2:  # no step can reach half a cycle: nothing to filter
+        return cycles
     start = 1
     while start < judged:
         lo = max(0, start - window)

@@ -109,3 +109,14 @@ def test_the_live_clock_finds_no_gap_in_jitter_at_batch_ends(seed):
     times = np.concatenate([clock.times(counter[a:a + 25], RATE_HZ, t_host[a:a + 25]).time_s
                             for a in range(0, len(counter), 25)])
     np.testing.assert_allclose(times, true_s, atol=1e-9)
+
+
+@pytest.mark.parametrize("step_cycles, found", [(0.49, False), (0.51, True)])
+def test_a_step_is_judged_at_half_a_cycle_of_the_offsets_spread(step_cycles, found):
+    """Offsets that spread less than half a cycle cannot hold a step and are not filtered at all;
+    one just over half a cycle is still found (and rounded to a whole cycle)."""
+    counter, true_s = stream(1000, {})
+    t_host = 1000.0 + true_s + np.where(np.arange(1000) >= 500, step_cycles * CYCLE_S, 0.0)
+    result = counter_times(counter, RATE_HZ, t_host)
+    assert result.gap_index.tolist() == ([500] if found else [])
+    assert result.hidden_s == pytest.approx(CYCLE_S if found else 0.0)

@@ -92,3 +92,18 @@ def test_power_ups_are_cut_where_the_parser_saw_a_restart_or_the_start_up_bit_co
     at_batch_start.pieces(samples[20:40], 20, ())
     assert _lengths(at_batch_start.pieces(samples[40:60], 40, (40,))) == [(True, 20)]
     assert _lengths(at_batch_start.pieces(samples[:0], 60, (40,))) == []
+
+
+def test_a_stored_temperature_is_the_mean_of_the_gyro_temperatures_there():
+    """All three gyro temperatures: their mean; some missing: the mean of the rest; none: NaN."""
+    samples, t = samples_2000hz(48)
+    samples["temp_gyro"][16:32, 1] = np.nan
+    builder = SessionBuilder()
+    builder.add(samples, t, 2000)
+    temp = samples["temp_gyro"].astype(np.float64)
+    expected = [temp[:16].mean(), temp[16:32][:, [0, 2]].mean(), temp[32:].mean()]
+    assert np.allclose(builder.arrays()["temp"], expected, rtol=1e-6)
+    samples["temp_gyro"] = np.nan
+    none = SessionBuilder()
+    none.add(samples, t, 2000)
+    assert np.isnan(none.arrays()["temp"]).all()
