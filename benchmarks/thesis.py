@@ -1,6 +1,6 @@
 """Monte Carlo of the thesis's estimators on simulated thesis sessions (noise only changes).
 
-For each seed: simulate the thesis real-case session (truth of method.md §5, clockwise), decode
+For each seed: simulate the thesis real-case session (truth of the thesis-real scenario, clockwise), decode
 it, find the segments, and run the nominal chain (lab alpha/beta 0.5964/-0.1125, off the truth
 by the thesis's 0.0030/0.0071 deg) and the linear same-dataset chain. Prints, per estimate, the
 RMS and mean absolute error of each, next to the thesis's own errors (Tables 7.5-7.8 and

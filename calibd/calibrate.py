@@ -305,7 +305,7 @@ def _corrected(inp: joint.JointInput, fit: joint.JointResult, site: Site, option
 
 def joint_real_case(session: Session, site: Site, options: joint.JointOptions = joint.JointOptions(),
                     segments: list[detect.Segment] | None = None) -> CalibrationResult:
-    """The joint estimator (method.md §6) on every static and turning sample from the level
+    """The joint estimator (docs/method.md, Estimators) on every static and turning sample from the level
     static to the last static of the same mounting. `segments`: the session's, when already found."""
     fitted = joint_fit(session, site, options, segments)
     used, fit = fitted.segments, fitted.fit

@@ -2,9 +2,9 @@
 
 Pure numpy functions: no state, no per-sample Python loops, so the same code serves a capture
 file and a growing live buffer. Units at the interface: gyro in deg/s, acc in g, times in s,
-angles in degrees, counter-clockwise about Up positive (method.md §1).
+angles in degrees, counter-clockwise about Up positive (docs/method.md, Rotation conventions).
 
-How a session is cut (each step exists because the protocols of method.md §3 need it):
+How a session is cut (each step exists because the protocols of docs/method.md need it):
 - moving = |gyro vector, moving average over `smooth_s`| > threshold. The norm, not one axis,
   so a hand re-mounting the IMU is motion too. The threshold adapts to the sensor: ten times the
   noise of that average, estimated from the data (`motion_thresholds`), and never below

@@ -1,4 +1,4 @@
-"""Frames, rotations and the site: NWU navigation frame, passive 3-2-1 rotations (method.md §1).
+"""Frames, rotations and the site: NWU navigation frame, passive 3-2-1 rotations (docs/method.md, Rotation conventions).
 
 All angles here are radians; degrees appear only at the edges (configuration, results).
 Rotation functions accept scalars or arrays of angles and return (..., 3, 3) matrices.

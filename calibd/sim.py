@@ -1,6 +1,6 @@
 """Scenario simulator: truth -> sensor samples -> the bytes a STIM300 would send.
 
-Physics as method.md §1: R_NAV^IMU(t) = M · R_int^IMU · R3(chi(t)) · R_NAV^int, with chi the
+Physics as docs/method.md (Frames): R_NAV^IMU(t) = M · R_int^IMU · R3(chi(t)) · R_NAV^int, with chi the
 platform angle about the interface Z axis (counter-clockwise positive) and M the bench
 re-mounting (identity unless a `position` segment says otherwise);
 gyro = R(t)·Omega_E + M·R_int^IMU·[0, 0, chi'] + b_g + noise,

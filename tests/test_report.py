@@ -27,7 +27,7 @@ from calibd.results import write_result
 
 FIXTURES = Path(__file__).resolve().parent.parent / "fixtures"
 CAPTURE = str(FIXTURES / "thesis_real_cw_125hz.bin")
-SITE = Site(40.59129, 0.0, 9.79956)  # the thesis's (method.md §2)
+SITE = Site(40.59129, 0.0, 9.79956)  # the thesis's (docs/method.md, The site)
 FIGURES = ("timeline", "earth_rate", "allan")
 
 

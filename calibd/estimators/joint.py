@@ -1,4 +1,4 @@
-"""The joint estimator (method.md §6): every static and turning sample in one fit, with 1-sigma.
+"""The joint estimator (docs/method.md, Estimators): every static and turning sample in one fit, with 1-sigma.
 
 With R_NAV^IMU(t) = A · R3(chi(t)) · R_NAV^int (A = R_int^IMU), the gyros read, exactly,
 

@@ -1,4 +1,4 @@
-"""The thesis's estimators, exactly as written (method.md §4; thesis chapters 5 to 7).
+"""The thesis's estimators, exactly as written (docs/method.md, Estimators; thesis chapters 5 to 7).
 
 Pure functions on segment means (and, for the full turn, samples). Units inside: rad, rad/s,
 m/s^2; the caller converts at the edges. Each function names its equations. Where the thesis
@@ -132,7 +132,7 @@ class RealCaseData:
 
 def real_case(data: RealCaseData, site: Site, alpha_beta: tuple[float, float] | None = None,
               platform_rate: float | None = None) -> dict:
-    """The thesis's real-case chain R1..R7 (method.md §4). With `alpha_beta` (rad) it is the
+    """The thesis's real-case chain R1..R7 (docs/method.md, Estimators). With `alpha_beta` (rad) it is the
     nominal run (a-priori interface tilt); without, alpha and beta come from the same dataset by
     the linear method (7.1-7.3) first. `platform_rate` (rad/s, signed) stands for the robot
     telemetry; by default it is the turn's vertical rate over the static one, projected
