@@ -1,8 +1,9 @@
 """Scenario simulator: truth -> sensor samples -> the bytes a STIM300 would send.
 
-Physics as docs/method.md (Frames): R_NAV^IMU(t) = M · R_int^IMU · R3(chi(t)) · R_NAV^int, with chi the
-platform angle about the interface Z axis (counter-clockwise positive) and M the bench
-re-mounting (identity unless a `position` segment says otherwise);
+Physics as docs/method.md (Rotation conventions):
+R_NAV^IMU(t) = M · R_int^IMU · R3(chi(t)) · R_NAV^int, with chi the platform angle about the
+interface Z axis (counter-clockwise positive) and M the bench re-mounting (identity unless a
+`position` segment says otherwise);
 gyro = R(t)·Omega_E + M·R_int^IMU·[0, 0, chi'] + b_g + noise,
 accelerometer and inclinometer = R(t)·[0, 0, g0] + b + noise, in the sensor's units (g of
 9.80665 m/s^2). Rates are averages over each sample interval, so they integrate exactly to the
