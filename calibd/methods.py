@@ -67,7 +67,18 @@ class ThesisOptions:
     platform_rate_deg_s: float | None = None  # the full turn's rate from telemetry (default: from the gyros)
 
 
-class Joint:
+class _SingleAxis:
+    """A method of a session on one mounting that the segment detector knows complete
+    (`detect.protocol_complete`): what it lacks is its `needs`."""
+
+    name: str
+    needs: str
+
+    def missing(self, segments):
+        return None if detect.protocol_complete(_through_last_static(segments), self.name) else self.needs
+
+
+class Joint(_SingleAxis):
     """Every static and turning sample in one fit, with 1-sigma (the default method)."""
 
     name = "joint"
@@ -77,14 +88,12 @@ class Joint:
     def options(self, settings: Mapping[str, Any]) -> JointOptions:
         return JointOptions(bool(settings.get("fixed_amplitude")), bool(settings.get("drift")))
 
-    def missing(self, segments):
-        return None if detect.protocol_complete(_through_last_static(segments), self.name) else self.needs
 
     def solve(self, session, site, segments, options: JointOptions):
         return joint_real_case(session, site, options, segments)
 
 
-class Thesis:
+class Thesis(_SingleAxis):
     """The thesis's real-case chain: level static, four index positions, a full turn."""
 
     name = "thesis"
@@ -102,8 +111,6 @@ class Thesis:
         return ThesisOptions(None if alpha is None or beta is None else (alpha, beta),
                              settings.get("platform_rate_deg_s"))
 
-    def missing(self, segments):
-        return None if detect.protocol_complete(_through_last_static(segments), self.name) else self.needs
 
     def solve(self, session, site, segments, options: ThesisOptions):
         return thesis_real_case(session, site, options.alpha_beta_deg, options.platform_rate_deg_s, segments)
@@ -130,7 +137,7 @@ class ThesisBench:
 
 
 ESTIMATORS: dict[str, Estimator] = {e.name: e for e in (Joint(), Thesis(), ThesisBench())}
-DAEMON_METHODS = ("joint", "thesis")  # those whose protocol the daemon knows complete (detect.protocol_complete)
+DAEMON_METHODS = ("joint", "thesis")  # one mounting, a protocol the segment detector knows complete
 
 
 def estimator(name: str) -> Estimator:

@@ -18,6 +18,7 @@ from calibd.daemon.trigger import SolveTrigger
 from calibd.daemon.warmwatch import WARM_CHECK_EVERY_S, WarmWatch
 from calibd.frames import Site
 from calibd.live import configure_logging, replay
+from calibd.methods import estimator
 from calibd.results import ResultStore
 from calibd.segments import session_segments
 from calibd.session import PowerUpCuts, SessionBuilder
@@ -73,9 +74,9 @@ def test_the_trigger_is_cleared_by_a_look_that_ends_on_a_static_only():
     session = load_session(str(HEADING137))
     segments = session_segments(session)
     turn = next(k for k, s in enumerate(segments) if s.kind == "turn")
-    assert not trigger.protocol_done(segments[:turn + 1], "joint")  # ends on a turn: look again later
+    assert not trigger.protocol_done(segments[:turn + 1], estimator("joint"))  # ends on a turn: look again later
     assert trigger.stopped_moving(t[:0], gyro[:0], float(t[-1]), SETTINGS, RATE_HZ)
-    assert trigger.protocol_done(segments[:turn + 2], "joint")  # a static after the turn: complete
+    assert trigger.protocol_done(segments[:turn + 2], estimator("joint"))  # a static after the turn: complete
     assert not trigger.stopped_moving(t[:0], gyro[:0], float(t[-1]), SETTINGS, RATE_HZ)
 
 

@@ -21,6 +21,7 @@ import numpy as np
 from .. import detect
 from ..config import DetectionConfig, MethodConfig
 from ..frames import Site
+from ..methods import estimator
 from ..results import CalibrationResult
 from ..session import PowerUpCuts, Session
 from ..warmup import WarmupConfig
@@ -108,7 +109,7 @@ class Calibrator:
             elif self._trigger.stopped_moving(*stored, now_s, self.collector.tracker.settings,
                                               self.collector.stored_rate_hz):
                 session, segments = self._look()
-                if self._trigger.protocol_done(segments, self.method.name):
+                if self._trigger.protocol_done(segments, estimator(self.method.name)):
                     self._solve((session, segments))
 
     def _warmed(self, warmth: Warmth | None) -> None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import detect
+from ..methods import Estimator
 
 
 class SolveTrigger:
@@ -56,11 +57,11 @@ class SolveTrigger:
         quiet_s = now_s - self._last_motion_s
         return self._moved and quiet_s >= settings["settle_s"] + settings["min_static_s"]
 
-    def protocol_done(self, segments: list[detect.Segment], method_name: str) -> bool:
+    def protocol_done(self, segments: list[detect.Segment], method: Estimator) -> bool:
         """Once the platform has stopped: whether the segments now end on a static (it lasted the
         settle time and the minimum static; else look again next batch) and hold what the method
         needs."""
         if not segments or segments[-1].kind != "static":
             return False
         self._moved = False
-        return detect.protocol_complete(segments, method_name)
+        return method.missing(segments) is None
