@@ -244,17 +244,32 @@ def format_runs(found: list[tuple[int, int, Format]]):
         start = stop
 
 
+@dataclass(frozen=True)
+class Settled:
+    """The bytes one feed settled, for a tap (`StreamParser.tap`): every byte fed is in exactly
+    one Settled, in stream order, datagrams whole; `samples` were decoded from `data`, and
+    `runs` says where: (layout, format, offsets into `data`, start, stop) with
+    samples[start:stop] decoded from the datagrams at those offsets (`format_runs`)."""
+
+    data: bytes
+    samples: np.ndarray
+    runs: tuple
+
+
 class StreamParser:
     """`feed(bytes) -> samples`: identical output for any chunking of the same bytes.
 
     Memory stays bounded: only an undecided tail shorter than the longest datagram is kept.
-    Never raises on any input.
+    Never raises on any input. `tap`, when set, is called with each feed's `Settled` bytes
+    (those it has decided on), so one parse serves whoever wants the bytes as well as the
+    samples (a daemon passing the sensor's stream on); a tap must not raise.
     """
 
-    def __init__(self, fmt: Format | None = None):
+    def __init__(self, fmt: Format | None = None, tap=None):
         self._buf = bytearray()
         self._found: list[tuple[int, int, Format]] = []
         self.scanner = Scanner(fmt, self._found_normal)
+        self.tap = tap
 
     def _found_normal(self, offset: int, ident: int) -> None:
         self._found.append((offset, ident, self.scanner.format))
@@ -284,19 +299,22 @@ class StreamParser:
             if nxt == WAIT:
                 break
             i = nxt
-        samples = self._decode(buf, t_host)
+        samples, runs = self._decode(buf, t_host)
+        if self.tap is not None and i:
+            self.tap(Settled(bytes(buf[:i]), samples, runs))
         del buf[:i]
         scanner.advance(i)
         return samples
 
-    def _decode(self, buf: bytearray, t_host: float) -> np.ndarray:
+    def _decode(self, buf: bytearray, t_host: float) -> tuple[np.ndarray, tuple]:
         found, self._found = self._found, []
         out = np.empty(len(found), SAMPLE_DTYPE)
         if not found:
-            return out
+            return out, ()
         view = np.frombuffer(buf, np.uint8)
-        for layout, fmt, offsets, start, stop in format_runs(found):
+        runs = tuple(format_runs(found))
+        for layout, fmt, offsets, start, stop in runs:
             frames = view[offsets[:, None] + np.arange(layout.pre_crc)]
             decode_frames(frames, layout, fmt, out[start:stop], t_host)
         del view
-        return out
+        return out, runs

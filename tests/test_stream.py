@@ -258,3 +258,21 @@ def test_a_run_counted_at_once_ends_the_power_up_sequence_as_single_datagrams_do
             scanner.count_counters(np.arange(10, 20, dtype=np.uint8))
         assert scanner.step(frame, 0, final=True) == len(frame)
     assert (scanner.stats.restarts, scanner.stats.special_datagrams) == (0, 2)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.integers(0, 2500), max_size=30), st.integers(0, 1000))
+def test_tap_sees_every_byte_once_in_order_with_each_datagrams_offset(cuts, seed):
+    data, truth, _ = capture(50, 0x93, True, rate=125, seed=seed)
+    data = b"\x00junk" + data[:1200] + b"\xff" + data[1200:]
+    settled = []
+    parser = StreamParser(tap=settled.append)
+    edges = [0, *sorted({c for c in cuts if c < len(data)}), len(data)]
+    samples = np.concatenate([*(parser.feed(data[a:b]) for a, b in zip(edges, edges[1:])), parser.finish()])
+    assert b"".join(s.data for s in settled) == data
+    assert same_samples(np.concatenate([s.samples for s in settled]), samples)
+    for s in settled:
+        for layout, fmt, offsets, start, stop in s.runs:
+            assert np.all(np.frombuffer(s.data, np.uint8)[offsets] == layout.datagram_id)
+            redecoded = decode_capture(b"".join(s.data[o:o + layout.wire_length(fmt.crlf)] for o in offsets), fmt)
+            assert same_samples(redecoded.samples, s.samples[start:stop])

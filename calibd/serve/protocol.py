@@ -1,0 +1,95 @@
+"""The socket protocol's one home, shared by the daemon's server and `calibd.client`.
+
+Modelled on gpsd's: newline-delimited JSON objects, each naming its kind in "class"; commands
+are single lines `?NAME;` or `?NAME={json};`. The server's messages are built here (so their
+fields are spelt once) and the client reads them with `decode`; docs/protocol.md describes them.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from dataclasses import dataclass
+from importlib.metadata import PackageNotFoundError, version
+
+from ..errors import CalibdError
+
+PROTO_MAJOR = 1
+PROTO_MINOR = 0
+MAX_LINE_BYTES = 64 * 1024  # a longer command line is refused and skipped to its newline
+SAMPLE_KINDS = ("none", "raw", "corrected")  # what ?WATCH "samples" may ask for
+SAMPLES_MAX_S = 0.1  # a SAMPLES message holds at most this much of the stream
+COMMANDS = ("WATCH", "POLL", "DEVICE", "VERSION")
+
+_COMMAND = re.compile(r"\?([A-Z]+)(?:=(.*?))?;?")
+
+
+class ProtocolError(CalibdError):
+    """A line that is not a command or message of this protocol; the message says why in one line."""
+
+
+@dataclass(frozen=True)
+class Command:
+    """A client's command: its NAME and the JSON object after "=" (None when absent)."""
+
+    name: str
+    args: dict | None = None
+
+
+def release() -> str:
+    """The installed package's version, as VERSION reports it."""
+    try:
+        return version("stim300-calib")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+def parse_command(line: bytes) -> Command:
+    """One command line (without its newline) -> Command; ProtocolError for anything else."""
+    try:
+        text = line.decode("utf-8").strip()
+    except UnicodeDecodeError:
+        raise ProtocolError("command is not UTF-8 text") from None
+    match = _COMMAND.fullmatch(text)
+    if match is None:
+        raise ProtocolError(f"not a command: {_excerpt(text)} (expected ?NAME; or ?NAME={{...}};)")
+    name, argument = match.groups()
+    if name not in COMMANDS:
+        raise ProtocolError(f"unknown command ?{name} (known: {', '.join('?' + c for c in COMMANDS)})")
+    if argument is None:
+        return Command(name)
+    try:
+        args = json.loads(argument)
+    except ValueError:
+        raise ProtocolError(f"?{name}: argument is not JSON: {_excerpt(argument)}") from None
+    if not isinstance(args, dict):
+        raise ProtocolError(f"?{name}: argument must be a JSON object, not {_excerpt(argument)}")
+    return Command(name, args)
+
+
+def _excerpt(text: str, limit: int = 60) -> str:
+    return repr(text if len(text) <= limit else text[:limit] + "...")
+
+
+def encode(message: dict) -> bytes:
+    """A message as one line of compact JSON."""
+    return json.dumps(message, separators=(",", ":"), allow_nan=False).encode() + b"\n"
+
+
+def decode(line: bytes | str) -> dict:
+    """One line from the server -> its message (a dict with "class"); ProtocolError otherwise."""
+    try:
+        message = json.loads(line)
+    except ValueError:
+        raise ProtocolError(f"not a JSON line: {_excerpt(str(line))}") from None
+    if not isinstance(message, dict) or not isinstance(message.get("class"), str):
+        raise ProtocolError(f"not a message (a JSON object with a \"class\"): {_excerpt(str(line))}")
+    return message
+
+
+def version_message() -> dict:
+    return {"class": "VERSION", "release": release(), "proto_major": PROTO_MAJOR, "proto_minor": PROTO_MINOR}
+
+
+def error_message(text: str) -> dict:
+    return {"class": "ERROR", "message": text}
