@@ -292,12 +292,14 @@ class Client:
     # ---- commands ----------------------------------------------------------------------------
 
     def command(self, name: str, args: dict | None = None) -> None:
-        """Send `?NAME;` or `?NAME={args};` without waiting for its answer."""
+        """Send `?NAME;` or `?NAME={args};` without waiting for its answer. To a server that has
+        gone the command is lost quietly: the reads that follow give what it sent before it went,
+        then ServerGone."""
         line = f"?{name};" if args is None else f"?{name}={json.dumps(args, separators=(',', ':'))};"
         try:
             self._sock.sendall(line.encode() + b"\n")
-        except OSError as exc:
-            raise ServerGone(f"{self.where}: the server went away ({(exc.strerror or str(exc)).lower()})") from None
+        except (BrokenPipeError, ConnectionResetError):
+            pass
 
     def watch(self, samples: str = "none") -> Watch:
         """Start the stream of STATE, RESULT and FAULT (and SAMPLES of the kind asked for)."""
@@ -383,6 +385,8 @@ class Client:
                 chunk = self._sock.recv(65536)
             except socket.timeout:
                 continue
+            except ConnectionResetError:  # it closed with commands of ours unread
+                chunk = b""
             except OSError as exc:
                 raise ServerGone(f"{self.where}: the server went away ({(exc.strerror or str(exc)).lower()})") \
                     from None
