@@ -22,8 +22,8 @@ import re
 import socket
 import time
 from collections import deque
+from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Iterator
 
 import numpy as np
 
@@ -157,6 +157,8 @@ def _rows(values, n: int, name: str) -> np.ndarray | None:
     if values is None:
         return None
     rows = np.asarray(values, dtype=np.float64)
+    if rows.size == n == 0:
+        rows = rows.reshape(0, 3)
     if rows.shape != (n, 3):
         raise ValueError(f"{name} has shape {rows.shape}, expected ({n}, 3)")
     return rows
@@ -183,7 +185,8 @@ _TYPES = {
     "OVERFLOW": lambda d: Overflow(int(d["dropped"])),
     "POLL": lambda d: Poll(_state(d["state"]), _result(d["result"], "POLL")),
     "DEVICE": lambda d: Device(str(d["path"]), d.get("part_number"), d.get("serial_number"),
-                               d.get("datagram_id"), d.get("rate_hz"), d.get("configuration"),
+                               d.get("datagram_id"), None if d.get("rate_hz") is None else float(d["rate_hz"]),
+                               d.get("configuration"),
                                dict(d.get("units") or {})),
     "ERROR": lambda d: Error(str(d["message"])),
 }
@@ -285,9 +288,6 @@ class Client:
 
     def close(self) -> None:
         self._sock.close()
-
-    def fileno(self) -> int:
-        return self._sock.fileno()
 
     # ---- commands ----------------------------------------------------------------------------
 

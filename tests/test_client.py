@@ -225,6 +225,19 @@ def test_permission_denied_names_the_path(serve):
         Client.connect(path)
 
 
+def test_permission_denied_is_said_even_where_root_would_pass(monkeypatch, tmp_path):
+    def refuse(self, address):
+        raise PermissionError(13, "Permission denied")
+    monkeypatch.setattr(socket.socket, "connect", refuse)
+    with pytest.raises(ClientError, match=f"^{re.escape(str(tmp_path))}/s: permission denied .*stim300"):
+        Client.connect(str(tmp_path / "s"))
+
+
+def test_an_empty_samples_batch_has_empty_arrays():
+    samples = client_module.message_of(dict(SAMPLES, t=[], t_host=[], counter=[], gyro=[], acc=[]))
+    assert samples.t.shape == (0,) and samples.gyro.shape == (0, 3) and samples.incl is None
+
+
 def test_tcp_host_port(tmp_path):
     listener = socket.create_server(("127.0.0.1", 0))
     server = FakeServer(listener)
