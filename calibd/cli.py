@@ -1,7 +1,7 @@
-"""`calibd run | replay | status | calibrate | sensitivity | plan | noise | report | simulate`: the
-daemon, its pipeline on a capture, its state; one-shot calibration; what alpha/beta errors cost;
-what a protocol will give before it is run; the noise of a capture; a report people can look at;
-captures with known truth.
+"""`calibd run | replay | status | calibrate | sensitivity | plan | noise | report | simulate | pipe |
+watch`: the daemon, its pipeline on a capture, its state; one-shot calibration; what alpha/beta
+errors cost; what a protocol will give before it is run; the noise of a capture; a report people
+can look at; captures with known truth; the daemon's socket as JSON lines and as a live view.
 
 Errors in files, scenarios or arguments end with one line on stderr and exit status 2.
 """
@@ -34,6 +34,7 @@ from .frames import STANDARD_GRAVITY, Site, site_value_error
 from .live import configure_logging, replay, run
 from .results import CalibrationResult, ResultError, ResultStore, StateDirError, load_result, write_result
 from .scenario import READY_MADE, ScenarioError, load_scenario
+from .serve.protocol import SAMPLE_KINDS
 from .session import CaptureSessions, Session, decode_sessions, power_up_session
 from .units import DEG
 
@@ -391,6 +392,96 @@ def cmd_noise(args) -> int:
     return 0
 
 
+def _stdout_gone() -> int:
+    """The reader of stdout went away (`| head`): nothing more to say, and no traceback at exit."""
+    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    return 0
+
+
+def cmd_pipe(args) -> int:
+    """Every message of the daemon's socket on stdout as it was sent, one a line (gpspipe -w)."""
+    from .client import Client, ClientError
+    from .serve.protocol import ProtocolError
+
+    out = sys.stdout.buffer
+    try:
+        with Client.connect(args.socket) as client:
+            client.command("WATCH", {"enable": True, "samples": args.samples})
+            line, written = client.version_line, 0
+            while True:
+                out.write(line + b"\n")
+                out.flush()
+                written += 1
+                if written == args.count:
+                    return 0
+                line = client.read_line()
+    except (ClientError, ProtocolError) as exc:
+        raise RunError(str(exc)) from None
+    except KeyboardInterrupt:
+        return 0
+    except BrokenPipeError:
+        return _stdout_gone()
+
+
+WATCH_REDRAW_S = 0.2  # a terminal is redrawn at most this often
+
+
+def cmd_watch(args) -> int:
+    """The daemon seen live: redrawn in place on a terminal, one line per event otherwise."""
+    from .client import Client, ClientError
+    from .serve.protocol import ProtocolError
+    from .watchview import WatchView, render
+
+    terminal = sys.stdout.isatty()
+    view = WatchView(args.socket)
+
+    def take(message) -> None:
+        line = view.update(message, time.monotonic())
+        if line and not terminal:
+            print(line, flush=True)
+
+    try:
+        with Client.connect(args.socket) as client:
+            take(client.version)
+            take(client.watch(args.samples))
+            client.command("DEVICE")  # answers (or a refusal) come with the stream
+            client.command("POLL")
+            drawn_s = -WATCH_REDRAW_S
+            while True:
+                wait_s = max(drawn_s + WATCH_REDRAW_S - time.monotonic(), 0.0) if terminal else None
+                message = client.read(wait_s)
+                if message is not None:
+                    take(message)
+                if terminal and time.monotonic() - drawn_s >= WATCH_REDRAW_S:
+                    drawn_s = time.monotonic()
+                    sys.stdout.write("\x1b[H\x1b[2J" + "\n".join(render(view, drawn_s)) + "\n")
+                    sys.stdout.flush()
+    except (ClientError, ProtocolError) as exc:
+        raise RunError(str(exc)) from None
+    except KeyboardInterrupt:
+        return 0
+    except BrokenPipeError:
+        return _stdout_gone()
+
+
+def _add_client_commands(sub) -> None:
+    """`calibd pipe` and `calibd watch`: programs reading the daemon's socket ([serve] socket)."""
+    where = "the daemon's socket: a path ([serve] socket, e.g. /run/calibd/ttyUSB0/calibd.sock) or HOST:PORT"
+    p = sub.add_parser("pipe", help="the daemon's socket messages as JSON lines on stdout (like gpspipe -w)")
+    p.add_argument("socket", help=where)
+    p.add_argument("--samples", choices=SAMPLE_KINDS, default="none",
+                   help="also SAMPLES messages of the raw or bias-corrected stream (default none)")
+    p.add_argument("-n", "--count", type=_positive_int, metavar="COUNT",
+                   help="stop after COUNT messages (the VERSION and WATCH answers count)")
+    p.set_defaults(func=cmd_pipe)
+    p = sub.add_parser("watch", help="the daemon live: state, protocol progress, estimates with sigma, stream "
+                                     "health (like gpsmon)")
+    p.add_argument("socket", help=where)
+    p.add_argument("--samples", choices=SAMPLE_KINDS, default="none",
+                   help="also watch samples, to measure the rate the daemon serves (default none)")
+    p.set_defaults(func=cmd_watch)
+
+
 SPEED_RANGE = (1e-3, 1e6)  # times real time: slower would take years, faster is `max`
 
 
@@ -482,6 +573,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("scenario", help=f"scenario TOML file, or one of: {', '.join(READY_MADE)}")
     p.add_argument("-o", "--output", required=True, help="capture file to write")
     p.set_defaults(func=cmd_simulate)
+    _add_client_commands(sub)
     return parser
 
 

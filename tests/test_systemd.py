@@ -1,5 +1,7 @@
 """systemd/: the example config has the loader's keys; the unit passes `systemd-analyze verify`
-and `systemd-analyze security --offline=yes` rates it at most 2.0 (skipped without systemd-analyze)."""
+and `systemd-analyze security --offline=yes` rates it at most 2.0, also with the drop-in its
+comments give for serving on TCP (skipped without systemd-analyze); it serves what it serves to
+the stim300 group under /run/calibd/<device>."""
 
 import os
 import re
@@ -83,16 +85,49 @@ def test_unit_has_the_required_settings():
         "/usr/local/bin/calibd run --config /etc/calibd/%i.toml --port /dev/%i"
     assert settings[("Unit", "BindsTo")] == settings[("Unit", "After")] == "dev-%i.device"
     assert settings[("Service", "DynamicUser")] == "yes"
-    assert settings[("Service", "SupplementaryGroups")] == "dialout"
+    # the port through dialout; what is served (socket, ptys, result copy) handed to stim300
+    assert settings[("Service", "SupplementaryGroups")] == "dialout stim300"
     assert settings[("Service", "DevicePolicy")] == "closed"
-    assert settings[("Service", "DeviceAllow")] == "/dev/%i rw"
+    # the port, and the ptys the raw and corrected streams are served on
+    assert [v for s, k, v in found if k == "DeviceAllow"] == ["/dev/%i rw", "/dev/ptmx rw", "char-pts rw"]
     assert settings[("Service", "StateDirectory")] == "calibd/%i"
+    # /run/calibd/%i: searchable by the stim300 clients, the files' own group and mode guard them
+    assert settings[("Service", "RuntimeDirectory")] == "calibd/%i"
+    assert settings[("Service", "RuntimeDirectoryMode")] == "0711"
     assert settings[("Service", "RestrictAddressFamilies")] == "AF_UNIX"
-    assert [v for s, k, v in found if k == "SystemCallFilter"] == ["@system-service", "~@privileged @resources"]
+    # chown (in @privileged) given back: the daemon hands the socket, ptys and result copy to stim300
+    assert [v for s, k, v in found if k == "SystemCallFilter"] == \
+        ["@system-service", "~@privileged @resources", "@chown"]
     # PrivateUsers= would map dialout to nobody and lock the daemon out of its port.
     assert ("Service", "PrivateUsers") not in settings
     keys = [k for _, k, _ in found]
-    assert {k for k in keys if keys.count(k) > 1} == {"SystemCallFilter"}, "a setting given twice"
+    assert {k for k in keys if keys.count(k) > 1} == {"SystemCallFilter", "DeviceAllow"}, "a setting given twice"
+
+
+def test_unit_and_readme_say_where_clients_find_what_is_served():
+    for text in (UNIT.read_text(), (SYSTEMD / "README.md").read_text()):
+        for words in ("/run/calibd/", "calibd.sock", "raw", "corrected", "result.json",
+                      "groupadd --system stim300", "usermod -aG stim300 USER"):
+            assert words in text, words
+
+
+def tcp_drop_in() -> str:
+    """The drop-in the unit's comments give for [serve] tcp: the commented block after "[Service]"."""
+    lines = UNIT.read_text().splitlines()
+    start = lines.index("#   [Service]")
+    block = []
+    for line in lines[start:]:
+        if not line.startswith("#   "):
+            break
+        block.append(line[4:])
+    return "\n".join(block) + "\n"
+
+
+def test_the_tcp_drop_in_opens_the_network():
+    settings = directives(tcp_drop_in())
+    assert ("Service", "PrivateNetwork", "no") in settings
+    assert ("Service", "IPAddressAllow", "localhost") in settings
+    assert any(k == "RestrictAddressFamilies" and "AF_INET" in v for _, k, v in settings)
 
 
 def test_udev_rule_starts_the_unit():
@@ -148,8 +183,15 @@ def test_unit_verifies_cleanly(tmp_path):
 
 
 @needs_analyze
-def test_unit_exposure_is_low(tmp_path):
-    result = analyze("security", "--offline=yes", str(unit_copy(tmp_path)))
+@pytest.mark.parametrize("drop_in", [None, "tcp"])
+def test_unit_exposure_is_low(tmp_path, drop_in):
+    unit = unit_copy(tmp_path)
+    if drop_in:  # systemd-analyze reads drop-ins from NAME.d/ beside the unit
+        (tmp_path / f"{UNIT.name}.d").mkdir()
+        (tmp_path / f"{UNIT.name}.d" / "tcp.conf").write_text(tcp_drop_in())
+        code, complaints = verify_complaints(unit)
+        assert not [line for line in complaints if SYNTAX_ERRORS.search(line)], "\n".join(complaints)
+    result = analyze("security", "--offline=yes", str(unit))
     output = result.stdout + result.stderr
     if result.returncode != 0 and re.search(r"unrecognized option|unknown option|--offline", output, re.I):
         pytest.skip(f"this systemd-analyze has no --offline: {output.strip().splitlines()[0]}")
@@ -157,3 +199,5 @@ def test_unit_exposure_is_low(tmp_path):
     assert match, output
     exposure = float(match.group(1))
     assert exposure <= MAX_EXPOSURE, output
+    if drop_in:  # the drop-in was read: the score counts the network it opens
+        assert "host's network" in output, output

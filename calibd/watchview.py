@@ -1,0 +1,203 @@
+"""What `calibd watch` shows (as gpsmon/cgps show a receiver): the daemon's state and protocol
+progress, every estimate with its sigma and unit, the result's staleness, stream health and the
+device. `WatchView` gathers the messages; `render` (view -> lines) and `WatchView.update`'s event
+line are the text, kept free of the terminal so tests read them directly.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+
+from .client import Device, Error, Fault, Message, Overflow, Poll, Result, Samples, State, Version, Watch
+from .results import CalibrationResult
+
+RATE_WINDOW_S = 2.0  # stream time the measured sample rate is averaged over
+SAMPLES_LINE_EVERY_S = 10.0  # plain lines: the sample rate is said this often (stream time)
+# progress keys end in their unit; longest first, so "_deg_s" is not read as "_s"
+_SUFFIX_UNITS = (("_deg_s", "deg/s"), ("_deg_h", "deg/h"), ("_deg", "deg"), ("_hz", "Hz"), ("_mg", "mg"),
+                 ("_s", "s"))
+
+
+def value_sigma(value: float, sigma: float | None, unit: str) -> str:
+    """`value +- sigma unit` with the value rounded where the sigma's second digit is."""
+    if sigma is None or not math.isfinite(sigma) or sigma <= 0:
+        return f"{value:.6g} {unit}"
+    decimals = min(max(1 - math.floor(math.log10(sigma)), 0), 9)
+    return f"{value:.{decimals}f} +- {sigma:.{decimals}f} {unit}"
+
+
+def progress_text(progress: dict) -> str:
+    """A flat progress object in words: whatever keys it has, units taken from their names."""
+    parts = []
+    for key, value in progress.items():
+        if key == "missing":
+            continue
+        name, unit = key, ""
+        for suffix, suffix_unit in _SUFFIX_UNITS:
+            if key.endswith(suffix):
+                name, unit = key[:-len(suffix)], f" {suffix_unit}"
+                break
+        if isinstance(value, bool):
+            text = "yes" if value else "no"
+        elif isinstance(value, float):
+            text = f"{value:.1f}{unit}"
+        else:
+            text = f"{value}{unit}"
+        parts.append(f"{name.replace('_', ' ')} {text}")
+    if progress.get("missing"):
+        parts.append(f"missing: {progress['missing']}")
+    return ", ".join(parts) if parts else "-"
+
+
+def stale_text(result: CalibrationResult) -> str | None:
+    """Why the result no longer applies, or None while it does."""
+    if result.stale is None:
+        return None
+    power_up, reason = result.stale.get("power_up", "previous"), result.stale.get("reason", "no reason given")
+    return f"STALE: the {power_up} power-up's result ({reason})"
+
+
+def _result_head(result: CalibrationResult) -> str:
+    session = result.session or {}
+    span = f", {session['duration_s']:.1f} s of data" if isinstance(session.get("duration_s"), (int, float)) else ""
+    return f"{result.method}{span}"
+
+
+def _counts(counts: dict, increase: dict) -> str:
+    return ", ".join(f"{name} {count}" + (f" (+{increase[name]})" if increase.get(name) else "")
+                     for name, count in counts.items()) or "none"
+
+
+def _device_text(device: Device) -> str:
+    rate = "" if device.rate_hz is None else f", {device.rate_hz:g} Hz"
+    units = ", ".join(f"{block} {unit}" for block, unit in device.units.items())
+    return (f"{device.path}: part {device.part_number or '?'}, serial {device.serial_number or '?'}, "
+            f"datagram {device.datagram_id or '?'}{rate}" + (f"; units {units}" if units else ""))
+
+
+@dataclass
+class WatchView:
+    """What the messages so far say, with the host time (s, monotonic) each part was last heard."""
+
+    where: str
+    version: Version | None = None
+    device: Device | None = None
+    state: State | None = None
+    state_since_s: float | None = None
+    result: CalibrationResult | None = None
+    result_at_s: float | None = None
+    faults: Fault | None = None
+    overflow_dropped: int = 0
+    samples_kind: str = "none"
+    batches: deque = field(default_factory=deque)  # (t first, t last, count) of recent SAMPLES
+    samples_said_t: float | None = None
+    last_error: str | None = None
+    messages: int = 0
+
+    def sample_rate_hz(self) -> float | None:
+        """Samples per second of stream time over the last RATE_WINDOW_S."""
+        count = sum(n for _, _, n in self.batches)
+        if count < 2:
+            return None
+        span = self.batches[-1][1] - self.batches[0][0]
+        return (count - 1) / span if span > 0 else None
+
+    def update(self, message, now_s: float) -> str | None:
+        """Take one message; the line it is worth on its own (None: nothing worth a line)."""
+        self.messages += 1
+        if isinstance(message, Version):
+            self.version = message
+            return f"calibd {message.release}, protocol {message.proto_major}.{message.proto_minor}"
+        if isinstance(message, Device):
+            self.device = message
+            return f"device {_device_text(message)}"
+        if isinstance(message, (State, Poll)):
+            state = message if isinstance(message, State) else message.state
+            if self.state is None or state.state != self.state.state:
+                self.state_since_s = now_s
+            self.state = state
+            line = f"state {state.state}: {state.detail}; progress: {progress_text(state.progress)}"
+            if isinstance(message, Poll) and message.result is not None:
+                self.result, self.result_at_s = message.result, now_s
+                return f"{line}\n{self.result_line()}"
+            return line
+        if isinstance(message, Result):
+            self.result, self.result_at_s = message.result, now_s
+            return self.result_line()
+        if isinstance(message, Fault):
+            self.faults = message
+            return f"faults: {_counts(message.counts, message.increase)}"
+        if isinstance(message, Overflow):
+            self.overflow_dropped += message.dropped
+            return f"overflow: this client lost {message.dropped} messages (reading too slowly)"
+        if isinstance(message, Samples):
+            return self._take_samples(message)
+        if isinstance(message, Watch):
+            self.samples_kind = message.samples if message.enable else "none"
+            return f"watching: {'on' if message.enable else 'off'}, samples {self.samples_kind}"
+        if isinstance(message, Error):
+            self.last_error = message.message
+            return f"server error: {message.message}"
+        if isinstance(message, Message):
+            return f"{message.cls} (not known to this calibd watch)"
+        return None
+
+    def _take_samples(self, samples: Samples) -> str | None:
+        if not len(samples.t):
+            return None
+        self.batches.append((float(samples.t[0]), float(samples.t[-1]), len(samples.t)))
+        while self.batches and self.batches[-1][1] - self.batches[0][0] > RATE_WINDOW_S and len(self.batches) > 1:
+            self.batches.popleft()
+        t = float(samples.t[-1])
+        if self.samples_said_t is not None and t - self.samples_said_t < SAMPLES_LINE_EVERY_S:
+            return None
+        self.samples_said_t = t
+        rate = self.sample_rate_hz()
+        return f"samples: {'corrected' if samples.corrected else 'raw'}, " + \
+            ("rate not yet measured" if rate is None else f"{rate:.1f} Hz")
+
+    def result_line(self) -> str:
+        result = self.result
+        estimates = ", ".join(f"{name} {value_sigma(e.value, e.sigma, e.unit)}"
+                              + (f" ({e.quality})" if e.quality else "") for name, e in result.estimates.items())
+        stale = stale_text(result)
+        return f"result {_result_head(result)}: {estimates}" + (f"; {stale}" if stale else "")
+
+
+def render(view: WatchView, now_s: float) -> list[str]:
+    """The whole screen for `view` at host time `now_s` (s, monotonic): one string per line."""
+    release = "" if view.version is None else \
+        f" (calibd {view.version.release}, protocol {view.version.proto_major}.{view.version.proto_minor})"
+    lines = [f"calibd watch {view.where}{release}"]
+    lines.append(f"device   {_device_text(view.device) if view.device else 'not yet known'}")
+    if view.state is None:
+        lines.append("state    not yet known")
+    else:
+        since = "" if view.state_since_s is None else f" (for {now_s - view.state_since_s:.0f} s)"
+        lines.append(f"state    {view.state.state}{since}: {view.state.detail}")
+        lines.append(f"progress {progress_text(view.state.progress)}")
+    if view.result is None:
+        lines.append("result   none yet")
+    else:
+        lines.append(f"result   {_result_head(view.result)}, received {now_s - view.result_at_s:.0f} s ago")
+        stale = stale_text(view.result)
+        if stale:
+            lines.append(f"         {stale}")
+        width = max(len(name) for name in view.result.estimates)
+        for name, e in view.result.estimates.items():
+            quality = f"  ({e.quality})" if e.quality else ""
+            lines.append(f"  {name:<{width}}  {value_sigma(e.value, e.sigma, e.unit)}{quality}")
+        lines += [f"  warning: {w}" for w in view.result.warnings]
+    faults = "none reported" if view.faults is None else _counts(view.faults.counts, view.faults.increase)
+    lines.append(f"faults   {faults}")
+    if view.samples_kind != "none":
+        rate = view.sample_rate_hz()
+        lines.append(f"samples  {view.samples_kind}, " + ("rate not yet measured" if rate is None else
+                                                           f"{rate:.1f} Hz measured"))
+    if view.overflow_dropped:
+        lines.append(f"overflow {view.overflow_dropped} messages lost by this client (reading too slowly)")
+    if view.last_error:
+        lines.append(f"error    {view.last_error}")
+    return lines
