@@ -30,15 +30,7 @@ LPF_CODES: dict[int, int] = dict(_LPF_HZ.to_code)  # -3 dB frequency (Hz) -> `f`
 DATAGRAM_CODES: dict[int, str] = ({0x90 | low: str(low) for low in range(5)}
                                   | {0xA0 | low: str(low) for low in (5, 6, 7)}
                                   | {0xF0 | low: code for low, code in enumerate("lmnpqrst")})
-USER_BIT_RATE_BPS = (1500, 5184000)  # `t f,<bps>`: the unit sets 82944000 / n, n the nearest integer
-BIT_RATE_CLOCK_HZ = 82944000
-
-
-def actual_bit_rate(requested_bps: int) -> int:
-    """The bit rate the unit runs at for a requested one (a standard rate is exact)."""
-    if requested_bps in STANDARD_BIT_RATES:
-        return requested_bps
-    return round(BIT_RATE_CLOCK_HZ / round(BIT_RATE_CLOCK_HZ / requested_bps))
+USER_BIT_RATE_BPS = (1500, 5184000)  # `t f,<bps>`: the unit makes the nearest rate its clock divides to
 
 
 def bit_rate_command(bit_rate_bps: int) -> str:
@@ -93,7 +85,9 @@ class SensorReport:
         """(name, "value unit") for printing; absent fields say so."""
         rows = []
         for f in fields(self):
-            if f.name != "other":
+            if f.name == "sample_rate_hz" and self.external_trigger:
+                rows.append((f.name, "- (external trigger)"))
+            elif f.name != "other":
                 rows.append((f.name, _shown(f.name, getattr(self, f.name))))
         return rows + [(name, value) for name, value in self.other]
 
@@ -324,8 +318,8 @@ def configure(ser: serial.Serial, changes: Changes, save: bool = False,
     `confirm(after)` is asked once the changes are in; a no leaves them volatile (`save_declined`).
     """
     applied: list[str] = []
-    with service_mode(ser, timeout) as text:
-        before = parse_report(text)
+    with service_mode(ser, timeout):
+        before = read_report(ser, timeout)  # not the entry banner: datagram bytes may precede it
         commands = plan(changes, before)
         if save and before.remaining_saves == 0:
             raise SaveRefused("--save: the sensor reports 0 flash saves remaining: nothing was changed")
@@ -333,8 +327,9 @@ def configure(ser: serial.Serial, changes: Changes, save: bool = False,
         for command in commands:
             try:
                 if command.option == "--bit-rate":
-                    after = parse_report(change_bit_rate(ser, command.text, actual_bit_rate(changes.bit_rate_bps),
-                                                         timeout))
+                    after = parse_report(change_bit_rate(ser, command.text, changes.bit_rate_bps, timeout))
+                    if after.bit_rate_bps:  # a user-defined rate is the nearest the unit's clock makes
+                        ser.baudrate = after.bit_rate_bps
                 else:
                     service_command(ser, command.text, timeout)
             except ServiceError as exc:

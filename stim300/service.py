@@ -32,7 +32,7 @@ def _read_until(ser: serial.Serial, done, timeout: float, what: str, command: st
     buf = bytearray()
     while not done(buf):
         if time.monotonic() >= deadline:
-            raise ServiceTimeout(command, f"{ser.port}: no {what} within {timeout} s; last bytes {bytes(buf[-80:])!r}")
+            raise ServiceTimeout(command, f"{ser.port}: no {what} within {timeout} s; last bytes {bytes(buf[-24:])!r}")
         buf += _read_available(ser)
     return buf
 
@@ -172,6 +172,10 @@ def save_to_flash(ser: serial.Serial, timeout: float = 3.0) -> str:
 
 def change_bit_rate(ser: serial.Serial, command: str, bit_rate_bps: int, timeout: float = 3.0) -> str:
     """Run a `t` command and follow the unit to `bit_rate_bps`; return the `i` report read there.
+
+    A user-defined rate is made by dividing the unit's clock, so the unit runs near, not at, the
+    requested rate; a UART reads across the small difference, and the caller sets the port to the
+    rate the report then names.
 
     The protocol description does not say at which rate the answer to `t` comes. A refusal is
     awaited at the old rate for BIT_RATE_SETTLE_S; then the port switches and `i` must answer at

@@ -25,11 +25,13 @@ import numpy as np
 
 from captures import exact_samples
 from stim300.codec import encode_samples
-from stim300.configure import BIT_RATE_CLOCK_HZ, DATAGRAM_CODES, LPF_CODES, actual_bit_rate
+from stim300.configure import DATAGRAM_CODES, LPF_CODES
 from stim300.protocol import NORMAL_LAYOUTS, SAMPLE_RATES_HZ, STANDARD_BIT_RATES, AccUnit, Format, GyroUnit
 
 TCGETS2 = 0x802C542A  # struct termios2: c_ispeed, c_ospeed are its 10th and 11th ints
 PROMPT = b"\r>"
+BIT_RATE_CLOCK_HZ = 82944000  # a user-defined bit rate is this divided by the nearest integer
+UART_TOLERANCE = 0.02  # a UART reads a line whose rate is this close to its own
 EXTERNAL_TRIGGER_CODE = 5
 GYRO_UNIT_TEXT = {GyroUnit.RATE: "ANGULAR RATE [deg/s]", GyroUnit.INCREMENTAL_ANGLE: "INCREMENTAL ANGLE [deg]",
                   GyroUnit.AVERAGE_RATE: "AVERAGE ANGULAR RATE [deg/s]",
@@ -78,9 +80,11 @@ class State:
 class SensorEmulator(threading.Thread):
     """Start it, point the code at `path`, `stop()` it. `mode` is "normal" or "service";
     `state` the volatile configuration, `flash` the saved one; `lines` every command line
-    received in Service Mode; `refuse` maps a command line to an error code it answers with."""
+    received in Service Mode; `refuse` maps a command line to an error code it answers with,
+    `silent` holds command lines it never answers."""
 
-    def __init__(self, state: State = State(), saves_left: int = 9998, refuse: dict[str, int] | None = None):
+    def __init__(self, state: State = State(), saves_left: int = 9998, refuse: dict[str, int] | None = None,
+                 silent: tuple[str, ...] = ()):
         super().__init__(daemon=True, name="STIM300 emulator")
         self.master, self.slave = os.openpty()
         tty.setraw(self.master)
@@ -90,8 +94,10 @@ class SensorEmulator(threading.Thread):
         self.state = self.flash = state
         self.saves_left = saves_left
         self.refuse = dict(refuse or {})
+        self.silent = silent
         self.mode = "normal"
         self.lines: list[str] = []
+        self.entries = 0  # SERVICEMODE requests obeyed
         self.datagrams_sent = 0
         self._line = bytearray()
         self._confirming = False
@@ -105,9 +111,13 @@ class SensorEmulator(threading.Thread):
         fcntl.ioctl(self.slave, TCGETS2, buf)
         return buf[10]
 
+    def in_step(self) -> bool:
+        """The host's port runs near enough the unit's bit rate to understand each other."""
+        return abs(self.host_bps() - self.state.bit_rate_bps) <= UART_TOLERANCE * self.state.bit_rate_bps
+
     def send(self, data: bytes) -> None:
         """As the host hears it: junk if it listens at another rate; lost if nobody reads."""
-        if self.host_bps() != self.state.bit_rate_bps:
+        if not self.in_step():
             data = b"\xff" * len(data)
         view = memoryview(data)
         deadline = time.monotonic() + 1.0
@@ -125,7 +135,7 @@ class SensorEmulator(threading.Thread):
                     data = os.read(self.master, 4096)
                 except OSError:
                     data = b""
-                if data and self.host_bps() == self.state.bit_rate_bps:
+                if data and self.in_step():
                     for byte in data:
                         self._byte(byte)
             if self.mode == "normal" and time.monotonic() >= next_datagrams:
@@ -155,7 +165,8 @@ class SensorEmulator(threading.Thread):
             if byte == 0x0D:
                 if self._line == b"SERVICEMODE":
                     self.mode = "service"
-                    self.send(self.report() + PROMPT)
+                    self.entries += 1
+                    self.send(report(self.state, self.saves_left) + PROMPT)
                 self._line.clear()
             else:
                 self._line.append(byte)
@@ -184,6 +195,8 @@ class SensorEmulator(threading.Thread):
     def _command(self, line: str) -> None:
         name, _, args = line.partition(" ")
         params = args.split(",") if args else []
+        if line in self.silent:
+            return
         try:
             if line in self.refuse:
                 raise Refusal(self.refuse[line])
@@ -224,7 +237,7 @@ class SensorEmulator(threading.Thread):
     def _info(self, params) -> bytes:
         if params:
             raise Refusal(3)  # the sub-reports (i m, i d, ...) are not emulated
-        return self.report()
+        return report(self.state, self.saves_left)
 
     def _rate(self, params) -> bytes:
         if len(params) != 1:
@@ -283,7 +296,6 @@ class SensorEmulator(threading.Thread):
             if not 1500 <= requested <= 5184000:
                 raise Refusal(3)
             bps = round(BIT_RATE_CLOCK_HZ / round(BIT_RATE_CLOCK_HZ / requested))
-            assert bps == actual_bit_rate(requested)
         elif params[0] in ("0", "1", "2", "3"):
             bps = STANDARD_BIT_RATES[int(params[0])]
         else:
@@ -291,31 +303,31 @@ class SensorEmulator(threading.Thread):
         self._change(bit_rate_bps=bps)
         self.send(PROMPT)
 
-    def report(self) -> bytes:
-        s = self.state
-        layout = NORMAL_LAYOUTS[s.datagram_id]
-        content = ", ".join(["RATE"] + [c.upper() for c in layout.clusters[1:]] + (["TEMP"] if layout.temperatures
-                                                                                   else [])
-                            + (["PPS"] if layout.aux == "pps" else []))
-        lines = [
-            "PRODUCT = STIM300",
-            "PART NUMBER = 84167-4400003-321 REV K",
-            "SERIAL NUMBER = N25582405002002",
-            "FW CONFIG = SWD12345 REV 2",
-            f"SAMPLE RATE [Hz] = {s.rate_hz or 'EXTERNAL TRIGGER'}",
-            f"DATAGRAM = 0x{s.datagram_id:02X} {content}",
-            f"DATAGRAM TERMINATION = {'CRLF' if s.crlf else 'NONE'}",
-            f"GYRO OUTPUT UNIT = {GYRO_UNIT_TEXT[s.gyro_unit]}",
-            f"ACC OUTPUT UNIT = {ACC_UNIT_TEXT[s.acc_unit]}",
-            f"INCL OUTPUT UNIT = {ACC_UNIT_TEXT[s.incl_unit]}",
-            *(f"{group.upper()} LP FILTER -3dB FREQUENCY X,Y,Z [Hz] = "
-              + ", ".join(map(str, getattr(s, group + "_lpf_hz"))) for group in ("gyro", "acc", "incl")),
-            "GYRO RANGE [deg/s] = 400",
-            "ACC RANGE [g] = 10",
-            f"BIT RATE [bits/s] = {s.bit_rate_bps}",
-            "STOP BITS = 1",
-            "PARITY = NONE",
-            f"LINE TERMINATION = {'ON' if s.line_termination else 'OFF'}",
-            f"REMAINING FLASH SAVES = {self.saves_left}",
-        ]
-        return "\r".join(lines).encode()
+
+def report(s: State, saves_left: int) -> bytes:
+    """The `i` report of a unit in state `s`: NAME = VALUE lines ending in CR (no prompt)."""
+    layout = NORMAL_LAYOUTS[s.datagram_id]
+    content = ", ".join(["RATE"] + [c.upper() for c in layout.clusters[1:]]
+                        + (["TEMP"] if layout.temperatures else []) + (["PPS"] if layout.aux == "pps" else []))
+    lines = [
+        "PRODUCT = STIM300",
+        "PART NUMBER = 84167-4400003-321 REV K",
+        "SERIAL NUMBER = N25582405002002",
+        "FW CONFIG = SWD12345 REV 2",
+        f"SAMPLE RATE [Hz] = {s.rate_hz or 'EXTERNAL TRIGGER'}",
+        f"DATAGRAM = 0x{s.datagram_id:02X} {content}",
+        f"DATAGRAM TERMINATION = {'CRLF' if s.crlf else 'NONE'}",
+        f"GYRO OUTPUT UNIT = {GYRO_UNIT_TEXT[s.gyro_unit]}",
+        f"ACC OUTPUT UNIT = {ACC_UNIT_TEXT[s.acc_unit]}",
+        f"INCL OUTPUT UNIT = {ACC_UNIT_TEXT[s.incl_unit]}",
+        *(f"{group.upper()} LP FILTER -3dB FREQUENCY X,Y,Z [Hz] = "
+          + ", ".join(map(str, getattr(s, group + "_lpf_hz"))) for group in ("gyro", "acc", "incl")),
+        "GYRO RANGE [deg/s] = 400",
+        "ACC RANGE [g] = 10",
+        f"BIT RATE [bits/s] = {s.bit_rate_bps}",
+        "STOP BITS = 1",
+        "PARITY = NONE",
+        f"LINE TERMINATION = {'ON' if s.line_termination else 'OFF'}",
+        f"REMAINING FLASH SAVES = {saves_left}",
+    ]
+    return "\r".join(lines).encode()
