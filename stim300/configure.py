@@ -17,7 +17,7 @@ from dataclasses import asdict, dataclass, fields
 import serial
 
 from .errors import FormatError, ServiceError, Stim300Error
-from .protocol import SAMPLE_RATES_HZ, STANDARD_BIT_RATES, AccUnit, GyroUnit, normal_id
+from .protocol import NORMAL_LAYOUTS, SAMPLE_RATES_HZ, STANDARD_BIT_RATES, AccUnit, GyroUnit, normal_id
 from .service import change_bit_rate, save_to_flash, service_command, service_mode
 from .special import _LPF_HZ, EXTERNAL_TRIGGER_CODE
 
@@ -260,10 +260,13 @@ class ConfigureError(Stim300Error):
 
 
 def plan(changes: Changes, current: SensorReport) -> list[Command]:
-    """The Service Mode commands for `changes`, the bit rate last (the port must follow it).
+    """The Service Mode commands for `changes`, in an order the unit can take them.
 
-    `d` sets the datagram type and its termination together: the one not given is the current
-    one, read from the report.
+    The unit refuses a datagram that does not fit the sample rate and bit rate (E007), judged
+    at each command, so what lightens the line goes first: a higher bit rate before everything
+    (the port follows it), a shorter datagram before a higher sample rate; a lower bit rate goes
+    last. `d` sets the datagram type and its termination together: the one not given is the
+    current one, read from the report.
     """
     commands = []
     if changes.sample_rate is not None:
@@ -276,7 +279,11 @@ def plan(changes: Changes, current: SensorReport) -> list[Command]:
             missing = "--datagram" if datagram_id not in DATAGRAM_CODES else "--crlf"
             raise ConfigureError(f"{option}: the `d` command sets datagram and termination together, and the "
                                  f"sensor's report gives no settable current value for {missing}: give both")
-        commands.append(Command(option, f"d {DATAGRAM_CODES[datagram_id]},{int(crlf)}"))
+        datagram = Command(option, f"d {DATAGRAM_CODES[datagram_id]},{int(crlf)}")
+        shorter = (current.datagram_id in NORMAL_LAYOUTS and current.crlf is not None
+                   and NORMAL_LAYOUTS[datagram_id].wire_length(crlf)
+                   < NORMAL_LAYOUTS[current.datagram_id].wire_length(current.crlf))
+        commands.insert(0, datagram) if shorter else commands.append(datagram)
     for group in GROUPS:
         unit = getattr(changes, group + "_unit")
         if unit is not None:
@@ -286,7 +293,9 @@ def plan(changes: Changes, current: SensorReport) -> list[Command]:
         if lpf_hz is not None:
             commands.append(Command(f"--{group}-lpf", f"f {LPF_CODES[lpf_hz]},{group[0]}"))
     if changes.bit_rate_bps is not None:
-        commands.append(Command("--bit-rate", bit_rate_command(changes.bit_rate_bps)))
+        bit_rate = Command("--bit-rate", bit_rate_command(changes.bit_rate_bps))
+        higher = current.bit_rate_bps is not None and changes.bit_rate_bps > current.bit_rate_bps
+        commands.insert(0, bit_rate) if higher else commands.append(bit_rate)
     return commands
 
 
@@ -336,7 +345,7 @@ def configure(ser: serial.Serial, changes: Changes, save: bool = False,
                 done = f"applied before it: {', '.join(applied)}" if applied else "nothing was applied"
                 raise ConfigureError(f"{command.option}: {exc} ({done})") from exc
             applied.append(command.text)
-        if commands and commands[-1].option != "--bit-rate":
+        if applied and commands[-1].option != "--bit-rate":  # the bit rate's own report is the last word
             after = read_report(ser, timeout)
         if save and not confirm(after):
             return Outcome(before, after, tuple(applied), saved=False, save_declined=True)

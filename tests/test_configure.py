@@ -6,9 +6,11 @@ process, and the unit back in Normal Mode on every way out."""
 import io
 import json
 import os
+import select
 import subprocess
 import sys
 import time
+import tty
 from dataclasses import replace
 from pathlib import Path
 
@@ -18,7 +20,7 @@ from sensor_emulator import SensorEmulator, State, report
 from stim300.cli import main
 from stim300.configure import (Changes, ConfigureError, bit_rate_command, configure, parse_report,
                                plan)
-from stim300.errors import FormatError, ServiceError
+from stim300.errors import FormatError, ServiceError, ServiceTimeout
 from stim300.port import open_serial
 from stim300.protocol import AccUnit, Format, GyroUnit
 from stim300.stream import StreamParser
@@ -86,6 +88,8 @@ def test_each_change_is_one_service_mode_command_bit_rate_last():
         ("--rate", "m 5"), ("--datagram", "d t,0"), ("--gyro-unit", "u g,9"), ("--acc-unit", "u a,4"),
         ("--incl-unit", "u i,2"), ("--gyro-lpf", "f 0,g"), ("--acc-lpf", "f 3,a"), ("--incl-lpf", "f 2,i"),
         ("--bit-rate", "t 1")]
+    assert [c.text for c in plan(Changes(bit_rate_bps=1843200, gyro_lpf_hz=16), current)] == ["t 3", "f 0,g"]
+    assert [c.text for c in plan(Changes(sample_rate=2000, datagram_id=0x90), current)] == ["d 0,0", "m 4"]
     assert [c.text for c in plan(Changes(crlf=True), current)] == ["d 3,1"]  # the current datagram, 0x93
     assert [c.text for c in plan(Changes(datagram_id=0x94), current)] == ["d 4,0"]  # the current termination
     with pytest.raises(ConfigureError, match="--crlf.*give both"):
@@ -188,6 +192,19 @@ def test_invalid_values_are_refused_before_the_sensor_is_touched(sensor, capsys,
     assert err.startswith("stim300 config: ") and allowed in err
     assert argv[0] in err
     assert sensor.entries == 0 and sensor.lines == [] and sensor.state == State()
+
+
+def test_what_lightens_the_line_goes_first(sensor, capsys):
+    """0xA7 (59 bytes) at 2000 Hz needs more than 921600 bit/s: the bit rate is raised first."""
+    assert main(["config", sensor.path, "--datagram", "0xA7", "--bit-rate", "1843200"]) == 0
+    assert sensor.lines == ["i", "t 3", "i", "d 7,0", "i", "x N"]
+    assert (sensor.state.datagram_id, sensor.state.bit_rate_bps, sensor.mode) == (0xA7, 1843200, "normal")
+    sensor.lines.clear()
+    # back down: the shorter datagram first, the lower bit rate last (first, 0xA7 would not fit)
+    assert main(["config", sensor.path, "--baud", "1843200", "--bit-rate", "374400", "--rate", "1000",
+                 "--datagram", "0x90"]) == 0
+    assert sensor.lines == ["i", "d 0,0", "m 3", "t 0", "i", "x N"]
+    assert sensor.state == replace(State(), datagram_id=0x90, sample_rate_code=3, bit_rate_bps=374400)
 
 
 def test_a_sensor_error_reply_names_the_command_and_what_was_applied(capsys):
@@ -315,3 +332,31 @@ def test_the_program_reads_the_configuration_and_refuses_a_held_port(sensor):
     bad = run_cli(sensor.path, "--rate", "3000")
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "--rate" in bad.stderr
     assert sensor.mode == "normal" and sensor.state == State() and sensor.lines == ["i", "x N"]
+
+
+def test_a_unit_that_keeps_its_bit_rate_is_found_at_the_old_one():
+    sensor = emulated(silent=("t 1",))  # takes the command, says nothing, keeps 921600 bit/s
+    try:
+        with open_serial(sensor.path) as ser, pytest.raises(ConfigureError) as kept:
+            configure(ser, Changes(bit_rate_bps=460800), timeout=0.3)
+        assert "still answers at 921600 bit/s, not at 460800 bit/s" in str(kept.value)
+        assert ser.baudrate == 921600
+        assert sensor.mode == "normal" and sensor.lines == ["i", "t 1", "i", "x N"]  # the i at 460800 was lost
+    finally:
+        sensor.stop()
+
+
+def test_no_prompt_after_servicemode_still_sends_the_exit():
+    """SERVICEMODE may have arrived and only the prompt been lost: `x N` goes out anyway."""
+    master, slave = os.openpty()
+    try:
+        tty.setraw(master)
+        with open_serial(os.ttyname(slave)) as ser, pytest.raises(ServiceTimeout, match="SERVICEMODE|Service Mode"):
+            configure(ser, Changes(), timeout=0.2)
+        written = b""
+        while select.select([master], [], [], 0.5)[0]:
+            written += os.read(master, 100)
+        assert written == b"SERVICEMODE\rx N\r"
+    finally:
+        os.close(master)
+        os.close(slave)
