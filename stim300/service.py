@@ -132,12 +132,22 @@ def service_mode(ser: serial.Serial, timeout: float = 3.0) -> Iterator[str]:
         yield report
     except BaseException as failure:
         try:
+            _drain(ser, timeout)  # the answer to an interrupted command must not be taken for the exit's
             exit_service_mode(ser, "N", timeout)
         except (Stim300Error, serial.SerialException, OSError) as exit_failure:
             raise ServiceError("x N", None, f"could not leave Service Mode ({exit_failure}) after: "
                                             f"{_describe_failure(failure)}") from failure
         raise
     exit_service_mode(ser, "N", timeout)
+
+
+def _drain(ser: serial.Serial, timeout: float) -> None:
+    """Read and drop bytes until the line stays quiet for ENTER_SETTLE_S (at most `timeout` s)."""
+    deadline = time.monotonic() + timeout
+    quiet_since = time.monotonic()
+    while time.monotonic() - quiet_since < ENTER_SETTLE_S and time.monotonic() < deadline:
+        if ser.read(max(1, ser.in_waiting)):
+            quiet_since = time.monotonic()
 
 
 def _send_exit_quietly(ser: serial.Serial) -> None:
