@@ -325,9 +325,9 @@ def _config_rows(outcome) -> str:
     before = dict(outcome.before.rows())
     changed = outcome.changed()
     rows = outcome.after.rows()
-    width = max(len(name) for name, _ in rows) + 1
+    width = max(len(name) for name, value in rows if value) + 1
     return "\n".join(f"{name + ':':<{width}} {value}" + (f"   (was {before[name]})" if name in changed else "")
-                     for name, value in rows)
+                     if value else name for name, value in rows)  # a report line that is no NAME = VALUE
 
 
 def cmd_config(args) -> int:

@@ -89,7 +89,7 @@ class SensorReport:
                 rows.append((f.name, "- (external trigger)"))
             elif f.name != "other":
                 rows.append((f.name, _shown(f.name, getattr(self, f.name))))
-        return rows + [(name, value) for name, value in self.other]
+        return rows + list(self.other)
 
 
 def _shown(name: str, value) -> str:
@@ -121,7 +121,7 @@ def _integer(value: str) -> int:
 
 def _yes(value: str) -> bool:
     words = set(re.findall(r"[A-Z]+", value.upper()))
-    if words & {"ON", "YES", "CRLF", "CR", "ENABLED", "1"} or value.strip() == "1":
+    if words & {"ON", "YES", "CRLF", "CR", "ENABLED"} or value.strip() == "1":
         return True
     if words & {"OFF", "NO", "NONE", "DISABLED"} or value.strip() == "0":
         return False
@@ -169,7 +169,7 @@ def _filters(value: str) -> tuple[int, ...]:
 
 
 # Report name (upper case, [unit] removed) -> typed field and how its value reads. First match wins.
-_FIELDS: tuple[tuple[str, str, Callable], ...] = (
+_FIELDS: tuple[tuple[str, str | None, Callable | None], ...] = (
     (r"^SERIAL NUMBER$", "serial_number", str.strip),
     (r"^PART NUMBER$", "part_number", str.strip),
     (r"^PRODUCT$", "product", str.strip),
@@ -191,33 +191,32 @@ _LINE = re.compile(r"^\s*([^=]+?)\s*=\s*(.*?)\s*$")
 
 
 def parse_report(text: str) -> SensorReport:
-    """Typed fields of an `i` report (Service Mode text, lines ending in '\\n' after `_text`).
+    """Typed fields of an `i` report (Service Mode text, one line per '\\n').
 
-    A value a known name carries but that does not read (a unit word not listed) is kept under
-    `other` as printed, so nothing the sensor says is lost.
+    A line that is not `NAME = VALUE`, an unknown name, and a value a known name carries that
+    does not read (a unit word not listed) are kept under `other` as printed: nothing the
+    sensor says is lost.
     """
     typed: dict = {}
     other = []
-    for line in text.splitlines():
+    for line in filter(str.strip, text.splitlines()):
         match = _LINE.match(line)
         if not match:
+            other.append((line.strip(), ""))
             continue
         name, value = match[1], match[2]
         key = re.sub(r"\s*\[[^\]]*\]", "", name).upper().strip()
         if key == "TRIGGER" or key == "SAMPLE RATE" and "EXT" in value.upper():
             typed["external_trigger"] = "EXT" in value.upper()
             continue
-        for pattern, field_name, read in _FIELDS:
-            if re.search(pattern, key):
-                break
-        else:
-            field_name = None
-        try:
-            if field_name is None or field_name in typed:
-                raise ValueError(value)
-            typed[field_name] = read(value)
-        except ValueError:
-            other.append((name, value))
+        field_name, read = next(((f, r) for pattern, f, r in _FIELDS if re.search(pattern, key)), (None, None))
+        if field_name is not None and field_name not in typed:
+            try:
+                typed[field_name] = read(value)
+                continue
+            except ValueError:
+                pass  # kept below, as printed
+        other.append((name, value))
     if typed.get("sample_rate_hz") is not None and "external_trigger" not in typed:
         typed["external_trigger"] = False
     return SensorReport(**typed, other=tuple(other))

@@ -75,7 +75,7 @@ def test_report_values_that_do_not_read_are_kept_not_guessed():
                           "TRIGGER = EXTERNAL\nnot a field line")
     assert report.datagram_id == 0xA7  # content words give the id as the configuration datagram would
     assert report.gyro_unit is None and report.sample_rate_hz is None and report.external_trigger is True
-    assert report.other == (("GYRO OUTPUT UNIT", "FURLONGS"), ("SAMPLE RATE [Hz]", "fast"))
+    assert report.other == (("GYRO OUTPUT UNIT", "FURLONGS"), ("SAMPLE RATE [Hz]", "fast"), ("not a field line", ""))
     assert dict(report.rows())["bit_rate_bps"] == "- (not in the report)"
 
 
