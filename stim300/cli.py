@@ -313,10 +313,12 @@ def _bit_rate(text: str) -> int:
     from .errors import FormatError
     try:
         value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of bit/s") from None
+    try:
         bit_rate_command(value)
-    except (ValueError, FormatError) as exc:
-        raise argparse.ArgumentTypeError(str(exc) if isinstance(exc, FormatError) else f"{text!r} is not a number "
-                                         "of bit/s") from None
+    except FormatError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
     return value
 
 

@@ -189,8 +189,9 @@ def change_bit_rate(ser: serial.Serial, command: str, bit_rate_bps: int, timeout
 
     The protocol description does not say at which rate the answer to `t` comes. A refusal is
     awaited at the old rate for BIT_RATE_SETTLE_S; then the port switches and `i` must answer at
-    the new rate. If it does not, the port goes back and asks again at the old rate: an answer
-    there means the unit kept its rate (ServiceError); silence at both rates, ServiceTimeout.
+    the new rate. If it does not, the port goes back, ends the unit's input line with a CR, and
+    asks again at the old rate: an answer there means the unit kept its rate (ServiceError);
+    silence at both rates, ServiceTimeout.
     """
     old_bps = ser.baudrate
     ser.write(command.encode("ascii") + b"\r")
@@ -204,7 +205,8 @@ def change_bit_rate(ser: serial.Serial, command: str, bit_rate_bps: int, timeout
         return service_command(ser, "i", timeout)
     except ServiceTimeout:
         ser.baudrate = old_bps
-        ser.reset_input_buffer()
+        ser.write(b"\r")  # ends the line of junk the unit may have made of the `i` sent at the other rate
+        _drain(ser, timeout)
         service_command(ser, "i", timeout)
         raise ServiceError(command, None, f"the unit still answers at {old_bps} bit/s, "
                                           f"not at {bit_rate_bps} bit/s") from None

@@ -4,10 +4,11 @@ datagrams, and Service Mode entered with SERVICEMODE (characters echoed, CR '>' 
 flash saves, `x N` / `x I` back to datagrams).
 
 The code under test opens `path` as a serial port. The emulator is a UART at its own bit rate:
-it reads the rate the host set on the line (TCGETS2 on the pty), drops what arrives at another
-rate and sends junk (0xFF) to a host listening at another rate, so a `t` change must be
-followed. The `i` report's wording is ours (the description lists its content only): NAME =
-VALUE lines, the form `stim300.configure` reads.
+it reads the rate the host set on the line (TCGETS2 on the pty); what arrives at another rate
+is junk (0xFF) in its Service Mode input line and lost in Normal Mode, and what it sends
+reaches a host listening at another rate as junk, so a `t` change must be followed. The `i`
+report's wording is ours (the description lists its content only): NAME = VALUE lines, the
+form `stim300.configure` reads.
 """
 
 from __future__ import annotations
@@ -135,9 +136,10 @@ class SensorEmulator(threading.Thread):
                     data = os.read(self.master, 4096)
                 except OSError:
                     data = b""
-                if data and self.in_step():
-                    for byte in data:
-                        self._byte(byte)
+                if data and not self.in_step():
+                    data = b"\xff" * len(data) if self.mode == "service" else b""  # junk in the input line
+                for byte in data:
+                    self._byte(byte)
             if self.mode == "normal" and time.monotonic() >= next_datagrams:
                 self._datagrams(4)
                 next_datagrams = time.monotonic() + 0.01
