@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 
 from sensor_emulator import SensorEmulator, State, report
+import stim300.configure as configure_module
 from stim300.cli import main
 from stim300.configure import (Changes, ConfigureError, bit_rate_command, configure, parse_report,
                                plan)
@@ -360,3 +361,17 @@ def test_no_prompt_after_servicemode_still_sends_the_exit():
     finally:
         os.close(master)
         os.close(slave)
+
+
+def test_ctrl_c_while_a_command_is_answered_still_leaves_cleanly(sensor, monkeypatch, capsys):
+    """The answer to the interrupted command arrives after Ctrl-C: it is not taken for the exit's."""
+    def interrupted(ser, command, timeout=3.0):
+        if command == "i":
+            return real(ser, command, timeout)
+        ser.write(command.encode() + b"\r")
+        raise KeyboardInterrupt
+    real = configure_module.service_command
+    monkeypatch.setattr(configure_module, "service_command", interrupted)
+    assert main(["config", sensor.path, "--rate", "250"]) == 130
+    assert capsys.readouterr().err == ""
+    assert sensor.lines == ["i", "m 1", "x N"] and sensor.mode == "normal"
