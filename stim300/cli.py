@@ -1,4 +1,5 @@
-"""`stim300 decode | info | record`: captures to tables, a capture's health, raw recording.
+"""`stim300 decode | info | record | config`: captures to tables, a capture's health, raw
+recording, the sensor's configuration through Service Mode.
 
 Bad input (missing or empty files, bytes that are not STIM300, unknown option values,
 unwritable outputs) ends with one line on stderr and a non-zero exit, never a traceback.
@@ -295,6 +296,99 @@ def cmd_record(args) -> int:
     return record(args.port, args.output, baudrate=args.baud, duration_s=args.duration, max_bytes=args.max_bytes)
 
 
+def _settable_datagram(text: str) -> int:
+    from .configure import DATAGRAM_CODES
+    try:
+        value = int(text, 16)
+    except ValueError:
+        value = -1
+    if value not in DATAGRAM_CODES:
+        allowed = ", ".join(f"0x{i:02X}" for i in DATAGRAM_CODES)
+        raise argparse.ArgumentTypeError(f"{text!r} is not a datagram the sensor can be set to ({allowed})")
+    return value
+
+
+def _bit_rate(text: str) -> int:
+    from .configure import bit_rate_command
+    from .errors import FormatError
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of bit/s") from None
+    try:
+        bit_rate_command(value)
+    except FormatError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return value
+
+
+def _config_rows(outcome) -> str:
+    """Aligned `name: value unit` lines of the report after the changes, each change with its old value."""
+    before = dict(outcome.before.rows())
+    changed = outcome.changed()
+    rows = outcome.after.rows()
+    width = max(len(name) for name, value in rows if value) + 1
+    return "\n".join(f"{name + ':':<{width}} {value}" + (f"   (was {before[name]})" if name in changed else "")
+                     if value else name for name, value in rows)  # a report line that is no NAME = VALUE
+
+
+def cmd_config(args) -> int:
+    import serial
+
+    from .cliutil import RunError
+    from .configure import Changes, ConfigureError, configure
+    from .errors import PortError, ServiceError, ServiceTimeout
+    from .port import _describe, open_serial
+    changes = Changes(sample_rate=args.rate, datagram_id=args.datagram, crlf=args.crlf, gyro_unit=args.gyro_unit,
+                      acc_unit=args.acc_unit, incl_unit=args.incl_unit, gyro_lpf_hz=args.gyro_lpf,
+                      acc_lpf_hz=args.acc_lpf, incl_lpf_hz=args.incl_lpf, bit_rate_bps=args.bit_rate)
+    if args.yes and not args.save:
+        raise UsageError("stim300 config: --yes answers the question --save asks: give it with --save")
+    if args.save and not args.yes and not sys.stdin.isatty():
+        raise UsageError("stim300 config: --save asks for confirmation on the terminal: give --yes to save without "
+                         "asking")
+
+    def confirm(report) -> bool:
+        saves = ("unknown (the sensor's report does not say)" if report.remaining_saves is None
+                 else f"{report.remaining_saves} saves")
+        print(f"stim300 config: remaining flash saves: {saves}", file=sys.stderr)
+        if args.yes:
+            return True
+        print("write this configuration to the sensor's flash? [y/N] ", end="", file=sys.stderr, flush=True)
+        return sys.stdin.readline().strip().lower() in ("y", "yes")
+
+    try:
+        with open_serial(args.port, args.baud) as ser:
+            outcome = configure(ser, changes, args.save, confirm)
+    except PortError as exc:
+        raise RunError(f"stim300 config: {exc}") from None
+    except ServiceTimeout as exc:
+        hint = f" (is the sensor on this port, at {args.baud} bit/s? --baud)" if exc.command == "SERVICEMODE" else ""
+        raise RunError(f"stim300 config: {exc}{hint}") from None
+    except (ServiceError, ConfigureError) as exc:
+        left = isinstance(exc, ConfigureError) or exc.command != "x N"
+        raise RunError(f"stim300 config: {args.port}: {exc}" + (" (the sensor is back in Normal Mode)" if left
+                                                                 else "")) from None
+    except (serial.SerialException, OSError) as exc:
+        raise RunError(f"stim300 config: {args.port}: {_describe(exc)}") from None
+    if args.json:
+        print(json.dumps({"port": args.port, "configuration": outcome.after.as_dict(),
+                          "before": outcome.before.as_dict(), "changed": outcome.changed(),
+                          "applied": list(outcome.applied), "saved": outcome.saved}, indent=1))
+    else:
+        print(_config_rows(outcome))
+    if outcome.applied:
+        print(f"stim300 config: applied {'; '.join(outcome.applied)}" + (
+            "" if outcome.saved else " (volatile: lost at the next reset or power-off; --save keeps them)"),
+            file=sys.stderr)
+    if outcome.save_declined:
+        kept = "; the changes stay until the sensor is reset" if outcome.applied else ""
+        raise RunError(f"stim300 config: not saved: the save was declined{kept}")
+    if outcome.saved:
+        print("stim300 config: saved to flash", file=sys.stderr)
+    return 0
+
+
 def _positive(kind):
     def parse(text):
         try:
@@ -327,7 +421,34 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--duration", type=_positive(float), help="seconds to record (default: until Ctrl-C)")
     p.add_argument("--max-bytes", type=_positive(int), help="stop after this many bytes")
     p.set_defaults(func=cmd_record)
+    _add_config_parser(sub)
     return parser
+
+
+def _add_config_parser(sub) -> None:
+    from .configure import LPF_CODES, SAMPLE_RATE_CODES
+    p = sub.add_parser("config", help="read, and set, the sensor's configuration through Service Mode")
+    p.add_argument("port", help="device path (/dev/ttyUSB0) or pyserial URL")
+    p.add_argument("--baud", type=_positive(int), default=DEFAULT_BIT_RATE,
+                   help=f"bit/s the sensor runs at now (default {DEFAULT_BIT_RATE})")
+    p.add_argument("--json", action="store_true")
+    g = p.add_argument_group("changes (volatile unless --save; each checked before the sensor is touched)")
+    lpf = _choice({str(hz): hz for hz in LPF_CODES})
+    g.add_argument("--rate", type=_choice({str(r): r for r in SAMPLE_RATE_CODES}), metavar="HZ",
+                   help=f"sample rate: {', '.join(map(str, SAMPLE_RATE_CODES))}")
+    g.add_argument("--datagram", type=_settable_datagram, help="normal datagram id, e.g. 0x93")
+    g.add_argument("--crlf", type=_choice({"yes": True, "no": False}), metavar="yes|no",
+                   help="CR LF at the end of each datagram")
+    for group, units in (("gyro", GYRO_UNITS), ("acc", ACC_UNITS), ("incl", ACC_UNITS)):
+        g.add_argument(f"--{group}-unit", type=_choice(units), metavar="UNIT", help=", ".join(units))
+    for group in ("gyro", "acc", "incl"):
+        g.add_argument(f"--{group}-lpf", type=lpf, metavar="HZ",
+                       help=f"{group} low-pass filter -3 dB frequency: {', '.join(map(str, LPF_CODES))} Hz")
+    g.add_argument("--bit-rate", type=_bit_rate, metavar="BPS",
+                   help="374400, 460800, 921600, 1843200, or 1500..5184000 (the port follows)")
+    g.add_argument("--save", action="store_true", help="write the configuration to flash (asks first)")
+    g.add_argument("--yes", action="store_true", help="with --save: do not ask")
+    p.set_defaults(func=cmd_config)
 
 
 def main(argv=None) -> int:

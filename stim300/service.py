@@ -2,16 +2,20 @@
 
 These work on an open `serial.Serial` that nothing else is reading: stop the `PortReader`
 first. A refused command raises `ServiceError`; silence past the timeout `ServiceTimeout`.
+`service_mode` wraps a session so the unit always goes back to Normal Mode; `save_to_flash`
+and `change_bit_rate` are the two exchanges that do not end with a plain prompt.
 """
 
 from __future__ import annotations
 
 import re
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import serial
 
-from .errors import FormatError, ServiceError, ServiceTimeout
+from .errors import FormatError, ServiceError, ServiceTimeout, Stim300Error
 from .port import _read_available
 
 PROMPT = b"\r>"
@@ -28,7 +32,7 @@ def _read_until(ser: serial.Serial, done, timeout: float, what: str, command: st
     buf = bytearray()
     while not done(buf):
         if time.monotonic() >= deadline:
-            raise ServiceTimeout(command, f"{ser.port}: no {what} within {timeout} s; last bytes {bytes(buf[-80:])!r}")
+            raise ServiceTimeout(command, f"{ser.port}: no {what} within {timeout} s; last bytes {bytes(buf[-24:])!r}")
         buf += _read_available(ser)
     return buf
 
@@ -104,3 +108,105 @@ def exit_service_mode(ser: serial.Serial, to: str = "N", timeout: float = 3.0) -
         _reply(command, bytes(buf[:buf.index(PROMPT)]))
         raise ServiceError(command, None, _text(bytes(buf)))
     return bytes(buf[line.end():])
+
+
+CONFIRM_SAVE = b"CONFIRM SAVE(Y/N)"
+BIT_RATE_SETTLE_S = 0.1  # time for a refusal of `t` (Ennn, prompt) to arrive at the old bit rate
+
+
+@contextmanager
+def service_mode(ser: serial.Serial, timeout: float = 3.0) -> Iterator[str]:
+    """Enter Service Mode, yield its information report, and always leave it to Normal Mode.
+
+    The unit is left with `x N` on every path out, Ctrl-C included: a unit left in Service Mode
+    sends no datagrams, and a daemon reading it would see a silent sensor. If SERVICEMODE got no
+    prompt, `x N` is still sent (a Normal Mode unit ignores it). If leaving fails while another
+    error is on its way out, the ServiceError raised names both.
+    """
+    try:
+        report = enter_service_mode(ser, timeout)
+    except BaseException:
+        _send_exit_quietly(ser)
+        raise
+    try:
+        yield report
+    except BaseException as failure:
+        try:
+            _drain(ser, timeout)  # the answer to an interrupted command must not be taken for the exit's
+            exit_service_mode(ser, "N", timeout)
+        except (Stim300Error, serial.SerialException, OSError) as exit_failure:
+            raise ServiceError("x N", None, f"could not leave Service Mode ({exit_failure}) after: "
+                                            f"{_describe_failure(failure)}") from failure
+        raise
+    exit_service_mode(ser, "N", timeout)
+
+
+def _drain(ser: serial.Serial, timeout: float) -> None:
+    """Read and drop bytes until the line stays quiet for ENTER_SETTLE_S (at most `timeout` s)."""
+    deadline = time.monotonic() + timeout
+    quiet_since = time.monotonic()
+    while time.monotonic() - quiet_since < ENTER_SETTLE_S and time.monotonic() < deadline:
+        if ser.read(max(1, ser.in_waiting)):
+            quiet_since = time.monotonic()
+
+
+def _send_exit_quietly(ser: serial.Serial) -> None:
+    try:
+        ser.write(b"x N\r")
+    except (serial.SerialException, OSError):
+        pass  # the port itself failed: there is no line to send it on
+
+
+def _describe_failure(exc: BaseException) -> str:
+    return str(exc) if isinstance(exc, Stim300Error) else f"{type(exc).__name__} {exc}".strip()
+
+
+def save_to_flash(ser: serial.Serial, timeout: float = 3.0) -> str:
+    """Run `s`: answer the unit's CONFIRM SAVE(Y/N) with `Y`; return the text it printed.
+
+    The protocol description says to answer with an upper-case Y, not whether a CR follows:
+    Y goes alone. A refusal before the question (E004 saves exceeded) or after it (E005 save
+    error) raises ServiceError.
+    """
+    ser.write(b"s\r")
+    buf = _read_until(ser, lambda b: CONFIRM_SAVE in b or PROMPT in b, timeout, "save confirmation question", "s")
+    if CONFIRM_SAVE not in buf:
+        _reply("s", bytes(buf[:buf.index(PROMPT)]))
+        raise ServiceError("s", None, _text(bytes(buf)))
+    asked = bytes(buf[:buf.index(CONFIRM_SAVE) + len(CONFIRM_SAVE)])
+    rest = buf[len(asked):]
+    ser.write(b"Y")
+    rest += _read_until(ser, lambda b: PROMPT in rest + b, timeout, "prompt after the save", "s")
+    return _reply("s", asked + bytes(rest[:rest.index(PROMPT)]))
+
+
+def change_bit_rate(ser: serial.Serial, command: str, bit_rate_bps: int, timeout: float = 3.0) -> str:
+    """Run a `t` command and follow the unit to `bit_rate_bps`; return the `i` report read there.
+
+    A user-defined rate is made by dividing the unit's clock, so the unit runs near, not at, the
+    requested rate; a UART reads across the small difference, and the caller sets the port to the
+    rate the report then names.
+
+    The protocol description does not say at which rate the answer to `t` comes. A refusal is
+    awaited at the old rate for BIT_RATE_SETTLE_S; then the port switches and `i` must answer at
+    the new rate. If it does not, the port goes back, ends the unit's input line with a CR, and
+    asks again at the old rate: an answer there means the unit kept its rate (ServiceError);
+    silence at both rates, ServiceTimeout.
+    """
+    old_bps = ser.baudrate
+    ser.write(command.encode("ascii") + b"\r")
+    time.sleep(BIT_RATE_SETTLE_S)
+    answer = bytes(ser.read(ser.in_waiting))
+    if PROMPT in answer:
+        _reply(command, answer[:answer.index(PROMPT)])
+    ser.baudrate = bit_rate_bps
+    ser.reset_input_buffer()
+    try:
+        return service_command(ser, "i", timeout)
+    except ServiceTimeout:
+        ser.baudrate = old_bps
+        ser.write(b"\r")  # ends the line of junk the unit may have made of the `i` sent at the other rate
+        _drain(ser, timeout)
+        service_command(ser, "i", timeout)
+        raise ServiceError(command, None, f"the unit still answers at {old_bps} bit/s, "
+                                          f"not at {bit_rate_bps} bit/s") from None
