@@ -217,6 +217,27 @@ def test_the_daemon_read_path_forwards_a_request_written_to_the_raw_link(link):
     assert source.reader.write(b"C\r") is False  # the port is closed: said, not raised
 
 
+def test_a_request_to_a_sensor_that_is_gone_is_false_not_an_exception():
+    """Forwarding runs in the ptys' request thread: a port that fails under it (unplugged: the
+    other side of the pty closed) makes `write` say False while the reader thread reopens."""
+    sensor_master, sensor_slave = os.openpty()
+    tty.setraw(sensor_master)
+    tty.setraw(sensor_slave)
+    source = PortSource(os.ttyname(sensor_slave), request_config=False)
+    try:
+        assert source.reader.write(b"C\r") is True
+        assert os.read(sensor_master, 16) == b"C\r"
+        os.close(sensor_master)
+        said = []
+        for _ in range(40):
+            said.append(source.reader.write(b"N\r"))
+            time.sleep(0.005)
+        assert said.count(False) > 30
+    finally:
+        source.close()
+        os.close(sensor_slave)
+
+
 # ---------------------------------------------------------------- corrected pty
 
 @pytest.mark.parametrize("datagram_id, gyro_unit, acc_unit, rate, incl_result, crlf", [
