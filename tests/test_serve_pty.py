@@ -54,8 +54,9 @@ def result(incl=True, rate_hz=2000):
     return CalibrationResult("joint", {}, estimates, sensor={"sample_rate_hz": rate_hz})
 
 
-def feed(tap, data: bytes, seed: int = 1) -> StreamParser:
-    """Through a parser in random chunks, as reads of a port come."""
+def feed(tap, data: bytes, seed: int = 1, pause_s: float = 0.0002) -> StreamParser:
+    """Through a parser in random chunks, as reads of a port come, `pause_s` apart (a port's
+    pace, which a reader keeps up with)."""
     parser = StreamParser(tap=tap)
     rng = np.random.default_rng(seed)
     i = 0
@@ -63,7 +64,7 @@ def feed(tap, data: bytes, seed: int = 1) -> StreamParser:
         n = int(rng.integers(1, 400))
         parser.feed(data[i:i + n])
         i += n
-        time.sleep(0.0002)  # a port's pace: the reader keeps up
+        time.sleep(pause_s)
     parser.finish()
     return parser
 
@@ -132,7 +133,7 @@ def test_a_reader_that_never_reads_does_not_hold_the_tap_up(link):
     try:
         with capture_logs() as logs:
             started = time.monotonic()
-            parser = feed(raw.tap, data)
+            parser = feed(raw.tap, data, pause_s=0)
             elapsed_s = time.monotonic() - started
         assert parser.stats.datagrams == 20000
         assert elapsed_s < 5.0

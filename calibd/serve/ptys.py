@@ -126,8 +126,11 @@ class LinkedPty:
                     return
                 try:
                     pending += os.read(self._master, READ_BYTES)
-                except OSError:  # BlockingIOError: woken for nothing
+                except BlockingIOError:  # woken for nothing
                     continue
+                except OSError as exc:  # not while the daemon holds the slave; never a busy loop
+                    log.warning("pty_requests_unread", link=str(self.link), error=exc.strerror)
+                    return
                 *lines, pending = pending.split(b"\r")
                 for line in lines:
                     if discarding:  # the end of a line too long to be a request
