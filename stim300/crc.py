@@ -56,10 +56,22 @@ def position_tables(covered_length: int) -> tuple[np.ndarray, int]:
     return np.ascontiguousarray(tables[:covered_length]), constant
 
 
+SCALAR_ROWS = 256  # up to this many rows, one crcmod call a row is faster than the tables' fixed cost
+
+
 def crc_columns(frames: np.ndarray, covered_length: int) -> np.ndarray:
-    """CRC of each row of `frames` (N x >= covered_length uint8, any strides) as uint32."""
-    tables, constant = position_tables(covered_length)
+    """CRC of each row of `frames` (N x >= covered_length uint8, any strides) as uint32.
+
+    A few rows (a live feed's datagrams) go row by row: the column form costs two numpy calls
+    per byte position whatever the number of rows."""
     n = frames.shape[0]
+    if n <= SCALAR_ROWS:
+        width = covered_length + (-covered_length % 4)
+        padded = np.zeros((n, width), np.uint8)
+        padded[:, :covered_length] = frames[:, :covered_length]
+        data = padded.tobytes()
+        return np.fromiter((crc32_mpeg2(data[i:i + width]) for i in range(0, n * width, width)), np.uint32, n)
+    tables, constant = position_tables(covered_length)
     result = np.full(n, constant, dtype=np.uint32)
     scratch = np.empty(n, dtype=np.uint32)
     for p in range(covered_length):

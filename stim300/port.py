@@ -4,7 +4,8 @@
 read with the host clock, feeds one `StreamParser` (kept across reopens, so its statistics
 cover the whole session) and pushes the samples into a `RingBuffer`. A vanished device is
 closed and reopened with exponential backoff, and every (re)open asks for the configuration
-datagram (`C<CR>`, protocol doc §12) so the parser re-adopts the sensor's format.
+datagram (`C<CR>`, protocol doc §12) so the parser re-adopts the sensor's format. `write`
+sends a request to the sensor from any thread (a daemon forwarding its clients' requests).
 
 Service Mode (talking to the unit instead of reading it) is `stim300.service`.
 """
@@ -81,7 +82,7 @@ class PortReader:
     `start()` opens the port (raising `PortError` if that fails) and starts the thread; later
     read errors close the port and reopen it, waiting reopen_backoff[0] s, doubling up to
     reopen_backoff[1] s, until it opens or `stop()` is called. `on_raw(bytes)` sees every read
-    before the parser (e.g. to record it).
+    before the parser (e.g. to record it); `tap` is given to the parser (`StreamParser.tap`).
 
     Each read takes everything the port holds and is stamped with `clock()` as it returns. A
     parser call that decodes samples has a fixed cost (~0.1 ms) whatever their number, so after one the
@@ -96,7 +97,7 @@ class PortReader:
 
     def __init__(self, url: str, ring: RingBuffer, fmt=None, baudrate: int = DEFAULT_BIT_RATE,
                  request_config: bool = True, reopen_backoff: tuple[float, float] = (0.1, 2.0), on_raw=None,
-                 clock=time.monotonic, batch_s: float = 0.004):
+                 clock=time.monotonic, batch_s: float = 0.004, tap=None):
         self.url = url
         self.ring = ring
         self.baudrate = baudrate
@@ -105,7 +106,7 @@ class PortReader:
         self.on_raw = on_raw
         self.clock = clock
         self.batch_s = batch_s
-        self.parser = StreamParser(fmt)
+        self.parser = StreamParser(fmt, tap=tap)
         self.reopens = 0
         self.read_errors = 0
         self.bytes_read = 0
@@ -113,6 +114,8 @@ class PortReader:
         self.error: BaseException | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._port: serial.Serial | None = None  # the open port, for `write`; swapped under _port_lock
+        self._port_lock = threading.Lock()
 
     def start(self) -> PortReader:
         if self._thread is not None:
@@ -128,6 +131,29 @@ class PortReader:
         self._stop.set()
         if self._thread is not None:
             self._thread.join()
+
+    def write(self, request: bytes) -> bool:
+        """Send `request` (e.g. b"C\\r") to the sensor, from any thread; the reader thread keeps
+        reading meanwhile. False, logged, when the port is closed or the write fails: the caller
+        is a client's request, which must not break on a sensor that is gone."""
+        with self._port_lock:
+            ser = self._port
+            if ser is None:
+                log.warning("request_not_sent", port=self.url, request=request.decode("ascii", "replace"),
+                            error="port not open")
+                return False
+            try:
+                ser.write(request)
+            except (serial.SerialException, OSError) as exc:
+                log.warning("request_not_sent", port=self.url, request=request.decode("ascii", "replace"),
+                            error=_describe(exc))
+                return False
+        return True
+
+    def _publish(self, ser: serial.Serial | None) -> None:
+        """The port `write` uses from now on (None: none open)."""
+        with self._port_lock:
+            self._port = ser
 
     def is_alive(self) -> bool:
         return self._thread is not None and self._thread.is_alive()
@@ -153,6 +179,7 @@ class PortReader:
 
     def _run(self, ser: serial.Serial) -> None:
         parser, ring, clock, on_raw, batch_s = self.parser, self.ring, self.clock, self.on_raw, self.batch_s
+        self._publish(ser)
         try:
             while not self._stop.is_set():
                 try:
@@ -177,12 +204,14 @@ class PortReader:
             log.exception("reader_failed", port=self.url)
         finally:
             self.connected = False
+            self._publish(None)
             if ser is not None:
                 ser.close()
 
     def _reopen(self, ser: serial.Serial, exc: BaseException) -> serial.Serial | None:
         """Close the failed port and reopen it with backoff; None if stopped meanwhile."""
         self.connected = False
+        self._publish(None)
         self.read_errors += 1
         log.warning("port_error", port=self.url, error=_describe(exc))
         try:
@@ -198,6 +227,7 @@ class PortReader:
                 log.debug("port_reopen_failed", port=self.url, error=str(err), retry_in_s=delay)
                 continue
             self.reopens += 1
+            self._publish(ser)
             log.info("port_reopened", port=self.url, reopens=self.reopens)
             return ser
         return None

@@ -12,6 +12,9 @@ possible) and silence accounting (`silent_s`), while a backend implements `_read
 - `PtySource`: a capture written into a pseudo-terminal and read back by a `PortSource`: the
   daemon's own serial path, without a sensor.
 
+Each takes an optional `tap`, given to its parser (`StreamParser.tap`): every byte it reads,
+settled, for whoever passes the stream on.
+
 A source that knows its stream ended returns None with `ended` True; a port never ends unless
 its reader thread failed (then `error` holds why).
 """
@@ -129,10 +132,10 @@ class PortSource(SampleSource):
     (the consumer's cost per batch is fixed). Opening fails with `PortError`."""
 
     def __init__(self, url: str, baudrate: int = DEFAULT_BIT_RATE, request_config: bool = True,
-                 ring_s: float = RING_S):
+                 ring_s: float = RING_S, tap=None):
         super().__init__(speed=None)  # a port's samples arrive at their own pace
         self.ring = RingBuffer(int(INTERNAL_RATE_HZ * ring_s), SAMPLE_DTYPE)
-        self.reader = PortReader(url, self.ring, baudrate=baudrate, request_config=request_config)
+        self.reader = PortReader(url, self.ring, baudrate=baudrate, request_config=request_config, tap=tap)
         self._cursor = 0
         self._bytes_seen = 0
         self.reader.start()
@@ -164,12 +167,12 @@ class CaptureSource(SampleSource):
     the port reader stamped it live; without one, `t_host` is NaN."""
 
     def __init__(self, data, speed: float | None = None, reads: np.ndarray | None = None,
-                 chunk_bytes: int = 65536):
+                 chunk_bytes: int = 65536, tap=None):
         super().__init__(speed)
         self._data = memoryview(data).cast("B")
         self._reads = reads
         self._chunk_bytes = chunk_bytes
-        self.parser = StreamParser()
+        self.parser = StreamParser(tap=tap)
         self.done_bytes = 0
         self.total_bytes = len(self._data)
 
@@ -211,7 +214,7 @@ class PtySource(SampleSource):
     lost even when the consumer is slow; the stream has ended once the writer is done and
     the port has been read out."""
 
-    def __init__(self, data, speed: float | None = None, chunk_bytes: int = 4096):
+    def __init__(self, data, speed: float | None = None, chunk_bytes: int = 4096, tap=None):
         super().__init__(speed=None)  # reads follow the bytes' arrival
         self._writer_pacer = Pacer(speed)
         self._data = data
@@ -220,7 +223,7 @@ class PtySource(SampleSource):
         tty.setraw(self._master)
         tty.setraw(self._slave)
         try:
-            self._port = PortSource(os.ttyname(self._slave), request_config=False)
+            self._port = PortSource(os.ttyname(self._slave), request_config=False, tap=tap)
         except BaseException:
             self._close_pty()
             raise

@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 
 from captures import capture, same_samples
 from stim300.codec import SAMPLE_DTYPE, decode_frames, encode_samples
-from stim300.crc import crc32_mpeg2, crc_columns, datagram_crc
+from stim300.crc import SCALAR_ROWS, crc32_mpeg2, crc_columns, datagram_crc
 from stim300.protocol import (ACC_RANGE_LSB_EXP, NORMAL_LAYOUTS, AccUnit, Format, GyroUnit, PpsUnit, normal_id,
                               status_names)
 
@@ -26,6 +26,14 @@ def test_crc_columns_equal_scalar(rows):
     frames = np.frombuffer(b"".join(rows), np.uint8).reshape(len(rows), 13)
     expected = [datagram_crc(r) for r in rows]
     assert crc_columns(frames, 13).tolist() == expected
+
+
+def test_crc_columns_row_by_row_and_by_tables_agree():
+    """A few rows go through crcmod, many through the position tables: the same CRCs."""
+    frames = np.random.default_rng(0).integers(0, 256, (SCALAR_ROWS + 1, 59), dtype=np.uint8)
+    expected = [datagram_crc(row[:55].tobytes()) for row in frames]
+    assert crc_columns(frames, 55).tolist() == expected
+    assert crc_columns(frames[:SCALAR_ROWS], 55).tolist() == expected[:SCALAR_ROWS]
 
 
 def test_wire_lengths_match_datasheet_table():

@@ -1,47 +1,300 @@
 """Pseudo-terminals that pass the sensor's datagram stream on: raw, and bias-corrected.
 
-(Interface only; the implementation follows.)
+Each is a pty whose slave node is linked at a path of the configuration, so any STIM300 driver
+opens that path as it would the sensor's port. The daemon writes into the master from the port
+reader thread (the parser's tap): a reader that is slow or absent never holds the daemon up,
+the bytes the pty does not take are dropped and counted. Request lines a client writes into the
+raw pty (`N<CR>`, `C<CR>`, ...) are read by a small thread and forwarded to the sensor when the
+request rule allows them; the answers then reach every reader through the stream.
 """
 
 from __future__ import annotations
 
+import grp
+import os
+import selectors
+import threading
+import time
+import tty
+import uuid
 from collections.abc import Callable
 from pathlib import Path
 
+import structlog
+
+from stim300.codec import start_up_flags
 from stim300.stream import Settled
 
+from ..errors import CalibdError
 from ..results import CalibrationResult
+from .correct import Corrector
+
+log = structlog.get_logger("calibd")
+
+SLAVE_MODE = 0o660
+MAX_REQUEST_BYTES = 32  # a longer line is no request of the sensor's (the longest is UTILITYMODE)
+DROPS_QUIET_S = 5.0  # a drop episode ends once writes have all gone through for this long
+READ_BYTES = 256
+QUERIES = frozenset({b"N", b"I", b"C", b"T", b"E"})  # each asks for one special datagram (protocol §9)
+MODE_CHANGES = frozenset({b"SERVICEMODE", b"UTILITYMODE", b"R"})  # each stops the stream for every reader
+BEFORE_RESULT = ("hold", "raw")
+
+
+class PtyError(CalibdError):
+    """A pty or its link the daemon cannot set up (a path that is not a symlink, a missing
+    directory, an unknown group); one line."""
+
+
+def request_refusal(line: bytes, allow_mode_changes: bool) -> str | None:
+    """Why a request line (without its CR) is not sent to the sensor; None: send it.
+
+    Only the Normal-mode queries, upper case as the sensor reads them, go: their answers are
+    datagrams every reader can take. A mode change or reset stops the stream for all readers."""
+    if line in QUERIES:
+        return None
+    if line in MODE_CHANGES:
+        return None if allow_mode_changes else "service mode, utility mode and reset are not allowed"
+    return "not a request the sensor answers in Normal mode (N, I, C, T, E)"
+
+
+class LinkedPty:
+    """A pty whose slave is linked at `link`: `write` never blocks (what the pty does not take is
+    dropped and counted in `dropped_bytes`), and each line a client writes (CR or CR LF ended)
+    goes to `on_line` from a reader thread; a line longer than MAX_REQUEST_BYTES is discarded.
+
+    The daemon keeps the slave open, so writes do not fail while no client has it open."""
+
+    def __init__(self, link: Path, group: str | None, on_line: Callable[[bytes], None]):
+        self.link = Path(link)
+        self.dropped_bytes = 0
+        self._on_line = on_line
+        _check_link(self.link)
+        gid = None if group is None else _group_id(group)
+        self._write_lock = threading.Lock()  # the master fd is not closed under a write
+        self._master = self._slave = self._wake_r = self._wake_w = None
+        try:
+            try:
+                self._master, self._slave = os.openpty()
+                self._wake_r, self._wake_w = os.pipe()
+                tty.setraw(self._master)
+                tty.setraw(self._slave)
+                os.set_blocking(self._master, False)
+                self.path = os.ttyname(self._slave)
+            except OSError as exc:
+                raise PtyError(f"{link}: cannot open a pty: {(exc.strerror or str(exc)).lower()}") from None
+            _prepare_node(self.path, gid, group)
+            _replace_link(self.link, self.path)
+        except BaseException:
+            self._close_fds()
+            raise
+        self._last_drop_s: float | None = None
+        self._episode_bytes = 0
+        self._thread = threading.Thread(target=self._read_lines, name=f"pty requests {self.link}", daemon=True)
+        self._thread.start()
+
+    def write(self, data) -> None:
+        """Put `data` into the pty, or as much as it takes now; never blocks, never raises."""
+        with self._write_lock:
+            if self._master is None:
+                return
+            try:
+                taken = os.write(self._master, data)
+            except OSError:  # BlockingIOError: full, nobody reads
+                taken = 0
+        lost = len(data) - taken
+        if lost:
+            self._dropped(lost)
+        elif self._last_drop_s is not None and time.monotonic() - self._last_drop_s > DROPS_QUIET_S:
+            log.info("pty_drops_ended", link=str(self.link), dropped_bytes=self._episode_bytes)
+            self._last_drop_s, self._episode_bytes = None, 0
+
+    def _dropped(self, lost: int) -> None:
+        self.dropped_bytes += lost
+        self._episode_bytes += lost
+        if self._last_drop_s is None:
+            log.warning("pty_dropping", link=str(self.link), why="its reader is slow or absent")
+        self._last_drop_s = time.monotonic()
+
+    def _read_lines(self) -> None:
+        pending, discarding = b"", False
+        with selectors.DefaultSelector() as selector:
+            selector.register(self._master, selectors.EVENT_READ)
+            selector.register(self._wake_r, selectors.EVENT_READ)
+            while True:
+                ready = {key.fd for key, _ in selector.select()}
+                if self._wake_r in ready:
+                    return
+                try:
+                    pending += os.read(self._master, READ_BYTES)
+                except BlockingIOError:  # woken for nothing
+                    continue
+                except OSError as exc:  # not while the daemon holds the slave; never a busy loop
+                    log.warning("pty_requests_unread", link=str(self.link), error=exc.strerror)
+                    return
+                *lines, pending = pending.split(b"\r")
+                for line in lines:
+                    if discarding:  # the end of a line too long to be a request
+                        discarding = False
+                        continue
+                    line = line.removeprefix(b"\n")  # the LF of the previous line's CR LF
+                    if len(line) > MAX_REQUEST_BYTES:
+                        log.warning("pty_request_too_long", link=str(self.link), start=_text(line[:MAX_REQUEST_BYTES]))
+                    elif line:
+                        self._line(line)
+                if len(pending) > MAX_REQUEST_BYTES:
+                    if not discarding:
+                        log.warning("pty_request_too_long", link=str(self.link),
+                                    start=_text(pending[:MAX_REQUEST_BYTES]))
+                    pending, discarding = b"", True
+
+    def _line(self, line: bytes) -> None:
+        try:
+            self._on_line(line)
+        except Exception:  # noqa: BLE001 - a client's request must not end the thread that reads them
+            log.exception("pty_request_failed", link=str(self.link), request=_text(line))
+
+    def close(self) -> None:
+        """Stop reading requests, remove the link if it is still ours, close the pty; safe to call again."""
+        if self._thread.is_alive():
+            os.write(self._wake_w, b"x")
+            self._thread.join()
+        try:
+            if os.readlink(self.link) == self.path:
+                self.link.unlink()
+        except OSError:
+            pass  # gone or replaced by someone else: not ours to remove
+        self._close_fds()
+
+    def _close_fds(self) -> None:
+        with self._write_lock:
+            for fd in (self._master, self._slave, self._wake_r, self._wake_w):
+                if fd is not None:
+                    os.close(fd)
+            self._master = self._slave = self._wake_r = self._wake_w = None
+
+
+def _text(data: bytes) -> str:
+    return data.decode("ascii", "backslashreplace")
+
+
+def _check_link(link: Path) -> None:
+    if not link.parent.is_dir():
+        raise PtyError(f"{link}: directory {link.parent} does not exist")
+    if os.path.lexists(link) and not link.is_symlink():
+        raise PtyError(f"{link}: exists and is not a symlink; refusing to replace it with a pty link")
+
+
+def _group_id(group: str) -> int:
+    try:
+        return grp.getgrnam(group).gr_gid
+    except KeyError:
+        raise PtyError(f"group {group!r} does not exist") from None
+
+
+def _prepare_node(path: str, gid: int | None, group: str | None) -> None:
+    """Mode 0660 and the group, so members of the group read and write the slave."""
+    try:
+        os.chmod(path, SLAVE_MODE)
+        if gid is not None:
+            os.chown(path, -1, gid)
+    except OSError as exc:
+        raise PtyError(f"{path}: cannot give it mode 0660{f' and group {group}' if group else ''}: "
+                       f"{exc.strerror.lower()}") from None
+
+
+def _replace_link(link: Path, target: str) -> None:
+    """`link` -> `target` in one step: a reader never finds the link missing or half made."""
+    temp = link.with_name(f".{link.name}.{uuid.uuid4().hex[:8]}")
+    try:
+        os.symlink(target, temp)
+        os.replace(temp, link)
+    except OSError as exc:
+        try:
+            os.unlink(temp)
+        except OSError:
+            pass  # never made
+        raise PtyError(f"{link}: cannot link it to {target}: {exc.strerror.lower()}") from None
 
 
 class RawPty:
     """A pty whose slave is linked at `link`: every settled byte of the sensor's stream, unchanged
-    and in order; single-letter requests written by a client go to `forward`."""
+    and in order; the requests `request_refusal` allows, written by a client, go to `forward`
+    (e.g. `PortReader.write`), with a CR."""
 
-    def __init__(self, link: Path, forward: Callable[[bytes], None], allow_service_mode: bool = False,
+    def __init__(self, link: Path, forward: Callable[[bytes], object], allow_service_mode: bool = False,
                  group: str | None = None):
-        raise NotImplementedError
+        self.forward = forward
+        self.allow_service_mode = allow_service_mode
+        self.requests_forwarded = 0
+        self.requests_refused = 0
+        self._pty = LinkedPty(link, group, self._request)
+
+    @property
+    def dropped_bytes(self) -> int:
+        return self._pty.dropped_bytes
 
     def tap(self, settled: Settled) -> None:
         """The parser's tap (reader thread): never blocks, never raises."""
-        raise NotImplementedError
+        self._pty.write(settled.data)
+
+    def _request(self, line: bytes) -> None:
+        why = request_refusal(line, self.allow_service_mode)
+        if why is not None:
+            self.requests_refused += 1
+            log.warning("pty_request_refused", link=str(self._pty.link), request=_text(line), why=why)
+            return
+        self.requests_forwarded += 1
+        log.info("pty_request", link=str(self._pty.link), request=_text(line))
+        self.forward(line + b"\r")
 
     def close(self) -> None:
-        raise NotImplementedError
+        self._pty.close()
 
 
 class CorrectedPty:
     """A pty whose slave is linked at `link`: the stream with each normal datagram re-encoded
-    after subtracting the current power-up's result's biases."""
+    after subtracting the current power-up's result's biases (`calibd.serve.correct`).
+
+    Before a result of this power-up (`before_result`): "hold" carries nothing, "raw" the bytes
+    unchanged. A datagram with the start-up status bit (the sensor restarted) ends the result
+    here at once, before the daemon's `set_result(None)`: the new power-up has new biases.
+    Requests written into it are read and refused (they belong to the raw pty)."""
 
     def __init__(self, link: Path, before_result: str = "hold", group: str | None = None):
-        raise NotImplementedError
+        if before_result not in BEFORE_RESULT:
+            raise PtyError(f"corrected_before_result = {before_result!r}: expected one of {', '.join(BEFORE_RESULT)}")
+        self.before_result = before_result
+        self._corrector: Corrector | None = None
+        self._failing = False
+        self._pty = LinkedPty(link, group, self._request)
 
-    def tap(self, settled: Settled) -> None:
-        raise NotImplementedError
+    @property
+    def dropped_bytes(self) -> int:
+        return self._pty.dropped_bytes
 
     def set_result(self, result: CalibrationResult | None) -> None:
         """The result whose biases to subtract (None: none of this power-up yet)."""
-        raise NotImplementedError
+        self._corrector = None if result is None else Corrector(result)
+
+    def tap(self, settled: Settled) -> None:
+        """The parser's tap (reader thread): never blocks, never raises."""
+        corrector = self._corrector  # one read: set_result runs in another thread
+        if corrector is not None and len(settled.samples) and start_up_flags(settled.samples).any():
+            corrector = self._corrector = None
+        try:
+            data = corrector.apply(settled) if corrector is not None else settled.data
+        except Exception:  # noqa: BLE001 - the reader thread must go on; the bytes are held back
+            if not self._failing:
+                log.exception("corrected_pty_failed", link=str(self._pty.link))
+            self._failing = True
+            return
+        self._failing = False
+        if corrector is not None or self.before_result == "raw":
+            self._pty.write(data)
+
+    def _request(self, line: bytes) -> None:
+        log.warning("pty_request_refused", link=str(self._pty.link), request=_text(line),
+                    why="requests go to the raw pty")
 
     def close(self) -> None:
-        raise NotImplementedError
+        self._pty.close()

@@ -1,0 +1,104 @@
+"""A result's biases taken out of the sensor's own datagrams, which are then re-encoded.
+
+The corrected pty carries the stream a driver already reads, so the correction is done in each
+datagram's own units: a rate or an acceleration loses the bias itself, an incremental angle or
+velocity the bias times the sample interval. An integrated angle or velocity has summed the bias
+since power-up, which no constant offset undoes: those blocks pass unchanged (said once in the log).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import structlog
+
+from stim300.codec import encode_samples
+from stim300.protocol import AccUnit, Format, GyroUnit, Layout
+from stim300.stream import Settled
+
+from ..frames import STANDARD_GRAVITY
+from ..results import ESTIMATES, CalibrationResult
+from ..units import DEG
+
+log = structlog.get_logger("calibd")
+
+# a block's unit in the sensor's base unit (deg/s, g) per sample interval's worth of it
+_GYRO_PER_BASE = {GyroUnit.RATE: "base", GyroUnit.AVERAGE_RATE: "base", GyroUnit.INCREMENTAL_ANGLE: "interval"}
+_FORCE_PER_BASE = {AccUnit.ACCELERATION: "base", AccUnit.AVERAGE_ACCELERATION: "base",
+                   AccUnit.INCREMENTAL_VELOCITY: "interval_m_s"}
+
+
+def result_biases(result: CalibrationResult) -> dict[str, np.ndarray]:
+    """The result's biases in the sensor's base units (gyro deg/s, accelerometer and
+    inclinometer g), for each cluster whose three estimates the result has."""
+    per_si = {"gyro": 1 / DEG, "acc": 1 / STANDARD_GRAVITY, "incl": 1 / STANDARD_GRAVITY}
+    biases = {}
+    for cluster, factor in per_si.items():
+        names = [f"{cluster}_bias_{axis}" for axis in "xyz"]
+        if all(name in result.estimates for name in names):
+            si = [result.estimates[name].value / ESTIMATES[name][0] for name in names]
+            biases[cluster] = np.array(si) * factor
+    return biases
+
+
+class Corrector:
+    """One result's biases, subtracted from the normal datagrams of settled bytes.
+
+    `rate_hz` (the result's sample rate) gives the sample interval of incremental units when
+    the stream's format does not say it (no configuration datagram seen)."""
+
+    def __init__(self, result: CalibrationResult):
+        self.biases = result_biases(result)
+        self.rate_hz = result.sensor.get("sample_rate_hz")
+        self._offsets: dict[tuple[int, Format], dict[str, np.ndarray]] = {}
+        self._said: set[tuple[str, str]] = set()
+
+    def apply(self, settled: Settled) -> bytes | bytearray:
+        """The settled bytes with every normal datagram's biases subtracted, CRC recomputed;
+        counter, status, latency, temperatures and special datagrams as they were."""
+        if not settled.runs:
+            return settled.data
+        out = bytearray(settled.data)
+        view = np.frombuffer(out, np.uint8)
+        for layout, fmt, offsets, start, stop in settled.runs:
+            subtract = self._offsets_for(layout, fmt)
+            if not subtract:
+                continue
+            samples = settled.samples[start:stop].copy()
+            for cluster, offset in subtract.items():
+                samples[cluster] -= offset
+            frames = encode_samples(samples, layout.datagram_id, fmt, crlf=False)  # CR LF stays in place
+            view[offsets[:, None] + np.arange(frames.shape[1])] = frames
+        return out
+
+    def _offsets_for(self, layout: Layout, fmt: Format) -> dict[str, np.ndarray]:
+        """What to subtract from each cluster of datagrams of this layout and format, in their
+        units (float32, as the samples hold them); worked out once per format."""
+        key = (layout.datagram_id, fmt)
+        if key not in self._offsets:
+            rate_hz = fmt.sample_rate_hz or self.rate_hz
+            units = {"gyro": (fmt.gyro_unit, _GYRO_PER_BASE), "acc": (fmt.acc_unit, _FORCE_PER_BASE),
+                     "incl": (fmt.incl_unit, _FORCE_PER_BASE)}
+            offsets = {}
+            for cluster in layout.clusters:
+                if cluster not in self.biases:
+                    continue
+                unit, kinds = units[cluster]
+                scale = self._scale(cluster, GyroUnit(unit & 0x7) if cluster == "gyro" else unit, kinds, rate_hz)
+                if scale is not None:
+                    offsets[cluster] = (self.biases[cluster] * scale).astype(np.float32)
+            self._offsets[key] = offsets
+        return self._offsets[key]
+
+    def _scale(self, cluster: str, unit, kinds: dict, rate_hz: int | None) -> float | None:
+        """Bias in the sensor's base unit -> bias in `unit` (None: this unit cannot be corrected)."""
+        kind = kinds.get(unit)
+        if kind == "base":
+            return 1.0
+        if kind is not None and rate_hz:
+            return (STANDARD_GRAVITY if kind == "interval_m_s" else 1.0) / rate_hz
+        why = ("the sample rate is unknown (externally triggered?)" if kind is not None else
+               f"{unit.name.lower()} sums the bias since power-up")
+        if (cluster, why) not in self._said:
+            self._said.add((cluster, why))
+            log.warning("corrected_pty_uncorrected", cluster=cluster, why=why)
+        return None
