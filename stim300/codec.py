@@ -128,7 +128,7 @@ def decode_frames(frames: np.ndarray, layout: Layout, fmt: Format, out: np.ndarr
     if not frames.flags.c_contiguous:
         frames = np.ascontiguousarray(frames)
     rec = frames.view(_record(layout, frames.shape[1]))[:, 0]
-    scales = {name: np.float32(value) for name, value in fmt.scales().items()}
+    scales = {name: np.broadcast_to(np.asarray(value, np.float32), 3) for name, value in fmt.scales().items()}
     out["t_host"][...] = t_host
     out["datagram_id"][...] = layout.datagram_id
     _clear(out, [c for c in CLUSTERS if c not in layout.clusters])
@@ -136,13 +136,13 @@ def decode_frames(frames: np.ndarray, layout: Layout, fmt: Format, out: np.ndarr
     for name in layout.clusters:
         block = out[name]
         for k, axis in enumerate(AXES):
-            np.multiply(_int24(rec[f"{name}_{axis}"]), scales[name], out=block[:, k], dtype=np.float32,
+            np.multiply(_int24(rec[f"{name}_{axis}"]), scales[name][k], out=block[:, k], dtype=np.float32,
                         casting="unsafe")
         out["status_" + name][...] = rec["status_" + name]
     for name in layout.temperatures:
         block = out["temp_" + name]
         for k, axis in enumerate(AXES):
-            np.multiply(rec[f"temp_{name}_{axis}"], scales["temp"], out=block[:, k], dtype=np.float32,
+            np.multiply(rec[f"temp_{name}_{axis}"], scales["temp"][k], out=block[:, k], dtype=np.float32,
                         casting="unsafe")
         out["status_temp_" + name][...] = rec["status_temp_" + name]
     if layout.aux:
@@ -175,23 +175,23 @@ def encode_samples(samples: np.ndarray, datagram_id: int, fmt: Format, crlf: boo
     to the nearest count and saturated.
     """
     layout = NORMAL_LAYOUTS[datagram_id]
-    scales = fmt.scales()
+    scales = {name: np.broadcast_to(value, 3) for name, value in fmt.scales().items()}
     off = layout.offsets
     n = len(samples)
     frames = np.zeros((n, layout.wire_length(crlf)), np.uint8)
     frames[:, 0] = datagram_id
     for name in layout.clusters:
         for axis in range(3):
-            _put_int(frames, off[name] + 3 * axis, _counts(samples[name][:, axis], scales[name], 24), 3)
+            _put_int(frames, off[name] + 3 * axis, _counts(samples[name][:, axis], scales[name][axis], 24), 3)
         frames[:, off["status_" + name]] = samples["status_" + name]
     for name in layout.temperatures:
         for axis in range(3):
-            counts = _counts(samples["temp_" + name][:, axis], scales["temp"], 16)
+            counts = _counts(samples["temp_" + name][:, axis], scales["temp"][axis], 16)
             _put_int(frames, off["temp_" + name] + 2 * axis, counts, 2)
         frames[:, off["status_temp_" + name]] = samples["status_temp_" + name]
     if layout.aux:
         unsigned = layout.aux == "pps" and fmt.pps_unsigned
-        _put_int(frames, off["aux"], _counts(samples["aux"], scales[layout.aux], 24, signed=not unsigned), 3)
+        _put_int(frames, off["aux"], _counts(samples["aux"], scales[layout.aux][0], 24, signed=not unsigned), 3)
         frames[:, off["status_aux"]] = samples["status_aux"]
     frames[:, off["counter"]] = samples["counter"]
     _put_int(frames, off["latency"], samples["latency_us"], 2)
