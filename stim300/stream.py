@@ -90,7 +90,7 @@ class Stats:
         if self.triggered:
             return True
         step = self.counter_step
-        return step not in STANDARD_STEPS and self.counter_steps[1:].any()
+        return step not in STANDARD_STEPS and bool(self.counter_steps[1:].any())
 
     @property
     def mean_step(self) -> float | None:
@@ -131,7 +131,7 @@ class Stats:
             lost_samples=self.lost_samples, skipped_bytes=self.skipped_bytes, restarts=self.restarts,
             restart_datagrams=tuple(self.restart_datagrams), config_changes=self.config_changes,
             special_datagrams=self.special_datagrams, undecodable_specials=self.undecodable_specials,
-            counter_step=self.counter_step, external_trigger=bool(self.external_trigger),
+            counter_step=self.counter_step, external_trigger=self.external_trigger,
             inferred_missing=self.inferred_missing, mean_step=self.mean_step)
 
     def as_dict(self) -> dict:
