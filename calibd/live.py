@@ -141,6 +141,7 @@ def pump(source: SampleSource, calibrator: Calibrator, stop=lambda: False, on_st
     NO_DATA_S reported as a fault, and at the end of the data one last solve.
     `on_step(fed)` is called after every read (`fed`: samples reached the calibrator)."""
     counts: dict = {}
+    warned = 0  # the stream's warnings logged so far (they only grow)
     while not stop() and not source.ended:
         batch = source.read(POLL_S)
         fed = False
@@ -151,6 +152,9 @@ def pump(source: SampleSource, calibrator: Calibrator, stop=lambda: False, on_st
             if faults:
                 log.warning("stream_faults", **faults)
             info = batch.info
+            for text in info.warnings[warned:]:  # a configuration refused, or a code kept as read
+                log.warning("stream_warning", detail=text)
+            warned = len(info.warnings)
             if len(batch.samples) and info.rate_hz:
                 calibrator.sensor_seen(info.sensor_record())
                 calibrator.feed(batch.samples, info.rate_hz, batch.first, info.stats.restart_datagrams)

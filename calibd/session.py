@@ -36,7 +36,7 @@ class Session:
     acc: np.ndarray  # m/s^2
     incl: np.ndarray  # m/s^2
     temperature_c: np.ndarray | None  # mean of the gyro temperatures, when the datagram has them
-    rate_hz: int
+    rate_hz: int | float  # stored samples per second (an externally triggered sensor's: measured)
     sensor: dict
     stream: dict
 
@@ -64,18 +64,21 @@ class CaptureSessions:
 
     path: str
     power_ups: list[PowerUp]
-    rate_hz: int
+    rate_hz: int | float  # the sensor's samples per second (externally triggered: measured)
     sensor: dict
     stream: dict  # the whole capture's stream statistics
 
 
-def block_factor(rate_hz: int) -> int:
+def block_factor(rate_hz: int | float) -> int:
     """Samples averaged into one stored sample."""
-    return max(1, rate_hz // STORE_RATE_HZ)
+    return max(1, int(rate_hz // STORE_RATE_HZ))
 
 
-def stored_rate_hz(rate_hz: int) -> int:
-    return rate_hz // block_factor(rate_hz)
+def stored_rate_hz(rate_hz: int | float) -> int | float:
+    """Stored samples per second: a whole number at the fixed rates, measured (a float) when the
+    sensor is externally triggered."""
+    k = block_factor(rate_hz)
+    return rate_hz // k if rate_hz % k == 0 else rate_hz / k
 
 
 class SessionBuilder:
@@ -92,7 +95,7 @@ class SessionBuilder:
         self._pending = np.zeros((0, 11))
         self._flagged: list[tuple[np.ndarray, np.ndarray]] = []  # (times, fault bits) of flagged samples
 
-    def add(self, samples: np.ndarray, time_s: np.ndarray, rate_hz: int) -> tuple[np.ndarray, np.ndarray]:
+    def add(self, samples: np.ndarray, time_s: np.ndarray, rate_hz: int | float) -> tuple[np.ndarray, np.ndarray]:
         """Store a batch (stim300.codec.SAMPLE_DTYPE, times in s); returns the times (s) and gyro
         samples (deg/s) stored from it."""
         k = block_factor(rate_hz)
@@ -201,7 +204,7 @@ class _PowerUpReader:
 
     def __init__(self, name: str, with_host_times: bool):
         self.name, self.with_host_times = name, with_host_times
-        self.rate_hz: int | None = None
+        self.rate_hz: int | float | None = None
         self.power_ups: list[PowerUp] = []
         self._seen = 0  # samples consumed
         self._cuts = PowerUpCuts()
@@ -245,9 +248,10 @@ class _PowerUpReader:
     def _unknown_rate(self, info: StreamInfo) -> str:
         n = info.stats.datagrams
         why = (f"{n} datagram(s) are too few to infer it from the counter" if n < self.DECIDE_RATE_AFTER else
-               f"the counter of its {n} datagrams does not step at any STIM300 rate (stuck or externally triggered)")
-        said = ("its configuration datagram says the sensor is externally triggered" if info.configuration
-                else "no configuration datagram")
+               f"the counter of its {n} datagrams does not step (stuck)")
+        said = ("no configuration datagram" if info.configuration is None else
+                "its configuration datagram says the sensor is externally triggered" if info.external_trigger
+                else "its configuration datagram gives none")
         return f"{self.name}: sample rate unknown: {said}, and {why}"
 
     def _refusal(self, samples: np.ndarray, scanner) -> str | None:
@@ -315,7 +319,8 @@ def decode_sessions(data, name: str, reads: np.ndarray | None = None,
         path=str(name), power_ups=reader.power_ups, rate_hz=reader.rate_hz,
         sensor=info.sensor_record() | {"sample_rate_hz": reader.rate_hz},
         stream={"capture": str(name), "datagrams": stats.datagrams, "lost_samples": stats.lost_samples,
-                "crc_errors": stats.crc_errors, "restarts": stats.restarts})
+                "inferred_missing": stats.inferred_missing, "crc_errors": stats.crc_errors, "restarts": stats.restarts,
+                "warnings": list(info.warnings)})
 
 
 def power_up_session(capture: CaptureSessions, number: int | None = None, start_s: float | None = 0.0) -> Session:

@@ -20,7 +20,8 @@ from scipy.signal import lfilter
 
 from stim300.atomic import write_atomic
 from stim300.codec import SAMPLE_DTYPE, encode_samples
-from stim300.protocol import COUNTER_MODULUS, INTERNAL_RATE_HZ, NORMAL_LAYOUTS, AccUnit, Format, GyroUnit, Status
+from stim300.protocol import (COUNTER_MODULUS, INTERNAL_RATE_HZ, NORMAL_LAYOUTS, SAMPLE_RATES_HZ, AccUnit, Format,
+                              GyroUnit, Status)
 from stim300.special import Configuration, PartNumber, SerialNumber, encode_special
 
 from .allan import FLICKER_TAUS_S, flicker_sigma
@@ -245,13 +246,21 @@ def simulate(scenario: Scenario) -> Simulation:
 
 def counter_values(n: int, rate_hz: int) -> np.ndarray:
     """The datagram counter of n datagrams from power-up: it counts the internal samples, so it
-    steps by INTERNAL_RATE_HZ / rate_hz and wraps at COUNTER_MODULUS."""
+    steps by INTERNAL_RATE_HZ / rate_hz (a periodic external trigger's too) and wraps at
+    COUNTER_MODULUS."""
     return np.arange(n) * (INTERNAL_RATE_HZ // rate_hz) % COUNTER_MODULUS
+
+
+def external_trigger(scenario: Scenario) -> bool:
+    """A rate no configuration code has (200 Hz) is simulated as a periodic external trigger at
+    that rate: the counter steps by 2000 / rate, the configuration says "external trigger"."""
+    return scenario.sensor.sample_rate_hz not in SAMPLE_RATES_HZ
 
 
 def sensor_format(scenario: Scenario) -> Format:
     s = scenario.sensor
-    return Format(datagram_id=s.datagram_id, crlf=s.crlf, sample_rate_hz=s.sample_rate_hz,
+    return Format(datagram_id=s.datagram_id, crlf=s.crlf,
+                  sample_rate_hz=None if external_trigger(scenario) else s.sample_rate_hz,
                   gyro_unit={"rate": GyroUnit.RATE, "average": GyroUnit.AVERAGE_RATE,
                              "incremental": GyroUnit.INCREMENTAL_ANGLE}[s.gyro_unit],
                   acc_unit={"acceleration": AccUnit.ACCELERATION, "average": AccUnit.AVERAGE_ACCELERATION,
@@ -264,7 +273,7 @@ def configuration(scenario: Scenario) -> Configuration:
     s = scenario.sensor
     fmt = sensor_format(scenario)
     layout = NORMAL_LAYOUTS[s.datagram_id]
-    return Configuration.build(sample_rate_hz=s.sample_rate_hz, acc_range_g=s.acc_range_g, revision=s.revision,
+    return Configuration.build(sample_rate_hz=fmt.sample_rate_hz, acc_range_g=s.acc_range_g, revision=s.revision,
                                crlf=s.crlf, acc_included="acc" in layout.clusters,
                                incl_included="incl" in layout.clusters, temp_included=bool(layout.temperatures),
                                aux_in_datagram=layout.aux is not None, has_pps_input=layout.aux != "aux",

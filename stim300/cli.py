@@ -108,7 +108,7 @@ def _decode(path: str, fmt: Format) -> tuple[dict[str, np.ndarray], StreamInfo]:
         print(f"stim300: {path}: --datagram 0x{fmt.datagram_id:02X} not used: {source} "
               f"0x{info.format.datagram_id:02X}", file=sys.stderr)
     if fmt.sample_rate_hz is not None and info.rate_hz != fmt.sample_rate_hz:
-        print(f"stim300: {path}: --rate {fmt.sample_rate_hz} not used: {source} {info.rate_hz} Hz", file=sys.stderr)
+        print(f"stim300: {path}: --rate {fmt.sample_rate_hz} not used: {source} {info.rate_words()}", file=sys.stderr)
     elif fmt.sample_rate_hz is not None:
         _check_given_rate(path, fmt.sample_rate_hz, samples["counter"])
     return samples, info
@@ -129,8 +129,10 @@ def _check_given_rate(path: str, rate_hz: int, counter: np.ndarray) -> None:
                          f"{step} ({seen}): give the capture's rate or leave --rate out")
 
 
-def columns(samples) -> dict[str, np.ndarray]:
-    """Output columns: those of the blocks some datagram of the capture carries, in a fixed order."""
+def columns(samples, time_s: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """Output columns: the stream time `time_s` (from the counter) when given, the host read time
+    when the capture has a read log, then those of the blocks some datagram of the capture
+    carries, in a fixed order."""
     ids = np.unique(samples["datagram_id"])
     layouts = [NORMAL_LAYOUTS[int(i)] for i in ids]
     clusters = [c for c in ("gyro", "acc", "incl") if any(c in lay.clusters for lay in layouts)]
@@ -139,6 +141,8 @@ def columns(samples) -> dict[str, np.ndarray]:
     out = {"counter": samples["counter"], "latency_us": samples["latency_us"]}
     if len(samples["t_host"]) and np.isfinite(samples["t_host"]).all():  # the capture has a read log
         out = {"t_host_s": samples["t_host"]} | out
+    if time_s is not None:
+        out = {"t_s": time_s} | out
     for block in clusters + ["temp_" + c for c in temps]:
         for k, axis in enumerate(AXES):
             out[f"{block}_{axis}"] = samples[block][:, k]  # contiguous in decode_columns' columns
@@ -154,7 +158,7 @@ def column_units(names, fmt: Format) -> dict[str, str]:
     result = {}
     for name in names:
         block = name.split("_")[0] if not name.startswith("temp_") else "temp"
-        if name == "t_host_s":
+        if name in ("t_s", "t_host_s"):
             result[name] = "s"
         elif name.startswith("status_") or name == "counter":
             result[name] = "1"
@@ -182,7 +186,8 @@ def _write_csv(f, cols: dict[str, np.ndarray]) -> None:
     """Text is slow (about 0.15 M rows/s), so long tables report progress on stderr."""
     names = list(cols)
     f.write((",".join(names) + "\n").encode())
-    formats = ["%d" if cols[n].dtype.kind in "ui" else "%.9g" for n in names]  # 9 digits round-trip float32
+    formats = ["%d" if cols[n].dtype.kind in "ui" else "%.6f" if n in ("t_s", "t_host_s") else "%.9g"
+               for n in names]  # 9 digits round-trip float32; times to the microsecond
     rows = len(cols[names[0]])
     chunk = 100_000
     with Progress("decode: csv", rows, "rows") as bar:
@@ -199,7 +204,7 @@ def cmd_decode(args) -> int:
     not_an_input(out, args.capture)
     started = time.perf_counter()
     samples, info = _decode(args.capture, _format(args))
-    cols = columns(samples)
+    cols = columns(samples, sample_times(samples, info).time_s)
     units = column_units(cols, info.format)
     with _output(out) as f:
         if out.endswith(".npz"):
@@ -213,11 +218,17 @@ def cmd_decode(args) -> int:
     return 0
 
 
+def sample_times(samples, stream: StreamInfo):
+    """The samples' stream times (`stim300.clock`: the running sum of counter steps / 2000, plus
+    the whole counter cycles a read log proves lost)."""
+    return counter_times(samples["counter"], stream.rate_hz or INTERNAL_RATE_HZ, samples["t_host"])
+
+
 def capture_info(samples, stream: StreamInfo) -> dict:
     s = stream.stats
     fmt = stream.format
     rate = stream.rate_hz
-    times = counter_times(samples["counter"], rate, samples["t_host"]) if rate else None
+    times = sample_times(samples, stream) if rate else None
     checked = times is not None and times.checked
     info = {
         "datagrams": s.datagrams,
@@ -230,15 +241,19 @@ def capture_info(samples, stream: StreamInfo) -> dict:
         "datagram_id": f"0x{fmt.datagram_id:02X}" if fmt.datagram_id is not None else None,
         "crlf": fmt.crlf,
         "sample_rate_hz": rate,
-        "duration_s": (s.datagrams + s.lost_samples) / rate + times.hidden_s if rate else None,
+        "sample_rate": stream.rate_words(),
+        "external_trigger": stream.external_trigger,
+        "inferred_missing": s.inferred_missing,
+        "duration_s": (s.datagrams + s.lost_samples + s.inferred_missing) / rate + times.hidden_s if rate else None,
         "hidden_gaps": times.hidden_gaps if checked else None,  # None: no read log to find them with
         "hidden_gap_s": round(times.hidden_s, 3) if checked else None,
         "units": {k: v for k, v in fmt.units().items()},
-        "acc_range_g": fmt.acc_range_g,
+        "acc_range_g": fmt.acc_range_g,  # one per axis (X, Y, Z) when they differ
         "part_number": stream.part_number,
         "serial_number": stream.serial_number,
         "configuration": stream.configuration.as_dict() if stream.configuration else None,
         "status_flags": status_counts(samples),
+        "warnings": list(stream.warnings),
     }
     return info
 
@@ -260,11 +275,13 @@ def _describe(info: dict) -> str:
     lines = [
         f"datagrams        {info['datagrams']}",
         f"datagram_id      {value(info['datagram_id'])}  (CR LF: {value(info['crlf'])})",
-        f"sample rate      {value(info['sample_rate_hz'], ' Hz')}",
+        f"sample rate      {info['sample_rate']}",
         f"duration         {'-' if info['duration_s'] is None else format(info['duration_s'], '.3f') + ' s'}",
         f"bytes            {info['bytes']} B",
         f"crc_errors       {info['crc_errors']}",
-        f"lost_samples     {info['lost_samples']}",
+        f"lost_samples     {info['lost_samples']}"
+        + (f" (externally triggered: {info['inferred_missing']} missing by the usual step, inferred)"
+           if info["external_trigger"] else ""),
         "hidden_gaps      " + (f"{info['hidden_gaps']} ({info['hidden_gap_s']:.3f} s, found from the read log)"
                                if info["hidden_gaps"] is not None
                                else "- (no read log: gaps of whole counter cycles cannot be seen)"),
@@ -275,12 +292,14 @@ def _describe(info: dict) -> str:
                                                                   for flag, n in flags.items())
                                            for block, flags in info["status_flags"].items() if flags) or "none"),
         "units            " + ", ".join(f"{k} {v}" for k, v in info["units"].items()),
-        f"acc range        {info['acc_range_g']} g",
+        "acc range        " + (f"{info['acc_range_g']} g" if isinstance(info["acc_range_g"], int)
+                                 else " / ".join(f"{r} g" for r in info["acc_range_g"]) + " (X / Y / Z)"),
         f"part number      {value(info['part_number'])}",
         f"serial number    {value(info['serial_number'])}",
     ]
     if info["configuration"]:
         lines.append("configuration    " + json.dumps(info["configuration"]))
+    lines += [f"warning          {text}" for text in info["warnings"]]
     return "\n".join(lines)
 
 
@@ -404,7 +423,9 @@ def _positive(kind):
 def build_parser() -> argparse.ArgumentParser:
     parser = CommandParser(prog="stim300", description="STIM300 captures: decode, inspect, record.")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=CommandParser)
-    p = sub.add_parser("decode", help="capture -> .npz or .csv table in physical units")
+    p = sub.add_parser("decode", help="capture -> .npz or .csv table in physical units, with t_s (stream time "
+                                      "from the datagram counter, s) and t_host_s (host read time, s; with a "
+                                      "read log)")
     p.add_argument("capture")
     p.add_argument("-o", "--output", required=True, help="OUT.npz or OUT.csv")
     _add_format_options(p)

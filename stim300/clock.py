@@ -1,8 +1,10 @@
 """Sample times from the datagram counter, with the gaps it cannot see found from host read times.
 
-The counter counts the sensor's internal 2000 Hz samples (a step of 2000/rate per datagram)
-modulo 256, so it sees lost datagrams only modulo one counter cycle (256 internal samples,
-0.128 s at any rate): a loss of 16 datagrams at 125 Hz looks like none, 188 like 12. A time
+The counter counts the sensor's internal 2000 Hz samples modulo 256: a step of 2000/rate per
+datagram at a fixed rate, whatever time passed between triggers when the sensor is externally
+triggered. So a sample's time is the running sum of the counter's steps / 2000, at any rate
+and any trigger. The counter sees lost datagrams only modulo one counter cycle (256 internal
+samples, 0.128 s): a loss of 16 datagrams at 125 Hz looks like none, 188 like 12. A time
 base that misses those whole cycles is too short, and everything integrated over it (the
 platform angle of a turn) comes out wrong.
 
@@ -53,13 +55,14 @@ class CounterTimes:
 def counter_times(counter: np.ndarray, rate_hz: float, t_host: np.ndarray | None = None) -> CounterTimes:
     """Times of samples: the counter's steps (lost datagrams leave gaps, modulo a counter cycle),
     plus the whole cycles the host times prove were lost when they are given (all finite). A step
-    of 0 counts is a whole cycle; steps that are not whole sample periods are rounded (at least
-    one period). A sensor restart (counter back to 0) looks like a loss. A step is judged only
-    with a whole window of data after it: a gap in the last HOST_WINDOW_S stays unseen."""
+    of 0 counts is a whole cycle. A sensor restart (counter back to 0) looks like a loss.
+    `rate_hz` (samples per second, measured when triggered) sizes the host window: a step is
+    judged only with a whole window of data after it, so a gap in the last HOST_WINDOW_S stays
+    unseen."""
     counter = np.asarray(counter)
     if counter.size == 0:
         return CounterTimes(np.zeros(0), np.zeros(0, np.int64), np.zeros(0), False)
-    time_s = np.concatenate(([0.0], np.cumsum(counter_periods(counter, rate_hz)))) / rate_hz
+    time_s = np.concatenate(([0.0], np.cumsum(counter_ticks(counter)))) / INTERNAL_RATE_HZ
     if not _evidence(time_s, t_host):
         return CounterTimes(time_s, np.zeros(0, np.int64), np.zeros(0), False)
     cycles = _hidden_cycles(np.asarray(t_host, np.float64) - time_s, host_window(rate_hz))
@@ -68,11 +71,11 @@ def counter_times(counter: np.ndarray, rate_hz: float, t_host: np.ndarray | None
     return CounterTimes(time_s, gap_index, cycles[gap_index] * CYCLE_S, True)
 
 
-def counter_periods(counter: np.ndarray, rate_hz: float) -> np.ndarray:
-    """Sample periods from each sample to the next, by the counter."""
+def counter_ticks(counter: np.ndarray) -> np.ndarray:
+    """Internal samples (1/INTERNAL_RATE_HZ s) from each sample to the next, by the counter."""
     counts = np.diff(np.asarray(counter).astype(np.int64)) % COUNTER_MODULUS
     counts[counts == 0] = COUNTER_MODULUS
-    return np.maximum(np.rint(counts * rate_hz / INTERNAL_RATE_HZ), 1.0)
+    return counts
 
 
 def host_window(rate_hz: float) -> int:
@@ -133,12 +136,13 @@ class CounterClock:
     """`counter_times` for a stream arriving in batches: each batch continues the times of the
     last, judged together with the samples before it. A step is judged once a whole window
     follows it, so a gap in a batch's last window is added at the start of the next batch:
-    the samples between keep the counter's times, at most HOST_WINDOW_S of them."""
+    the samples between keep the counter's times, at most HOST_WINDOW_S of them. The counter
+    counts the same internal samples at every rate, so a new rate (or a triggered stream's
+    measured rate moving) continues the times; only the window's size follows the rate."""
 
     def __init__(self) -> None:
-        self._rate_hz = 0
-        self._counter: int | None = None  # the last sample's counter (None: none at this rate)
-        self._last_s: float | None = None  # the last sample's time (None: no sample yet)
+        self._counter: int | None = None  # the last sample's counter (None: no sample yet)
+        self._last_s = 0.0  # the last sample's time
         self._time = np.zeros(0)  # the last samples' times, with every gap found so far,
         self._host = np.zeros(0)  # and their host times
 
@@ -148,13 +152,10 @@ class CounterClock:
             return counter_times(counter, rate_hz)
         if t_host is None:
             t_host = np.full(len(counter), np.nan)
-        if rate_hz != self._rate_hz:  # a new rate: its counter steps cannot be compared with the old
-            self._rate_hz, self._counter, self._time, self._host = rate_hz, None, self._time[:0], self._host[:0]
-        if self._counter is None:  # the stream's first sample at 0, or a new rate's one period on
-            first = 0.0 if self._last_s is None else self._last_s + 1.0 / rate_hz
-            time_s = first + np.concatenate([[0.0], np.cumsum(counter_periods(counter, rate_hz))]) / rate_hz
+        if self._counter is None:  # the stream's first sample at 0
+            time_s = np.concatenate([[0.0], np.cumsum(counter_ticks(counter))]) / INTERNAL_RATE_HZ
         else:
-            time_s = self._last_s + np.cumsum(counter_periods(np.r_[self._counter, counter], rate_hz)) / rate_hz
+            time_s = self._last_s + np.cumsum(counter_ticks(np.r_[self._counter, counter])) / INTERNAL_RATE_HZ
         known = len(self._time)
         time_all, host_all = np.concatenate([self._time, time_s]), np.concatenate([self._host, t_host])
         checked = _evidence(time_all, host_all)

@@ -128,7 +128,7 @@ def decode_frames(frames: np.ndarray, layout: Layout, fmt: Format, out: np.ndarr
     if not frames.flags.c_contiguous:
         frames = np.ascontiguousarray(frames)
     rec = frames.view(_record(layout, frames.shape[1]))[:, 0]
-    scales = {name: np.float32(value) for name, value in fmt.scales().items()}
+    scales = {name: np.broadcast_to(np.asarray(value, np.float32), 3) for name, value in fmt.scales().items()}
     out["t_host"][...] = t_host
     out["datagram_id"][...] = layout.datagram_id
     _clear(out, [c for c in CLUSTERS if c not in layout.clusters])
@@ -136,13 +136,13 @@ def decode_frames(frames: np.ndarray, layout: Layout, fmt: Format, out: np.ndarr
     for name in layout.clusters:
         block = out[name]
         for k, axis in enumerate(AXES):
-            np.multiply(_int24(rec[f"{name}_{axis}"]), scales[name], out=block[:, k], dtype=np.float32,
+            np.multiply(_int24(rec[f"{name}_{axis}"]), scales[name][k], out=block[:, k], dtype=np.float32,
                         casting="unsafe")
         out["status_" + name][...] = rec["status_" + name]
     for name in layout.temperatures:
         block = out["temp_" + name]
         for k, axis in enumerate(AXES):
-            np.multiply(rec[f"temp_{name}_{axis}"], scales["temp"], out=block[:, k], dtype=np.float32,
+            np.multiply(rec[f"temp_{name}_{axis}"], scales["temp"][k], out=block[:, k], dtype=np.float32,
                         casting="unsafe")
         out["status_temp_" + name][...] = rec["status_temp_" + name]
     if layout.aux:
@@ -181,7 +181,7 @@ def encode_samples(samples: np.ndarray, datagram_id: int, fmt: Format, crlf: boo
     a few datagrams at a time, where numpy's cost per call dominates.
     """
     layout = NORMAL_LAYOUTS[datagram_id]
-    scales = fmt.scales()
+    scales = {name: np.broadcast_to(value, 3) for name, value in fmt.scales().items()}
     off = layout.offsets
     n = len(samples)
     frames = np.zeros((n, layout.wire_length(crlf)), np.uint8)
@@ -194,7 +194,7 @@ def encode_samples(samples: np.ndarray, datagram_id: int, fmt: Format, crlf: boo
         frames[:, off["status_temp_" + name]] = samples["status_temp_" + name]
     if layout.aux:
         unsigned = layout.aux == "pps" and fmt.pps_unsigned
-        counts = _counts(samples["aux"][:, None], scales[layout.aux], 24, signed=not unsigned)
+        counts = _counts(samples["aux"][:, None], scales[layout.aux][0], 24, signed=not unsigned)
         _put_ints(frames, off["aux"], counts, 3)
         frames[:, off["status_aux"]] = samples["status_aux"]
     frames[:, off["counter"]] = samples["counter"]

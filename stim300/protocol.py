@@ -240,24 +240,27 @@ class Format:
     """Everything needed to turn normal datagrams into physical values.
 
     Comes from a configuration datagram (`Configuration.format`) or from the user when a capture
-    has none. `datagram_id` None means: accept whichever normal id verifies.
+    has none. `datagram_id` None means: accept whichever normal id verifies. `acc_range_g` is one
+    range for all axes or one per axis (X, Y, Z); three equal ones are kept as one.
     """
 
     datagram_id: int | None = None
     crlf: bool | None = None  # None: detect from the first datagrams
-    sample_rate_hz: int | None = None  # None: infer the counter step from the data
+    sample_rate_hz: int | None = None  # None: infer the counter step from the data (external trigger too)
     gyro_unit: GyroUnit = GyroUnit.RATE
     acc_unit: AccUnit = AccUnit.ACCELERATION
-    acc_range_g: int = 10
+    acc_range_g: int | tuple[int, int, int] = 10
     incl_unit: AccUnit = AccUnit.ACCELERATION
     pps_unit: PpsUnit = PpsUnit.FILTERED
 
     def __post_init__(self):
         if self.datagram_id is not None and self.datagram_id not in NORMAL_LAYOUTS:
             raise FormatError(f"unknown normal datagram id 0x{self.datagram_id:02X}")
-        if self.acc_range_g not in ACC_RANGE_LSB_EXP:
+        ranges = tuple(self.acc_range_g) if isinstance(self.acc_range_g, (tuple, list)) else (self.acc_range_g,)
+        if len(ranges) not in (1, 3) or any(r not in ACC_RANGE_LSB_EXP for r in ranges):
             raise FormatError(f"accelerometer range {self.acc_range_g} g is not one of "
-                             f"{sorted(ACC_RANGE_LSB_EXP)} g")
+                              f"{sorted(ACC_RANGE_LSB_EXP)} g (one, or one per axis)")
+        object.__setattr__(self, "acc_range_g", ranges[0] if len(set(ranges)) == 1 else ranges)
         if self.sample_rate_hz is not None and self.sample_rate_hz not in SAMPLE_RATES_HZ:
             raise FormatError(f"sample rate {self.sample_rate_hz} Hz is not one of {SAMPLE_RATES_HZ} Hz")
 
@@ -265,12 +268,19 @@ class Format:
     def counter_step(self) -> int | None:
         return None if self.sample_rate_hz is None else INTERNAL_RATE_HZ // self.sample_rate_hz
 
-    def scales(self) -> dict[str, float]:
-        """LSB of each value block, in the units of `units()`."""
+    @property
+    def acc_ranges_g(self) -> tuple[int, int, int]:
+        """The accelerometer range of each axis (X, Y, Z)."""
+        return self.acc_range_g if isinstance(self.acc_range_g, tuple) else (self.acc_range_g,) * 3
+
+    def scales(self) -> dict[str, float | tuple[float, float, float]]:
+        """LSB of each value block, in the units of `units()`: one per axis for an accelerometer
+        whose axes have different ranges."""
         pps_lsb = PPS_FILTERED_LSB if self.pps_unit in (PpsUnit.FILTERED, PpsUnit.FILTERED_DELAYED) else 1.0
+        acc = tuple(acc_lsb(self.acc_unit, r) for r in self.acc_ranges_g)
         return {
             "gyro": gyro_lsb(self.gyro_unit),
-            "acc": acc_lsb(self.acc_unit, self.acc_range_g),
+            "acc": acc[0] if len(set(acc)) == 1 else acc,
             "incl": incl_lsb(self.incl_unit),
             "temp": TEMP_LSB,
             "pps": pps_lsb,

@@ -43,6 +43,7 @@ __all__ = [
     "EXTENDED_ERROR_NAMES",
     "EXTERNAL_TRIGGER_CODE",
     "ExtendedError",
+    "UndefinedCode",
     "Parity",
     "PartNumber",
     "SerialNumber",
@@ -209,40 +210,58 @@ class Parity(IntEnum):
     ODD = 2
 
 
-class _Table:
-    """Bijection between the values of one configuration field and its bit code."""
+@dataclass(frozen=True)
+class UndefinedCode:
+    """A configuration code the byte map does not define, kept as read: real units send some
+    (a bit-rate code of firmware newer than the datasheet) in fields no value depends on."""
 
-    def __init__(self, to_value: dict[int, Any], describe: str | None = None):
+    code: int
+
+    def __str__(self) -> str:
+        return f"undefined code {self.code:#x}"
+
+
+class _Table:
+    """Bijection between the values of one configuration field and its bit code. `needed`: the
+    normal datagrams cannot be decoded without knowing the value (content, units, ranges), so
+    an undefined code refuses the configuration; elsewhere it is kept as an `UndefinedCode`."""
+
+    def __init__(self, to_value: dict[int, Any], describe: str | None = None, needed: bool = False):
         self.to_value = to_value
         self.to_code = {value: code for code, value in to_value.items()}
         self.describe = describe or ", ".join(repr(v) for v in to_value.values())
+        self.needed = needed
 
     def code(self, name: str, value: Any) -> int:
+        if isinstance(value, UndefinedCode) and not self.needed and value.code not in self.to_value:
+            return value.code
         try:
             return self.to_code[value]
         except (KeyError, TypeError):
             raise FormatError(f"configuration {name}={value!r}: expected one of {self.describe}") from None
 
     def value(self, name: str, code: int) -> Any:
-        try:
+        if code in self.to_value:
             return self.to_value[code]
-        except KeyError:
-            raise FormatError(f"configuration {name}: code {code:#x} is not defined in the "
-                             f"byte map (protocol doc §8.1)") from None
+        if not self.needed:
+            return UndefinedCode(code)
+        raise FormatError(f"configuration {name}: code {code:#x} is not defined in the byte map "
+                          f"(protocol doc §8.1; defined: {self.describe}), and the values cannot be "
+                          "decoded without it")
 
 
 def _raw(width: int) -> _Table:
     return _Table({c: c for c in range(1 << width)}, f"0..{(1 << width) - 1}")
 
 
-def _enum(enum: type[IntEnum]) -> _Table:
-    return _Table({int(m): m for m in enum}, ", ".join(f"{m.name}={int(m)}" for m in enum))
+def _enum(enum: type[IntEnum], needed: bool = False) -> _Table:
+    return _Table({int(m): m for m in enum}, ", ".join(f"{m.name}={int(m)}" for m in enum), needed)
 
 
 _BOOL = _Table({0: False, 1: True})
 _CHAR = _Table({c: chr(c) for c in range(256)}, "one character U+0000..U+00FF")
 _LPF_HZ = _Table({0b000: 16, 0b001: 33, 0b010: 66, 0b011: 131, 0b100: 262})
-_ACC_RANGE_G = _Table({0b0000: 10, 0b0011: 5, 0b0100: 30, 0b0110: 80, 0b0010: 2})  # 2 g: VX only
+_ACC_RANGE_G = _Table({0b0000: 10, 0b0011: 5, 0b0100: 30, 0b0110: 80, 0b0010: 2}, needed=True)  # 2 g: VX only
 EXTERNAL_TRIGGER_CODE = 5
 USER_BIT_RATE_CODE = 15
 _SAMPLE_RATE_HZ = dict(enumerate(SAMPLE_RATES_HZ)) | {EXTERNAL_TRIGGER_CODE: None}  # codes 0..4: 125..2000 Hz
@@ -263,16 +282,16 @@ _CONFIG_MAP: dict[str, tuple[_Table, tuple[tuple[int, int, int], ...]]] = {
     "parity": (_enum(Parity), ((4, 1, 2),)),
     "line_termination": (_BOOL, ((4, 0, 1),)),
     "gyro_axes": (_BOOL, ((5, 6, 1), (5, 5, 1), (5, 4, 1))),
-    "gyro_unit": (_enum(GyroUnit), ((5, 0, 4),)),
+    "gyro_unit": (_enum(GyroUnit, needed=True), ((5, 0, 4),)),
     "gyro_lpf_hz": (_LPF_HZ, ((6, 4, 3), (6, 0, 3), (7, 4, 3))),
     "gyro_g_compensation": (_raw(4), ((7, 0, 4),)),
     "acc_axes": (_BOOL, ((8, 6, 1), (8, 5, 1), (8, 4, 1))),
-    "acc_unit": (_enum(AccUnit), ((8, 0, 4),)),
+    "acc_unit": (_enum(AccUnit, needed=True), ((8, 0, 4),)),
     "acc_lpf_hz": (_LPF_HZ, ((9, 4, 3), (9, 0, 3), (10, 4, 3))),
     "incl_axes": (_BOOL, ((11, 6, 1), (11, 5, 1), (11, 4, 1))),
-    "incl_unit": (_enum(AccUnit), ((11, 0, 4),)),
+    "incl_unit": (_enum(AccUnit, needed=True), ((11, 0, 4),)),
     "incl_lpf_hz": (_LPF_HZ, ((12, 4, 3), (12, 0, 3), (13, 4, 3))),
-    "pps_unit": (_enum(PpsUnit), ((13, 0, 4),)),
+    "pps_unit": (_enum(PpsUnit, needed=True), ((13, 0, 4),)),
     "has_pps_input": (_BOOL, ((14, 3, 1),)),
     "pps_lpf_hz": (_LPF_HZ, ((14, 0, 3),)),
     "gyro_range_codes": (_raw(4), ((15, 4, 4), (15, 0, 4), (16, 4, 4))),
@@ -366,8 +385,8 @@ class Configuration(_Special):
 
     @property
     def sample_rate_hz(self) -> int | None:
-        """Samples per second; None when the unit is externally triggered."""
-        return _SAMPLE_RATE_HZ[self.sample_rate_code]
+        """Samples per second; None when the unit is externally triggered (or the code undefined)."""
+        return _SAMPLE_RATE_HZ.get(self.sample_rate_code)
 
     @property
     def external_trigger(self) -> bool:
@@ -376,7 +395,7 @@ class Configuration(_Special):
     @property
     def bit_rate_bps(self) -> int | None:
         """Standard bit-rate; None for a user-defined one (its value is not in this datagram)."""
-        return _BIT_RATE_BPS[self.bit_rate_code]
+        return _BIT_RATE_BPS.get(self.bit_rate_code)
 
     @property
     def aux_kind(self) -> str | None:
@@ -392,16 +411,30 @@ class Configuration(_Special):
 
     @property
     def format(self) -> Format:
-        """What the Normal-datagram decoder needs; acc range taken from the X axis."""
+        """What the Normal-datagram decoder needs, the accelerometer range of each axis included."""
         return Format(datagram_id=self.datagram_id, crlf=self.crlf, sample_rate_hz=self.sample_rate_hz,
-                      gyro_unit=self.gyro_unit, acc_unit=self.acc_unit, acc_range_g=self.acc_range_g[0],
+                      gyro_unit=self.gyro_unit, acc_unit=self.acc_unit, acc_range_g=self.acc_range_g,
                       incl_unit=self.incl_unit, pps_unit=self.pps_unit)
+
+    @property
+    def warnings(self) -> tuple[str, ...]:
+        """One line per field holding a code the byte map does not define (kept as read)."""
+        out = []
+        for name in _CONFIG_MAP:
+            values = getattr(self, name)
+            for value in values if isinstance(values, tuple) else (values,):
+                if isinstance(value, UndefinedCode):
+                    out.append(f"configuration {name}: {value} (not in the byte map), kept as read: "
+                               "no decoded value depends on it")
+        return tuple(dict.fromkeys(out))
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-ready view: enums by name, plus the derived rate, bit-rate and datagram id."""
         def plain(value):
             if isinstance(value, tuple):
                 return [plain(v) for v in value]
+            if isinstance(value, UndefinedCode):
+                return str(value)
             return value.name if isinstance(value, IntEnum) else value
         out = {f.name: plain(getattr(self, f.name)) for f in fields(self)}
         out.update(sample_rate_hz=self.sample_rate_hz, bit_rate_bps=self.bit_rate_bps,

@@ -14,13 +14,16 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
-from .codec import SAMPLE_DTYPE, decode_frames
+from .codec import SAMPLE_DTYPE, START_UP, decode_frames
 from .crc import datagram_crc
 from .protocol import (CONFIGURATION, COUNTER_MODULUS, CR_LF, INTERNAL_RATE_HZ, NORMAL_LAYOUTS, PART_NUMBER,
                        SAMPLE_RATES_HZ, SERIAL_NUMBER, SPECIAL_IDS, Format)
 from .special import decode_special
 
 SPECIAL_HISTORY = 64  # special datagrams remembered (they are rare: power-up and on request)
+MAX_WARNINGS = 16  # distinct stream warnings kept (each says what was refused or kept, and why)
+STANDARD_STEPS = frozenset(INTERNAL_RATE_HZ // rate for rate in SAMPLE_RATES_HZ)  # counter steps of the fixed rates
+ODD_STEPS_SHARE = 0.01  # counter steps off the usual step's multiples a fixed step tolerates (restarts, glitches)
 
 
 @dataclass(frozen=True)
@@ -38,6 +41,9 @@ class StreamStats:
     special_datagrams: int
     undecodable_specials: int
     counter_step: int | None
+    external_trigger: bool
+    inferred_missing: int
+    mean_step: float | None
 
 
 @dataclass
@@ -56,23 +62,47 @@ class Stats:
     undecodable_specials: int = 0  # CRC-valid special datagrams with codes the byte map lacks
     counter_steps: np.ndarray = field(default_factory=lambda: np.zeros(COUNTER_MODULUS, np.int64))
     configured_step: int | None = None  # from the sample rate when known
+    triggered: bool = False  # the configuration says the sensor samples at an external trigger
 
     @property
     def counter_step(self) -> int | None:
-        """Counter increment per datagram: INTERNAL_RATE_HZ / sample rate, or inferred from the data."""
+        """Counter increment per datagram: INTERNAL_RATE_HZ / sample rate when configured, else the
+        most common step when nearly every step is a whole multiple of it (a fixed rate, or a
+        periodic trigger: 10 at 200 Hz); None with no steps yet or steps of no fixed size (an
+        irregular external trigger)."""
         if self.configured_step:
             return self.configured_step
-        seen = np.flatnonzero(self.counter_steps)
-        seen = seen[seen > 0]
-        if not len(seen):
+        counts = self.counter_steps.copy()
+        counts[0] = 0  # a whole cycle (or a stuck counter) says nothing of the step
+        total = int(counts.sum())
+        if not total:
             return None
-        step = math.gcd(*seen.tolist())
-        step &= -step  # largest power of two dividing the gcd
-        return min(step, INTERNAL_RATE_HZ // min(SAMPLE_RATES_HZ))
+        step = int(np.argmax(counts))
+        odd = int(counts[np.arange(COUNTER_MODULUS) % step != 0].sum())
+        return step if odd <= ODD_STEPS_SHARE * total else None
 
     @property
-    def lost_samples(self) -> int:
-        """Datagrams missing by the counter (losses of a whole counter cycle alias to fewer)."""
+    def external_trigger(self) -> bool:
+        """Sampled at an external trigger: the configuration says so, or (without a configured
+        rate) the counter steps by no fixed rate's step."""
+        if self.configured_step:
+            return False
+        if self.triggered:
+            return True
+        step = self.counter_step
+        return step not in STANDARD_STEPS and bool(self.counter_steps[1:].any())
+
+    @property
+    def mean_step(self) -> float | None:
+        """Internal samples per datagram on average, missing datagrams included (a step of 0 counts
+        as a whole counter cycle): the trigger's measured period, in ticks."""
+        steps = int(self.counter_steps.sum())
+        if not steps:
+            return None
+        ticks = int(np.arange(COUNTER_MODULUS) @ self.counter_steps) + COUNTER_MODULUS * int(self.counter_steps[0])
+        return ticks / steps
+
+    def _missing(self) -> int:
         step = self.counter_step
         if step is None:
             return 0
@@ -81,6 +111,19 @@ class Stats:
         missing = np.maximum(-(-deltas // step) - 1, 0)
         return int(missing @ self.counter_steps)
 
+    @property
+    def lost_samples(self) -> int:
+        """Datagrams missing by the counter at a fixed rate (losses of a whole counter cycle alias
+        to fewer). Externally triggered, a step is whatever time passed between triggers: no loss
+        is certain (see `inferred_missing`)."""
+        return 0 if self.external_trigger else self._missing()
+
+    @property
+    def inferred_missing(self) -> int:
+        """Externally triggered at a fixed step: datagrams missing by that usual step (a missed
+        trigger reads the same), counted apart from `lost_samples`."""
+        return self._missing() if self.external_trigger else 0
+
     def snapshot(self) -> StreamStats:
         """A frozen copy: these counters go on changing while the stream is read."""
         return StreamStats(
@@ -88,7 +131,8 @@ class Stats:
             lost_samples=self.lost_samples, skipped_bytes=self.skipped_bytes, restarts=self.restarts,
             restart_datagrams=tuple(self.restart_datagrams), config_changes=self.config_changes,
             special_datagrams=self.special_datagrams, undecodable_specials=self.undecodable_specials,
-            counter_step=self.counter_step)
+            counter_step=self.counter_step, external_trigger=self.external_trigger,
+            inferred_missing=self.inferred_missing, mean_step=self.mean_step)
 
     def as_dict(self) -> dict:
         return asdict(self.snapshot())
@@ -113,8 +157,9 @@ class Scanner:
         self.part_number = None
         self.serial_number = None
         self.last_counter: int | None = None
+        self.warnings: list[str] = []  # what was refused or kept as read, and why (distinct, oldest first)
         self._on_normal = on_normal
-        self._after_part_number = False  # a requested part number is not a restart
+        self._power_up = 0  # how far a power-up sequence has come: 1 part number, 2 then serial number
         self._quiet_until = 0  # no further CRC error is counted inside a failed candidate's span
         self._consumed = 0  # absolute offset of buf[0], to keep _quiet_until valid across buffers
 
@@ -172,12 +217,15 @@ class Scanner:
         elif ident != self.format.datagram_id:
             self.format = replace(self.format, datagram_id=ident)
             self.stats.config_changes += 1
-        counter = buf[i + NORMAL_LAYOUTS[ident].counter_offset]
+        layout = NORMAL_LAYOUTS[ident]
+        if self._power_up == 2 and buf[i + layout.offsets["status_gyro"]] & START_UP:
+            self._restart()  # a power-up whose configuration datagram was lost: the start-up bit says it
+        self._power_up = 0
+        counter = buf[i + layout.counter_offset]
         if self.last_counter is not None:
             self.stats.counter_steps[(counter - self.last_counter) % COUNTER_MODULUS] += 1
         self.stats.datagrams += 1
         self.last_counter = counter
-        self._after_part_number = False
         self._on_normal(i, ident)
 
     def count_counters(self, counters: np.ndarray) -> None:
@@ -191,29 +239,42 @@ class Scanner:
         self.stats.counter_steps += np.bincount(steps, minlength=COUNTER_MODULUS)
         self.stats.datagrams += len(counters)
         self.last_counter = int(counters[-1])
-        self._after_part_number = False
+        self._power_up = 0
 
     def _accept_special(self, frame: bytes) -> None:
+        """A power-up sequence is part number, serial number, configuration (DS §7.2); a part
+        number and a serial number requested while data flow are followed by data without the
+        start-up status bit, and are no restart."""
         self.stats.special_datagrams += 1
+        kind = SPECIAL_IDS[frame[0]][0]
+        sequence = {PART_NUMBER: 1 if self.stats.datagrams else 0, SERIAL_NUMBER: 2 if self._power_up == 1 else 0}
+        if kind is CONFIGURATION and self._power_up == 2:
+            self._restart()
+        self._power_up = sequence.get(kind, 0)
         try:
-            item = decode_special(frame, acc_range_g=self.format.acc_range_g)
-        except ValueError:  # e.g. unit codes of firmware the datasheet does not describe
+            item = decode_special(frame, acc_range_g=self.format.acc_ranges_g[0])
+        except ValueError as exc:  # e.g. unit codes of firmware the datasheet does not describe
             self.stats.undecodable_specials += 1
-            self._after_part_number = False
+            self.warn(f"{kind.name.replace('_', ' ')} datagram refused: {exc}"
+                      + ("; decoding goes on as before" if kind is CONFIGURATION else ""))
             return
         self.specials.append(item)
-        kind = item.kind
         if kind is SERIAL_NUMBER:
             self.serial_number = item
-            if self._after_part_number:  # part number then serial number: the power-up sequence
-                self.stats.restarts += 1
-                self.stats.restart_datagrams.append(self.stats.datagrams)
-                self.last_counter = None  # the counter restarts with the sensor
         elif kind is PART_NUMBER:
             self.part_number = item
         elif kind is CONFIGURATION:
             self._adopt(item)
-        self._after_part_number = kind is PART_NUMBER and self.stats.datagrams > 0
+
+    def _restart(self) -> None:
+        self.stats.restarts += 1
+        self.stats.restart_datagrams.append(self.stats.datagrams)
+        self.last_counter = None  # the counter restarts with the sensor
+
+    def warn(self, text: str) -> None:
+        """Keep a stream warning once (at most MAX_WARNINGS distinct ones)."""
+        if text not in self.warnings and len(self.warnings) < MAX_WARNINGS:
+            self.warnings.append(text)
 
     def _adopt(self, configuration) -> None:
         new = configuration.format
@@ -224,6 +285,9 @@ class Scanner:
         self.configuration = configuration
         self.format = new
         self.stats.configured_step = new.counter_step
+        self.stats.triggered = configuration.external_trigger
+        for text in configuration.warnings:
+            self.warn(text)
 
     def advance(self, consumed: int) -> None:
         """The owner dropped `consumed` bytes from the front of its buffer."""

@@ -25,7 +25,7 @@ def test_a_capture_with_power_up_datagrams_carries_the_sensor_identity():
     assert info.rate_hz == truth["sample_rate_hz"] == info.format.sample_rate_hz
     assert info.sensor_record() == {
         "serial_number": truth["serial_number"], "part_number": f"{truth['part_number']} REV {truth['revision']}",
-        "datagram_id": truth["datagram_id"], "sample_rate_hz": truth["sample_rate_hz"]}
+        "datagram_id": truth["datagram_id"], "sample_rate_hz": truth["sample_rate_hz"], "sample_rate": "125 Hz"}
     assert info.configuration is not None and info.configuration.format == info.format
 
 
@@ -36,7 +36,7 @@ def test_without_a_configuration_the_rate_comes_from_the_counter_step(rate_hz):
     assert info.format.sample_rate_hz is None
     assert info.rate_hz == rate_hz and info.stats.counter_step == INTERNAL_RATE_HZ // rate_hz
     assert info.sensor_record() == {"serial_number": None, "part_number": None, "datagram_id": "0xA7",
-                                    "sample_rate_hz": rate_hz}
+                                    "sample_rate_hz": rate_hz, "sample_rate": f"{rate_hz} Hz"}
 
 
 def test_one_datagram_is_too_few_to_know_the_rate():
@@ -83,3 +83,37 @@ def test_a_given_rate_is_known_before_any_datagram():
     parser = StreamParser(Format(sample_rate_hz=500))
     assert stream_info(parser.scanner) == stream_info(parser)
     assert stream_info(parser).rate_hz == 500 and stream_info(parser).stats.datagrams == 0
+
+
+def test_configuration_warnings_reach_info_results_and_the_daemon_log(tmp_path, capsys):
+    """A configuration with an undefined gyro unit is refused: `stim300 info`, calibrate's
+    result and the daemon's log all say why."""
+    from structlog.testing import capture_logs
+
+    from calibd.daemon import Calibrator
+    from calibd.frames import Site
+    from calibd.live import replay
+    from stim300.cli import main as stim300_main
+    from stim300.crc import datagram_crc
+    from stim300.protocol import CONFIGURATION
+    from stim300.source import CaptureSource
+    from stim300.special import Configuration, encode_special
+
+    frame = bytearray(encode_special(Configuration.build(sample_rate_hz=125), False))
+    frame[5] = frame[5] & 0xF0 | 5  # gyro unit code 5: not in the byte map
+    frame[CONFIGURATION.pre_crc:CONFIGURATION.pre_crc + 4] = datagram_crc(
+        bytes(frame[:CONFIGURATION.pre_crc])).to_bytes(4, "big")
+    data = bytes(frame) + (FIXTURES / "heading137_lat60_125hz.bin").read_bytes()
+    path = tmp_path / "refused.bin"
+    path.write_bytes(data)
+    assert stim300_main(["info", str(path)]) == 0
+    assert "warning          configuration datagram refused: configuration gyro_unit: code 0x5" in \
+        capsys.readouterr().out
+    out = tmp_path / "r.json"
+    assert calibd_main(["calibrate", str(path), "--latitude", "60", "-o", str(out)]) == 0
+    warnings = json.loads(out.read_text())["stream"]["warnings"]
+    assert len(warnings) == 1 and "gyro_unit" in warnings[0]
+    with capture_logs() as logs:
+        replay(CaptureSource(data[:200_000]), Calibrator(Site(60.0)))
+    said = [e["detail"] for e in logs if e["event"] == "stream_warning"]
+    assert len(said) == 1 and "gyro_unit" in said[0]

@@ -34,7 +34,7 @@ def test_decode_to_npz_gives_physical_columns(capture_file, tmp_path, capsys):
     code, _, err = run(["decode", path, "-o", out], capsys)
     assert code == 0, err
     table = np.load(out)
-    expected = ["counter", "latency_us", "gyro_x", "gyro_y", "gyro_z", "acc_x", "acc_y", "acc_z",
+    expected = ["t_s", "counter", "latency_us", "gyro_x", "gyro_y", "gyro_z", "acc_x", "acc_y", "acc_z",
                 "incl_x", "incl_y", "incl_z", "temp_gyro_x", "temp_gyro_y", "temp_gyro_z", "temp_acc_x",
                 "temp_acc_y", "temp_acc_z", "temp_incl_x", "temp_incl_y", "temp_incl_z", "status_gyro",
                 "status_acc", "status_incl", "status_temp_gyro", "status_temp_acc", "status_temp_incl", "units"]
@@ -43,8 +43,10 @@ def test_decode_to_npz_gives_physical_columns(capture_file, tmp_path, capsys):
     assert np.array_equal(table["temp_incl_z"], truth["temp_incl"][:, 2])
     assert np.array_equal(table["counter"], truth["counter"])
     assert table["gyro_x"].dtype == np.float32 and table["counter"].dtype == np.uint8
+    assert np.array_equal(table["t_s"], np.delete(np.arange(300), 100) / 125)  # the lost datagram's time skipped
     units = json.loads(str(table["units"]))
     assert units["gyro_x"] == "deg/s" and units["acc_z"] == "g" and units["temp_acc_x"] == "degC"
+    assert units["t_s"] == "s"
     assert "299 datagrams" in err and "lost_samples 1" in err
 
 
@@ -54,9 +56,10 @@ def test_decode_to_csv_matches_npz(capture_file, tmp_path, capsys):
     assert code == 0, err
     lines = (tmp_path / "t.csv").read_text().splitlines()
     header = lines[0].split(",")
-    assert header[:5] == ["counter", "latency_us", "gyro_x", "gyro_y", "gyro_z"]
+    assert header[:6] == ["t_s", "counter", "latency_us", "gyro_x", "gyro_y", "gyro_z"]
     table = np.loadtxt(tmp_path / "t.csv", delimiter=",", skiprows=1)
     assert table.shape == (299, len(header))
+    assert np.array_equal(table[:, 0], np.delete(np.arange(300), 100) / 125)
     assert np.array_equal(table[:, header.index("acc_y")].astype(np.float32), truth["acc"][:, 1])
 
 

@@ -120,3 +120,18 @@ def test_a_step_is_judged_at_half_a_cycle_of_the_offsets_spread(step_cycles, fou
     result = counter_times(counter, RATE_HZ, t_host)
     assert result.gap_index.tolist() == ([500] if found else [])
     assert result.hidden_s == pytest.approx(CYCLE_S if found else 0.0)
+
+
+def test_the_live_clock_goes_on_through_a_moving_rate():
+    """An externally triggered stream's measured rate moves from batch to batch: the counter
+    counts the same internal samples whatever it is, so the times go on from the counter
+    (only the host window follows the rate)."""
+    steps = np.random.default_rng(3).choice([3, 5, 7], 3000)
+    ticks = np.concatenate(([0], np.cumsum(steps)))
+    counter = (ticks % COUNTER_MODULUS).astype(np.uint8)
+    clock = CounterClock()
+    rates = [390.0, 401.5, 399.0, 402.25]
+    times = np.concatenate([clock.times(counter[a:a + 250], rates[k % 4]).time_s
+                            for k, a in enumerate(range(0, len(counter), 250))])
+    np.testing.assert_allclose(times, ticks / INTERNAL_RATE_HZ, atol=1e-12)
+    np.testing.assert_allclose(counter_times(counter, 400.0).time_s, ticks / INTERNAL_RATE_HZ, atol=1e-12)

@@ -9,7 +9,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from stim300.crc import datagram_crc
-from stim300.protocol import SPECIAL_IDS, AccUnit, Format, GyroUnit, PpsUnit
+from stim300.protocol import CONFIGURATION, SPECIAL_IDS, AccUnit, Format, GyroUnit, PpsUnit
 from stim300.special import (
     BiasTrimOffset,
     Configuration,
@@ -17,6 +17,7 @@ from stim300.special import (
     Parity,
     PartNumber,
     SerialNumber,
+    UndefinedCode,
     decode_special,
     encode_special,
 )
@@ -325,24 +326,60 @@ def test_configuration_reserved_bits_zero_and_ignored(cfg, crlf):
 
 
 @pytest.mark.parametrize("byte, mask, code", [
-    (3, 0xE0, 0b110 << 5),  # sample-rate code 6
-    (4, 0xF0, 0b0100 << 4),  # bit-rate code 4
-    (4, 0x06, 0b11 << 1),  # parity 11
     (5, 0x0F, 4),  # gyro unit 4 (VX's "delayed" coding; undefined in DS rev.31)
-    (6, 0x70, 0b101 << 4),  # LPF code 5
+    (5, 0x0F, 5),  # gyro unit 5: likewise
     (8, 0x0F, 5),  # acc unit 5
+    (11, 0x0F, 7),  # incl unit 7
     (13, 0x0F, 4),  # PPS unit 4
     (17, 0xF0, 0b0001 << 4),  # acc range nibble 0001
+    (18, 0xF0, 0b0111 << 4),  # acc range Z nibble 0111
 ])
-def test_configuration_undefined_codes_rejected(byte, mask, code):
+def test_configuration_undefined_codes_values_depend_on_are_rejected(byte, mask, code):
+    """Units and ranges decide every decoded value: an undefined one refuses the configuration."""
     frame = bytearray(encode_special(Configuration(), False))
     frame[byte] = frame[byte] & ~mask | code
-    with pytest.raises(ValueError, match="not defined in the byte map"):
+    with pytest.raises(ValueError, match="not defined in the byte map.*cannot be decoded without it"):
         decode_special(bytes(frame))
+
+
+@pytest.mark.parametrize("byte, mask, code, field, value", [
+    (3, 0xE0, 0b110 << 5, "sample_rate_code", 6),  # the rate is then inferred from the counter
+    (4, 0xF0, 0b0100 << 4, "bit_rate_code", 4),
+    (4, 0x06, 0b11 << 1, "parity", 3),
+    (6, 0x70, 0b101 << 4, "gyro_lpf_hz", 5),
+])
+def test_configuration_other_undefined_codes_are_kept_as_read_with_a_warning(byte, mask, code, field, value):
+    frame = bytearray(encode_special(Configuration(), False))
+    frame[byte] = frame[byte] & ~mask | code
+    covered = bytes(frame[:CONFIGURATION.pre_crc])
+    frame[CONFIGURATION.pre_crc:CONFIGURATION.pre_crc + 4] = datagram_crc(covered).to_bytes(4, "big")
+    cfg = decode_special(bytes(frame))
+    kept = getattr(cfg, field)
+    assert UndefinedCode(value) in (kept if isinstance(kept, tuple) else (kept,))
+    assert len(cfg.warnings) == 1 and field in cfg.warnings[0] and f"{value:#x}" in cfg.warnings[0]
+    assert encode_special(cfg, False) == bytes(frame)  # kept as read: the same bytes again
+    assert cfg.format.datagram_id == 0xA7 and cfg.format.gyro_unit == GyroUnit.RATE
+
+
+def test_a_5g_incremental_angle_unit_with_an_undefined_bit_rate_decodes():
+    """A real unit's configuration: 5 g, incremental-angle gyro output, bit-rate code 4."""
+    cfg = decode_special(bytes.fromhex("bc4b1f06407144407044407044400c00003330000000a91f9809"))
+    assert cfg.format == Format(datagram_id=0x93, crlf=False, sample_rate_hz=125,
+                                gyro_unit=GyroUnit.INCREMENTAL_ANGLE, acc_range_g=5)
+    assert cfg.bit_rate_code == UndefinedCode(4) and cfg.bit_rate_bps is None
+    assert cfg.as_dict()["bit_rate_code"] == "undefined code 0x4"
+    assert cfg.warnings and "bit_rate_code" in cfg.warnings[0]
+
+
+def test_per_axis_accelerometer_ranges_reach_the_format():
+    cfg = Configuration(acc_range_g=(5, 10, 30))
+    assert cfg.format.acc_ranges_g == (5, 10, 30) and cfg.format.scales()["acc"] == (2.0**-20, 2.0**-19, 2.0**-18)
+    assert Configuration(acc_range_g=(5, 5, 5)).format.acc_range_g == 5  # one range: the scalar as before
 
 
 @pytest.mark.parametrize("changes", [
     dict(sample_rate_code=6), dict(bit_rate_code=4), dict(stop_bits=0), dict(gyro_unit=4),
+    dict(gyro_unit=UndefinedCode(5)), dict(bit_rate_code=UndefinedCode(2)),
     dict(gyro_lpf_hz=(16, 16, 17)), dict(acc_range_g=(10, 10)), dict(acc_range_g=(10, 10, 20)),
     dict(gyro_g_compensation=16), dict(revision="KK"), dict(revision="\u20ac"), dict(firmware_revision=256),
 ])

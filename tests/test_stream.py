@@ -1,5 +1,7 @@
 """Streaming parser and bulk decoder: chunking invariance, re-synchronisation, statistics."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -9,7 +11,8 @@ from captures import capture, same_samples
 from stim300.bulk import decode_capture
 from stim300.capture import stream_info
 from stim300.crc import datagram_crc
-from stim300.protocol import CONFIGURATION, NORMAL_LAYOUTS, SERIAL_NUMBER, Format
+from stim300.codec import SAMPLE_DTYPE, encode_samples
+from stim300.protocol import CONFIGURATION, NORMAL_LAYOUTS, SERIAL_NUMBER, Format, GyroUnit
 from stim300.special import Configuration, PartNumber, SerialNumber, encode_special
 from stim300.stream import Scanner, StreamParser
 
@@ -226,6 +229,34 @@ def test_requested_part_number_is_not_a_restart():
     assert parser.stats.lost_samples == 1  # the special datagram replaced one normal datagram
 
 
+def test_requested_part_and_serial_numbers_mid_stream_are_no_restart():
+    """`N` then `I` answered while data flow: the counter chain goes on, nothing is cut."""
+    data, truth, _ = capture(40, 0xA7, False, rate=125)
+    truth["status_gyro"] = truth["status_acc"] = truth["status_incl"] = 0
+    data = encode_samples(truth, 0xA7, Format(sample_rate_hz=125), False).tobytes()
+    stream = (data[:10 * 59] + encode_special(PartNumber("84167-4400003-321", "K"), False)
+              + encode_special(SerialNumber("N25582405002002"), False) + data[12 * 59:])
+    samples, parser = assert_same_as_bulk(stream, [10 * 59 + 20])
+    assert (parser.stats.restarts, parser.stats.restart_datagrams) == (0, [])
+    assert parser.stats.lost_samples == 2  # the two answers replaced two normal datagrams
+    assert parser.scanner.serial_number.text == "N25582405002002"
+
+
+@pytest.mark.parametrize("with_configuration", [True, False])
+def test_a_power_up_sequence_mid_stream_is_a_restart(with_configuration):
+    """Part number, serial number, then the configuration datagram, or (that one lost) data
+    with the start-up status bit: the sensor restarted."""
+    config = Configuration.build(sample_rate_hz=125)
+    first, _, _ = capture(30, 0xA7, False, rate=125, seed=1)
+    second, t2, _ = capture(30, 0xA7, False, rate=125, seed=2)  # counter from 0 again
+    t2["status_gyro"][0] = 0x40  # the start-up bit
+    second = encode_samples(t2, 0xA7, Format(sample_rate_hz=125), False).tobytes()
+    sequence = power_up(config) if with_configuration else power_up(config)[:-len(encode_special(config, False))]
+    _, parser = assert_same_as_bulk(first + sequence + second)
+    assert (parser.stats.restarts, parser.stats.restart_datagrams) == (1, [30])
+    assert parser.stats.lost_samples == 0
+
+
 def test_new_configuration_counts_as_change():
     a = Configuration.build(sample_rate_hz=125)
     b = Configuration.build(sample_rate_hz=2000)
@@ -235,16 +266,64 @@ def test_new_configuration_counts_as_change():
     assert parser.format.sample_rate_hz == 2000
 
 
-def test_undecodable_configuration_is_counted_not_raised():
-    frame = bytearray(encode_special(Configuration.default(), False))
-    frame[6] |= 0x07  # gyro LPF Y code 7: not in the byte map
+def with_crc(frame: bytearray) -> bytes:
     covered = bytes(frame[:CONFIGURATION.pre_crc])
     frame[CONFIGURATION.pre_crc:CONFIGURATION.pre_crc + 4] = datagram_crc(covered).to_bytes(4, "big")
-    data, truth, _ = capture(5, 0xA7, False)
-    samples, parser = assert_same_as_bulk(bytes(frame) + data)
+    return bytes(frame)
+
+
+def test_an_undefined_code_no_value_depends_on_is_kept_and_said():
+    frame = bytearray(encode_special(Configuration.build(sample_rate_hz=125), False))
+    frame[6] |= 0x07  # gyro LPF Y code 7: not in the byte map
+    data, truth, _ = capture(5, 0xA7, False, rate=125)
+    samples, parser = assert_same_as_bulk(with_crc(frame) + data)
     assert same_samples(samples, truth)
-    assert parser.stats.undecodable_specials == 1
-    assert parser.scanner.configuration is None
+    assert parser.stats.undecodable_specials == 0 and parser.scanner.configuration is not None
+    warnings = stream_info(parser).warnings
+    assert len(warnings) == 1 and "gyro_lpf_hz" in warnings[0] and "0x7" in warnings[0]
+
+
+def test_a_configuration_with_an_undefined_unit_is_refused_loudly():
+    frame = bytearray(encode_special(Configuration.build(sample_rate_hz=125), False))
+    frame[5] = frame[5] & 0xF0 | 5  # gyro unit code 5: undefined, and every gyro value depends on it
+    data, truth, _ = capture(5, 0xA7, False, rate=125)
+    samples, parser = assert_same_as_bulk(with_crc(frame) + data)
+    assert same_samples(samples, truth)  # decoded as before (the given or default format)
+    assert parser.stats.undecodable_specials == 1 and parser.scanner.configuration is None
+    warnings = stream_info(parser).warnings
+    assert len(warnings) == 1 and warnings[0].startswith("configuration datagram refused")
+    assert "gyro_unit" in warnings[0] and "0x5" in warnings[0]
+
+
+def test_a_5g_incremental_angle_unit_decodes_in_its_units():
+    """A real unit's configuration (undefined bit-rate code): gyro in deg, acc in 5 g counts."""
+    config = bytes.fromhex("bc4b1f06407144407044407044400c00003330000000a91f9809")
+    fmt = Format(datagram_id=0x93, crlf=False, sample_rate_hz=125, gyro_unit=GyroUnit.INCREMENTAL_ANGLE,
+                 acc_range_g=5)
+    truth = np.zeros(20, SAMPLE_DTYPE)
+    truth["datagram_id"], truth["gyro"], truth["acc"], truth["incl"] = 0x93, 1.0, 1.0, 0.5
+    truth["temp_gyro"] = truth["temp_acc"] = truth["temp_incl"] = truth["aux"] = np.nan
+    truth["counter"] = np.arange(20) * 16 % 256
+    samples, parser = assert_same_as_bulk(config + encode_samples(truth, 0x93, fmt, False).tobytes())
+    assert np.all(samples["gyro"] == 1.0) and np.all(samples["acc"] == 1.0)
+    info = stream_info(parser)
+    assert info.format == fmt and info.format.units()["gyro"] == "deg"
+    assert len(info.warnings) == 1 and "bit_rate_code" in info.warnings[0]
+
+
+def test_each_accelerometer_axis_is_scaled_by_its_own_range():
+    fmt = Format(datagram_id=0x93, crlf=False, sample_rate_hz=125, acc_range_g=(5, 10, 80))
+    data, truth, _ = capture(30, 0x93, False, rate=125, acc_range_g=(5, 10, 80))
+    config = encode_special(dataclasses.replace(Configuration.build(sample_rate_hz=125, temp_included=False),
+                                                acc_range_g=(5, 10, 80)), False)
+    samples, parser = assert_same_as_bulk(config + data)
+    assert parser.format == fmt
+    assert same_samples(samples, truth)
+    big = np.zeros(1, SAMPLE_DTYPE)
+    big["datagram_id"], big["acc"] = 0x93, [[3.0, 7.0, 60.0]]  # beyond 5 g on Y, beyond 10 g on Z
+    big["temp_gyro"] = big["temp_acc"] = big["temp_incl"] = big["aux"] = np.nan
+    decoded, _ = stream_decode(config + encode_samples(big, 0x93, fmt, False).tobytes(), [])
+    assert decoded["acc"][0].tolist() == [3.0, 7.0, 60.0]
 
 
 def test_a_run_counted_at_once_ends_the_power_up_sequence_as_single_datagrams_do():
