@@ -357,7 +357,7 @@ def cmd_config(args) -> int:
     from .cliutil import RunError
     from .configure import Changes, ConfigureError, configure
     from .errors import PortError, ServiceError, ServiceTimeout
-    from .port import _describe, open_serial
+    from .port import describe_error, open_serial, sigterm_as_ctrl_c
     changes = Changes(sample_rate=args.rate, datagram_id=args.datagram, crlf=args.crlf, gyro_unit=args.gyro_unit,
                       acc_unit=args.acc_unit, incl_unit=args.incl_unit, gyro_lpf_hz=args.gyro_lpf,
                       acc_lpf_hz=args.acc_lpf, incl_lpf_hz=args.incl_lpf, bit_rate_bps=args.bit_rate)
@@ -377,7 +377,7 @@ def cmd_config(args) -> int:
         return sys.stdin.readline().strip().lower() in ("y", "yes")
 
     try:
-        with open_serial(args.port, args.baud) as ser:
+        with sigterm_as_ctrl_c(), open_serial(args.port, args.baud) as ser:  # kill: back to Normal Mode too
             outcome = configure(ser, changes, args.save, confirm)
     except PortError as exc:
         raise RunError(f"stim300 config: {exc}") from None
@@ -389,7 +389,7 @@ def cmd_config(args) -> int:
         raise RunError(f"stim300 config: {args.port}: {exc}" + (" (the sensor is back in Normal Mode)" if left
                                                                  else "")) from None
     except (serial.SerialException, OSError) as exc:
-        raise RunError(f"stim300 config: {args.port}: {_describe(exc)}") from None
+        raise RunError(f"stim300 config: {args.port}: {describe_error(exc)}") from None
     if args.json:
         print(json.dumps({"port": args.port, "configuration": outcome.after.as_dict(),
                           "before": outcome.before.as_dict(), "changed": outcome.changed(),

@@ -19,13 +19,13 @@ import serial
 from .errors import FormatError, ServiceError, Stim300Error
 from .protocol import NORMAL_LAYOUTS, SAMPLE_RATES_HZ, STANDARD_BIT_RATES, AccUnit, GyroUnit, normal_id
 from .service import change_bit_rate, save_to_flash, service_command, service_mode
-from .special import _LPF_HZ, EXTERNAL_TRIGGER_CODE
+from .special import LPF_HZ, EXTERNAL_TRIGGER_CODE
 
 GROUPS = ("gyro", "acc", "incl")
 EXTERNAL = "external"
 SAMPLE_RATE_CODES: dict[int | str, int] = {hz: code for code, hz in enumerate(SAMPLE_RATES_HZ)} | {
     EXTERNAL: EXTERNAL_TRIGGER_CODE}
-LPF_CODES: dict[int, int] = dict(_LPF_HZ.to_code)  # -3 dB frequency (Hz) -> `f` code
+LPF_CODES: dict[int, int] = dict(LPF_HZ.to_code)  # -3 dB frequency (Hz) -> `f` code
 # `d` type codes: 0..7 for the plain family, l..t for the PPS family (protocol doc §4.2)
 DATAGRAM_CODES: dict[int, str] = ({0x90 | low: str(low) for low in range(5)}
                                   | {0xA0 | low: str(low) for low in (5, 6, 7)}

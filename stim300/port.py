@@ -48,7 +48,7 @@ _ERRNO_TEXT = {
 }
 
 
-def _describe(exc: BaseException) -> str:
+def describe_error(exc: BaseException) -> str:
     code = getattr(exc, "errno", None)
     if code in _ERRNO_TEXT:
         return _ERRNO_TEXT[code]
@@ -67,7 +67,7 @@ def open_serial(url: str, baudrate: int = DEFAULT_BIT_RATE, timeout: float = 0.0
         return serial.serial_for_url(url, baudrate=baudrate, bytesize=8, parity="N", stopbits=1, timeout=timeout,
                                      write_timeout=WRITE_TIMEOUT_S, exclusive=True, do_not_open=False)
     except (serial.SerialException, OSError, ValueError) as exc:
-        raise PortError(f"{url}: {_describe(exc)}") from exc
+        raise PortError(f"{url}: {describe_error(exc)}") from exc
 
 
 def _read_available(ser: serial.Serial, limit: int | None = None) -> bytes:
@@ -146,7 +146,7 @@ class PortReader:
                 ser.write(request)
             except (serial.SerialException, OSError) as exc:
                 log.warning("request_not_sent", port=self.url, request=request.decode("ascii", "replace"),
-                            error=_describe(exc))
+                            error=describe_error(exc))
                 return False
         return True
 
@@ -172,7 +172,7 @@ class PortReader:
                 ser.write(CONFIGURATION.request)
             except (serial.SerialException, OSError) as exc:
                 ser.close()
-                raise PortError(f"{self.url}: {_describe(exc)}") from exc
+                raise PortError(f"{self.url}: {describe_error(exc)}") from exc
         self.connected = True
         log.info("port_opened", port=self.url, baudrate=self.baudrate, config_requested=self.request_config)
         return ser
@@ -213,7 +213,7 @@ class PortReader:
         self.connected = False
         self._publish(None)
         self.read_errors += 1
-        log.warning("port_error", port=self.url, error=_describe(exc))
+        log.warning("port_error", port=self.url, error=describe_error(exc))
         try:
             ser.close()
         except (serial.SerialException, OSError):
@@ -255,12 +255,12 @@ def record(url: str, output_path, baudrate: int = DEFAULT_BIT_RATE, duration_s: 
     except PortError as exc:
         print(f"stim300 record: {exc}", file=sys.stderr)
         return 1
-    with _sigterm_as_ctrl_c():
+    with sigterm_as_ctrl_c():
         return _record(ser, url, out, part, duration_s, max_bytes)
 
 
 @contextmanager
-def _sigterm_as_ctrl_c():
+def sigterm_as_ctrl_c():
     """SIGTERM (kill, systemd stopping a unit) ends a recording as Ctrl-C does: the bytes read so
     far are written and the file put in place, not lost in a buffer of a killed process. Only
     the first: a second one while the file is being finished is ignored."""
@@ -299,7 +299,7 @@ def _record(ser: serial.Serial, url: str, out: Path, part: Path, duration_s: flo
                         data = _read_available(ser, None if max_bytes is None else max_bytes - total)
                         returned = time.monotonic()
                     except (serial.SerialException, OSError) as exc:
-                        print(f"stim300 record: {url}: {_describe(exc)}", file=sys.stderr)
+                        print(f"stim300 record: {url}: {describe_error(exc)}", file=sys.stderr)
                         status = 1
                         break
                     if data:

@@ -260,7 +260,8 @@ def _enum(enum: type[IntEnum], needed: bool = False) -> _Table:
 
 _BOOL = _Table({0: False, 1: True})
 _CHAR = _Table({c: chr(c) for c in range(256)}, "one character U+0000..U+00FF")
-_LPF_HZ = _Table({0b000: 16, 0b001: 33, 0b010: 66, 0b011: 131, 0b100: 262})
+# low-pass filter code -> -3 dB frequency (Hz): the configuration datagram's and `stim300 config`'s
+LPF_HZ = _Table({0b000: 16, 0b001: 33, 0b010: 66, 0b011: 131, 0b100: 262})
 _ACC_RANGE_G = _Table({0b0000: 10, 0b0011: 5, 0b0100: 30, 0b0110: 80, 0b0010: 2}, needed=True)  # 2 g: VX only
 EXTERNAL_TRIGGER_CODE = 5
 USER_BIT_RATE_CODE = 15
@@ -283,17 +284,17 @@ _CONFIG_MAP: dict[str, tuple[_Table, tuple[tuple[int, int, int], ...]]] = {
     "line_termination": (_BOOL, ((4, 0, 1),)),
     "gyro_axes": (_BOOL, ((5, 6, 1), (5, 5, 1), (5, 4, 1))),
     "gyro_unit": (_enum(GyroUnit, needed=True), ((5, 0, 4),)),
-    "gyro_lpf_hz": (_LPF_HZ, ((6, 4, 3), (6, 0, 3), (7, 4, 3))),
+    "gyro_lpf_hz": (LPF_HZ, ((6, 4, 3), (6, 0, 3), (7, 4, 3))),
     "gyro_g_compensation": (_raw(4), ((7, 0, 4),)),
     "acc_axes": (_BOOL, ((8, 6, 1), (8, 5, 1), (8, 4, 1))),
     "acc_unit": (_enum(AccUnit, needed=True), ((8, 0, 4),)),
-    "acc_lpf_hz": (_LPF_HZ, ((9, 4, 3), (9, 0, 3), (10, 4, 3))),
+    "acc_lpf_hz": (LPF_HZ, ((9, 4, 3), (9, 0, 3), (10, 4, 3))),
     "incl_axes": (_BOOL, ((11, 6, 1), (11, 5, 1), (11, 4, 1))),
     "incl_unit": (_enum(AccUnit, needed=True), ((11, 0, 4),)),
-    "incl_lpf_hz": (_LPF_HZ, ((12, 4, 3), (12, 0, 3), (13, 4, 3))),
+    "incl_lpf_hz": (LPF_HZ, ((12, 4, 3), (12, 0, 3), (13, 4, 3))),
     "pps_unit": (_enum(PpsUnit, needed=True), ((13, 0, 4),)),
     "has_pps_input": (_BOOL, ((14, 3, 1),)),
-    "pps_lpf_hz": (_LPF_HZ, ((14, 0, 3),)),
+    "pps_lpf_hz": (LPF_HZ, ((14, 0, 3),)),
     "gyro_range_codes": (_raw(4), ((15, 4, 4), (15, 0, 4), (16, 4, 4))),
     "acc_range_g": (_ACC_RANGE_G, ((17, 4, 4), (17, 0, 4), (18, 4, 4))),
     "incl_range_codes": (_raw(4), ((19, 4, 4), (19, 0, 4), (20, 4, 4))),

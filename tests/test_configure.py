@@ -7,6 +7,7 @@ import io
 import json
 import os
 import select
+import signal
 import subprocess
 import sys
 import time
@@ -375,3 +376,21 @@ def test_ctrl_c_while_a_command_is_answered_still_leaves_cleanly(sensor, monkeyp
     assert main(["config", sensor.path, "--rate", "250"]) == 130
     assert capsys.readouterr().err == ""
     assert sensor.lines == ["i", "m 1", "x N"] and sensor.mode == "normal"
+
+
+def test_sigterm_mid_session_leaves_the_sensor_in_normal_mode():
+    """`kill` (or systemd stopping a script's unit) ends a session as Ctrl-C does: back to Normal Mode."""
+    sensor = emulated(silent=("m 1",))  # the unit takes the command and says nothing: the program waits
+    try:
+        env = dict(os.environ, PYTHONPATH=str(ROOT))
+        program = subprocess.Popen([sys.executable, "-m", "stim300.cli", "config", sensor.path, "--rate", "250"],
+                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=ROOT)
+        deadline = time.monotonic() + 20
+        while "m 1" not in sensor.lines and time.monotonic() < deadline:
+            time.sleep(0.02)
+        program.send_signal(signal.SIGTERM)
+        _, err = program.communicate(timeout=20)
+        assert program.returncode == 130 and "Traceback" not in err
+        assert sensor.mode == "normal" and sensor.lines[-1] == "x N"
+    finally:
+        sensor.stop()
