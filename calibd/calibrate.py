@@ -456,13 +456,14 @@ def _chi2_record(fit: joint.JointResult) -> dict:
 
 
 def _joint_warnings(fit: joint.JointResult, site: Site) -> list[str]:
+    forces = "accelerometer" if fit.incl is None else "accelerometer and inclinometer"
     warnings = ["biases are turn-on biases (the sensor's at this power-up): their 1-sigma includes the "
                 "bias-instability wander over the session, which moves the bias the data carry away from them",
-                "horizontal accelerometer and inclinometer biases rest on the gyro-derived alpha and beta "
+                f"horizontal {forces} biases rest on the gyro-derived alpha and beta "
                 "(a single rotation axis cannot separate them from the IMU tilt otherwise): an error "
                 "d_beta moves the X biases by g0 d_beta, and their 1-sigma carries it"]
     if site.g0 is None:
-        warnings.append(f"Z accelerometer and inclinometer biases rest on normal gravity: their 1-sigma includes "
+        warnings.append(f"Z {forces} biases rest on normal gravity: their 1-sigma includes "
                         f"{site.gravity_sigma / STANDARD_GRAVITY * 1000:.3f} mg for a typical local gravity anomaly, "
                         "more where it is large (give --g0 when it is measured)")
     if fit.sigmas["yaw"] / DEG > YAW_SIGMA_POOR_DEG:

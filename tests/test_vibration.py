@@ -129,3 +129,14 @@ def test_quiet_statics_get_no_vibration_warning():
     sim = simulate(vibrating_scenario(0.0))
     result = joint_real_case(session_of(sim), sim.scenario.site)
     assert not [w for w in result.warnings if "per sample" in w]
+
+
+def test_a_static_shaken_at_a_hundred_times_the_noise_stays_within_sigma():
+    """2.8 deg/s per sample: the settling next to the static vibrates too, and is weighed by its
+    own noise like the static."""
+    sim = simulate(vibrating_scenario(100.0, seed=3))
+    result = joint_real_case(session_of(sim), sim.scenario.site)
+    z = z_scores(result, sim)
+    assert max(abs(v) for v in z.values()) < K_SIGMA, z
+    assert any(re.search(r"gyro noise 2\.\d+ deg/s per sample, (99|100|101)x the specified", w)
+               for w in result.warnings), result.warnings

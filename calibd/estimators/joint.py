@@ -45,6 +45,7 @@ MAX_ITERATIONS = 20  # chi depends on the fitted axis and Earth terms: iterate t
 CHI_TOLERANCE = 1e-13  # rad: the largest change of chi between passes that counts as converged
 FLICKER_BIN_S = 0.1  # flicker's fastest component (3 s) barely changes within a bin (3 % at most)
 NOISIER_FROM = 2.0  # a static whose white variance is this many times the reference static's is weighted down
+LOCAL_NOISE_S = 1.0  # outside the statics, the noise around a sample is measured over this window
 
 # The fits' parameter vectors, named once for every reader (the fits, the chain, the figures).
 # Gyro fit: (v1, v2, k, c[, d]).
@@ -160,13 +161,25 @@ def static_inflation(values: np.ndarray, statics) -> np.ndarray:
     return np.where(ratio >= NOISIER_FROM, ratio, 1.0)
 
 
-def _row_weights(inflation: np.ndarray, inp: JointInput) -> np.ndarray:
-    """Per sample, the square root of its weight: 1 outside the statics (turns are weighed by the
-    noise model), 1 / sqrt(inflation) in a static."""
-    root = np.ones(len(inp.time_s))
-    for (a, b), factor in zip(inp.statics, inflation):
-        root[a:b] = 1.0 / np.sqrt(factor)
-    return root
+def _row_weights(values: np.ndarray, inp: JointInput) -> np.ndarray:
+    """Per sample, the square root of its weight, 1 / sqrt(inflation): in a static, the static's
+    (`static_inflation`); elsewhere (turns, and the settling next to a static that vibrates),
+    that of the noise around the sample, from the mean square of its second differences over
+    LOCAL_NOISE_S (a turn's constant or steadily changing rate has none), against the
+    reference static's. Vibrating samples weighed as quiet ones would put their noise into the
+    fit while its covariance took them for quiet."""
+    variance = sample_variance(values, inp.statics)
+    ref = variance[reference_static(variance, inp.statics)]
+    inflation = np.ones(len(values))
+    if ref > 0:  # noise-free data (planning): nothing to weigh by
+        second = np.mean(np.diff(values, n=2, axis=0) ** 2, axis=1) / 6  # white noise: 6 sigma^2
+        half = max(1, int(LOCAL_NOISE_S * inp.rate_hz / 2))
+        window = np.ones(2 * half + 1) / (2 * half + 1)
+        local = np.convolve(np.pad(second, half + 1, mode="edge"), window, mode="valid")  # centred, n samples
+        inflation = np.where(local >= NOISIER_FROM * ref, local / ref, 1.0)
+    for (a, b), factor in zip(inp.statics, static_inflation(values, inp.statics)):
+        inflation[a:b] = factor
+    return 1.0 / np.sqrt(inflation)
 
 
 def _scaled(designs: list[ChannelDesign], root: np.ndarray) -> list[ChannelDesign]:
@@ -280,7 +293,7 @@ def fit_gyros(inp: JointInput, site: Site, options: JointOptions = JointOptions(
     flicker at least `least_flicker`)."""
     static = np.concatenate([np.arange(a, b) for a, b in inp.statics])
     inflation = static_inflation(inp.gyro, inp.statics)
-    root = _row_weights(inflation, inp)
+    root = _row_weights(inp.gyro, inp)
     axis = np.array([0.0, 0.0, 1.0])
     offset = inp.gyro[static].mean(axis=0)
     tau = inp.time_s - inp.time_s.mean()
@@ -466,8 +479,7 @@ def fit_force(force: np.ndarray, chi: np.ndarray, inp: JointInput, k: np.ndarray
     if np.ptp(np.exp(1j * chis).real) < 0.5 and np.ptp(np.exp(1j * chis).imag) < 0.5:
         raise Underdetermined("the statics cover too few platform angles to separate the tilt from the biases "
                               "(index positions about 90 deg apart are needed)")
-    inflation = static_inflation(force, inp.statics)
-    root = _row_weights(inflation, inp)[rows]
+    root = _row_weights(force, inp)[rows]
     basis = np.column_stack([np.cos(chi[rows]), np.sin(chi[rows]), np.ones(len(rows))])
     weighted = basis * (root**2)[:, None]
     sums = _StaticSums(basis, weighted.T @ basis, weighted.T @ force[rows])
