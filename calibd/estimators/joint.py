@@ -21,9 +21,12 @@ counts, so a bias's sigma is that of the turn-on bias, the wander over the sessi
 The force fits' sensitivity to the gyro-derived axis and to g0 carries the gyro covariance and
 g0's (Site.gravity_sigma) into the accelerometer and inclinometer parameters, with their
 cross-covariances; the numerical Jacobian of the chain takes it all to every estimate. The
-model is fitted to the Allan deviation of the longest static's residuals, its flicker at least
-the STIM300 datasheet's, or given (`SensorNoise`: the protocol planner gives a datasheet's
-figures to a noise-free session of the protocol).
+model is fitted to the Allan deviation of the residuals of the longest static that does not
+vibrate, its flicker at least the STIM300 datasheet's, or given (`SensorNoise`: the protocol
+planner gives a datasheet's figures to a noise-free session of the protocol). Samples noisier
+than that static (vibration) weigh less in every fit by their measured noise
+(`static_inflation`, `_row_weights`), so the covariance stays that of the data. A unit without
+inclinometers has no inclinometer fit: the accelerometers give the tilt.
 """
 
 from __future__ import annotations
