@@ -19,6 +19,7 @@ from .errors import CalibrationError
 from .estimators import joint, thesis
 from .frames import EARTH_RATE, STANDARD_GRAVITY, Site, int_to_imu
 from .results import CalibrationResult, make_result
+from .scenario import Noise
 from .segments import segment_record, session_segments
 from .session import CaptureSessions, Session, power_up_session
 from .units import DEG
@@ -74,7 +75,20 @@ def _session_warnings(session: Session) -> list[str]:
         faults.append(f"time base corrected: the host clock shows {session.stream['hidden_gap_s']:.3f} s of data "
                       f"lost in {hidden} gap{'s' if hidden > 1 else ''} the datagram counter could not see (whole "
                       f"{CYCLE_S:.3f} s counter cycles); that time was added")
+    if session.incl is None:
+        faults.append(NO_INCLINOMETERS)
     return faults + warm_up_warnings(session.time_s, session.temperature_c)
+
+
+NO_INCLINOMETERS = ("the unit has no inclinometers: pitch, roll and the accelerometer biases come from the "
+                    "accelerometers alone, and no inclinometer bias is estimated")
+
+
+def _needs_inclinometers(session: Session, method: str) -> None:
+    """The thesis's chains take pitch and roll, and their own biases, from the inclinometers."""
+    if session.incl is None:
+        raise CalibrationError(f"method {method} needs inclinometers, and the unit has none (its datagrams carry "
+                               "gyros and accelerometers only): use the joint method")
 
 
 def _one_period(session: Session, turn: detect.Segment) -> tuple[slice, float]:
@@ -110,6 +124,7 @@ def thesis_real_case(session: Session, site: Site, alpha_beta_deg: tuple[float, 
                      segments: list[detect.Segment] | None = None) -> CalibrationResult:
     """The thesis's real-case chain on a session: nominal with alpha/beta given, else linear.
     `segments`: the session's, when already found."""
+    _needs_inclinometers(session, "thesis")
     segments = session_segments(session) if segments is None else segments
     try:
         level = detect.level_static(segments)
@@ -186,6 +201,7 @@ def bench_positions(segments: list[detect.Segment]) -> dict[str, detect.Segment]
 def thesis_bench(session: Session, site: Site, segments: list[detect.Segment] | None = None) -> CalibrationResult:
     """The bench campaign: six-position biases of every channel (eq. 5.3) and alpha/beta from
     every full turn (eqs. 5.6-5.8), averaged. `segments`: the session's, when already found."""
+    _needs_inclinometers(session, "thesis-bench")
     segments = session_segments(session) if segments is None else segments
     statics = [s for s in segments if s.kind == "static"]
     positions = bench_positions(segments)
@@ -255,7 +271,7 @@ def joint_fit(session: Session, site: Site, options: joint.JointOptions = joint.
     first, stop = level.start, used[-1].stop
     inp = joint.JointInput(
         time_s=session.time_s[first:stop] - session.time_s[first], gyro=session.gyro[first:stop],
-        acc=session.acc[first:stop], incl=session.incl[first:stop],
+        acc=session.acc[first:stop], incl=None if session.incl is None else session.incl[first:stop],
         statics=tuple((s.start - first, s.stop - first) for s in statics), rate_hz=session.rate_hz)
     try:
         fit = joint.solve(inp, site, options)
@@ -279,8 +295,8 @@ def _tilt_check(inp: joint.JointInput, fit: joint.JointResult, site: Site) -> ga
     """The turns' angles against the tilt; None when the statics cannot tell them."""
     a = int_to_imu(fit.estimates["alpha"], fit.estimates["beta"])
     try:
-        return gaps.check_turn_angles(inp, fit.gyro.chi, a, site.gravity, fit.acc.noise, fit.incl.noise,
-                                      fit.incl.params[joint.TILT_PARAMS])
+        return gaps.check_turn_angles(inp, fit.gyro.chi, a, site.gravity, fit.acc.noise, fit.tilt.noise,
+                                      fit.tilt.params[joint.TILT_PARAMS])
     except (joint.Underdetermined, np.linalg.LinAlgError):
         return None
 
@@ -309,8 +325,10 @@ def joint_real_case(session: Session, site: Site, options: joint.JointOptions = 
     static to the last static of the same mounting. `segments`: the session's, when already found."""
     fitted = joint_fit(session, site, options, segments)
     used, fit = fitted.segments, fitted.fit
-    warnings = _session_warnings(session) + _joint_warnings(fit, site) + _turn_angle_warnings(fitted, session)
-    estimates = {name: (fit.estimates[name], fit.sigmas[name]) for name in joint.ESTIMATE_NAMES}
+    warnings = (_session_warnings(session) + _vibration_warnings(fitted, session) + _joint_warnings(fit, site)
+                + _turn_angle_warnings(fitted, session))
+    estimates = {name: (fit.estimates[name], fit.sigmas[name]) for name in joint.ESTIMATE_NAMES
+                 if name in fit.estimates}
     result = make_result("joint", site, estimates, [segment_record(s, s.kind) for s in used], warnings,
                          session.sensor, stream=session.stream,
                          options={"fixed_amplitude": options.fixed_amplitude, "drift": options.drift},
@@ -321,6 +339,42 @@ def joint_real_case(session: Session, site: Site, options: joint.JointOptions = 
     if fitted.final_tilt and fitted.final_tilt.p_value < CHI2_ALARM_P:
         result = result.flag_poor(PLATFORM_ANGLE_ESTIMATES)
     return result
+
+
+VIBRATION_FACTOR = 3.0  # a static whose noise per sample exceeds the specified this many times is named
+_SPEC_WORDS = {"gyro": ("gyro", 1 / DEG, "deg/s", "ARW", 60 / DEG, "deg/sqrt(h)"),
+               "acc": ("accelerometer", 1000 / STANDARD_GRAVITY, "mg", "VRW", 60, "m/s/sqrt(h)"),
+               "incl": ("inclinometer", 1000 / STANDARD_GRAVITY, "mg", "VRW", 60, "m/s/sqrt(h)")}
+
+
+def _vibration_warnings(fitted: JointFit, session: Session) -> list[str]:
+    """Statics whose noise per sample is VIBRATION_FACTOR times the sensor's specified noise (its
+    datasheet random walk at the session's rate, `joint.datasheet_noise`) or more: vibration (an
+    engine running) or a platform that is not still. The fits weigh each static by its own
+    measured noise (`joint.static_inflation`), so the estimates and sigmas stay honest; the
+    warning says what the data are worth."""
+    inp = fitted.inp
+    spec = joint.datasheet_noise(Noise(), inp.rate_hz)
+    warnings = []
+    for k, (start, stop) in enumerate(inp.statics):
+        loud = []
+        for sensor, values in (("gyro", inp.gyro), ("acc", inp.acc), ("incl", inp.incl)):
+            if values is None:
+                continue
+            measured = np.sqrt(joint.sample_variance(values, [(start, stop)])[0])
+            specified = np.sqrt(getattr(spec, sensor).white)
+            if measured > VIBRATION_FACTOR * specified:
+                name, factor, unit, walk, walk_factor, walk_unit = _SPEC_WORDS[sensor]
+                density = specified / np.sqrt(inp.rate_hz) * walk_factor
+                loud.append(f"{name} noise {measured * factor:.3g} {unit} per sample, {measured / specified:.0f}x "
+                            f"the specified {specified * factor:.2g} {unit} ({walk} {density:.3g} {walk_unit} at "
+                            f"{inp.rate_hz:g} Hz)")
+        if loud:
+            begin_s = session.time_s[fitted.first + start]
+            warnings.append(f"static {k + 1} ({begin_s:.1f} s to {begin_s + (stop - start) / inp.rate_hz:.1f} s): "
+                            f"{'; '.join(loud)}: vibration (an engine running?) or a platform not at rest; the "
+                            "fits weigh it by its measured noise")
+    return warnings
 
 
 # what a wrong platform angle at the statics moves (alpha and beta come from the turns' rates)
@@ -368,7 +422,7 @@ def _turn_angle_warnings(fitted: JointFit, session: Session) -> list[str]:
                 "uncertainty is in the sigmas")
     unchecked = [t for t in fitted.turn_angles.turns if not t.checkable]
     if unchecked:
-        tilt_deg = np.degrees(np.arcsin(min(np.hypot(*fitted.fit.incl.params[joint.TILT_PARAMS]), 1.0)))
+        tilt_deg = np.degrees(np.arcsin(min(np.hypot(*fitted.fit.tilt.params[joint.TILT_PARAMS]), 1.0)))
         warnings.append(f"{len(unchecked)} of {len(fitted.turn_angles.turns)} turns' angles could not be "
                         f"checked against the tilt (platform axis {tilt_deg:.3f} deg from Up, too little to see "
                         f"the angle to {np.degrees(gaps.CHECKABLE_SIGMA_RAD):.0f} deg): {unseen}")
@@ -390,7 +444,7 @@ def _joint_checks(fit: joint.JointResult, site: Site) -> dict:
             "static_chi2": _chi2_record(fit),
             "gyro_residual_rms_deg_s": (fit.gyro.residual_rms / DEG).tolist(),
             "noise_excess_over_white": {"gyro": fit.gyro.noise_scale, "acc": fit.acc.noise_scale,
-                                        "incl": fit.incl.noise_scale}}
+                                        **({} if fit.incl is None else {"incl": fit.incl.noise_scale})}}
 
 
 CHI2_ALARM_P = 1e-3  # p-value below which the statics' residuals say the model does not hold
@@ -402,13 +456,14 @@ def _chi2_record(fit: joint.JointResult) -> dict:
 
 
 def _joint_warnings(fit: joint.JointResult, site: Site) -> list[str]:
+    forces = "accelerometer" if fit.incl is None else "accelerometer and inclinometer"
     warnings = ["biases are turn-on biases (the sensor's at this power-up): their 1-sigma includes the "
                 "bias-instability wander over the session, which moves the bias the data carry away from them",
-                "horizontal accelerometer and inclinometer biases rest on the gyro-derived alpha and beta "
+                f"horizontal {forces} biases rest on the gyro-derived alpha and beta "
                 "(a single rotation axis cannot separate them from the IMU tilt otherwise): an error "
                 "d_beta moves the X biases by g0 d_beta, and their 1-sigma carries it"]
     if site.g0 is None:
-        warnings.append(f"Z accelerometer and inclinometer biases rest on normal gravity: their 1-sigma includes "
+        warnings.append(f"Z {forces} biases rest on normal gravity: their 1-sigma includes "
                         f"{site.gravity_sigma / STANDARD_GRAVITY * 1000:.3f} mg for a typical local gravity anomaly, "
                         "more where it is large (give --g0 when it is measured)")
     if fit.sigmas["yaw"] / DEG > YAW_SIGMA_POOR_DEG:

@@ -9,11 +9,13 @@ How a session is cut (each step exists because the protocols of docs/method.md n
   so a hand re-mounting the IMU is motion too. The threshold adapts to the sensor: ten times the
   noise of that average, estimated from the data (`motion_thresholds`), and never below
   0.5 deg/s, which stays far above any gyro bias plus the Earth rate (STIM300: ~0.03 deg/s). For
-  the STIM300 the floor rules (its white noise averages to ~0.006 deg/s); a noisier sensor, or a
-  static on a running vehicle, raises it.
+  the STIM300 the floor rules (its white noise averages to ~0.006 deg/s); a noisier sensor
+  raises it, and so does the noise around each sample (`_local_variance`): a static on a
+  vehicle with its engine running is not motion for its vibration.
 - quiet stretches are split where the mean acc vector jumps (a bench re-mount, instantaneous in
   the simulator: gravity moves to another axis while the gyros see nothing; the jump threshold
-  adapts to the accelerometer noise the same way), trimmed by
+  adapts to the accelerometer noise the same way, and to the local noise around each sample,
+  so a static on a vibrating vehicle is not cut into pieces), trimmed by
   `settle_s` next to any motion or re-mount, and kept when at least `min_static_s` long.
 - the motion between two statics is one turn when it is mostly about the vertical (the unit mean
   acc of the static before); otherwise it is handling and gives no segment.
@@ -35,6 +37,7 @@ AXES = "XYZ"
 NOISE_MULTIPLE = 10.0  # thresholds sit this many noise sigmas above a quiet sensor's averaged output
 MIN_TURN_THRESHOLD_DEG_S = 0.5  # above gyro bias + Earth rate of any navigation-grade gyro
 MIN_REMOUNT_G = 0.05  # a re-mount moves gravity by ~1 g between axes
+LOCAL_NOISE_WIDTHS = 8  # the accelerometers' local noise is measured over this many step widths
 
 
 @dataclass(frozen=True)
@@ -113,7 +116,8 @@ def _static_pieces(moving, acc, half, settle_n, min_n, remount_g):
     """(start, stop) of the statics: quiet runs split at re-mounts, trimmed, long enough."""
     n = len(acc)
     step = _step_size(acc, 2 * half)
-    jump = (step > remount_g) & ~moving
+    local = np.sqrt(_local_variance(acc, 2 * half) * 2 / (2 * half))  # the noise of a step of two means
+    jump = (step > np.maximum(remount_g, NOISE_MULTIPLE * local)) & ~moving
     cuts = []  # (a, b): [a, b) is in no static; a == b is a split point
     for a, b in zip(*_runs(jump)):
         a2, b2 = a + 2 * half, b - 2 * half  # an instantaneous step shows over +-width: undo that blur
@@ -133,6 +137,16 @@ def _static_pieces(moving, acc, half, settle_n, min_n, remount_g):
             if b2 - a2 >= max(min_n, 1):
                 pieces.append((int(a2), int(b2)))
     return pieces
+
+
+def _local_variance(x: np.ndarray, width: int) -> np.ndarray:
+    """Per sample, the white noise variance of the samples around it, summed over the axes (the
+    mean square of their first differences over LOCAL_NOISE_WIDTHS windows of `width`): a static
+    on a vibrating vehicle averages and steps by its own noise, far above the session's quiet
+    noise, and is neither motion nor a re-mount for that. A turn (its rate changes slowly from
+    sample to sample) and a re-mount (gravity moving ~1 g) stand well above it."""
+    variance = np.sum(np.diff(x, axis=0, prepend=x[:1]) ** 2, axis=1) / 2
+    return _moving_average(variance[:, None], LOCAL_NOISE_WIDTHS * width // 2)[:, 0]
 
 
 # ---------------------------------------------------------------- segments
@@ -188,7 +202,8 @@ def find_segments(gyro: np.ndarray, acc: np.ndarray, rate_hz: float, time_s: np.
     w = _weights(t, dt)
     half = max(int(round(smooth_s * rate_hz / 2)), 1)
     gyro_s = _moving_average(gyro, half)
-    moving = np.linalg.norm(gyro_s, axis=1) > turn_threshold_deg_s
+    local = np.sqrt(_local_variance(gyro, 2 * half + 1) / (2 * half + 1))  # the noise of the average
+    moving = np.linalg.norm(gyro_s, axis=1) > np.maximum(turn_threshold_deg_s, NOISE_MULTIPLE * local)
     settle_n, min_n = int(round(settle_s * rate_hz)), int(round(min_static_s * rate_hz))
     pieces = _static_pieces(moving, acc, half, settle_n, min_n, remount_g)
 

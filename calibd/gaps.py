@@ -21,7 +21,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.special import gammaincc
 
-from .estimators.joint import JointInput, NoiseModel, Underdetermined, mean_variance
+from .estimators.joint import JointInput, NoiseModel, Underdetermined, mean_variance, static_inflation
 from .allan import FLICKER_TAUS_S
 from .frames import r3
 
@@ -74,59 +74,67 @@ class TiltCheck:
         return float(gammaincc(self.dof / 2, self.chi2 / 2))
 
 
-# the check's parameter vector: the platform axis's tilt, both sensors' biases, then one angle
-# correction per turn (rad)
-TILT, ACC_BIAS, INCL_BIAS = slice(0, 2), slice(2, 5), slice(5, 8)
-CORRECTIONS_FROM = 8
-CORRECTIONS = slice(CORRECTIONS_FROM, None)
+# the check's parameter vector: the platform axis's tilt, each force sensor's biases (the
+# accelerometers', then the inclinometers' where the unit has them), then one angle correction
+# per turn (rad)
+TILT = slice(0, 2)
 
 
-def _model(params: np.ndarray, static_chi: np.ndarray, a: np.ndarray, g0: float) -> np.ndarray:
-    """Static mean forces of both sensors, (2, S, 3): g0 A R3(chi + corrections so far) u + b."""
+def _corrections_from(sensors: int) -> int:
+    return TILT.stop + 3 * sensors
+
+
+def _model(params: np.ndarray, static_chi: np.ndarray, a: np.ndarray, g0: float, sensors: int) -> np.ndarray:
+    """Static mean forces of each sensor, (sensors, S, 3): g0 A R3(chi + corrections so far) u + b."""
     u1, u2 = params[TILT]
     u = np.array([u1, u2, np.sqrt(1.0 - u1**2 - u2**2)])
-    chi = static_chi + np.concatenate(([0.0], np.cumsum(params[CORRECTIONS])))
+    chi = static_chi + np.concatenate(([0.0], np.cumsum(params[_corrections_from(sensors):])))
     tilt = g0 * (a @ r3(chi) @ u)  # (S, 3)
-    return np.stack([tilt + params[ACC_BIAS], tilt + params[INCL_BIAS]])
+    return np.stack([tilt + params[TILT.stop + 3 * k:TILT.stop + 3 * k + 3] for k in range(sensors)])
 
 
 def check_turn_angles(inp: JointInput, chi: np.ndarray, a: np.ndarray, g0: float,
                       acc_noise: NoiseModel, incl_noise: NoiseModel, u0: np.ndarray) -> TiltCheck:
-    """Fit (u, b_acc, b_incl, one angle correction per turn) to the statics' mean forces,
-    weighted by the covariance the sensors' noise models give those means. `chi`: the
+    """Fit (u, b_acc[, b_incl], one angle correction per turn) to the statics' mean forces,
+    weighted by the covariance the sensors' noise models give those means (`incl_noise` is
+    unused for a unit without inclinometers: `inp.incl` None). `chi`: the
     joint fit's platform angle; `a`: R_int^IMU; `u0`: the joint fit's (u1, u2) to start from.
     Raises Underdetermined when the statics do not determine the corrections."""
     statics = inp.statics
     static_chi = np.array([chi[s:e].mean() for s, e in statics])
     if distinct_headings(static_chi) < MIN_HEADINGS:
         raise Underdetermined(f"statics at fewer than {MIN_HEADINGS} headings")
-    means = np.stack([[values[s:e].mean(axis=0) for s, e in statics] for values in (inp.acc, inp.incl)])
-    whiten = [np.linalg.inv(np.linalg.cholesky(static_means_covariance(noise, inp)))
-              for noise in (acc_noise, incl_noise)]
+    forces = [(inp.acc, acc_noise)] + ([] if inp.incl is None else [(inp.incl, incl_noise)])
+    first = _corrections_from(len(forces))
+    means = np.stack([[values[s:e].mean(axis=0) for s, e in statics] for values, _ in forces])
+    whiten = [np.linalg.inv(np.linalg.cholesky(static_means_covariance(noise, inp, static_inflation(values, statics))))
+              for values, noise in forces]
 
     def residuals(params):
-        misfit = means - _model(params, static_chi, a, g0)
+        misfit = means - _model(params, static_chi, a, g0, len(forces))
         return np.concatenate([(w @ m).ravel() for w, m in zip(whiten, misfit)])
 
-    start = np.concatenate([u0, means[0, 0] - g0 * a[:, 2], means[1, 0] - g0 * a[:, 2], np.zeros(len(statics) - 1)])
-    null = least_squares(lambda p: residuals(np.concatenate([p, start[CORRECTIONS]])), start[:CORRECTIONS_FROM],
+    start = np.concatenate([u0, *(m[0] - g0 * a[:, 2] for m in means), np.zeros(len(statics) - 1)])
+    null = least_squares(lambda p: residuals(np.concatenate([p, start[first:]])), start[:first],
                          method="lm")  # no corrections: where the free fit starts
-    free = least_squares(residuals, np.concatenate([null.x, start[CORRECTIONS]]), method="lm")
+    free = least_squares(residuals, np.concatenate([null.x, start[first:]]), method="lm")
     cov = np.linalg.pinv(free.jac.T @ free.jac)
-    sigmas = np.sqrt(np.clip(np.diag(cov)[CORRECTIONS], 0.0, None))
+    sigmas = np.sqrt(np.clip(np.diag(cov)[first:], 0.0, None))
     if not np.all(np.isfinite(sigmas)) or np.linalg.matrix_rank(free.jac) < len(free.x):
         sigmas = np.full(len(statics) - 1, np.inf)
     turns = tuple(TurnAngle(statics[k][1], statics[k + 1][0], float(static_chi[k + 1] - static_chi[k]),
-                            float(free.x[CORRECTIONS][k]), float(sigmas[k])) for k in range(len(statics) - 1))
-    dof = means.size - 8
+                            float(free.x[first:][k]), float(sigmas[k])) for k in range(len(statics) - 1))
+    dof = means.size - first
     return TiltCheck(turns, float(2 * null.cost), dof)
 
 
-def static_means_covariance(noise: NoiseModel, inp: JointInput) -> np.ndarray:
+def static_means_covariance(noise: NoiseModel, inp: JointInput, inflation: np.ndarray | None = None) -> np.ndarray:
     """Covariance of one channel's means over the statics: white noise and the flicker's fast
     components as in each mean's own variance, and between statics the part of each flicker
     component that the time between them has not decorrelated (the slow ones are nearly common to
-    all statics, and taken as independent they would make every angle look twice as uncertain)."""
+    all statics, and taken as independent they would make every angle look twice as uncertain).
+    `inflation`: each static's white noise over the model's (a vibrating static's,
+    `joint.static_inflation`; default 1)."""
     start_s = np.array([inp.time_s[s] for s, _ in inp.statics])
     end_s = np.array([inp.time_s[e - 1] for _, e in inp.statics]) + 1.0 / inp.rate_hz
     length_s = end_s - start_s
@@ -135,7 +143,8 @@ def static_means_covariance(noise: NoiseModel, inp: JointInput) -> np.ndarray:
     for corr_s in FLICKER_TAUS_S[:4]:
         decay = corr_s / length_s * (1 - np.exp(-length_s / corr_s))
         cov += noise.flicker * np.outer(decay, decay) * np.exp(-np.clip(gap_s, 0.0, None) / corr_s)
-    np.fill_diagonal(cov, [mean_variance(noise, e - s, inp.rate_hz) for s, e in inp.statics])
+    inflation = np.ones(len(inp.statics)) if inflation is None else inflation
+    np.fill_diagonal(cov, [mean_variance(noise, e - s, inp.rate_hz, f) for (s, e), f in zip(inp.statics, inflation)])
     return cov
 
 

@@ -153,8 +153,9 @@ def _static_records(session: Session, statics: list[Segment]) -> list[tuple[int,
 
 
 def characterise(session: Session, segments: list[Segment] | None = None) -> dict[str, ChannelNoise]:
-    """Allan deviation of the nine channels (gyro_x ... incl_z) from the session's statics,
-    pooled, with the noise figures read off it. `segments`: the session's, when already found.
+    """Allan deviation of the nine channels (gyro_x ... incl_z; six on a unit without
+    inclinometers) from the session's statics, pooled, with the noise figures read off it.
+    `segments`: the session's, when already found.
     Raises NoiseError when no static (without lost samples) lasts MIN_STATIC_S."""
     if segments is None:
         segments = session_segments(session)
@@ -165,12 +166,14 @@ def characterise(session: Session, segments: list[Segment] | None = None) -> dic
         found = f"the longest of {len(statics)} lasts {longest:.1f} s" if statics else "none found"
         raise NoiseError(f"no static segment of at least {MIN_STATIC_S:g} s without lost samples ({found}): the "
                          f"Allan deviation reads the random walk at 1 s on taus up to a quarter of a static")
-    data = np.hstack([session.gyro * UNITS["gyro"].per_si, session.acc * UNITS["acc"].per_si,
-                      session.incl * UNITS["incl"].per_si])
+    sensors = {"gyro": session.gyro, "acc": session.acc, "incl": session.incl}
+    present = [name for name, values in sensors.items() if values is not None]
+    data = np.hstack([sensors[name] * UNITS[name].per_si for name in present])
+    names = [c for c in CHANNELS if c.split("_")[0] in present]
     taus, adev, edf = pooled_allan_deviation([data[a:b] for a, b in pieces], session.rate_hz)
     static_s = sum(b - a for a, b in pieces) / session.rate_hz
     return {name: _read_channel(name, UNITS[name.split("_")[0]], taus, adev[:, k], edf[:, k], static_s, len(statics))
-            for k, name in enumerate(CHANNELS)}
+            for k, name in enumerate(names)}
 
 
 def noise_record(session: Session, channels: dict[str, ChannelNoise], capture: str) -> dict:

@@ -119,7 +119,8 @@ def describe(segments: tuple[Segment, ...]) -> str:
 def noise_from_json(data: bytes, where: str) -> Noise:
     """Figures from a `calibd.noise/1` file (written by `calibd noise`). The three axes of a
     sensor share one noise model in the estimator, which pools their Allan variances: each
-    figure is the root mean square of the three axes'."""
+    figure is the root mean square of the three axes'. A file without any inclinometer channel
+    is a unit's without inclinometers: its figures have none (None)."""
     try:
         doc = json.loads(data)
     except ValueError as exc:
@@ -135,6 +136,9 @@ def noise_from_json(data: bytes, where: str) -> Noise:
         raise PlanError(f"{where}: channels: missing or not an object")
     figures = {}
     for sensor, (walk_field, walk_unit, instability_field, instability_unit) in NOISE_FILE_FIGURES.items():
+        if sensor == "incl" and not any(name.startswith("incl_") for name in channels):
+            figures[walk_field] = figures[instability_field] = None
+            continue
         for name, field, unit in (("random_walk", walk_field, walk_unit),
                                   ("bias_instability", instability_field, instability_unit)):
             values = [_figure(channels, f"{sensor}_{axis}", name, unit, where) for axis in "xyz"]
@@ -174,14 +178,16 @@ class Plan:
     def flicker_yaw(self) -> float:
         """The yaw 1-sigma bias instability alone leaves (white noise removed), rad: the floor
         that more data of this layout barely lowers."""
-        flicker = SensorNoise(*(replace(m, white=0.0) for m in (self.noise.gyro, self.noise.acc, self.noise.incl)))
+        noise = self.noise
+        flicker = SensorNoise(*(m and replace(m, white=0.0) for m in (noise.gyro, noise.acc, noise.incl)))
         return solve(self.session, self.site, noise=flicker).sigmas["yaw"]
 
 
-def _session(protocol: str, scale: float, site: Site) -> tuple[JointInput, float]:
+def _session(protocol: str, scale: float, site: Site, inclinometers: bool = True) -> tuple[JointInput, float]:
     """The scaled protocol's noise-free session as the joint estimator takes it, block-averaged
     to PLAN_RATE_HZ (averages of interval averages: the model stays exact); statics are the
-    whole blocks inside the scheduled static segments."""
+    whole blocks inside the scheduled static segments. Without `inclinometers` the session is a
+    gyro + accelerometer unit's."""
     sim = simulate(_scenario(protocol, scale, site))
     rate = sim.scenario.sensor.sample_rate_hz
     block = max(1, round(rate / PLAN_RATE_HZ))
@@ -195,7 +201,7 @@ def _session(protocol: str, scale: float, site: Site) -> tuple[JointInput, float
     plan_rate = rate / block
     inp = JointInput(time_s=np.arange(n) / plan_rate, gyro=averaged(sim.exact["gyro"]) * DEG,
                      acc=averaged(sim.exact["acc"]) * STANDARD_GRAVITY,
-                     incl=averaged(sim.exact["incl"]) * STANDARD_GRAVITY,
+                     incl=averaged(sim.exact["incl"]) * STANDARD_GRAVITY if inclinometers else None,
                      statics=tuple(s for s in statics if s[1] > s[0]), rate_hz=plan_rate)
     return inp, sim.phases[-1].end_s
 
@@ -209,10 +215,11 @@ def check_site(site: Site) -> None:
 
 
 def plan(protocol: str, site: Site, figures: Noise, scale: float = 1.0) -> Plan:
-    """Every estimate's expected 1-sigma for the protocol at `scale`, from the joint estimator."""
+    """Every estimate's expected 1-sigma for the protocol at `scale`, from the joint estimator;
+    for a unit without inclinometers when `figures` has no inclinometer figures."""
     check_site(site)
     segments = protocol_segments(protocol, scale)
-    inp, seconds = _session(protocol, scale, site)
+    inp, seconds = _session(protocol, scale, site, figures.incl_vrw_m_s_sqrt_h is not None)
     noise = datasheet_noise(figures, inp.rate_hz)
     return Plan(protocol, scale, segments, seconds, solve(inp, site, noise=noise).sigmas, site, inp, noise)
 
@@ -272,10 +279,11 @@ def time_to_target(protocol: str, site: Site, figures: Noise, target_yaw: float,
 # ---------------------------------------------------------------- the report
 
 def _figures_text(figures: Noise) -> str:
+    incl = ("no inclinometers" if figures.incl_vrw_m_s_sqrt_h is None else
+            f"incl {figures.incl_vrw_m_s_sqrt_h:.3g} m/s/sqrt(h), {figures.incl_bias_instability_mg:.3g} mg")
     return (f"gyro {figures.gyro_arw_deg_sqrt_h:.3g} deg/sqrt(h), {figures.gyro_bias_instability_deg_h:.3g} deg/h; "
             f"acc {figures.acc_vrw_m_s_sqrt_h:.3g} m/s/sqrt(h), {figures.acc_bias_instability_mg:.3g} mg; "
-            f"incl {figures.incl_vrw_m_s_sqrt_h:.3g} m/s/sqrt(h), {figures.incl_bias_instability_mg:.3g} mg "
-            "(random walk, bias instability)")
+            f"{incl} (random walk, bias instability)")
 
 
 def report(reach: Reach, figures: Noise) -> str:

@@ -44,6 +44,7 @@ RANGES = {  # table: {key: (low, high, unit)} for every number of the truth, noi
                "acc_tempco_mg_per_c": (-100.0, 100.0, "mg/degC"), "incl_tempco_mg_per_c": (-100.0, 100.0, "mg/degC")},
 }
 MAX_GARBAGE_BYTES = 1_000_000
+MAX_VIBRATION = 10_000.0  # times the sensor's white noise: beyond, the counts overflow
 
 
 class ScenarioError(CalibdError):
@@ -99,15 +100,16 @@ class Noise:
     0.07 m/s/sqrt(h) is the datasheet's typical for 10 g units. No inclinometer noise figure was
     found in the sources read: the defaults (VRW 0.03 m/s/sqrt(h), bias instability 0.01 mg)
     are assumptions reflecting its lower bandwidth. Bias instability is the minimum of the
-    Allan deviation, as the manufacturer defines it."""
+    Allan deviation, as the manufacturer defines it. The inclinometer figures are None for a
+    unit without inclinometers (a noise file of one, read by the planner)."""
 
     enabled: bool = True
     gyro_arw_deg_sqrt_h: float = 0.15
     gyro_bias_instability_deg_h: float = 0.3
     acc_vrw_m_s_sqrt_h: float = 0.07
     acc_bias_instability_mg: float = 0.04
-    incl_vrw_m_s_sqrt_h: float = 0.03
-    incl_bias_instability_mg: float = 0.01
+    incl_vrw_m_s_sqrt_h: float | None = 0.03
+    incl_bias_instability_mg: float | None = 0.01
     temperature_noise_c: float = 0.01
 
 
@@ -140,6 +142,9 @@ class Segment:
     accel_deg_s2: float = 0.0
     up: str = "+Z"
     ripple: float = 0.0  # turn: relative once-per-revolution rate ripple (0.01 = 1 %)
+    # static, position: white noise added on every sensor, this multiple of its own white noise
+    # (the noise figures' random walk at the sample rate): a vehicle standing with its engine on
+    vibration: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -294,7 +299,9 @@ def _segment(t: _Table) -> Segment:
             t.fail("duration_s", f"missing for a {kind} segment")
         up = t.get("up", "+Z", str, lambda u: u in UP_AXES, f"one of {', '.join(UP_AXES)}") if kind == "position" \
             else "+Z"
-        seg = Segment(kind, duration_s=duration, up=up)
+        vibration = t.get("vibration", 0.0, float, lambda v: 0 <= v <= MAX_VIBRATION,
+                          f"a multiple of the sensor's white noise in [0, {MAX_VIBRATION:g}]")
+        seg = Segment(kind, duration_s=duration, up=up, vibration=vibration)
     t.finish()
     return seg
 

@@ -34,7 +34,7 @@ class Session:
     time_s: np.ndarray
     gyro: np.ndarray  # rad/s
     acc: np.ndarray  # m/s^2
-    incl: np.ndarray  # m/s^2
+    incl: np.ndarray | None  # m/s^2; None: the unit has no inclinometers (its datagram carries none)
     temperature_c: np.ndarray | None  # mean of the gyro temperatures, when the datagram has them
     rate_hz: int | float  # stored samples per second (an externally triggered sensor's: measured)
     sensor: dict
@@ -159,6 +159,22 @@ def _mean_temperature(temp_gyro: np.ndarray) -> np.ndarray:
     return mean
 
 
+def missing_sensors(samples: np.ndarray, where: str) -> str | None:
+    """Why samples cannot be calibrated for what their datagram carries, or None. Gyros and
+    accelerometers are needed (the accelerometers find the statics and the direction of gravity
+    that pitch, roll and yaw rest on); inclinometers are not: without them the accelerometers
+    give the tilt."""
+    if len(samples) and np.isnan(samples["acc"][0, 0]):
+        return (f"{where}: datagram 0x{samples['datagram_id'][0]:02X} carries gyros only: calibration needs "
+                "accelerometers too (to find the statics and the direction of gravity for pitch, roll and yaw)")
+    return None
+
+
+def inclinometers(values: np.ndarray) -> np.ndarray | None:
+    """A session's inclinometer samples, or None where the datagram has none (stored as NaN)."""
+    return None if len(values) and np.isnan(values[0, 0]) else values
+
+
 def fault_record(count: int, bits: int) -> dict:
     return {"flagged_datagrams": count, "fault_flags": status_names(bits)}
 
@@ -259,9 +275,7 @@ class _PowerUpReader:
         if fmt.gyro_unit.is_angle or fmt.acc_unit.is_velocity:
             return (f"{self.name}: calibration needs rate and acceleration outputs, "
                     f"not {fmt.gyro_unit.name} / {fmt.acc_unit.name}")
-        if np.isnan(samples["acc"][0, 0]) or np.isnan(samples["incl"][0, 0]):
-            return f"{self.name}: datagram 0x{fmt.datagram_id:02X} lacks accelerometers or inclinometers"
-        return None
+        return missing_sensors(samples, self.name)
 
     def _cut_and_add(self, samples: np.ndarray, restarts) -> None:
         """Add a block, cut at the sensor's restarts (`restarts`: each restarted sensor's first
@@ -346,7 +360,7 @@ def power_up_session(capture: CaptureSessions, number: int | None = None, start_
                                f"({power_up.duration_s - 1 / capture.rate_hz:.1f} s)")
     hidden = power_up.gap_s[power_up.gap_time_s > start_s] if power_up.checked else None
     return Session(
-        time_s=time_s[keep], gyro=data["gyro"][keep], acc=data["acc"][keep], incl=data["incl"][keep],
+        time_s=time_s[keep], gyro=data["gyro"][keep], acc=data["acc"][keep], incl=inclinometers(data["incl"][keep]),
         temperature_c=None if temps is None else temps[keep], rate_hz=stored_rate_hz(capture.rate_hz),
         sensor=capture.sensor,
         stream=capture.stream | {

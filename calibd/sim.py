@@ -53,6 +53,7 @@ class Phase:
     cruise_start_s: float | None = None
     cruise_end_s: float | None = None
     ripple: float = 0.0
+    vibration: float = 0.0  # extra white noise, times the sensor's (scenario.Segment.vibration)
 
     @property
     def turned_deg(self) -> float:
@@ -87,7 +88,7 @@ def schedule(scenario: Scenario) -> list[Phase]:
             chi += phase.turned_deg
         else:
             end = t + seg.duration_s
-            phases.append(Phase(seg.kind, t, end, up=mount, chi_start_deg=chi))
+            phases.append(Phase(seg.kind, t, end, up=mount, chi_start_deg=chi, vibration=seg.vibration))
         t = end
     return phases
 
@@ -210,6 +211,8 @@ def simulate(scenario: Scenario) -> Simulation:
     wander = {"gyro": np.zeros(3), "acc": np.zeros(3), "incl": np.zeros(3)}  # coloured noise, session mean
     if noise.enabled:
         mg = STANDARD_GRAVITY / 1000
+        vibration = np.array([p.vibration for p in phases])[phase_index]
+        shaker = np.random.default_rng(scenario.seed + 2) if vibration.any() else None  # others' draws unchanged
         for name, values, density, instability in (
                 ("gyro", gyro, noise.gyro_arw_deg_sqrt_h * 60 / 3600, noise.gyro_bias_instability_deg_h / 3600),
                 ("acc", acc, noise.acc_vrw_m_s_sqrt_h / 60 / STANDARD_GRAVITY,
@@ -219,6 +222,8 @@ def simulate(scenario: Scenario) -> Simulation:
             total, coloured = sensor_noise(rng, n, rate, density, instability)
             values += total
             wander[name] = coloured.mean(axis=0)
+            if shaker is not None:
+                values += shaker.standard_normal((n, 3)) * (density * np.sqrt(rate) * vibration)[:, None]
 
     lsb = sensor_format(scenario).scales()
 
@@ -348,6 +353,15 @@ def _bias_drift(sim: Simulation) -> dict:
     return out
 
 
+def _phase_record(phase: Phase) -> dict:
+    """A phase as the truth file lists it; `vibration` only where there is some, so the truth of
+    a scenario without vibration reads as before the option existed."""
+    record = asdict(phase)
+    if not phase.vibration:
+        del record["vibration"]
+    return record
+
+
 def truth_record(sim: Simulation, faults: dict) -> dict:
     """Every parameter of the truth, for the truth file beside a capture."""
     scenario = sim.scenario
@@ -355,6 +369,7 @@ def truth_record(sim: Simulation, faults: dict) -> dict:
     site = scenario.site
     lat = np.radians(site.latitude_deg)
     earth = EARTH_RATE / DEG * 3600 * np.array([np.cos(lat), np.sin(lat)])  # deg/h, horizontal and vertical
+    mid_s = sim.time_s - 0.5 / scenario.sensor.sample_rate_hz
     return {
         "schema": f"{TRUTH_SCHEMA}/{TRUTH_VERSION}",
         "scenario": scenario.name,
@@ -371,10 +386,8 @@ def truth_record(sim: Simulation, faults: dict) -> dict:
         "warmup": asdict(scenario.warmup),
         "samples": len(sim.samples),
         "duration_s": float(sim.time_s[-1]),
-        "schedule": [asdict(p) | {"first_sample": int(np.searchsorted(sim.time_s - 0.5 / scenario.sensor.sample_rate_hz,
-                                                                        p.start_s)),
-                                  "end_sample": int(np.searchsorted(sim.time_s - 0.5 / scenario.sensor.sample_rate_hz,
-                                                                      p.end_s))}
+        "schedule": [_phase_record(p) | {"first_sample": int(np.searchsorted(mid_s, p.start_s)),
+                                         "end_sample": int(np.searchsorted(mid_s, p.end_s))}
                      for p in sim.phases],
         "faults": faults,
     }

@@ -120,7 +120,7 @@ def test_the_cycle_check_finds_a_cycle():
 
 
 @pytest.mark.parametrize("datagram_id, units, says", [
-    (0x90, {}, "lacks accelerometers or inclinometers"),
+    (0x90, {}, "carries gyros only: calibration needs accelerometers too"),
     (0xA7, {"gyro_unit": GyroUnit.INCREMENTAL_ANGLE}, "calibration needs rate and acceleration outputs"),
 ])
 def test_a_capture_calibd_cannot_use_is_one_line(datagram_id, units, says, tmp_path, capsys):

@@ -23,7 +23,7 @@ from ..config import DetectionConfig, MethodConfig
 from ..frames import Site
 from ..methods import estimator
 from ..results import CalibrationResult
-from ..session import PowerUpCuts, Session
+from ..session import PowerUpCuts, Session, missing_sensors
 from ..warmup import WarmupConfig
 from .collector import Collector
 from .events import Listener, State
@@ -84,9 +84,9 @@ class Calibrator:
         self._gap = True
 
     def _feed_power_up(self, samples: np.ndarray, rate_hz: int) -> None:
-        if np.isnan(samples["acc"][0, 0]) or np.isnan(samples["incl"][0, 0]):
-            self._set(State.FAULT, f"datagram 0x{samples['datagram_id'][0]:02X} has no accelerometers or "
-                                   "inclinometers: nothing to calibrate with")
+        lacking = missing_sensors(samples, "the sensor")
+        if lacking:
+            self._set(State.FAULT, lacking)
             return
         t = self.collector.times(samples, rate_hz)
         in_session = self.collector.session_start_s is not None

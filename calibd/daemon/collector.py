@@ -16,7 +16,7 @@ from .. import detect
 from ..config import DetectionConfig
 from ..frames import STANDARD_GRAVITY
 from ..segments import segment_record
-from ..session import Session, SessionBuilder, fault_record, hidden_gap_record, stored_rate_hz
+from ..session import Session, SessionBuilder, fault_record, hidden_gap_record, inclinometers, stored_rate_hz
 from ..units import DEG
 
 log = structlog.get_logger("calibd")
@@ -79,7 +79,7 @@ class Collector:
     def session(self, sensor: dict, stream: dict) -> Session:
         """The session so far, in its own time; `stream` gains the session's fault records."""
         d = self.data.arrays(since_s=self.session_start_s)
-        return Session(time_s=d["time_s"] - d["time_s"][0], gyro=d["gyro"], acc=d["acc"], incl=d["incl"],
+        return Session(time_s=d["time_s"] - d["time_s"][0], gyro=d["gyro"], acc=d["acc"], incl=inclinometers(d["incl"]),
                        temperature_c=None if np.isnan(d["temp"]).all() else d["temp"], rate_hz=self.stored_rate_hz,
                        sensor=sensor, stream=stream | self._fault_record())
 

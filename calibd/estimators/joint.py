@@ -21,9 +21,12 @@ counts, so a bias's sigma is that of the turn-on bias, the wander over the sessi
 The force fits' sensitivity to the gyro-derived axis and to g0 carries the gyro covariance and
 g0's (Site.gravity_sigma) into the accelerometer and inclinometer parameters, with their
 cross-covariances; the numerical Jacobian of the chain takes it all to every estimate. The
-model is fitted to the Allan deviation of the longest static's residuals, its flicker at least
-the STIM300 datasheet's, or given (`SensorNoise`: the protocol planner gives a datasheet's
-figures to a noise-free session of the protocol).
+model is fitted to the Allan deviation of the residuals of the longest static that does not
+vibrate, its flicker at least the STIM300 datasheet's, or given (`SensorNoise`: the protocol
+planner gives a datasheet's figures to a noise-free session of the protocol). Samples noisier
+than that static (vibration) weigh less in every fit by their measured noise
+(`static_inflation`, `_row_weights`), so the covariance stays that of the data. A unit without
+inclinometers has no inclinometer fit: the accelerometers give the tilt.
 """
 
 from __future__ import annotations
@@ -38,11 +41,14 @@ from ..allan import FLICKER_TAUS_S, allan_deviation, correlate, fit_noise_model,
 from ..scenario import Noise
 from ..units import DEG
 
+INCL_ESTIMATES = ("incl_bias_x", "incl_bias_y", "incl_bias_z")  # absent for a unit without inclinometers
 ESTIMATE_NAMES = ("pitch", "roll", "yaw", "alpha", "beta", "gyro_bias_x", "gyro_bias_y", "gyro_bias_z",
-                  "acc_bias_x", "acc_bias_y", "acc_bias_z", "incl_bias_x", "incl_bias_y", "incl_bias_z")
+                  "acc_bias_x", "acc_bias_y", "acc_bias_z", *INCL_ESTIMATES)
 MAX_ITERATIONS = 20  # chi depends on the fitted axis and Earth terms: iterate to a fixed point
 CHI_TOLERANCE = 1e-13  # rad: the largest change of chi between passes that counts as converged
 FLICKER_BIN_S = 0.1  # flicker's fastest component (3 s) barely changes within a bin (3 % at most)
+NOISIER_FROM = 2.0  # a static whose white variance is this many times the reference static's is weighted down
+LOCAL_NOISE_S = 1.0  # outside the statics, the noise around a sample is measured over this window
 
 # The fits' parameter vectors, named once for every reader (the fits, the chain, the figures).
 # Gyro fit: (v1, v2, k, c[, d]).
@@ -68,7 +74,7 @@ class JointInput:
     time_s: np.ndarray  # (N,) s, gaps where datagrams were lost
     gyro: np.ndarray  # (N, 3) rad/s
     acc: np.ndarray  # (N, 3) m/s^2
-    incl: np.ndarray  # (N, 3) m/s^2
+    incl: np.ndarray | None  # (N, 3) m/s^2; None: the unit has no inclinometers
     statics: tuple[tuple[int, int], ...]  # [start, stop) sample ranges of the static segments
     rate_hz: float
     # (N,) rad added to the gyro-integrated platform angle: turns whose angle lost datagrams shortened
@@ -89,7 +95,7 @@ class SensorNoise:
 
     gyro: NoiseModel  # rad/s
     acc: NoiseModel  # m/s^2
-    incl: NoiseModel  # m/s^2
+    incl: NoiseModel | None  # m/s^2; None: the unit has no inclinometers
 
 
 def datasheet_noise(figures: Noise, rate_hz: float) -> SensorNoise:
@@ -102,8 +108,10 @@ def datasheet_noise(figures: Noise, rate_hz: float) -> SensorNoise:
 
     mg = STANDARD_GRAVITY / 1000
     gyro = model(figures.gyro_arw_deg_sqrt_h / 60 * DEG, figures.gyro_bias_instability_deg_h / 3600 * DEG)
+    incl = None if figures.incl_vrw_m_s_sqrt_h is None else \
+        model(figures.incl_vrw_m_s_sqrt_h / 60, figures.incl_bias_instability_mg * mg)
     return SensorNoise(gyro=gyro, acc=model(figures.acc_vrw_m_s_sqrt_h / 60, figures.acc_bias_instability_mg * mg),
-                       incl=model(figures.incl_vrw_m_s_sqrt_h / 60, figures.incl_bias_instability_mg * mg))
+                       incl=incl)
 
 
 @dataclass(frozen=True)
@@ -123,6 +131,63 @@ class GyroFit:
     noise: NoiseModel  # the model the covariance assumes: fitted to the residuals, or given
     amplitude_check: tuple[float, float]  # fitted horizontal Earth rate and its 1-sigma, rad/s
     static_chi2: tuple[float, int]  # chi-square of the statics' mean residuals and its degrees of freedom
+
+
+# ---------------------------------------------------------------- statics' own noise
+
+def sample_variance(values: np.ndarray, statics) -> np.ndarray:
+    """Each static's white noise variance per sample (SI^2, the mean of its channels), from its
+    Allan variance at one sample (half the mean squared step between samples): the static's
+    constant value and slow wander drop out. Vibration that is not white (an engine's few
+    frequencies) counts as white noise of the same power: more than it moves a static's mean,
+    so sigmas built on it stay on the safe side."""
+    return np.array([np.mean(np.diff(values[a:b], axis=0) ** 2) / 2 for a, b in statics])
+
+
+def reference_static(variance: np.ndarray, statics) -> int:
+    """The static the noise model is fitted to: the longest of those not NOISIER_FROM times
+    noisier than the quietest (a vibrating static would make every other one look quiet)."""
+    quiet = [k for k, v in enumerate(variance) if v <= NOISIER_FROM * variance.min()]
+    return max(quiet, key=lambda k: statics[k][1] - statics[k][0])
+
+
+def static_inflation(values: np.ndarray, statics) -> np.ndarray:
+    """Per static, how many times the reference static's white variance its own is (1 unless
+    NOISIER_FROM times or more: estimates of the same noise scatter by a few per cent). A static
+    taken with an engine running weighs that much less in the fits, and its means' variance is
+    that much larger."""
+    variance = sample_variance(values, statics)
+    ref = variance[reference_static(variance, statics)]
+    if ref <= 0:  # noise-free data (planning): nothing to weigh by
+        return np.ones(len(statics))
+    ratio = variance / ref
+    return np.where(ratio >= NOISIER_FROM, ratio, 1.0)
+
+
+def _row_weights(values: np.ndarray, inp: JointInput) -> np.ndarray:
+    """Per sample, the square root of its weight, 1 / sqrt(inflation): in a static, the static's
+    (`static_inflation`); elsewhere (turns, and the settling next to a static that vibrates),
+    that of the noise around the sample, from the mean square of its second differences over
+    LOCAL_NOISE_S (a turn's constant or steadily changing rate has none), against the
+    reference static's. Vibrating samples weighed as quiet ones would put their noise into the
+    fit while its covariance took them for quiet."""
+    variance = sample_variance(values, inp.statics)
+    ref = variance[reference_static(variance, inp.statics)]
+    inflation = np.ones(len(values))
+    if ref > 0:  # noise-free data (planning): nothing to weigh by
+        second = np.mean(np.diff(values, n=2, axis=0) ** 2, axis=1) / 6  # white noise: 6 sigma^2
+        half = max(1, int(LOCAL_NOISE_S * inp.rate_hz / 2))
+        window = np.ones(2 * half + 1) / (2 * half + 1)
+        local = np.convolve(np.pad(second, half + 1, mode="edge"), window, mode="valid")  # centred, n samples
+        inflation = np.where(local >= NOISIER_FROM * ref, local / ref, 1.0)
+    for (a, b), factor in zip(inp.statics, static_inflation(values, inp.statics)):
+        inflation[a:b] = factor
+    return 1.0 / np.sqrt(inflation)
+
+
+def _scaled(designs: list[ChannelDesign], root: np.ndarray) -> list[ChannelDesign]:
+    """Designs with each row multiplied by its root weight: their least squares is the weighted one."""
+    return [ChannelDesign(d.params, d.values * root[:, None]) for d in designs]
 
 
 # ---------------------------------------------------------------- gyro fit
@@ -230,6 +295,8 @@ def fit_gyros(inp: JointInput, site: Site, options: JointOptions = JointOptions(
     `noise`: the noise model of the covariance (default: fitted to the static residuals, its
     flicker at least `least_flicker`)."""
     static = np.concatenate([np.arange(a, b) for a, b in inp.statics])
+    inflation = static_inflation(inp.gyro, inp.statics)
+    root = _row_weights(inp.gyro, inp)
     axis = np.array([0.0, 0.0, 1.0])
     offset = inp.gyro[static].mean(axis=0)
     tau = inp.time_s - inp.time_s.mean()
@@ -239,7 +306,8 @@ def fit_gyros(inp: JointInput, site: Site, options: JointOptions = JointOptions(
         previous = chi
         chi, chi_rate = _platform_angle(inp, axis, offset, static)
         designs = _gyro_designs(chi, chi_rate, tau, int_to_imu(*alpha_beta(axis)), options.drift)
-        gram, rhs = _normal_equations(designs, inp.gyro, GYRO_PARAM_COUNT[options.drift])
+        gram, rhs = _normal_equations(_scaled(designs, root), inp.gyro * root[:, None],
+                                      GYRO_PARAM_COUNT[options.drift])
         params, bread = _on_circle(gram, rhs, amplitude) if options.fixed_amplitude else _free(gram, rhs)
         residuals = np.column_stack([inp.gyro[:, i] - designs[i] @ params for i in range(3)])
         k = params[AXIS_PARAMS]
@@ -247,47 +315,51 @@ def fit_gyros(inp: JointInput, site: Site, options: JointOptions = JointOptions(
         offset = inp.gyro - residuals - np.outer(chi_rate, k)  # the fitted non-rotational part
         if np.max(np.abs(chi - previous)) < CHI_TOLERANCE:
             break
-    noise = noise or _fitted_noise(residuals, inp, least_flicker)
-    cov = _covariance(designs, np.arange(len(inp.time_s)), inp, bread, noise)
-    scale = _noise_scale(residuals, inp)
+    ref = inp.statics[reference_static(sample_variance(inp.gyro, inp.statics), inp.statics)]
+    noise = noise or _fitted_noise(residuals, inp, least_flicker, ref)
+    cov = _covariance(_scaled(designs, root), np.arange(len(inp.time_s)), inp, bread, noise, root)
+    scale = _noise_scale(residuals, inp, ref)
     fitted = float(np.hypot(*params[EARTH_RATE_PARAMS]))
     radial = params[EARTH_RATE_PARAMS] / fitted
     amplitude_var = radial @ cov[EARTH_RATE_PARAMS, EARTH_RATE_PARAMS] @ radial  # 0 when the amplitude is fixed
     return GyroFit(params, cov, chi, chi_rate, residuals.std(axis=0), scale, noise,
                    (fitted, float(np.sqrt(max(amplitude_var, 0.0)))),
-                   _static_chi2(residuals, inp, len(params) - 3, noise))
+                   _static_chi2(residuals, inp, len(params) - 3, noise, inflation))
 
 
-def _fitted_noise(residuals: np.ndarray, inp: JointInput, least_flicker: float) -> NoiseModel:
-    """White + flicker fitted to the Allan deviation of the longest static's residuals, the
+def _fitted_noise(residuals: np.ndarray, inp: JointInput, least_flicker: float,
+                  static: tuple[int, int]) -> NoiseModel:
+    """White + flicker fitted to the Allan deviation of the reference `static`'s residuals (the
+    longest that does not vibrate: `reference_static`), the
     flicker no lower than `least_flicker` (the datasheet's): a static of minutes resolves the
     white noise well but not flicker below it (the gyros' 0.3 deg/h under 0.7 deg/h of white
     noise at a quarter of 10 min), and a fit that finds none would make every sigma that
     compares statics far apart, or a bias with the turn-on bias, too small."""
-    a, b = max(inp.statics, key=lambda s: s[1] - s[0])
+    a, b = static
     white, flicker = fit_noise_model(residuals[a:b], inp.rate_hz, FLICKER_TAUS_S)
     return NoiseModel(white, max(flicker, least_flicker))
 
 
-def _static_chi2(residuals: np.ndarray, inp: JointInput, fitted: int, noise: NoiseModel) -> tuple[float, int]:
-    """Chi-square of each static's mean residual (per channel) against what the noise model
-    lets a mean over that long scatter: large when a bias jumped, the platform moved during a
-    'static', or the model does not hold."""
+def _static_chi2(residuals: np.ndarray, inp: JointInput, fitted: int, noise: NoiseModel,
+                 inflation: np.ndarray) -> tuple[float, int]:
+    """Chi-square of each static's mean residual (per channel) against what the noise model (its
+    white noise times the static's `inflation`) lets a mean over that long scatter: large when a
+    bias jumped, the platform moved during a 'static', or the model does not hold."""
     total, count = 0.0, 0
-    for start, stop in inp.statics:
-        var = mean_variance(noise, stop - start, inp.rate_hz)
+    for (start, stop), factor in zip(inp.statics, inflation):
+        var = mean_variance(noise, stop - start, inp.rate_hz, factor)
         if var > 0:  # a given noise-free model (planning a protocol) leaves nothing to compare with
             total += float(np.sum(residuals[start:stop].mean(axis=0) ** 2) / var)
         count += 3
     return total, max(count - fitted, 1)
 
 
-def mean_variance(noise: NoiseModel, n: int, rate_hz: float) -> float:
-    """Variance of one channel's mean over n consecutive samples under the noise model, less the
-    slowest flicker component: it moves every static alike, so fitted offsets take it, not the
-    differences between statics."""
+def mean_variance(noise: NoiseModel, n: int, rate_hz: float, inflation: float = 1.0) -> float:
+    """Variance of one channel's mean over n consecutive samples under the noise model (its white
+    noise times `inflation`, a vibrating static's), less the slowest flicker component: it moves
+    every static alike, so fitted offsets take it, not the differences between statics."""
     tau = n / rate_hz
-    return noise.white / n + noise.flicker * sum(_gm_mean_variance(tau, c) for c in FLICKER_TAUS_S[:-1])
+    return inflation * noise.white / n + noise.flicker * sum(_gm_mean_variance(tau, c) for c in FLICKER_TAUS_S[:-1])
 
 
 def _gm_mean_variance(tau: float, corr: float) -> float:
@@ -296,13 +368,17 @@ def _gm_mean_variance(tau: float, corr: float) -> float:
     return 2 / x * (1 - (1 - np.exp(-x)) / x)
 
 
-def _covariance(designs, rows: np.ndarray, inp: JointInput, bread: np.ndarray, noise: NoiseModel) -> np.ndarray:
+def _covariance(designs, rows: np.ndarray, inp: JointInput, bread: np.ndarray, noise: NoiseModel,
+                root: np.ndarray) -> np.ndarray:
     """Parameter covariance under white noise plus flicker (a sum of Gauss-Markov processes) on
     the samples `rows`. Flicker correlates the errors over minutes; a white-noise covariance
     would be optimistic for everything that compares segments far apart. Every component counts,
     the slowest (30000 s) too: over a session it is a nearly constant wander of the bias, the
     difference between the bias the session carries and the turn-on bias reported. `bread`
-    is the inverse information of the (possibly constrained) fit: cov = bread . (H' Sigma H) . bread."""
+    is the inverse information of the (possibly constrained) fit: cov = bread . (H' Sigma H) . bread.
+    The fit is weighted: `designs` are the rows times their root weights `root` (of the samples
+    `rows`), which whiten the white noise (a static's inflated variance times its weight is the
+    model's), while flicker, common to quiet and vibrating samples, sees the weights themselves."""
     meat = noise.white * _gram(designs, len(bread))
     if noise.flicker > 0:
         # Flicker varies over seconds at the fastest, so its quadratic form is taken on sums over
@@ -310,7 +386,7 @@ def _covariance(designs, rows: np.ndarray, inp: JointInput, bread: np.ndarray, n
         bins = np.floor(inp.time_s[rows] / FLICKER_BIN_S).astype(np.int64)
         starts = np.flatnonzero(np.diff(bins, prepend=-1))
         grid = np.zeros((bins[-1] + 1, sum(len(d.params) for d in designs)))
-        grid[bins[starts]] = np.hstack([np.add.reduceat(d.values, starts) for d in designs])
+        grid[bins[starts]] = np.hstack([np.add.reduceat(d.values * root[:, None], starts) for d in designs])
         for correlated in correlate(grid, 1.0 / FLICKER_BIN_S, FLICKER_TAUS_S):
             start = 0
             for d in designs:
@@ -332,11 +408,11 @@ def alpha_beta(axis: np.ndarray) -> tuple[float, float]:
     return float(np.arctan2(axis[1], axis[2])), float(-np.arcsin(axis[0] / np.linalg.norm(axis)))
 
 
-def _noise_scale(residuals: np.ndarray, inp: JointInput) -> float:
+def _noise_scale(residuals: np.ndarray, inp: JointInput, static: tuple[int, int]) -> float:
     """How much the static residuals' Allan deviation exceeds white noise at long averaging
-    times (an eighth and a quarter of the longest static): 1 for white noise, more when bias
+    times (an eighth and a quarter of the reference `static`): 1 for white noise, more when bias
     instability correlates the errors."""
-    a, b = max(inp.statics, key=lambda s: s[1] - s[0])
+    a, b = static
     r = residuals[a:b]
     taus = np.array([1 / 8, 1 / 4]) * (b - a) / inp.rate_hz
     taus = taus[taus * inp.rate_hz >= 2]
@@ -362,13 +438,13 @@ class ForceFit:
 @dataclass(frozen=True)
 class _StaticSums:
     """The statics' platform-angle basis B = (cos chi, sin chi, 1) and its sums with itself and
-    the data. A channel's design is B times a 3 x 3 matrix of the axis and g0, so the force fit's
-    normal equations for any axis and g0 follow from these sums: refitting for the sensitivity
-    costs no pass over the samples."""
+    the data, weighted (W: each static's weight). A channel's design is B times a 3 x 3 matrix
+    of the axis and g0, so the force fit's normal equations for any axis and g0 follow from these
+    sums: refitting for the sensitivity costs no pass over the samples."""
 
     basis: np.ndarray  # n x 3
-    gram: np.ndarray  # B' B
-    cross: np.ndarray  # B' f, one column per channel
+    gram: np.ndarray  # B' W B
+    cross: np.ndarray  # B' W f, one column per channel
 
 
 def _channel_map(a_row: np.ndarray, g0: float) -> np.ndarray:
@@ -389,7 +465,7 @@ def _force_params(sums: _StaticSums, k: np.ndarray, g0: float):
         for i, t in enumerate(maps):
             cols = [0, 1, 2 + i]
             gram[np.ix_(cols, cols)] += t.T @ sums.gram @ t
-            rhs[cols] += t.T @ (sums.cross[:, i] - offsets[i] * sums.gram[:, 2])  # B' 1 = B' B[:, 2]
+            rhs[cols] += t.T @ (sums.cross[:, i] - offsets[i] * sums.gram[:, 2])  # B' W 1 = B' W B[:, 2]
         params = np.linalg.solve(gram, rhs)
         u3 = np.sqrt(1.0 - params[0] ** 2 - params[1] ** 2)
     return params, gram, maps, offsets
@@ -406,8 +482,10 @@ def fit_force(force: np.ndarray, chi: np.ndarray, inp: JointInput, k: np.ndarray
     if np.ptp(np.exp(1j * chis).real) < 0.5 and np.ptp(np.exp(1j * chis).imag) < 0.5:
         raise Underdetermined("the statics cover too few platform angles to separate the tilt from the biases "
                               "(index positions about 90 deg apart are needed)")
+    root = _row_weights(force, inp)[rows]
     basis = np.column_stack([np.cos(chi[rows]), np.sin(chi[rows]), np.ones(len(rows))])
-    sums = _StaticSums(basis, basis.T @ basis, basis.T @ force[rows])
+    weighted = basis * (root**2)[:, None]
+    sums = _StaticSums(basis, weighted.T @ basis, weighted.T @ force[rows])
     params, gram, maps, offsets = _force_params(sums, k, g0)
     drivers = np.append(k, g0)
 
@@ -419,9 +497,10 @@ def fit_force(force: np.ndarray, chi: np.ndarray, inp: JointInput, k: np.ndarray
     designs = [ChannelDesign(np.array([0, 1, 2 + i]), basis @ t) for i, t in enumerate(maps)]
     full = np.zeros_like(force)
     full[rows] = force[rows] - offsets - np.column_stack([d @ params for d in designs])
-    noise = noise or _fitted_noise(full, inp, least_flicker)
-    cov = _covariance(designs, rows, inp, np.linalg.inv(gram), noise)
-    return ForceFit(params, cov, _noise_scale(full, inp), noise, sensitivity)
+    ref = inp.statics[reference_static(sample_variance(force, inp.statics), inp.statics)]
+    noise = noise or _fitted_noise(full, inp, least_flicker, ref)
+    cov = _covariance(_scaled(designs, root), rows, inp, np.linalg.inv(gram), noise, root)
+    return ForceFit(params, cov, _noise_scale(full, inp, ref), noise, sensitivity)
 
 
 # ---------------------------------------------------------------- from fits to estimates
@@ -436,14 +515,17 @@ def _triad(primary_a, secondary_a, primary_b, secondary_b) -> np.ndarray:
     return frame(primary_a, secondary_a) @ frame(primary_b, secondary_b).T
 
 
-def estimates_from(gyro_params: np.ndarray, incl_params: np.ndarray, acc_params: np.ndarray, site: Site) -> dict:
+def estimates_from(gyro_params: np.ndarray, incl_params: np.ndarray | None, acc_params: np.ndarray,
+                   site: Site) -> dict:
     """Every estimate (SI) from the fitted parameters: a pure function, so its Jacobian carries the
-    fits' covariances to the estimates."""
+    fits' covariances to the estimates. The platform axis's tilt (so pitch and roll) is the
+    inclinometers' (the quieter sensor), or the accelerometers' on a unit without inclinometers
+    (`incl_params` None), which then has no inclinometer biases."""
     k = gyro_params[AXIS_PARAMS]
     alpha, beta = alpha_beta(k)
     a = int_to_imu(alpha, beta)
     omega, up = site.earth_rate_nav, np.array([0.0, 0.0, 1.0])
-    u1, u2 = incl_params[TILT_PARAMS]
+    u1, u2 = (acc_params if incl_params is None else incl_params)[TILT_PARAMS]
     u = np.array([u1, u2, np.sqrt(1 - u1**2 - u2**2)])  # Up in the interface frame
     horizontal = omega - (omega @ up) * up
     # v = R_NAV^int Omega. The fit gives v1, v2; v3 (along the interface z axis) hides in c and
@@ -458,7 +540,8 @@ def estimates_from(gyro_params: np.ndarray, incl_params: np.ndarray, acc_params:
     return {"pitch": float(pitch), "roll": float(roll), "yaw": float(yaw), "alpha": alpha, "beta": beta,
             **{f"gyro_bias_{x}": float(b) for x, b in zip("xyz", gyro_bias)},
             **{f"acc_bias_{x}": float(b) for x, b in zip("xyz", acc_params[BIAS_PARAMS])},
-            **{f"incl_bias_{x}": float(b) for x, b in zip("xyz", incl_params[BIAS_PARAMS])}}
+            **({} if incl_params is None else
+               {f"incl_bias_{x}": float(b) for x, b in zip("xyz", incl_params[BIAS_PARAMS])})}
 
 
 def _jacobian(f, x: np.ndarray, steps: np.ndarray) -> np.ndarray:
@@ -476,9 +559,14 @@ class JointResult:
     estimates: dict[str, float]  # SI
     sigmas: dict[str, float]  # SI, 1-sigma
     gyro: GyroFit
-    incl: ForceFit
+    incl: ForceFit | None  # None: the unit has no inclinometers
     acc: ForceFit
-    jacobian: np.ndarray  # d estimates / d (gyro, incl, acc params)
+    jacobian: np.ndarray  # d estimates / d (gyro, [incl,] acc params)
+
+    @property
+    def tilt(self) -> ForceFit:
+        """The force fit pitch and roll come from: the inclinometers', else the accelerometers'."""
+        return self.acc if self.incl is None else self.incl
 
 
 def solve(inp: JointInput, site: Site, options: JointOptions = JointOptions(),
@@ -488,13 +576,14 @@ def solve(inp: JointInput, site: Site, options: JointOptions = JointOptions(),
     least = datasheet_noise(Noise(), inp.rate_hz)
     gyro = fit_gyros(inp, site, options, noise and noise.gyro, least.gyro.flicker)
     k = gyro.params[AXIS_PARAMS]
-    incl = fit_force(inp.incl, gyro.chi, inp, k, site.gravity, noise and noise.incl, least.incl.flicker)
+    incl = None if inp.incl is None else \
+        fit_force(inp.incl, gyro.chi, inp, k, site.gravity, noise and noise.incl, least.incl.flicker)
     acc = fit_force(inp.acc, gyro.chi, inp, k, site.gravity, noise and noise.acc, least.acc.flicker)
-    sizes = (len(gyro.params), len(incl.params))
-    x = np.concatenate([gyro.params, incl.params, acc.params])
+    p, q = len(gyro.params), 0 if incl is None else len(incl.params)
+    x = np.concatenate([gyro.params, *([] if incl is None else [incl.params]), acc.params])
 
-    def chain(p):
-        return estimates_from(p[:sizes[0]], p[sizes[0]:sum(sizes)], p[sum(sizes):], site)
+    def chain(params):
+        return estimates_from(params[:p], params[p:p + q] if q else None, params[p + q:], site)
 
     cov = parameter_covariance(gyro, incl, acc, site.gravity_sigma)
     steps = np.sqrt(np.diag(cov)) * 1e-3 + 1e-15
@@ -504,10 +593,11 @@ def solve(inp: JointInput, site: Site, options: JointOptions = JointOptions(),
     return JointResult(values, dict(zip(values, sigma.tolist())), gyro, incl, acc, jac)
 
 
-def parameter_covariance(gyro: GyroFit, incl: ForceFit, acc: ForceFit, g0_sigma: float) -> np.ndarray:
-    """Covariance of (gyro, incl, acc params). The three sensors' noises are independent, but
-    the force fits use the gyro-derived platform axis and g0: their parameters move with the
-    gyro parameters and g0 through their sensitivities, which couples all three blocks.
+def parameter_covariance(gyro: GyroFit, incl: ForceFit | None, acc: ForceFit, g0_sigma: float) -> np.ndarray:
+    """Covariance of (gyro, incl, acc params), or (gyro, acc params) without inclinometers. The
+    sensors' noises are independent, but the force fits use the gyro-derived platform axis and
+    g0: their parameters move with the gyro parameters and g0 through their sensitivities, which
+    couples all the blocks.
     With d = (gyro params, g0): x = M d + force noise, cov = M cov(d) M' + blockdiag(0, incl, acc)."""
     p = len(gyro.params)
     drivers = _block_diag(gyro.cov, np.array([[g0_sigma**2]]))
@@ -518,8 +608,9 @@ def parameter_covariance(gyro: GyroFit, incl: ForceFit, acc: ForceFit, g0_sigma:
         m[:, p] = force.sensitivity[:, 3]
         return m
 
-    m = np.vstack([np.eye(p, p + 1), from_drivers(incl), from_drivers(acc)])
-    return m @ drivers @ m.T + _block_diag(np.zeros((p, p)), incl.cov, acc.cov)
+    forces = [f for f in (incl, acc) if f is not None]
+    m = np.vstack([np.eye(p, p + 1), *(from_drivers(f) for f in forces)])
+    return m @ drivers @ m.T + _block_diag(np.zeros((p, p)), *(f.cov for f in forces))
 
 
 def _block_diag(*blocks) -> np.ndarray:
