@@ -53,11 +53,11 @@ class TurnAngle:
 
     @property
     def checkable(self) -> bool:
-        return self.sigma_rad <= CHECKABLE_SIGMA_RAD
+        return bool(self.sigma_rad <= CHECKABLE_SIGMA_RAD)
 
     @property
     def found(self) -> bool:
-        return self.checkable and abs(self.correction_rad) > FOUND_SIGMAS * self.sigma_rad
+        return self.checkable and bool(abs(self.correction_rad) > FOUND_SIGMAS * self.sigma_rad)
 
 
 @dataclass(frozen=True)

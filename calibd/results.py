@@ -22,6 +22,7 @@ from datetime import datetime, timezone
 from enum import Enum
 from pathlib import Path
 
+import numpy as np
 import structlog
 
 from stim300.atomic import write_atomic
@@ -171,9 +172,16 @@ def make_result(method: str, site: Site, estimates: dict[str, tuple[float, float
                              tuple(segments), tuple(warnings), sensor, **extra)
 
 
+def _plain(value):
+    """A numpy scalar that reached a result (a check's flag, a figure) as the Python value it holds."""
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"{type(value).__name__} is not JSON serializable")
+
+
 def result_json(result: CalibrationResult) -> bytes:
     """The result file's bytes: JSON, one key a line, no NaN (a result with one is a bug)."""
-    return (json.dumps(result.to_dict(), indent=1, allow_nan=False) + "\n").encode()
+    return (json.dumps(result.to_dict(), indent=1, allow_nan=False, default=_plain) + "\n").encode()
 
 
 def write_result(path, result: CalibrationResult) -> None:

@@ -2,8 +2,10 @@
 other schemas refused in one line), copies instead of in-place changes; the truth file's schema."""
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from calibd.frames import Site
@@ -101,3 +103,13 @@ def test_status_refuses_a_newer_result_in_one_line(tmp_path, capsys):
     assert calibd_main(["status", "--state-dir", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "calibd.result/3, newer than this calibd reads (up to 2): upgrade calibd" in err
+
+
+def test_numpy_scalars_in_a_result_are_written_as_plain_json():
+    """A check's flag computed with numpy is a numpy bool: the file holds true/false, not a crash."""
+    result = replace(joint_like(), checks={"turn_angles": [{"corrected": np.bool_(True), "gyro_deg": np.float64(90.5),
+                                                            "n": np.int64(3)}]})
+    doc = json.loads(result_json(result))
+    assert doc["checks"]["turn_angles"] == [{"corrected": True, "gyro_deg": 90.5, "n": 3}]
+    with pytest.raises(TypeError):
+        result_json(replace(result, checks={"bad": object()}))
