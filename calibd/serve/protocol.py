@@ -12,6 +12,8 @@ import re
 from dataclasses import dataclass
 from importlib.metadata import PackageNotFoundError, version
 
+import numpy as np
+
 from ..errors import CalibdError
 
 PROTO_MAJOR = 1
@@ -93,3 +95,56 @@ def version_message() -> dict:
 
 def error_message(text: str) -> dict:
     return {"class": "ERROR", "message": text}
+
+
+def watch_message(enable: bool, samples: str) -> dict:
+    return {"class": "WATCH", "enable": enable, "samples": samples}
+
+
+def state_message(state: str, detail: str, progress: dict) -> dict:
+    return {"class": "STATE", "state": state, "detail": detail, "progress": progress}
+
+
+def poll_message(state: dict, result: dict | None) -> dict:
+    """`state`: a STATE message's fields without "class"; `result`: the result document or None."""
+    return {"class": "POLL", "state": state, "result": result}
+
+
+def result_message(result: dict) -> dict:
+    return {"class": "RESULT", "result": result}
+
+
+def fault_message(counts: dict, increase: dict) -> dict:
+    return {"class": "FAULT", "counts": counts, "increase": increase}
+
+
+def overflow_message(dropped: int) -> dict:
+    return {"class": "OVERFLOW", "dropped": dropped}
+
+
+def device_message(path: str, sensor: dict, units: dict | None, configuration: dict | None) -> dict:
+    """`sensor`: a StreamInfo's `sensor_record()`; `units`: of the gyro, acc and incl blocks."""
+    return {"class": "DEVICE", "path": path, "part_number": sensor.get("part_number"),
+            "serial_number": sensor.get("serial_number"), "datagram_id": sensor.get("datagram_id"),
+            "rate_hz": sensor.get("sample_rate_hz"), "configuration": configuration, "units": units}
+
+
+def samples_message(corrected: bool, t_s: np.ndarray, t_host_s: np.ndarray, counter: np.ndarray,
+                    gyro: np.ndarray, acc: np.ndarray, incl: np.ndarray) -> dict:
+    """A SAMPLES batch from sample columns: a block the datagram lacks (all NaN) is null, and
+    any other NaN value null too (JSON has no NaN)."""
+    return {"class": "SAMPLES", "corrected": corrected, "t": _floats(t_s), "t_host": _floats(t_host_s),
+            "counter": counter.tolist(), "gyro": _block(gyro), "acc": _block(acc), "incl": _block(incl)}
+
+
+def _floats(values: np.ndarray) -> list:
+    nan = np.isnan(values)
+    if not nan.any():
+        return values.tolist()
+    out = values.astype(object)
+    out[nan] = None
+    return out.tolist()
+
+
+def _block(values: np.ndarray) -> list | None:
+    return None if np.isnan(values).all() else _floats(values)
