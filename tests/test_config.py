@@ -1,12 +1,13 @@
 """calibd.config: the daemon's TOML configuration and its one-line errors."""
 
 import os
+import tomllib
 from pathlib import Path
 
 import pytest
 
 from calibd.config import (ConfigError, DaemonConfig, DetectionConfig, MethodConfig, SerialConfig, ServeConfig,
-                           WarmupConfig, load_config)
+                           WarmupConfig, load_config, parse_config)
 from calibd.frames import Site
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "systemd" / "calibd.example.toml"
@@ -254,3 +255,12 @@ def test_unreadable(tmp_path):
 def test_example_config_loads():
     config = load_config(EXAMPLE)
     assert config.with_port("/dev/ttyUSB9").serial.port == "/dev/ttyUSB9"
+
+
+def test_example_serve_section_loads_once_uncommented():
+    text = EXAMPLE.read_text()
+    section = text[text.index("# [serve]"):]
+    keys = [line[2:] for line in section.splitlines() if line.startswith("# ") and (" = " in line or "[" in line)]
+    config = parse_config(tomllib.loads(text + "\n" + "\n".join(keys) + "\n"), "example")
+    assert config.serve.socket == Path("/run/calibd/ttyUSB0/calibd.sock") and config.serve.tcp == ("127.0.0.1", 2950)
+    assert config.serve.corrected_before_result == "hold" and config.serve.group == "stim300"
