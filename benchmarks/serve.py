@@ -125,9 +125,15 @@ def measure(data: bytes, seconds: float, serve: bool, with_ptys: bool) -> dict:
         config = Path(tmp) / "calibd.toml"
         config.write_text(f'[serial]\nport = "{os.ttyname(slave)}"\n[site]\nlatitude_deg = 40.59129\n'
                           f'[output]\nstate_dir = "{tmp}/state"\n[warmup]\nwindow_s = {WARMUP_WINDOW_S}\n{table}')
+        log = open(Path(tmp) / "stderr", "w+")
         process = subprocess.Popen([sys.executable, "-m", "calibd.cli", "run", "--config", str(config)], env=ENV,
-                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                                   stdout=subprocess.DEVNULL, stderr=log)
         time.sleep(2.0)  # imports, port open, socket bound
+        while serve and not sock_path.exists():
+            if process.poll() is not None:
+                log.seek(0)
+                raise SystemExit(f"calibd run failed: {log.read()[-2000:]}")
+            time.sleep(0.1)
         clients, readers, stalled = [], [], None
         if serve:
             clients = [Watcher(sock_path, kind) for kind in ("raw", "raw", "corrected", "corrected")]
