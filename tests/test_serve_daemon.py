@@ -116,7 +116,7 @@ def test_replay_serve_gives_state_results_and_the_feeds_samples_and_ignores_garb
     counter = np.concatenate([b["counter"] for b in batches])
     assert first < 1000 and len(counter) == len(truth) - first
     assert np.array_equal(counter, truth["counter"][first:])
-    assert np.array_equal(np.concatenate([b["gyro"] for b in batches]), truth["gyro"][first:].astype(np.float64))
+    assert np.array_equal(np.concatenate([b["gyro"] for b in batches]).astype(np.float32), truth["gyro"][first:])
     assert [json.loads(a)["class"] for a in answers] == ["VERSION", "ERROR", "ERROR", "ERROR", "POLL"]
     plain = subprocess.run([sys.executable, "-m", "calibd.cli", "replay", *args], capture_output=True, env=ENV,
                            text=True)

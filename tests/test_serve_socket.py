@@ -184,10 +184,12 @@ def test_samples_are_the_decode_of_the_feed(served, tmp_path):
     counter = np.concatenate([b["counter"] for b in batches])
     gyro = np.concatenate([b["gyro"] for b in batches])
     assert np.array_equal(counter, truth["counter"])
-    assert np.array_equal(gyro, truth["gyro"].astype(np.float64))
+    assert np.array_equal(gyro.astype(np.float32), truth["gyro"])  # 9 digits: the float32 back exactly
     assert all(len(b["t"]) <= SAMPLES_MAX_S * 2000 for b in batches)
     t = np.concatenate([b["t"] for b in batches])
-    assert t[0] == 0.0 and np.allclose(np.diff(t), 1 / 2000)  # the counter clock: no datagram lost
+    assert t[0] == 0.0 and np.allclose(np.diff(t), 1 / 2000, atol=2e-6)  # the counter clock, to the us
+    t_host = np.concatenate([b["t_host"] for b in batches])
+    assert np.allclose(t_host, fed["t_host"], atol=1e-6)
     assert batches[0]["incl"] is not None and batches[0]["corrected"] is False
     device = (client.send(b"?DEVICE;\n"), client.until("DEVICE"))[1]
     assert device["rate_hz"] == 2000 and device["units"] == {"gyro": "deg/s", "acc": "g", "incl": "g"}
@@ -361,3 +363,16 @@ def test_the_tap_never_holds_more_than_its_bound(tmp_path, monkeypatch):
         parser.feed(DATA_2000[offset:offset + 4096])
     assert hub._pending_count <= 500 + 4096 // 40
     hub.close()
+
+
+def test_clients_beyond_the_limit_are_told_and_closed(served, tmp_path, monkeypatch):
+    monkeypatch.setattr(sockets, "MAX_CLIENTS", 2)
+    served()
+    kept = [Client(tmp_path / "calibd.sock") for _ in range(2)]
+    for client in kept:
+        assert client.message()["class"] == "VERSION"
+    refused = Client(tmp_path / "calibd.sock")
+    assert "too many clients" in refused.message()["message"]
+    assert refused.sock.recv(1) == b""  # closed
+    kept[0].send(b"?VERSION;\n")
+    assert kept[0].message()["class"] == "VERSION"

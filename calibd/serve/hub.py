@@ -32,8 +32,8 @@ from ..daemon import Calibrator, Listener, State, stale_result
 from ..errors import CalibdError
 from ..methods import estimator
 from ..results import CalibrationResult, load_result, result_json
-from .protocol import (SAMPLES_MAX_S, Command, ProtocolError, device_message, encode, fault_message, poll_message,
-                       result_message, samples_message, state_message)
+from .protocol import (SAMPLES_MAX_S, Command, ProtocolError, device_message, fault_message, poll_message,
+                       result_message, samples_line, state_message)
 from .ptys import CorrectedPty, RawPty
 from .sockets import ServeError, SocketServer
 
@@ -221,14 +221,14 @@ class Hub(Listener):
             piece, t = samples[lo:lo + step], time_s[lo:lo + step]
             raw = None
             if "raw" in kinds or ("corrected" in kinds and bias is None and not hold):
-                raw = encode(samples_message(False, t, piece["t_host"], piece["counter"], piece["gyro"],
-                                             piece["acc"], piece["incl"]))
+                raw = samples_line(False, t, piece["t_host"], piece["counter"], piece["gyro"], piece["acc"],
+                                   piece["incl"])
             if "raw" in kinds:
                 batches.append(("raw", raw))
             if "corrected" in kinds and bias is not None:
-                batches.append(("corrected", encode(samples_message(
+                batches.append(("corrected", samples_line(
                     True, t, piece["t_host"], piece["counter"], piece["gyro"] - bias["gyro"],
-                    piece["acc"] - bias["acc"], piece["incl"] - bias["incl"]))))
+                    piece["acc"] - bias["acc"], piece["incl"] - bias["incl"])))
             elif "corrected" in kinds and not hold:
                 batches.append(("corrected", raw))
         return batches

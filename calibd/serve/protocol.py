@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import re
 from dataclasses import dataclass
+from functools import lru_cache
 from importlib.metadata import PackageNotFoundError, version
 
 import numpy as np
@@ -129,22 +130,35 @@ def device_message(path: str, sensor: dict, units: dict | None, configuration: d
             "rate_hz": sensor.get("sample_rate_hz"), "configuration": configuration, "units": units}
 
 
-def samples_message(corrected: bool, t_s: np.ndarray, t_host_s: np.ndarray, counter: np.ndarray,
-                    gyro: np.ndarray, acc: np.ndarray, incl: np.ndarray) -> dict:
-    """A SAMPLES batch from sample columns: a block the datagram lacks (all NaN) is null, and
-    any other NaN value null too (JSON has no NaN)."""
-    return {"class": "SAMPLES", "corrected": corrected, "t": _floats(t_s), "t_host": _floats(t_host_s),
-            "counter": counter.tolist(), "gyro": _block(gyro), "acc": _block(acc), "incl": _block(incl)}
+def samples_line(corrected: bool, t_s: np.ndarray, t_host_s: np.ndarray, counter: np.ndarray,
+                 gyro: np.ndarray, acc: np.ndarray, incl: np.ndarray) -> bytes:
+    """A SAMPLES message, encoded, from sample columns: times to the microsecond, values with the
+    9 significant digits that give a float32 back exactly. A block the datagram lacks (all NaN)
+    is null, any other NaN value null too (JSON has no NaN). Formatted in one operation per
+    column rather than through json: this is the server's bulk work."""
+    n = len(counter)
+    return (f'{{"class":"SAMPLES","corrected":{"true" if corrected else "false"},"t":{_column(t_s, "%.6f")},'
+            f'"t_host":{_column(t_host_s, "%.6f")},"counter":{_column(counter, "%d")},"gyro":{_block(gyro, n)},'
+            f'"acc":{_block(acc, n)},"incl":{_block(incl, n)}}}\n').encode()
 
 
-def _floats(values: np.ndarray) -> list:
+@lru_cache(maxsize=64)
+def _format(item: str, n: int) -> str:
+    return "[" + ",".join([item] * n) + "]"
+
+
+def _column(values: np.ndarray, item: str) -> str:
+    nan = np.isnan(values) if values.dtype.kind == "f" else None
+    if nan is not None and nan.any():
+        return json.dumps([None if missing else value for missing, value in zip(nan.tolist(), values.tolist())])
+    return _format(item, len(values)) % tuple(values.tolist())
+
+
+def _block(values: np.ndarray, n: int) -> str:
+    """(n, 3) values as [[x,y,z],...], or null."""
     nan = np.isnan(values)
-    if not nan.any():
-        return values.tolist()
-    out = values.astype(object)
-    out[nan] = None
-    return out.tolist()
-
-
-def _block(values: np.ndarray) -> list | None:
-    return None if np.isnan(values).all() else _floats(values)
+    if nan.all():
+        return "null"
+    if nan.any():
+        return json.dumps([[None if np.isnan(v) else float(v) for v in row] for row in values])
+    return _format("[%.9g,%.9g,%.9g]", n) % tuple(values.ravel().tolist())

@@ -233,7 +233,10 @@ class SocketServer:
         sock.setblocking(False)
         client = _Client(sock, str(address) or "unix")
         if len(self._clients) >= MAX_CLIENTS:
-            sock.send(encode(error_message(f"too many clients (at most {MAX_CLIENTS})")))
+            try:
+                sock.send(encode(error_message(f"too many clients (at most {MAX_CLIENTS})")))
+            except OSError:  # gone already: nothing to tell
+                pass
             sock.close()
             return
         self._clients[sock] = client
