@@ -376,3 +376,18 @@ def test_clients_beyond_the_limit_are_told_and_closed(served, tmp_path, monkeypa
     assert refused.sock.recv(1) == b""  # closed
     kept[0].send(b"?VERSION;\n")
     assert kept[0].message()["class"] == "VERSION"
+
+
+def test_a_full_queue_loses_its_oldest_samples_first(monkeypatch):
+    monkeypatch.setattr(sockets, "QUEUE_BYTES", 100)
+    server = sockets.SocketServer(None, None, None, lambda command: {}, lambda kinds: [])
+    client = sockets._Client(None, "test")
+    entries = [(True, b"s1" * 20), (False, b"STATE1" * 5), (True, b"s2" * 20), (True, b"s3" * 20),
+               (False, b"STATE2" * 5)]
+    for entry in entries:
+        client.queue.append(entry)
+        client.queued_bytes += len(entry[1])
+    server._shed(client)
+    assert list(client.queue) == [entries[1], entries[3], entries[4]]  # s1 and s2 went, the states stayed
+    assert client.dropped == 2 and client.queued_bytes == 100 and server.overflows == 2
+    server._close_sockets()

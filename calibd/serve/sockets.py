@@ -322,19 +322,21 @@ class SocketServer:
         self._flush(client)
 
     def _shed(self, client: _Client) -> None:
-        before = client.dropped
-        kept = collections.deque()
-        for is_samples, data in client.queue:  # oldest SAMPLES first
-            if client.queued_bytes > QUEUE_BYTES and is_samples:
+        """Drop from the front of the queue, SAMPLES only, until it fits; when only other messages
+        are left, the oldest of those. Costs what it drops, not the queue's length."""
+        before, others = client.dropped, []
+        while client.queued_bytes > QUEUE_BYTES and client.queue:
+            is_samples, data = client.queue.popleft()
+            if is_samples:
                 client.queued_bytes -= len(data)
                 client.dropped += 1
             else:
-                kept.append((is_samples, data))
-        while client.queued_bytes > QUEUE_BYTES and len(kept) > 1:  # then the oldest of the rest
-            client.queued_bytes -= len(kept.popleft()[1])
+                others.append((is_samples, data))
+        while client.queued_bytes > QUEUE_BYTES and len(others) > 1:
+            client.queued_bytes -= len(others.pop(0)[1])
             client.dropped += 1
+        client.queue.extendleft(reversed(others))
         self.overflows += client.dropped - before
-        client.queue = kept
 
     def _flush(self, client: _Client) -> None:
         """Write what the socket takes now, without blocking; wait for it to be writable otherwise."""
