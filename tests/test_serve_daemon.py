@@ -45,7 +45,7 @@ def calibd(*args: str) -> subprocess.Popen:
                             stderr=subprocess.PIPE, env=ENV)
 
 
-def connect(path: Path, daemon: subprocess.Popen, timeout_s: float = 20.0) -> socket.socket:
+def connect(path: Path, daemon: subprocess.Popen, timeout_s: float = 60.0) -> socket.socket:
     deadline = time.monotonic() + timeout_s
     while not path.exists():
         assert daemon.poll() is None, daemon.stderr.read().decode()[-2000:]

@@ -391,3 +391,17 @@ def test_a_full_queue_loses_its_oldest_samples_first(monkeypatch):
     assert list(client.queue) == [entries[1], entries[3], entries[4]]  # s1 and s2 went, the states stayed
     assert client.dropped == 2 and client.queued_bytes == 100 and server.overflows == 2
     server._close_sockets()
+
+
+def test_a_fault_answering_a_command_is_an_error_line_and_the_server_runs_on(served, tmp_path, monkeypatch):
+    hub = served()
+
+    def broken(command):
+        raise RuntimeError("boom")
+    monkeypatch.setattr(hub.server, "_answer", broken)
+    client = Client(tmp_path / "calibd.sock")
+    client.message()
+    client.send(b"?DEVICE;\n?VERSION;\n")
+    error = client.message()
+    assert error["class"] == "ERROR" and "internal error answering ?DEVICE: RuntimeError: boom" in error["message"]
+    assert client.message()["class"] == "VERSION"

@@ -220,7 +220,12 @@ class SocketServer:
 
     def _deliver_samples(self) -> None:
         kinds = {c.samples for c in self._clients.values() if c.watching and c.samples != "none"}
-        for kind, data in self._cut_samples(kinds):
+        try:
+            batches = self._cut_samples(kinds)
+        except Exception:  # a fault of calibd: these samples are lost, the server and the daemon run on
+            log.exception("samples_failed")
+            return
+        for kind, data in batches:
             for client in list(self._clients.values()):
                 if client.watching and client.samples == kind:
                     self._send(client, data, samples=True)
@@ -296,6 +301,9 @@ class SocketServer:
                 reply = self._answer(command)
         except ProtocolError as exc:
             reply = error_message(str(exc))
+        except Exception as exc:  # a fault of calibd: said to the client and logged, the server runs on
+            log.exception("serve_command_failed", command=command.name)
+            reply = error_message(f"internal error answering ?{command.name}: {type(exc).__name__}: {exc}")
         self._send(client, encode(reply), samples=False)
 
     @staticmethod
