@@ -149,7 +149,7 @@ def _config(tmp_path: Path, serve: str) -> Path:
 def test_run_shows_the_previous_result_and_marks_it_once_the_sensor_restarts(tmp_path):
     """After a daemon restart ?POLL shows result.json as the last daemon left it; when the sensor
     restarts it is marked as the previous power-up's, in POLL and in the group-readable copy;
-    SIGTERM removes the socket."""
+    SIGHUP keeps the [serve] table in use; SIGTERM removes the socket."""
     (tmp_path / "state").mkdir()
     write_result(tmp_path / "state" / "result.json", known_result())
     sock_path, copy = tmp_path / "calibd.sock", tmp_path / "copy.json"
@@ -173,10 +173,16 @@ def test_run_shows_the_previous_result_and_marks_it_once_the_sensor_restarts(tmp
         poll = ask(sock, b"?POLL;\n", "POLL")
         assert poll["result"]["stale"]["power_up"] == "previous"
         assert json.loads(copy.read_text())["stale"]["power_up"] == "previous"
+        config.write_text(config.read_text() + 'tcp = "127.0.0.1:1"\n')  # a new [serve] table: not taken up
+        daemon.send_signal(signal.SIGHUP)
+        time.sleep(1.0)
+        assert ask(sock, b"?VERSION;\n", "VERSION")["proto_major"] == 1  # still served, on the same socket
         daemon.send_signal(signal.SIGTERM)
         assert daemon.wait(timeout=20) == 0
         assert not sock_path.exists()
         READERS.pop(sock).close()
+        log = daemon.stderr.read().decode()
+        assert "the [serve] table in use is kept" in log
     finally:
         if daemon.poll() is None:
             daemon.kill()

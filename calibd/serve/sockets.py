@@ -27,7 +27,7 @@ from .protocol import (MAX_LINE_BYTES, SAMPLE_KINDS, Command, ProtocolError, enc
 
 log = structlog.get_logger("calibd")
 
-CUT_S = 0.02  # how often sample batches are cut: their latency, and far within SAMPLES_MAX_S
+CUT_S = 0.03  # how often sample batches are cut: their latency, and far within SAMPLES_MAX_S
 QUEUE_BYTES = 1 << 20  # a client's queue: about 3 s of raw 2000 Hz SAMPLES
 MAX_CLIENTS = 64
 SOCKET_MODE = 0o660
@@ -327,7 +327,8 @@ class SocketServer:
         client.queued_bytes += len(data)
         if client.queued_bytes > QUEUE_BYTES:
             self._shed(client)
-        self._flush(client)
+        if not client.sending:  # else the socket was full: the loop writes when it can take more
+            self._flush(client)
 
     def _shed(self, client: _Client) -> None:
         """Drop from the front of the queue, SAMPLES only, until it fits; when only other messages
