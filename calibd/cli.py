@@ -25,7 +25,8 @@ from stim300.reads import load_reads
 from stim300.source import CaptureSource, PtySource
 
 from .calibrate import calibrate_capture
-from .config import METHODS, WARMUP_WINDOW_S, ConfigError, DetectionConfig, MethodConfig, WarmupConfig, load_config
+from .config import (METHODS, WARMUP_WINDOW_S, ConfigError, DetectionConfig, MethodConfig, ServeConfig, WarmupConfig,
+                     load_config)
 from .daemon import Calibrator, Callbacks, StateLog
 from .errors import CalibrationError, SiteError
 from .methods import estimator
@@ -34,7 +35,9 @@ from .frames import STANDARD_GRAVITY, Site, site_value_error
 from .live import configure_logging, replay, run
 from .results import CalibrationResult, ResultError, ResultStore, StateDirError, load_result, write_result
 from .scenario import READY_MADE, ScenarioError, load_scenario
+from .serve.hub import Hub
 from .serve.protocol import SAMPLE_KINDS
+from .serve.sockets import ServeError
 from .session import CaptureSessions, Session, decode_sessions, power_up_session
 from .units import DEG
 
@@ -240,14 +243,29 @@ def cmd_run(args) -> int:
     return run(config, lambda: _load_config(args.config, args.port))  # a bad reload keeps the old one
 
 
+def _replay_serve(args, config) -> ServeConfig | None:
+    """What `replay --serve` serves: the [serve] table of --config, with --socket, --raw-pty and
+    --corrected-pty (which imply --serve) in place of its keys; None without serving."""
+    given = {key: Path(value) for key, value in (("socket", args.socket), ("raw_pty", args.raw_pty),
+                                                 ("corrected_pty", args.corrected_pty)) if value is not None}
+    if not (args.serve or given):
+        return None
+    serve = replace(config.serve if config else ServeConfig(), **given)
+    if not serve.serving:
+        raise UsageError("replay --serve: nothing to serve: give --socket, --raw-pty or --corrected-pty, or a "
+                         "[serve] table in --config")
+    return serve
+
+
 def cmd_replay(args) -> int:
-    if args.config:
-        config = _config(args.config, None)
+    config = _config(args.config, None) if args.config else None
+    if config:
         site, warmup, method, detection = config.site, config.warmup, config.method, config.detection
     elif args.latitude is not None:
         site, warmup, method, detection = _site(args), WarmupConfig(), MethodConfig(), DetectionConfig()
     else:
         raise UsageError("replay: give --config FILE or --latitude DEG")
+    serve = _replay_serve(args, config)
     if args.warmup_window is not None:
         warmup = replace(warmup, window_s=args.warmup_window)
     data = read_input(args.capture)
@@ -268,11 +286,24 @@ def cmd_replay(args) -> int:
         except StateDirError as exc:
             raise UsageError(str(exc)) from None
     configure_logging(logging.WARNING)
+    speed_text = args.speed or ("1" if serve else "max")  # served: as a sensor sends, unless told
+    speed = None if speed_text == "max" else float(speed_text)
+    hub = None
+    if serve:
+        try:
+            hub = Hub(serve, args.capture, args.state_dir and Path(args.state_dir))
+        except ServeError as exc:
+            raise UsageError(str(exc)) from None
+        listeners.append(hub)
     calibrator = Calibrator(site, warmup, method, listeners, source=args.capture, detection=detection)
-    speed = None if args.speed == "max" else float(args.speed)
-    source = PtySource(data, speed) if args.pty else CaptureSource(data, speed)
+    try:
+        source = PtySource(data, speed) if args.pty or serve else CaptureSource(data, speed)
+    except BaseException:
+        if hub is not None:
+            hub.close()
+        raise
     with Progress("replay", len(data), "B") as bar:
-        replay(source, calibrator, progress=lambda done, total: bar.update(done))
+        replay(source, calibrator, progress=lambda done, total: bar.update(done), hub=hub)
     if calibrator.result is None or calibrator.result.stale is not None:
         stale = " (the last result is the previous power-up's, marked stale)" if calibrator.result else ""
         raise RunError(f"{args.capture}: no result for the last power-up{stale}: {calibrator.detail}")
@@ -531,9 +562,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("capture")
     p.add_argument("--config", help="TOML configuration (site, warm-up, method)")
     _add_site_options(p, required=False)
-    p.add_argument("--speed", type=_speed, default="max", help="N times real time, or max (default)")
+    p.add_argument("--speed", type=_speed,
+                   help="N times real time, or max (default; with --serve: 1, as the sensor sends)")
     p.add_argument("--pty", action="store_true",
                    help="write the capture into a pseudo-terminal read by the daemon's own port reader")
+    p.add_argument("--serve", action="store_true",
+                   help="serve the replayed sensor as calibd run does, by the [serve] table of --config (through "
+                        "a pseudo-terminal, paced; docs/serving.md)")
+    p.add_argument("--socket", help="serve the socket protocol at this path (implies --serve)")
+    p.add_argument("--raw-pty", help="serve the raw bytes on a pty linked at this path (implies --serve)")
+    p.add_argument("--corrected-pty", help="serve corrected datagrams on a pty linked at this path (implies --serve)")
     p.add_argument("--warmup-window", type=_number(*WARMUP_WINDOW_S, "s"),
                    help="seconds of settled temperature that end the warm-up (default 600)")
     p.add_argument("--state-dir", help="also write result.json, history/ and state.json there")

@@ -21,7 +21,7 @@ from .frames import Site
 from .scenario import _Table, site_from_table
 
 METHODS = DAEMON_METHODS  # the estimators (calibd.estimators) the daemon runs
-TABLES = ("serial", "site", "output", "warmup", "detection", "method")
+TABLES = ("serial", "site", "output", "warmup", "detection", "method", "serve")
 
 
 class ConfigError(CalibdError):
@@ -62,6 +62,39 @@ class MethodConfig:
     resolve_every_s: float = 60.0  # how often the estimate is recomputed from the data so far
 
 
+BEFORE_RESULT = ("hold", "raw")  # what the corrected outputs carry before the power-up's first result
+
+
+@dataclass(frozen=True)
+class ServeConfig:
+    """What the daemon serves to the other programs of the host (docs/serving.md); nothing when
+    every path is None."""
+
+    raw_pty: Path | None = None  # a symlink to a pty carrying the sensor's bytes unchanged
+    corrected_pty: Path | None = None  # a symlink to a pty carrying bias-corrected datagrams
+    corrected_before_result: str = "hold"  # "hold": nothing corrected before a result; "raw": raw data
+    allow_service_mode: bool = False  # SERVICEMODE, UTILITYMODE and R written into the raw pty reach the sensor
+    socket: Path | None = None  # Unix stream socket speaking calibd.serve.protocol
+    tcp: tuple[str, int] | None = None  # (host, port) of the same protocol on TCP
+    group: str | None = None  # group of the socket, the ptys and the result copy
+    result_copy: Path | None = None  # a group-readable copy of result.json
+
+    @property
+    def serving(self) -> bool:
+        return any(v is not None for v in (self.raw_pty, self.corrected_pty, self.socket, self.tcp, self.result_copy))
+
+
+def parse_tcp(text: str) -> tuple[str, int] | None:
+    """"HOST:PORT" ("[V6]:PORT"), or "PORT" alone for the loopback address -> (host, port); None
+    when malformed (the port is 1 to 65535)."""
+    host, colon, port = text.strip().rpartition(":")
+    host = host.removeprefix("[").removesuffix("]") if colon else "127.0.0.1"
+    valid_port = port.isascii() and port.isdigit() and 0 < int(port) < 65536
+    if not valid_port or not host or any(c.isspace() for c in host):
+        return None
+    return host, int(port)
+
+
 @dataclass(frozen=True)
 class DaemonConfig:
     serial: SerialConfig
@@ -70,6 +103,7 @@ class DaemonConfig:
     warmup: WarmupConfig
     method: MethodConfig
     detection: DetectionConfig = DetectionConfig()
+    serve: ServeConfig = ServeConfig()
 
     def with_port(self, port: str) -> DaemonConfig:
         """A copy on another serial port: one file serves every instance of the systemd
@@ -178,6 +212,31 @@ def _method(t: _ConfigTable) -> MethodConfig:
     return MethodConfig(name, resolve_every_s=resolve_every_s, **own)
 
 
+def _serve(t: _ConfigTable) -> ServeConfig:
+    def path(key: str, what: str) -> Path | None:
+        value = t.get(key, None, str, lambda v: _nonempty(v) and "\0" not in v, f"a path for {what}")
+        return None if value is None else Path(value)
+    tcp = t.get("tcp", None, str, lambda v: parse_tcp(v) is not None,
+                'an address "HOST:PORT" (e.g. "127.0.0.1:2950"; PORT in [1, 65535])')
+    serve = ServeConfig(
+        raw_pty=path("raw_pty", "the raw pty's link"), corrected_pty=path("corrected_pty", "the corrected pty's link"),
+        corrected_before_result=t.get("corrected_before_result", "hold", str, lambda v: v in BEFORE_RESULT,
+                                      " or ".join(f'"{v}"' for v in BEFORE_RESULT)),
+        allow_service_mode=t.get("allow_service_mode", False, bool),
+        socket=path("socket", "the Unix socket"), tcp=None if tcp is None else parse_tcp(tcp),
+        group=t.get("group", None, str, _nonempty, "a group name such as \"stim300\""),
+        result_copy=path("result_copy", "the result's copy"))
+    t.finish()
+    seen: dict[Path, str] = {}
+    for key in ("raw_pty", "corrected_pty", "socket", "result_copy"):
+        value = getattr(serve, key)
+        if value in seen:
+            t.fail(key, f"{str(value)!r} is also {seen[value]}: each served path must be its own")
+        if value is not None:
+            seen[value] = key
+    return serve
+
+
 def parse_config(data: dict, where: str) -> DaemonConfig:
     """Build a DaemonConfig from TOML data; `where` names the source in error messages."""
     known = ", ".join(f"[{name}]" for name in sorted(TABLES))
@@ -194,7 +253,8 @@ def parse_config(data: dict, where: str) -> DaemonConfig:
 
     return DaemonConfig(serial=_serial(table("serial")), site=site_from_table(table("site")),
                         state_dir=_state_dir(table("output")), warmup=_warmup(table("warmup")),
-                        method=_method(table("method")), detection=_detection(table("detection")))
+                        method=_method(table("method")), detection=_detection(table("detection")),
+                        serve=_serve(table("serve")))
 
 
 def load_config(path: str | Path) -> DaemonConfig:

@@ -3,7 +3,8 @@
 One loop, `pump`, feeds the Calibrator from a `stim300.source.SampleSource`, whatever the
 samples' origin. `run` is `calibd run`: the serial port (`PortSource`), with reports to systemd
 (READY, STATUS, WATCHDOG over $NOTIFY_SOCKET), a clean stop on SIGTERM and a configuration
-reload on SIGHUP. `replay` is `calibd replay`: a capture (`CaptureSource`, as fast as possible
+reload on SIGHUP; with a `[serve]` table it serves the sensor (`calibd.serve.hub.Hub`: ptys, the
+socket, the result's copy). `replay` is `calibd replay`: a capture (`CaptureSource`, as fast as possible
 or paced) or, for `--pty`, the capture through a pseudo-terminal and the daemon's own port
 reader (`PtySource`).
 """
@@ -27,6 +28,8 @@ from stim300.source import PortSource, SampleSource
 from .config import ConfigError
 from .daemon import Calibrator, Listener, State, StateLog
 from .results import ResultStore, StateDirError
+from .serve.hub import Hub, tap_source
+from .serve.sockets import ServeError
 
 log = structlog.get_logger("calibd")
 POLL_S = 0.2  # how long one read of the source waits: batches of about this much data
@@ -135,11 +138,13 @@ def stream_faults(stats, before: dict, samples) -> tuple[dict, dict]:
     return now, increases
 
 
-def pump(source: SampleSource, calibrator: Calibrator, stop=lambda: False, on_step=None) -> None:
+def pump(source: SampleSource, calibrator: Calibrator, stop=lambda: False, on_step=None, on_stream=None) -> None:
     """Source -> calibrator until `stop()` or the end of the stream, the one loop of `calibd run`
     and `calibd replay`: stream faults logged as they grow, ring overruns, silence beyond
     NO_DATA_S reported as a fault, and at the end of the data one last solve.
-    `on_step(fed)` is called after every read (`fed`: samples reached the calibrator)."""
+    `on_step(fed)` is called after every read (`fed`: samples reached the calibrator);
+    `on_stream(info, counts, increases)` after every batch (the faults as `stream_faults` counts
+    them, "overrun" among the increases when the ring overran)."""
     counts: dict = {}
     warned = 0  # the stream's warnings logged so far (they only grow)
     while not stop() and not source.ended:
@@ -151,6 +156,9 @@ def pump(source: SampleSource, calibrator: Calibrator, stop=lambda: False, on_st
             counts, faults = stream_faults(batch.info.stats, counts, batch.samples)
             if faults:
                 log.warning("stream_faults", **faults)
+            if on_stream:
+                on_stream(batch.info, counts, {**faults, **({"overrun": batch.overrun_samples}
+                                                            if batch.overrun_samples else {})})
             info = batch.info
             for text in info.warnings[warned:]:  # a configuration refused, or a code kept as read
                 log.warning("stream_warning", detail=text)
@@ -168,11 +176,21 @@ def pump(source: SampleSource, calibrator: Calibrator, stop=lambda: False, on_st
         calibrator.finish()
 
 
-def replay(source: SampleSource, calibrator: Calibrator, progress=None) -> None:
-    """`calibd replay`: a capture's source (CaptureSource, or PtySource for `--pty`) through the
-    daemon's loop to its end; `progress(done, total)` in bytes. A failed port reader raises."""
-    with source:
-        pump(source, calibrator, on_step=progress and (lambda fed: progress(source.done_bytes, source.total_bytes)))
+def replay(source: SampleSource, calibrator: Calibrator, progress=None, hub: Hub | None = None) -> None:
+    """`calibd replay`: a capture's source (CaptureSource, or PtySource for `--pty` and `--serve`)
+    through the daemon's loop to its end; `progress(done, total)` in bytes; `hub` (among the
+    calibrator's listeners) serves the replayed sensor and is closed at the end. A failed port
+    reader raises."""
+    try:
+        if hub is not None:
+            hub.watch(calibrator)
+            tap_source(hub, source)
+        with source:
+            pump(source, calibrator, on_step=progress and (lambda fed: progress(source.done_bytes, source.total_bytes)),
+                 on_stream=hub and hub.stream_seen)
+    finally:
+        if hub is not None:
+            hub.close()
     if source.error is not None:
         raise source.error
 
@@ -184,12 +202,21 @@ def run(config, reload_config) -> int:
     try:
         store = ResultStore(config.state_dir, {"port": config.serial.port}, on_health=status.degraded)
         source = PortSource(config.serial.port, config.serial.baudrate)
-    except (StateDirError, PortError) as exc:  # before READY=1: systemd sees the start fail
+        try:
+            hub = Hub(config.serve, config.serial.port, config.state_dir) if config.serve.serving else None
+        except BaseException:
+            source.close()
+            raise
+    except (StateDirError, PortError, ServeError) as exc:  # before READY=1: systemd sees the start fail
         log.error("start_failed", error=str(exc))
         print(f"calibd: {exc}", file=sys.stderr)
         return 1
-    calibrator = Calibrator(config.site, config.warmup, config.method, [StateLog(), store, status],
+    calibrator = Calibrator(config.site, config.warmup, config.method,
+                            [StateLog(), store, status, *([hub] if hub else [])],
                             source=config.serial.port, detection=config.detection)
+    if hub is not None:
+        hub.watch(calibrator)
+        tap_source(hub, source)
     stopping = []
     signal.signal(signal.SIGTERM, lambda *_: stopping.append("SIGTERM"))
     signal.signal(signal.SIGINT, lambda *_: stopping.append("SIGINT"))
@@ -208,17 +235,21 @@ def run(config, reload_config) -> int:
             try:
                 fresh = reload_config()
                 calibrator.configure(fresh.site, fresh.warmup, fresh.method, fresh.detection)
-                log.info("reloaded")
+                log.info("reloaded", serve="the [serve] table in use is kept (a change of it needs a restart)"
+                         if fresh.serve != config.serve else "unchanged")
             except ConfigError as exc:
                 log.error("reload_failed", error=str(exc), detail="keeping the configuration in use")
 
     try:
         with source:
-            pump(source, calibrator, stop=lambda: bool(stopping), on_step=on_step)
+            pump(source, calibrator, stop=lambda: bool(stopping), on_step=on_step,
+                 on_stream=hub and hub.stream_seen)
         if source.error is not None:
             log.error("reader_failed", error=str(source.error))
             return 1
     finally:
         sd_notify("STOPPING=1")
+        if hub is not None:
+            hub.close()
         log.info("stopped", reason=stopping[0] if stopping else "error")
     return 0

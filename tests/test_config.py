@@ -1,12 +1,13 @@
 """calibd.config: the daemon's TOML configuration and its one-line errors."""
 
 import os
+import tomllib
 from pathlib import Path
 
 import pytest
 
-from calibd.config import (ConfigError, DaemonConfig, DetectionConfig, MethodConfig, SerialConfig, WarmupConfig,
-                           load_config)
+from calibd.config import (ConfigError, DaemonConfig, DetectionConfig, MethodConfig, SerialConfig, ServeConfig,
+                           WarmupConfig, load_config, parse_config)
 from calibd.frames import Site
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "systemd" / "calibd.example.toml"
@@ -91,6 +92,51 @@ def test_defaults_apply(tmp_path):
     assert config.warmup == WarmupConfig(1.0, 600.0, 0.0)
     assert config.method == MethodConfig("joint", False, False, None, None, 60.0)
     assert config.detection.options() == {}  # find_segments' defaults, thresholds from the noise
+
+
+SERVE = """
+[serve]
+raw_pty = "/run/calibd/ttyUSB0/raw"
+corrected_pty = "/run/calibd/ttyUSB0/corrected"
+corrected_before_result = "raw"
+allow_service_mode = true
+socket = "/run/calibd/ttyUSB0/calibd.sock"
+tcp = "0.0.0.0:2950"
+group = "stim300"
+result_copy = "/run/calibd/ttyUSB0/result.json"
+"""
+
+
+def test_serve_table(tmp_path):
+    run = Path("/run/calibd/ttyUSB0")
+    assert load_config(write(tmp_path, MINIMAL + SERVE)).serve == ServeConfig(
+        raw_pty=run / "raw", corrected_pty=run / "corrected", corrected_before_result="raw", allow_service_mode=True,
+        socket=run / "calibd.sock", tcp=("0.0.0.0", 2950), group="stim300", result_copy=run / "result.json")
+    assert load_config(write(tmp_path, MINIMAL)).serve == ServeConfig() and not ServeConfig().serving
+    only_port = load_config(write(tmp_path, MINIMAL + '[serve]\ntcp = "2950"\n')).serve
+    assert only_port.tcp == ("127.0.0.1", 2950) and only_port.serving  # loopback unless told otherwise
+    assert load_config(write(tmp_path, MINIMAL + '[serve]\ntcp = "[::1]:2950"\n')).serve.tcp == ("::1", 2950)
+
+
+@pytest.mark.parametrize("old, new, key, words", [
+    ('tcp = "0.0.0.0:2950"', 'tcp = "localhost"', "tcp", ["'localhost'", "HOST:PORT"]),
+    ('tcp = "0.0.0.0:2950"', 'tcp = "127.0.0.1:70000"', "tcp", ["70000", "[1, 65535]"]),
+    ('tcp = "0.0.0.0:2950"', 'tcp = ":2950"', "tcp", ["':2950'"]),
+    ('tcp = "0.0.0.0:2950"', "tcp = 2950", "tcp", ["2950 is not a string"]),
+    ('corrected_before_result = "raw"', 'corrected_before_result = "zero"', "corrected_before_result",
+     ["'zero'", '"hold" or "raw"']),
+    ("allow_service_mode = true", 'allow_service_mode = "yes"', "allow_service_mode", ["true or false"]),
+    ('group = "stim300"', 'group = ""', "group", ["''", "group name"]),
+    ('socket = "/run/calibd/ttyUSB0/calibd.sock"', 'socket = ""', "socket", ["''", "a path"]),
+    ('result_copy = "/run/calibd/ttyUSB0/result.json"', 'result_copy = "/run/calibd/ttyUSB0/raw"', "result_copy",
+     ["also raw_pty"]),
+    ('group = "stim300"', 'owner = "stim300"', "owner", ["unknown key", "socket"]),
+])
+def test_serve_errors_name_the_key(tmp_path, old, new, key, words):
+    message = error(write(tmp_path, MINIMAL + replace_line(SERVE, old, new)))
+    assert "[serve]" in message and key in message
+    for word in words:
+        assert word in message
 
 
 def test_empty_optional_tables_give_defaults(tmp_path):
@@ -209,3 +255,12 @@ def test_unreadable(tmp_path):
 def test_example_config_loads():
     config = load_config(EXAMPLE)
     assert config.with_port("/dev/ttyUSB9").serial.port == "/dev/ttyUSB9"
+
+
+def test_example_serve_section_loads_once_uncommented():
+    text = EXAMPLE.read_text()
+    section = text[text.index("# [serve]"):]
+    keys = [line[2:] for line in section.splitlines() if line.startswith("# ") and (" = " in line or "[" in line)]
+    config = parse_config(tomllib.loads(text + "\n" + "\n".join(keys) + "\n"), "example")
+    assert config.serve.socket == Path("/run/calibd/ttyUSB0/calibd.sock") and config.serve.tcp == ("127.0.0.1", 2950)
+    assert config.serve.corrected_before_result == "hold" and config.serve.group == "stim300"

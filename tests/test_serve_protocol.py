@@ -41,3 +41,21 @@ def test_messages_are_single_json_lines_that_decode_back():
             decode(bad)
     with pytest.raises(ValueError):  # NaN is not JSON: a builder must say null
         encode({"class": "SAMPLES", "incl": [float("nan")]})
+
+
+def test_a_samples_line_gives_the_float32_values_back_and_null_for_nan():
+    import numpy as np
+
+    from calibd.serve.protocol import samples_line
+
+    rng = np.random.default_rng(1)
+    gyro = (rng.normal(size=(50, 3)) * 100).astype(np.float32)
+    acc = np.full((50, 3), np.nan, np.float32)  # a block the datagram lacks
+    incl = rng.normal(size=(50, 3)).astype(np.float32)
+    incl[7, 2] = np.nan
+    t_s = np.arange(50) / 2000 + 86400.0
+    message = decode(samples_line(True, t_s, t_s + 0.25, np.arange(50) % 256, gyro, acc, incl))
+    assert message["class"] == "SAMPLES" and message["corrected"] is True
+    assert np.array_equal(np.array(message["gyro"], np.float32), gyro) and message["acc"] is None
+    assert message["incl"][7][2] is None and np.float32(message["incl"][7][1]) == incl[7, 1]
+    assert np.allclose(message["t"], t_s, atol=1e-6, rtol=0) and message["counter"][-1] == 49

@@ -10,7 +10,10 @@ from __future__ import annotations
 import json
 import re
 from dataclasses import dataclass
+from functools import lru_cache
 from importlib.metadata import PackageNotFoundError, version
+
+import numpy as np
 
 from ..errors import CalibdError
 
@@ -93,3 +96,69 @@ def version_message() -> dict:
 
 def error_message(text: str) -> dict:
     return {"class": "ERROR", "message": text}
+
+
+def watch_message(enable: bool, samples: str) -> dict:
+    return {"class": "WATCH", "enable": enable, "samples": samples}
+
+
+def state_message(state: str, detail: str, progress: dict) -> dict:
+    return {"class": "STATE", "state": state, "detail": detail, "progress": progress}
+
+
+def poll_message(state: dict, result: dict | None) -> dict:
+    """`state`: a STATE message's fields without "class"; `result`: the result document or None."""
+    return {"class": "POLL", "state": state, "result": result}
+
+
+def result_message(result: dict) -> dict:
+    return {"class": "RESULT", "result": result}
+
+
+def fault_message(counts: dict, increase: dict) -> dict:
+    return {"class": "FAULT", "counts": counts, "increase": increase}
+
+
+def overflow_message(dropped: int) -> dict:
+    return {"class": "OVERFLOW", "dropped": dropped}
+
+
+def device_message(path: str, sensor: dict, units: dict | None, configuration: dict | None) -> dict:
+    """`sensor`: a StreamInfo's `sensor_record()`; `units`: of the gyro, acc and incl blocks."""
+    return {"class": "DEVICE", "path": path, "part_number": sensor.get("part_number"),
+            "serial_number": sensor.get("serial_number"), "datagram_id": sensor.get("datagram_id"),
+            "rate_hz": sensor.get("sample_rate_hz"), "configuration": configuration, "units": units}
+
+
+def samples_line(corrected: bool, t_s: np.ndarray, t_host_s: np.ndarray, counter: np.ndarray,
+                 gyro: np.ndarray, acc: np.ndarray, incl: np.ndarray) -> bytes:
+    """A SAMPLES message, encoded, from sample columns: times to the microsecond, values with the
+    9 significant digits that give a float32 back exactly. A block the datagram lacks (all NaN)
+    is null, any other NaN value null too (JSON has no NaN). Formatted in one operation per
+    column rather than through json: this is the server's bulk work."""
+    n = len(counter)
+    return (f'{{"class":"SAMPLES","corrected":{"true" if corrected else "false"},"t":{_column(t_s, "%.6f")},'
+            f'"t_host":{_column(t_host_s, "%.6f")},"counter":{_column(counter, "%d")},"gyro":{_block(gyro, n)},'
+            f'"acc":{_block(acc, n)},"incl":{_block(incl, n)}}}\n').encode()
+
+
+@lru_cache(maxsize=64)
+def _format(item: str, n: int) -> str:
+    return "[" + ",".join([item] * n) + "]"
+
+
+def _column(values: np.ndarray, item: str) -> str:
+    nan = np.isnan(values) if values.dtype.kind == "f" else None
+    if nan is not None and nan.any():
+        return json.dumps([None if missing else value for missing, value in zip(nan.tolist(), values.tolist())])
+    return _format(item, len(values)) % tuple(values.tolist())
+
+
+def _block(values: np.ndarray, n: int) -> str:
+    """(n, 3) values as [[x,y,z],...], or null."""
+    nan = np.isnan(values)
+    if nan.all():
+        return "null"
+    if nan.any():
+        return json.dumps([[None if np.isnan(v) else float(v) for v in row] for row in values])
+    return _format("[%.9g,%.9g,%.9g]", n) % tuple(values.ravel().tolist())

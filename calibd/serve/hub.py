@@ -1,0 +1,297 @@
+"""Everything the daemon serves, built from the `[serve]` table: the raw and corrected ptys, the
+socket server and the result's group-readable copy, behind one object.
+
+`Hub` is a listener of the Calibrator (states and results, pump thread), hears the stream's
+faults and identity from the daemon's loop (`stream_seen`) and every settled byte from the
+parser's tap (`tap`, reader thread). The tap only queues the decoded samples; the socket
+server's thread cuts them into SAMPLES batches, times them with the counter clock (the rule
+the daemon's Collector times by), encodes each batch once per kind and shares the bytes among
+the clients watching that kind.
+"""
+
+from __future__ import annotations
+
+import grp
+import os
+import stat
+import threading
+from dataclasses import asdict
+from enum import Enum
+from pathlib import Path
+
+import numpy as np
+import structlog
+
+from stim300.atomic import atomic_file
+from stim300.capture import StreamInfo
+from stim300.clock import CounterClock
+
+from .. import detect
+from ..config import ServeConfig
+from ..daemon import Calibrator, Listener, State, stale_result
+from ..errors import CalibdError
+from ..methods import estimator
+from ..results import CalibrationResult, load_result, result_json
+from .protocol import (SAMPLES_MAX_S, Command, ProtocolError, device_message, fault_message, poll_message,
+                       result_message, samples_line, state_message)
+from .ptys import CorrectedPty, RawPty
+from .sockets import ServeError, SocketServer
+
+log = structlog.get_logger("calibd")
+
+RESULT_COPY_MODE = 0o640
+PENDING_SAMPLES = 8000  # samples the tap keeps for the server thread at most (4 s at 2000 Hz)
+SENSOR_UNITS = {"gyro": "deg/s", "acc": "g", "incl": "g"}  # the units biases are subtracted in
+
+
+def bias_in_sensor_units(result: CalibrationResult) -> dict[str, np.ndarray] | None:
+    """A result's biases in the sensor's rate units (SENSOR_UNITS: gyro deg/h -> deg/s,
+    accelerometer and inclinometer mg -> g), per block; None when it lacks one."""
+    factors = {"deg/h": 1 / 3600, "mg": 1e-3}
+    bias = {}
+    for block in SENSOR_UNITS:
+        estimates = [result.estimates.get(f"{block}_bias_{axis}") for axis in "xyz"]
+        if any(e is None or e.unit not in factors for e in estimates):
+            return None
+        bias[block] = np.array([e.value * factors[e.unit] for e in estimates], np.float32)
+    return bias
+
+
+class Hub(Listener):
+    """What `config` serves for the sensor at `port` (`state_dir`: where result.json is, shown
+    until this daemon has a result of its own). Construction starts it all or raises ServeError
+    (one line) having started nothing; `close()` removes the socket file and the pty links."""
+
+    def __init__(self, config: ServeConfig, port: str, state_dir: Path | None = None):
+        self.config, self.port = config, port
+        self.gid = _group_id(config.group)
+        self.port_writer = None  # the port's writer, for requests written into the raw pty (`tap_source`)
+        self._calibrator: Calibrator | None = None
+        self._state = {"state": State.STARTING.value, "detail": "waiting for data", "progress": {}}
+        self._result = _previous_result(state_dir)
+        self._bias: dict[str, np.ndarray] | None = None  # this power-up's, in SENSOR_UNITS
+        self._info: StreamInfo | None = None
+        self._overrun = 0
+        self._pending: list[np.ndarray] = []
+        self._pending_count = 0
+        self._lock = threading.Lock()
+        self._clock = CounterClock()  # the server thread's: SAMPLES "t"
+        self.raw_pty = self.corrected_pty = self.server = None
+        try:
+            if config.result_copy is not None:
+                if not config.result_copy.parent.is_dir():
+                    raise ServeError(f"result_copy {config.result_copy}: no such directory "
+                                     f"{config.result_copy.parent}")
+                if self._result is not None:
+                    self._write_copy(self._result, at_start=True)
+            if config.raw_pty is not None:
+                self.raw_pty = _pty("raw_pty", config.raw_pty, lambda: RawPty(
+                    config.raw_pty, self._forward, config.allow_service_mode, config.group))
+            if config.corrected_pty is not None:
+                self.corrected_pty = _pty("corrected_pty", config.corrected_pty, lambda: CorrectedPty(
+                    config.corrected_pty, config.corrected_before_result, config.group))
+            if config.socket is not None or config.tcp is not None:
+                self.server = SocketServer(config.socket, config.tcp, self.gid, self._answer,
+                                           self._cut_samples).start()
+        except BaseException:
+            self.close()
+            raise
+
+    def watch(self, calibrator: Calibrator) -> None:
+        """The calibrator whose protocol progress STATE and POLL report (it has this hub among its listeners)."""
+        self._calibrator = calibrator
+
+    def close(self) -> None:
+        for part in (self.server, self.raw_pty, self.corrected_pty):
+            if part is not None:
+                part.close()
+
+    # ------------------------------------------------------------------ the calibrator's events (pump thread)
+    def on_state(self, state: State, detail: str) -> None:
+        if state == State.RESTARTED:
+            self._bias = None
+            if self._result is not None and self._result.stale is None:  # one read from the state directory
+                self.on_stale(stale_result(self._result, "the sensor restarted since this result, read from the "
+                                                         "state directory at start: it belongs to a previous power-up"))
+        self._state = {"state": state.value, "detail": detail, "progress": self._progress()}
+        self._publish(state_message(**self._state))
+
+    def on_result(self, result: CalibrationResult) -> None:
+        self._bias = bias_in_sensor_units(result)
+        self._new_result(result)
+
+    def on_stale(self, result: CalibrationResult) -> None:
+        self._bias = None
+        self._new_result(result)
+
+    def _new_result(self, result: CalibrationResult) -> None:
+        self._result = result
+        if self.corrected_pty is not None:
+            self.corrected_pty.set_result(None if result.stale else result)
+        if self.config.result_copy is not None:
+            self._write_copy(result)
+        self._publish(result_message(result.to_dict()))
+
+    def _progress(self) -> dict:
+        """The protocol's progress, from what the calibrator shows of its session."""
+        calibrator = self._calibrator
+        if calibrator is None:
+            return {}
+        collector = calibrator.collector
+        start_s = collector.session_start_s
+        if start_s is None:
+            return {"warm": False, "sessions": calibrator.sessions}
+        final = list(collector.tracker.final)
+        roles = detect.segment_roles(final)
+        return {"warm": True, "sessions": calibrator.sessions, "session_s": round(collector.end_s - start_s, 1),
+                "statics": roles.count("static"), "index_turns": roles.count("index turn"),
+                "full_turns": roles.count("full turn"), "other_turns": roles.count("other turn"),
+                "missing": estimator(calibrator.method.name).missing(final)}
+
+    def stream_seen(self, info: StreamInfo, counts: dict, increases: dict) -> None:
+        """The daemon's loop after each batch: the stream as it is (DEVICE) and the faults that
+        grew (FAULT; "overrun": samples the loop read too late)."""
+        self._info = info
+        if increases:
+            self._overrun += increases.get("overrun", 0)
+            self._publish(fault_message({**counts, "overrun": self._overrun}, increases))
+
+    def _publish(self, message: dict) -> None:
+        if self.server is not None:
+            self.server.publish(message)
+
+    def _write_copy(self, result: CalibrationResult, at_start: bool = False) -> None:
+        """result_copy, replaced atomically, mode 0640 and the group; a failure while running is
+        logged (the daemon calibrates on), at start it is the start's failure."""
+        path = self.config.result_copy
+        try:
+            with atomic_file(path, durable=False) as f:
+                f.write(result_json(result))
+                if stat.S_ISREG(os.fstat(f.fileno()).st_mode):  # never the mode of a device written in place
+                    os.fchmod(f.fileno(), RESULT_COPY_MODE)
+                    if self.gid is not None:
+                        os.fchown(f.fileno(), -1, self.gid)
+        except OSError as exc:
+            if at_start:
+                raise ServeError(f"result_copy {path}: {exc.strerror or exc}") from None
+            log.error("result_copy_failed", path=str(path), error=exc.strerror or str(exc))
+
+    # ------------------------------------------------------------------ the parser's tap (reader thread)
+    def tap(self, settled) -> None:
+        """Each settled feed: its bytes to the ptys, its samples queued for the server thread.
+        Never blocks or raises (the oldest queued samples go when the server thread lags)."""
+        if self.raw_pty is not None:
+            self.raw_pty.tap(settled)
+        if self.corrected_pty is not None:
+            self.corrected_pty.tap(settled)
+        if self.server is not None and len(settled.samples):
+            with self._lock:
+                self._pending.append(settled.samples)
+                self._pending_count += len(settled.samples)
+                while self._pending_count > PENDING_SAMPLES and len(self._pending) > 1:
+                    self._pending_count -= len(self._pending.pop(0))
+
+    def _forward(self, request: bytes) -> None:
+        if self.port_writer is None:
+            log.warning("request_not_forwarded", request=request.decode("ascii", "replace"),
+                        detail="this source has no port to write to")
+        else:
+            self.port_writer(request)
+
+    # ------------------------------------------------------------------ the socket server's thread
+    def _cut_samples(self, kinds: set) -> list[tuple[str, bytes]]:
+        """The samples queued since the last cut, timed, as SAMPLES batches of at most
+        SAMPLES_MAX_S, each encoded once per kind in `kinds`."""
+        info = self._info
+        if info is None or not info.rate_hz:
+            return []  # until the rate is known nothing can be timed: the samples wait (bounded)
+        with self._lock:
+            pending, self._pending, self._pending_count = self._pending, [], 0
+        if not pending:
+            return []
+        samples = np.concatenate(pending)
+        time_s = self._clock.times(samples["counter"], info.rate_hz, samples["t_host"]).time_s
+        bias, hold = self._bias, self.config.corrected_before_result == "hold"
+        units = {block: unit for block, unit in info.format.units().items() if block in SENSOR_UNITS}
+        if units != SENSOR_UNITS:
+            bias = None  # incremental or integrated units: not corrected (docs/serving.md)
+        batches = []
+        step = max(1, int(SAMPLES_MAX_S * info.rate_hz))
+        for lo in range(0, len(samples), step):
+            piece, t = samples[lo:lo + step], time_s[lo:lo + step]
+            raw = None
+            if "raw" in kinds or ("corrected" in kinds and bias is None and not hold):
+                raw = samples_line(False, t, piece["t_host"], piece["counter"], piece["gyro"], piece["acc"],
+                                   piece["incl"])
+            if "raw" in kinds:
+                batches.append(("raw", raw))
+            if "corrected" in kinds and bias is not None:
+                batches.append(("corrected", samples_line(
+                    True, t, piece["t_host"], piece["counter"], piece["gyro"] - bias["gyro"],
+                    piece["acc"] - bias["acc"], piece["incl"] - bias["incl"])))
+            elif "corrected" in kinds and not hold:
+                batches.append(("corrected", raw))
+        return batches
+
+    def _answer(self, command: Command) -> dict:
+        if command.name == "POLL":
+            return poll_message(self._state, None if self._result is None else self._result.to_dict())
+        if command.name == "DEVICE":
+            info = self._info
+            if info is None:
+                return device_message(self.port, {}, None, None)
+            units = {block: unit for block, unit in info.format.units().items() if block in SENSOR_UNITS}
+            configuration = None if info.configuration is None else _json_ready(asdict(info.configuration))
+            return device_message(self.port, info.sensor_record(), units, configuration)
+        raise ProtocolError(f"?{command.name} takes no part in this server")
+
+
+def tap_source(hub: Hub, source) -> None:
+    """Make the hub the tap of the parser `source` decodes with, and give the raw pty the port
+    to write requests to: the one place that knows where each source keeps them."""
+    reader = getattr(source, "reader", None) or getattr(getattr(source, "_port", None), "reader", None)
+    parser = source.parser if reader is None else reader.parser
+    parser.tap = hub.tap
+    hub.port_writer = getattr(reader, "write", None)
+
+
+def _group_id(name: str | None) -> int | None:
+    if name is None:
+        return None
+    try:
+        return grp.getgrnam(name).gr_gid
+    except KeyError:
+        raise ServeError(f"group {name!r}: no such group (create it, or drop group from [serve])") from None
+
+
+def _previous_result(state_dir: Path | None) -> CalibrationResult | None:
+    """result.json as an earlier daemon left it, or None (none, or unreadable: said in the log)."""
+    path = None if state_dir is None else Path(state_dir) / "result.json"
+    if path is None or not path.is_file():
+        return None
+    try:
+        return load_result(path)
+    except (CalibdError, OSError) as exc:
+        log.warning("previous_result_unreadable", path=str(path), error=str(exc))
+        return None
+
+
+def _pty(key: str, link: Path, make):
+    """A pty made by `make()`, its failure one ServeError line naming the key and link."""
+    if not link.parent.is_dir():
+        raise ServeError(f"{key} {link}: no such directory {link.parent}")
+    try:
+        return make()
+    except OSError as exc:
+        raise ServeError(f"{key} {link}: {exc.strerror or exc}") from None
+    except CalibdError as exc:
+        raise ServeError(f"{key} {link}: {exc}") from None
+
+
+def _json_ready(value):
+    """A dataclass record with enums (as their names) and tuples, for JSON."""
+    if isinstance(value, dict):
+        return {k: _json_ready(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_ready(v) for v in value]
+    return value.name if isinstance(value, Enum) else value
