@@ -297,7 +297,8 @@ def cmd_replay(args) -> int:
         listeners.append(hub)
     calibrator = Calibrator(site, warmup, method, listeners, source=args.capture, detection=detection)
     try:
-        source = PtySource(data, speed) if args.pty or serve else CaptureSource(data, speed)
+        tap = hub and hub.tap
+        source = PtySource(data, speed, tap=tap) if args.pty or serve else CaptureSource(data, speed, tap=tap)
     except BaseException:
         if hub is not None:
             hub.close()

@@ -29,11 +29,8 @@ import numpy as np
 
 from .errors import CalibdError
 from .results import CalibrationResult, ResultError
-from .serve.protocol import PROTO_MAJOR, SAMPLE_KINDS, ProtocolError, decode
+from .serve.protocol import MAX_MESSAGE_BYTES, PROTO_MAJOR, SAMPLE_KINDS, ProtocolError, decode
 
-# A server message longer than this is not calibd's: SAMPLES of 0.1 s at 2000 Hz and result
-# documents stay well below. (The server's bound on commands is protocol.MAX_LINE_BYTES.)
-MAX_MESSAGE_BYTES = 4 * 1024 * 1024
 CONNECT_TIMEOUT_S = 5.0
 _HOST_PORT = re.compile(r"(?:\[(?P<v6>[^\]]+)\]|(?P<host>[^:/\[\]]+)):(?P<port>\d{1,5})")
 

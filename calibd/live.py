@@ -28,7 +28,7 @@ from stim300.source import PortSource, SampleSource
 from .config import ConfigError
 from .daemon import Calibrator, Listener, State, StateLog
 from .results import ResultStore, StateDirError
-from .serve.hub import Hub, tap_source
+from .serve.hub import Hub
 from .serve.sockets import ServeError
 
 log = structlog.get_logger("calibd")
@@ -184,7 +184,6 @@ def replay(source: SampleSource, calibrator: Calibrator, progress=None, hub: Hub
     try:
         if hub is not None:
             hub.watch(calibrator)
-            tap_source(hub, source)
         with source:
             pump(source, calibrator, on_step=progress and (lambda fed: progress(source.done_bytes, source.total_bytes)),
                  on_stream=hub and hub.stream_seen)
@@ -201,11 +200,12 @@ def run(config, reload_config) -> int:
     status = SystemdStatus()
     try:
         store = ResultStore(config.state_dir, {"port": config.serial.port}, on_health=status.degraded)
-        source = PortSource(config.serial.port, config.serial.baudrate)
+        hub = Hub(config.serve, config.serial.port, config.state_dir) if config.serve.serving else None
         try:
-            hub = Hub(config.serve, config.serial.port, config.state_dir) if config.serve.serving else None
+            source = PortSource(config.serial.port, config.serial.baudrate, tap=hub and hub.tap)
         except BaseException:
-            source.close()
+            if hub is not None:
+                hub.close()
             raise
     except (StateDirError, PortError, ServeError) as exc:  # before READY=1: systemd sees the start fail
         log.error("start_failed", error=str(exc))
@@ -216,7 +216,7 @@ def run(config, reload_config) -> int:
                             source=config.serial.port, detection=config.detection)
     if hub is not None:
         hub.watch(calibrator)
-        tap_source(hub, source)
+        hub.port_writer = source.reader.write  # requests written into the raw pty go to the sensor
     stopping = []
     signal.signal(signal.SIGTERM, lambda *_: stopping.append("SIGTERM"))
     signal.signal(signal.SIGINT, lambda *_: stopping.append("SIGINT"))

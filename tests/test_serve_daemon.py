@@ -17,7 +17,6 @@ import numpy as np
 import pytest
 
 from calibd.results import write_result
-from calibd.serve.ptys import RawPty
 from stim300.bulk import decode_capture
 
 from test_serve_socket import OWN_GROUP, known_result
@@ -27,17 +26,6 @@ FIXTURES = ROOT / "fixtures"
 CAPTURE = FIXTURES / "warmup_then_protocol_125hz.bin"
 ENV = {**{k: v for k, v in os.environ.items() if k not in ("NOTIFY_SOCKET", "WATCHDOG_USEC", "JOURNAL_STREAM")},
        "PYTHONPATH": str(ROOT)}
-
-
-def pty_pending() -> bool:
-    """Whether the ptys are still the interface without its implementation."""
-    try:
-        RawPty(Path("/nonexistent/calibd-probe"), lambda request: None)
-    except NotImplementedError:
-        return True
-    except Exception:
-        return False
-    return False
 
 
 def calibd(*args: str) -> subprocess.Popen:
@@ -212,7 +200,6 @@ def test_replay_serve_needs_something_to_serve(tmp_path):
     assert done.returncode == 2 and done.stderr.count("\n") == 1 and "nothing to serve" in done.stderr
 
 
-@pytest.mark.skipif(pty_pending(), reason="pty implementation pending")
 def test_replay_serve_raw_pty_carries_the_feed_unchanged(tmp_path):
     link = tmp_path / "raw"
     data = CAPTURE.read_bytes()[:300_000]
@@ -227,14 +214,69 @@ def test_replay_serve_raw_pty_carries_the_feed_unchanged(tmp_path):
         fd = os.open(link, os.O_RDONLY | os.O_NOCTTY)
         tty.setraw(fd)
         got = bytearray()
-        while daemon.poll() is None or select.select([fd], [], [], 0.2)[0]:
-            if select.select([fd], [], [], 0.2)[0]:
-                try:
-                    got += os.read(fd, 65536)
-                except OSError:
-                    break
+        while time.monotonic() < deadline + 40:
+            if not select.select([fd], [], [], 0.2)[0]:
+                if daemon.poll() is not None:
+                    break  # the daemon is done and the pty holds nothing more
+                continue
+            try:
+                chunk = os.read(fd, 65536)
+            except OSError:  # EIO: the daemon closed its end
+                break
+            if not chunk:
+                break
+            got += chunk
         os.close(fd)
+        assert daemon.wait(timeout=30) == 1  # ended: 40 s of a warm-up give no result
     finally:
         if daemon.poll() is None:
             daemon.kill()
     assert len(got) > 0 and bytes(got) in data  # from when the reader opened it: unchanged, in order
+
+
+def test_replay_serve_corrected_pty_holds_until_a_result_then_subtracts_its_biases(tmp_path):
+    """An unchanged driver on the corrected link reads nothing while the power-up has no result,
+    then the sensor's datagrams less the result's biases (every datagram: none dropped)."""
+    link, state = tmp_path / "corrected", tmp_path / "state"
+    daemon = calibd("replay", str(CAPTURE), "--latitude", "40.59129", "--g0", "9.79956", "--warmup-window", "10",
+                    "--corrected-pty", str(link), "--speed", "100", "--state-dir", str(state))
+    got = bytearray()
+    try:
+        deadline = time.monotonic() + 30
+        while not link.exists():
+            assert time.monotonic() < deadline and daemon.poll() is None
+            time.sleep(0.01)
+        fd = os.open(link, os.O_RDONLY | os.O_NOCTTY)
+        tty.setraw(fd)
+        while time.monotonic() < deadline + 60:
+            if not select.select([fd], [], [], 0.2)[0]:
+                if daemon.poll() is not None:
+                    break
+                continue
+            try:
+                chunk = os.read(fd, 65536)
+            except OSError:
+                break
+            if not chunk:
+                break
+            got += chunk
+        os.close(fd)
+        assert daemon.wait(timeout=30) == 0
+    finally:
+        if daemon.poll() is None:
+            daemon.kill()
+    capture = decode_capture(CAPTURE.read_bytes())
+    raw, scales = capture.samples, capture.info.format.scales()
+    corrected = decode_capture(bytes(got)).samples
+    assert 0 < len(corrected) < 0.8 * len(raw)  # held through the warm-up and the protocol
+    tail = raw[-len(corrected):]
+    assert np.array_equal(tail["counter"], corrected["counter"])  # the stream's last datagrams, none lost
+    result = json.loads((state / "result.json").read_text())["estimates"]
+    for block, per_unit, tolerance in (("gyro", 1 / 3600, 0.002), ("acc", 1e-3, 3e-4)):
+        bias = np.array([result[f"{block}_bias_{axis}"]["value"] for axis in "xyz"]) * per_unit  # deg/s, g
+        assert np.max(np.abs(bias)) > 5 * tolerance  # a bias the test can tell from none
+        difference = tail[block].astype(np.float64) - corrected[block]
+        assert np.all(np.abs(difference - bias) < tolerance), block  # each result's biases: close to the last's
+        lsb = np.max(scales[block])  # constant within a count between results (one step per new result)
+        steps = np.count_nonzero(np.any(np.abs(np.diff(difference, axis=0)) > 1.5 * lsb, axis=1))
+        assert steps <= 20, (block, steps)

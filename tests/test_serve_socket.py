@@ -8,6 +8,7 @@ import socket
 import stat
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +20,8 @@ from calibd.frames import Site
 from calibd.results import make_result, result_json, write_result
 from calibd.serve import hub as hub_module
 from calibd.serve import sockets
-from calibd.serve.hub import Hub, bias_in_sensor_units
+from calibd.serve.correct import result_biases
+from calibd.serve.hub import Hub
 from calibd.serve.protocol import MAX_LINE_BYTES, SAMPLES_MAX_S
 from calibd.serve.sockets import ServeError
 from calibd.units import DEG
@@ -219,9 +221,12 @@ def test_corrected_samples_are_raw_minus_the_power_ups_biases(served, tmp_path):
     assert hub._bias is None
 
 
-def test_the_bias_conversion_is_deg_per_s_and_g():
-    bias = bias_in_sensor_units(known_result())
+def test_the_bias_conversion_is_deg_per_s_and_g_and_skips_what_a_unit_lacks():
+    bias = result_biases(known_result())
     assert np.allclose(bias["gyro"], BIAS["gyro"]) and np.allclose(bias["acc"], np.array(BIAS["acc"]) * 1e-3)
+    no_incl = known_result()
+    no_incl = replace(no_incl, estimates={k: e for k, e in no_incl.estimates.items() if not k.startswith("incl_")})
+    assert set(result_biases(no_incl)) == {"gyro", "acc"}  # a unit without inclinometers: still corrected
 
 
 def test_a_client_that_stops_reading_neither_delays_the_others_nor_grows(served, tmp_path, monkeypatch):

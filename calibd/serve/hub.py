@@ -34,6 +34,7 @@ from ..methods import estimator
 from ..results import CalibrationResult, load_result, result_json
 from .protocol import (SAMPLES_MAX_S, Command, ProtocolError, device_message, fault_message, poll_message,
                        result_message, samples_line, state_message)
+from .correct import result_biases
 from .ptys import CorrectedPty, RawPty
 from .sockets import ServeError, SocketServer
 
@@ -44,19 +45,6 @@ PENDING_SAMPLES = 8000  # samples the tap keeps for the server thread at most (4
 SENSOR_UNITS = {"gyro": "deg/s", "acc": "g", "incl": "g"}  # the units biases are subtracted in
 
 
-def bias_in_sensor_units(result: CalibrationResult) -> dict[str, np.ndarray] | None:
-    """A result's biases in the sensor's rate units (SENSOR_UNITS: gyro deg/h -> deg/s,
-    accelerometer and inclinometer mg -> g), per block; None when it lacks one."""
-    factors = {"deg/h": 1 / 3600, "mg": 1e-3}
-    bias = {}
-    for block in SENSOR_UNITS:
-        estimates = [result.estimates.get(f"{block}_bias_{axis}") for axis in "xyz"]
-        if any(e is None or e.unit not in factors for e in estimates):
-            return None
-        bias[block] = np.array([e.value * factors[e.unit] for e in estimates], np.float32)
-    return bias
-
-
 class Hub(Listener):
     """What `config` serves for the sensor at `port` (`state_dir`: where result.json is, shown
     until this daemon has a result of its own). Construction starts it all or raises ServeError
@@ -65,7 +53,7 @@ class Hub(Listener):
     def __init__(self, config: ServeConfig, port: str, state_dir: Path | None = None):
         self.config, self.port = config, port
         self.gid = _group_id(config.group)
-        self.port_writer = None  # the port's writer, for requests written into the raw pty (`tap_source`)
+        self.port_writer = None  # the port's writer, for requests written into the raw pty (`calibd run` sets it)
         self._calibrator: Calibrator | None = None
         self._state = {"state": State.STARTING.value, "detail": "waiting for data", "progress": {}}
         self._result = _previous_result(state_dir)
@@ -117,7 +105,7 @@ class Hub(Listener):
         self._publish(state_message(**self._state))
 
     def on_result(self, result: CalibrationResult) -> None:
-        self._bias = bias_in_sensor_units(result)
+        self._bias = {block: bias.astype(np.float32) for block, bias in result_biases(result).items()} or None
         self._new_result(result)
 
     def on_stale(self, result: CalibrationResult) -> None:
@@ -227,8 +215,8 @@ class Hub(Listener):
                 batches.append(("raw", raw))
             if "corrected" in kinds and bias is not None:
                 batches.append(("corrected", samples_line(
-                    True, t, piece["t_host"], piece["counter"], piece["gyro"] - bias["gyro"],
-                    piece["acc"] - bias["acc"], piece["incl"] - bias["incl"])))
+                    True, t, piece["t_host"], piece["counter"], *(piece[block] - bias.get(block, 0)
+                                                                  for block in ("gyro", "acc", "incl")))))
             elif "corrected" in kinds and not hold:
                 batches.append(("corrected", raw))
         return batches
@@ -244,15 +232,6 @@ class Hub(Listener):
             configuration = None if info.configuration is None else _json_ready(asdict(info.configuration))
             return device_message(self.port, info.sensor_record(), units, configuration)
         raise ProtocolError(f"?{command.name} takes no part in this server")
-
-
-def tap_source(hub: Hub, source) -> None:
-    """Make the hub the tap of the parser `source` decodes with, and give the raw pty the port
-    to write requests to: the one place that knows where each source keeps them."""
-    reader = getattr(source, "reader", None) or getattr(getattr(source, "_port", None), "reader", None)
-    parser = source.parser if reader is None else reader.parser
-    parser.tap = hub.tap
-    hub.port_writer = getattr(reader, "write", None)
 
 
 def _group_id(name: str | None) -> int | None:

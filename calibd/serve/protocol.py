@@ -20,6 +20,9 @@ from ..errors import CalibdError
 PROTO_MAJOR = 1
 PROTO_MINOR = 0
 MAX_LINE_BYTES = 64 * 1024  # a longer command line is refused and skipped to its newline
+# A server message longer than this is not calibd's: SAMPLES of 0.1 s at 2000 Hz and result
+# documents stay well below (a client's bound on what it buffers).
+MAX_MESSAGE_BYTES = 4 * 1024 * 1024
 SAMPLE_KINDS = ("none", "raw", "corrected")  # what ?WATCH "samples" may ask for
 SAMPLES_MAX_S = 0.1  # a SAMPLES message holds at most this much of the stream
 COMMANDS = ("WATCH", "POLL", "DEVICE", "VERSION")
