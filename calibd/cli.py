@@ -280,7 +280,7 @@ def cmd_replay(args) -> int:
         print(f"[{result.stale['power_up']} power-up] {result.stale['reason']}", flush=True)
 
     listeners = [StateLog(), Callbacks(state=print_state, stale=print_stale)]
-    if args.state_dir:
+    if args.state_dir:  # a capture is a world of its own: an earlier result there is not shown
         try:
             listeners.append(ResultStore(args.state_dir, {"capture": args.capture}))
         except StateDirError as exc:
@@ -291,7 +291,7 @@ def cmd_replay(args) -> int:
     hub = None
     if serve:
         try:
-            hub = Hub(serve, args.capture, args.state_dir and Path(args.state_dir))
+            hub = Hub(serve, args.capture)
         except ServeError as exc:
             raise UsageError(str(exc)) from None
         listeners.append(hub)

@@ -200,7 +200,8 @@ def run(config, reload_config) -> int:
     status = SystemdStatus()
     try:
         store = ResultStore(config.state_dir, {"port": config.serial.port}, on_health=status.degraded)
-        hub = Hub(config.serve, config.serial.port, config.state_dir) if config.serve.serving else None
+        previous = store.previous()
+        hub = Hub(config.serve, config.serial.port, previous) if config.serve.serving else None
         try:
             source = PortSource(config.serial.port, config.serial.baudrate, tap=hub and hub.tap)
         except BaseException:
@@ -213,7 +214,7 @@ def run(config, reload_config) -> int:
         return 1
     calibrator = Calibrator(config.site, config.warmup, config.method,
                             [StateLog(), store, status, *([hub] if hub else [])],
-                            source=config.serial.port, detection=config.detection)
+                            source=config.serial.port, detection=config.detection, previous=previous)
     if hub is not None:
         hub.watch(calibrator)
         hub.port_writer = source.reader.write  # requests written into the raw pty go to the sensor

@@ -242,6 +242,19 @@ class ResultStore:
         except OSError as exc:
             raise StateDirError(f"state directory {self.dir}: {self._why(exc)}") from None
 
+    def previous(self) -> CalibrationResult | None:
+        """result.json as an earlier daemon left it (None: none, or unreadable, said in the log).
+        Not the kept result: whether it is of the sensor's current power-up is not known until
+        the sensor restarts (then the Calibrator marks it stale and result.json says so)."""
+        path = self.dir / "result.json"
+        if path.is_symlink() or not path.is_file():
+            return None
+        try:
+            return load_result(path)
+        except (CalibdError, OSError) as exc:
+            log.warning("previous_result_unreadable", path=str(path), error=str(exc))
+            return None
+
     def _prepare(self) -> None:
         """The directory and history/ exist (made again if deleted) and are real directories:
         OSError otherwise (history/ a symlink too: it is not followed)."""

@@ -136,7 +136,8 @@ def _config(tmp_path: Path, serve: str) -> Path:
 
 def test_run_shows_the_previous_result_and_marks_it_once_the_sensor_restarts(tmp_path):
     """After a daemon restart ?POLL shows result.json as the last daemon left it; when the sensor
-    restarts it is marked as the previous power-up's, in POLL and in the group-readable copy;
+    restarts it is marked as the previous power-up's, in POLL, in the group-readable copy and in
+    result.json itself;
     SIGHUP keeps the [serve] table in use; SIGTERM removes the socket."""
     (tmp_path / "state").mkdir()
     write_result(tmp_path / "state" / "result.json", known_result())
@@ -161,6 +162,7 @@ def test_run_shows_the_previous_result_and_marks_it_once_the_sensor_restarts(tmp
         poll = ask(sock, b"?POLL;\n", "POLL")
         assert poll["result"]["stale"]["power_up"] == "previous"
         assert json.loads(copy.read_text())["stale"]["power_up"] == "previous"
+        assert json.loads((tmp_path / "state" / "result.json").read_text())["stale"]["power_up"] == "previous"
         config.write_text(config.read_text() + 'tcp = "127.0.0.1:1"\n')  # a new [serve] table: not taken up
         daemon.send_signal(signal.SIGHUP)
         time.sleep(1.0)

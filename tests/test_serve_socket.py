@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 
 from calibd.config import ServeConfig
-from calibd.daemon import State
+from calibd.daemon import Calibrator, State
 from calibd.frames import Site
-from calibd.results import make_result, result_json, write_result
+from calibd.results import ResultStore, make_result, result_json, write_result
 from calibd.serve import hub as hub_module
 from calibd.serve import sockets
 from calibd.serve.correct import result_biases
@@ -27,6 +27,7 @@ from calibd.serve.sockets import ServeError
 from calibd.units import DEG
 from stim300.bulk import decode_capture
 from stim300.capture import stream_info
+from stim300.codec import SAMPLE_DTYPE
 from stim300.stream import StreamParser
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
@@ -83,8 +84,8 @@ def served(tmp_path):
     """A hub serving a socket (and the result's copy), closed after the test."""
     hubs = []
 
-    def make(state_dir=None, **keys) -> Hub:
-        hub = Hub(ServeConfig(socket=tmp_path / "calibd.sock", **keys), "/dev/ttySTIM", state_dir)
+    def make(previous=None, **keys) -> Hub:
+        hub = Hub(ServeConfig(socket=tmp_path / "calibd.sock", **keys), "/dev/ttySTIM", previous)
         hubs.append(hub)
         return hub
     yield make
@@ -343,7 +344,10 @@ def test_poll_shows_the_previous_result_marked_once_the_sensor_restarts(served, 
     state_dir = tmp_path / "state"
     state_dir.mkdir()
     write_result(state_dir / "result.json", known_result())
-    hub = served(state_dir=state_dir, result_copy=tmp_path / "copy.json")
+    store = ResultStore(state_dir)
+    previous = store.previous()
+    hub = served(previous=previous, result_copy=tmp_path / "copy.json")
+    calibrator = Calibrator(Site(40.0), listeners=[store, hub], previous=previous)
     assert (tmp_path / "copy.json").read_bytes() == (state_dir / "result.json").read_bytes()  # copied at start
     client = Client(tmp_path / "calibd.sock")
     client.message()
@@ -351,12 +355,14 @@ def test_poll_shows_the_previous_result_marked_once_the_sensor_restarts(served, 
     poll = client.until("POLL")
     assert poll["result"] == json.loads((state_dir / "result.json").read_text())
     assert hub._bias is None  # its power-up is unknown: nothing is corrected with it
-    hub.on_state(State.RESTARTED, "sensor restarted")
+    calibrator.sensor_seen({})
+    calibrator.feed(np.zeros(2, SAMPLE_DTYPE), 125, 0, (1,))  # the sensor restarts after the first sample
     client.send(b"?POLL;\n")
     poll = client.until("POLL")
-    assert poll["state"]["state"] == "RESTARTED" and poll["result"]["stale"]["power_up"] == "previous"
+    assert poll["result"]["stale"]["power_up"] == "previous"
     assert poll["result"]["warnings"][0].startswith("stale:")
     assert json.loads((tmp_path / "copy.json").read_text())["stale"]["power_up"] == "previous"
+    assert json.loads((state_dir / "result.json").read_text())["stale"]["power_up"] == "previous"
 
 
 def test_the_tap_never_holds_more_than_its_bound(tmp_path, monkeypatch):

@@ -34,17 +34,18 @@ from .warmwatch import Warmth, WarmWatch
 
 class Calibrator:
     """The daemon's states and their transitions; `listeners` hear every state, result and stale
-    result, in their order."""
+    result, in their order. `previous` is the result an earlier daemon left (result.json): it
+    stands until this one solves, and a sensor restart marks it stale like its own."""
 
     def __init__(self, site: Site, warmup: WarmupConfig = WarmupConfig(), method: MethodConfig = MethodConfig(),
                  listeners: Sequence[Listener] = (), source: str = "live",
-                 detection: DetectionConfig = DetectionConfig()):
+                 detection: DetectionConfig = DetectionConfig(), previous: CalibrationResult | None = None):
         self.configure(site, warmup, method, detection)
         self.listeners = tuple(listeners)
         self.source = source  # the port or capture, named in results
         self.state = State.STARTING
         self.detail = "waiting for data"
-        self.result: CalibrationResult | None = None
+        self.result = previous  # an earlier daemon's (result.json) until this one solves: a restart marks it stale
         self.sessions = 0
         self.sensor: dict = {}
         self._cuts = PowerUpCuts()

@@ -28,10 +28,10 @@ from stim300.clock import CounterClock
 
 from .. import detect
 from ..config import ServeConfig
-from ..daemon import Calibrator, Listener, State, stale_result
+from ..daemon import Calibrator, Listener, State
 from ..errors import CalibdError
 from ..methods import estimator
-from ..results import CalibrationResult, load_result, result_json
+from ..results import CalibrationResult, result_json
 from .protocol import (SAMPLES_MAX_S, Command, ProtocolError, device_message, fault_message, poll_message,
                        result_message, samples_line, state_message)
 from .correct import result_biases
@@ -46,17 +46,18 @@ SENSOR_UNITS = {"gyro": "deg/s", "acc": "g", "incl": "g"}  # the units biases ar
 
 
 class Hub(Listener):
-    """What `config` serves for the sensor at `port` (`state_dir`: where result.json is, shown
-    until this daemon has a result of its own). Construction starts it all or raises ServeError
-    (one line) having started nothing; `close()` removes the socket file and the pty links."""
+    """What `config` serves for the sensor at `port` (`previous`: the result an earlier daemon
+    left in the state directory, shown until this one has a result of its own). Construction
+    starts it all or raises ServeError (one line) having started nothing; `close()` removes the
+    socket file and the pty links."""
 
-    def __init__(self, config: ServeConfig, port: str, state_dir: Path | None = None):
+    def __init__(self, config: ServeConfig, port: str, previous: CalibrationResult | None = None):
         self.config, self.port = config, port
         self.gid = _group_id(config.group)
         self.port_writer = None  # the port's writer, for requests written into the raw pty (`calibd run` sets it)
         self._calibrator: Calibrator | None = None
         self._state = {"state": State.STARTING.value, "detail": "waiting for data", "progress": {}}
-        self._result = _previous_result(state_dir)
+        self._result = previous
         self._bias: dict[str, np.ndarray] | None = None  # this power-up's, in SENSOR_UNITS
         self._info: StreamInfo | None = None
         self._overrun = 0
@@ -98,9 +99,6 @@ class Hub(Listener):
     def on_state(self, state: State, detail: str) -> None:
         if state == State.RESTARTED:
             self._bias = None
-            if self._result is not None and self._result.stale is None:  # one read from the state directory
-                self.on_stale(stale_result(self._result, "the sensor restarted since this result, read from the "
-                                                         "state directory at start: it belongs to a previous power-up"))
         self._state = {"state": state.value, "detail": detail, "progress": self._progress()}
         self._publish(state_message(**self._state))
 
@@ -241,18 +239,6 @@ def _group_id(name: str | None) -> int | None:
         return grp.getgrnam(name).gr_gid
     except KeyError:
         raise ServeError(f"group {name!r}: no such group (create it, or drop group from [serve])") from None
-
-
-def _previous_result(state_dir: Path | None) -> CalibrationResult | None:
-    """result.json as an earlier daemon left it, or None (none, or unreadable: said in the log)."""
-    path = None if state_dir is None else Path(state_dir) / "result.json"
-    if path is None or not path.is_file():
-        return None
-    try:
-        return load_result(path)
-    except (CalibdError, OSError) as exc:
-        log.warning("previous_result_unreadable", path=str(path), error=str(exc))
-        return None
 
 
 def _pty(key: str, link: Path, make):
