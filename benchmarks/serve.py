@@ -2,11 +2,11 @@
 each fed the same 2000 Hz stream in real time through a pty.
 
 Serving: 4 socket clients watching samples (2 raw, 2 corrected), one client that watches raw
-samples and never reads, the raw and corrected ptys each with a reader (once the ptys are
-implemented), and, halfway through, 1000 connect/disconnect cycles and 10 MB of garbage
-commands. Printed: the daemon's CPU (% of one core, and the ratio to bare), its RSS over time,
-the reading clients' sample latency (host read -> socket, from each sample's t_host), and how
-far the served run's result lies from the bare run's (in sigma).
+samples and never reads, the raw and corrected ptys each with a reader, and, halfway through,
+1000 connect/disconnect cycles and 10 MB of garbage commands. Printed: the daemon's CPU (% of
+one core, and the ratio to bare), its RSS over time, the reading clients' sample latency (host
+read -> socket, from each sample's t_host), and how far the served run's result lies from the
+bare run's (in sigma).
 Targets: CPU <= 2x bare and <= 8 % of a core; latency p99 < 50 ms; RSS flat; result unchanged.
 
     python benchmarks/serve.py [--seconds 600] [--quick]
@@ -31,21 +31,10 @@ import numpy as np
 
 from live import ENV, capture_2000hz, feed, usage  # benchmarks/live.py: the stream and its real-time feed
 
-from calibd.serve.ptys import RawPty
 
 WARMUP_WINDOW_S = 60
 GARBAGE_BYTES = 10_000_000
 CYCLES = 1000
-
-
-def ptys_exist() -> bool:
-    try:
-        RawPty(Path("/nonexistent/calibd-probe"), lambda request: None)
-    except NotImplementedError:
-        return False
-    except Exception:
-        return True
-    return True
 
 
 class Watcher(threading.Thread):
@@ -113,14 +102,14 @@ def abuse(path: Path) -> None:
                 pass
 
 
-def measure(data: bytes, seconds: float, serve: bool, with_ptys: bool) -> dict:
+def measure(data: bytes, seconds: float, serve: bool) -> dict:
     master, slave = os.openpty()
     tty.setraw(master)
     tty.setraw(slave)
     with tempfile.TemporaryDirectory() as tmp:
         sock_path = Path(tmp) / "calibd.sock"
         table = f'[serve]\nsocket = "{sock_path}"\n' if serve else ""
-        if serve and with_ptys:
+        if serve:
             table += f'raw_pty = "{tmp}/raw"\ncorrected_pty = "{tmp}/corrected"\n'
         config = Path(tmp) / "calibd.toml"
         config.write_text(f'[serial]\nport = "{os.ttyname(slave)}"\n[site]\nlatitude_deg = 40.59129\n'
@@ -141,7 +130,7 @@ def measure(data: bytes, seconds: float, serve: bool, with_ptys: bool) -> dict:
             stalled.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
             stalled.connect(str(sock_path))
             stalled.sendall(b'?WATCH={"enable":true,"samples":"raw"};\n')  # and never reads again
-            readers = [PtyReader(Path(tmp) / name) for name in ("raw", "corrected")] if with_ptys else []
+            readers = [PtyReader(Path(tmp) / name) for name in ("raw", "corrected")] if serve else []
             for thread in (*clients, *readers):
                 thread.start()
             threading.Timer(seconds / 2, abuse, (sock_path,)).start()
@@ -170,10 +159,8 @@ def main() -> int:
     args = ap.parse_args()
     seconds_asked = 150.0 if args.quick else args.seconds
     data, seconds = capture_2000hz(seconds_asked)
-    with_ptys = ptys_exist()
-    print(f"2000 Hz stream, {seconds:.0f} s, {len(data) / 1e6:.1f} MB, fed in real time through a pty to each run"
-          + ("" if with_ptys else "; ptys not implemented yet: served without them"))
-    runs = {name: measure(data, seconds, serve, with_ptys) for name, serve in (("bare", False), ("serving", True))}
+    print(f"2000 Hz stream, {seconds:.0f} s, {len(data) / 1e6:.1f} MB, fed in real time through a pty to each run")
+    runs = {name: measure(data, seconds, serve) for name, serve in (("bare", False), ("serving", True))}
     cpu, steady = {}, {}
     for name, run in runs.items():
         usage_ = run["usage"]
