@@ -202,21 +202,18 @@ def test_replay_serve_needs_something_to_serve(tmp_path):
     assert done.returncode == 2 and done.stderr.count("\n") == 1 and "nothing to serve" in done.stderr
 
 
-def test_replay_serve_raw_pty_carries_the_feed_unchanged(tmp_path):
-    link = tmp_path / "raw"
-    data = CAPTURE.read_bytes()[:300_000]
-    capture = tmp_path / "short.bin"
-    capture.write_bytes(data)
-    daemon = calibd("replay", str(capture), "--latitude", "40", "--raw-pty", str(link), "--speed", "20")
+def read_link(link: Path, daemon: subprocess.Popen, limit_s: float = 90.0) -> bytes:
+    """What a driver opening the pty at `link` (once the daemon made it) reads until the daemon
+    ends; the daemon is killed if it outlives `limit_s`."""
+    deadline = time.monotonic() + limit_s
+    got = bytearray()
     try:
-        deadline = time.monotonic() + 20
         while not link.exists():
             assert time.monotonic() < deadline and daemon.poll() is None
             time.sleep(0.01)
         fd = os.open(link, os.O_RDONLY | os.O_NOCTTY)
         tty.setraw(fd)
-        got = bytearray()
-        while time.monotonic() < deadline + 40:
+        while time.monotonic() < deadline:
             if not select.select([fd], [], [], 0.2)[0]:
                 if daemon.poll() is not None:
                     break  # the daemon is done and the pty holds nothing more
@@ -229,11 +226,21 @@ def test_replay_serve_raw_pty_carries_the_feed_unchanged(tmp_path):
                 break
             got += chunk
         os.close(fd)
-        assert daemon.wait(timeout=30) == 1  # ended: 40 s of a warm-up give no result
     finally:
-        if daemon.poll() is None:
+        if daemon.poll() is None and time.monotonic() >= deadline:
             daemon.kill()
-    assert len(got) > 0 and bytes(got) in data  # from when the reader opened it: unchanged, in order
+    return bytes(got)
+
+
+def test_replay_serve_raw_pty_carries_the_feed_unchanged(tmp_path):
+    link = tmp_path / "raw"
+    data = CAPTURE.read_bytes()[:300_000]
+    capture = tmp_path / "short.bin"
+    capture.write_bytes(data)
+    daemon = calibd("replay", str(capture), "--latitude", "40", "--raw-pty", str(link), "--speed", "20")
+    got = read_link(link, daemon)
+    assert daemon.wait(timeout=30) == 1  # ended: 40 s of a warm-up give no result
+    assert len(got) > 0 and got in data  # from when the reader opened it: unchanged, in order
 
 
 def test_replay_serve_corrected_pty_holds_until_a_result_then_subtracts_its_biases(tmp_path):
@@ -242,34 +249,11 @@ def test_replay_serve_corrected_pty_holds_until_a_result_then_subtracts_its_bias
     link, state = tmp_path / "corrected", tmp_path / "state"
     daemon = calibd("replay", str(CAPTURE), "--latitude", "40.59129", "--g0", "9.79956", "--warmup-window", "10",
                     "--corrected-pty", str(link), "--speed", "100", "--state-dir", str(state))
-    got = bytearray()
-    try:
-        deadline = time.monotonic() + 30
-        while not link.exists():
-            assert time.monotonic() < deadline and daemon.poll() is None
-            time.sleep(0.01)
-        fd = os.open(link, os.O_RDONLY | os.O_NOCTTY)
-        tty.setraw(fd)
-        while time.monotonic() < deadline + 60:
-            if not select.select([fd], [], [], 0.2)[0]:
-                if daemon.poll() is not None:
-                    break
-                continue
-            try:
-                chunk = os.read(fd, 65536)
-            except OSError:
-                break
-            if not chunk:
-                break
-            got += chunk
-        os.close(fd)
-        assert daemon.wait(timeout=30) == 0
-    finally:
-        if daemon.poll() is None:
-            daemon.kill()
+    got = read_link(link, daemon)
+    assert daemon.wait(timeout=30) == 0
     capture = decode_capture(CAPTURE.read_bytes())
     raw, scales = capture.samples, capture.info.format.scales()
-    corrected = decode_capture(bytes(got)).samples
+    corrected = decode_capture(got).samples
     assert 0 < len(corrected) < 0.8 * len(raw)  # held through the warm-up and the protocol
     tail = raw[-len(corrected):]
     assert np.array_equal(tail["counter"], corrected["counter"])  # the stream's last datagrams, none lost
