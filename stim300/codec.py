@@ -173,6 +173,22 @@ def _counts(values: np.ndarray, lsb: float, bits: int, signed: bool = True) -> n
     return np.minimum(counts, hi, out=counts).astype(np.int64)
 
 
+def subtract_counts(frames: np.ndarray, offset: int, counts: np.ndarray) -> None:
+    """Take `counts` (one per axis) off the three 24-bit values at `offset` of every datagram row
+    of `frames` (N x >= pre_crc + 4 uint8), saturating as the sensor does; `seal` then writes
+    the CRC. A constant offset in counts is a bias taken out without decoding the datagram."""
+    octets = frames[:, offset:offset + 9].reshape(len(frames), 3, 3).astype(np.int32)
+    value = _int24((octets[:, :, 0] << 16) | (octets[:, :, 1] << 8) | octets[:, :, 2]) - counts
+    np.maximum(value, -(1 << 23), out=value)  # not np.clip: its checks cost more than the work here
+    np.minimum(value, (1 << 23) - 1, out=value)
+    _put_ints(frames, offset, value, 3)
+
+
+def seal(frames: np.ndarray, layout: Layout) -> None:
+    """Each datagram row's CRC, computed again after its content changed."""
+    _put_ints(frames, layout.pre_crc, crc_columns(frames, layout.pre_crc)[:, None], 4)
+
+
 def encode_samples(samples: np.ndarray, datagram_id: int, fmt: Format, crlf: bool) -> np.ndarray:
     """Datagrams for `samples`, as an N x wire_length uint8 array (`.tobytes()` is the stream).
 

@@ -9,7 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from captures import capture, same_samples
-from stim300.codec import SAMPLE_DTYPE, decode_frames, encode_samples
+from stim300.bulk import decode_capture
+from stim300.codec import SAMPLE_DTYPE, decode_frames, encode_samples, seal, subtract_counts
 from stim300.crc import SCALAR_ROWS, crc32_mpeg2, crc_columns, datagram_crc
 from stim300.protocol import (ACC_RANGE_LSB_EXP, NORMAL_LAYOUTS, AccUnit, Format, GyroUnit, PpsUnit, normal_id,
                               status_names)
@@ -151,3 +152,21 @@ def test_real_0xAF_vector_decodes_and_reencodes():
 def test_round_trip_property(ident, crlf, seed):
     data, samples, fmt = capture(5, ident, crlf, seed=seed)
     assert same_samples(_decode(data, fmt, crlf), samples)
+
+
+def test_subtracting_counts_shifts_each_axis_saturates_and_reseals():
+    data, truth, fmt = capture(50, 0xA7, True, rate=2000, seed=3)
+    layout = NORMAL_LAYOUTS[0xA7]
+    width = layout.wire_length(True)
+    frames = np.frombuffer(data, np.uint8).reshape(50, width).copy()
+    frames[0, layout.offsets["gyro"]:layout.offsets["gyro"] + 3] = (0x80, 0x00, 0x01)  # the most negative + 1
+    counts = np.array([5, -7, 0], np.int32)
+    subtract_counts(frames, layout.offsets["gyro"], counts)
+    seal(frames, layout)
+    decoded = decode_capture(frames.tobytes(), fmt)
+    assert decoded.info.stats.crc_errors == 0 and len(decoded.samples) == 50  # every CRC written again
+    lsb = fmt.scales()["gyro"]
+    shifted = truth["gyro"][1:].astype(np.float64) - counts * lsb
+    assert np.array_equal(decoded.samples["gyro"][1:], shifted.astype(np.float32))
+    assert decoded.samples["gyro"][0, 0] == np.float32(-(1 << 23) * lsb)  # saturated, not wrapped round
+    assert np.array_equal(decoded.samples["acc"], truth["acc"])  # other clusters untouched

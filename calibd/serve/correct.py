@@ -1,9 +1,11 @@
-"""A result's biases taken out of the sensor's own datagrams, which are then re-encoded.
+"""A result's biases taken out of the sensor's own datagrams, in place, CRCs written again.
 
 The corrected pty carries the stream a driver already reads, so the correction is done in each
 datagram's own units: a rate or an acceleration loses the bias itself, an incremental angle or
-velocity the bias times the sample interval. An integrated angle or velocity has summed the bias
-since power-up, which no constant offset undoes: those blocks pass unchanged (said once in the log).
+velocity the bias times the sample interval. Each is rounded to whole counts once per result
+and taken off the datagrams' values without decoding them (within one count of raw - bias).
+An integrated angle or velocity has summed the bias since power-up, which no constant offset
+undoes: those blocks pass unchanged (said once in the log).
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import structlog
 
-from stim300.codec import encode_samples
+from stim300.codec import seal, subtract_counts
 from stim300.protocol import AccUnit, Format, GyroUnit, Layout
 from stim300.stream import Settled
 
@@ -49,7 +51,7 @@ class Corrector:
     def __init__(self, result: CalibrationResult):
         self.biases = result_biases(result)
         self.rate_hz = result.sensor.get("sample_rate_hz")
-        self._offsets: dict[tuple[int, Format], dict[str, np.ndarray]] = {}
+        self._counts: dict[tuple[int, Format], list[tuple[int, np.ndarray]]] = {}
         self._said: set[tuple[str, str]] = set()
 
     def apply(self, settled: Settled) -> bytes | bytearray:
@@ -60,34 +62,38 @@ class Corrector:
         out = bytearray(settled.data)
         view = np.frombuffer(out, np.uint8)
         for layout, fmt, offsets, start, stop in settled.runs:
-            subtract = self._offsets_for(layout, fmt)
+            subtract = self._counts_for(layout, fmt)
             if not subtract:
                 continue
-            samples = settled.samples[start:stop].copy()
-            for cluster, offset in subtract.items():
-                samples[cluster] -= offset
-            frames = encode_samples(samples, layout.datagram_id, fmt, crlf=False)  # CR LF stays in place
-            view[offsets[:, None] + np.arange(frames.shape[1])] = frames
+            rows = offsets[:, None] + np.arange(layout.pre_crc + 4)  # CR LF, when there, stays as it is
+            frames = view[rows]
+            for first, counts in subtract:
+                subtract_counts(frames, first, counts)
+            seal(frames, layout)
+            view[rows] = frames
         return out
 
-    def _offsets_for(self, layout: Layout, fmt: Format) -> dict[str, np.ndarray]:
-        """What to subtract from each cluster of datagrams of this layout and format, in their
-        units (float32, as the samples hold them); worked out once per format."""
+    def _counts_for(self, layout: Layout, fmt: Format) -> list[tuple[int, np.ndarray]]:
+        """What to subtract from the datagrams of this layout and format: per corrected cluster,
+        its byte offset and the bias in counts of its axes (the nearest: raw - bias within one
+        count); worked out once per format."""
         key = (layout.datagram_id, fmt)
-        if key not in self._offsets:
+        if key not in self._counts:
             rate_hz = fmt.sample_rate_hz or self.rate_hz
             units = {"gyro": (fmt.gyro_unit, _GYRO_PER_BASE), "acc": (fmt.acc_unit, _FORCE_PER_BASE),
                      "incl": (fmt.incl_unit, _FORCE_PER_BASE)}
-            offsets = {}
+            counts = []
+            scales = fmt.scales()
             for cluster in layout.clusters:
                 if cluster not in self.biases:
                     continue
                 unit, kinds = units[cluster]
                 scale = self._scale(cluster, GyroUnit(unit & 0x7) if cluster == "gyro" else unit, kinds, rate_hz)
                 if scale is not None:
-                    offsets[cluster] = (self.biases[cluster] * scale).astype(np.float32)
-            self._offsets[key] = offsets
-        return self._offsets[key]
+                    counts.append((layout.offsets[cluster],
+                                   np.rint(self.biases[cluster] * scale / scales[cluster]).astype(np.int32)))
+            self._counts[key] = counts
+        return self._counts[key]
 
     def _scale(self, cluster: str, unit, kinds: dict, rate_hz: int | None) -> float | None:
         """Bias in the sensor's base unit -> bias in `unit` (None: this unit cannot be corrected)."""

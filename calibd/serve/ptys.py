@@ -252,8 +252,8 @@ class RawPty:
 
 
 class CorrectedPty:
-    """A pty whose slave is linked at `link`: the stream with each normal datagram re-encoded
-    after subtracting the current power-up's result's biases (`calibd.serve.correct`).
+    """A pty whose slave is linked at `link`: the stream with the current power-up's result's
+    biases taken off each normal datagram's values (`calibd.serve.correct`).
 
     Before a result of this power-up (`before_result`): "hold" carries nothing, "raw" the bytes
     unchanged. A datagram with the start-up status bit (the sensor restarted) ends the result
