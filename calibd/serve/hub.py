@@ -159,7 +159,7 @@ class Hub(Listener):
                         os.fchown(f.fileno(), -1, self.gid)
         except OSError as exc:
             if at_start:
-                raise ServeError(f"result_copy {path}: {exc.strerror or exc}") from None
+                raise ServeError(f"result_copy {path}: {(exc.strerror or str(exc)).lower()}") from None
             log.error("result_copy_failed", path=str(path), error=exc.strerror or str(exc))
 
     # ------------------------------------------------------------------ the parser's tap (reader thread)
@@ -248,7 +248,7 @@ def _pty(key: str, link: Path, make):
     try:
         return make()
     except OSError as exc:
-        raise ServeError(f"{key} {link}: {exc.strerror or exc}") from None
+        raise ServeError(f"{key} {link}: {(exc.strerror or str(exc)).lower()}") from None
     except CalibdError as exc:
         raise ServeError(f"{key} {link}: {exc}") from None
 

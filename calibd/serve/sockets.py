@@ -118,7 +118,7 @@ class SocketServer:
         except FileNotFoundError:
             mode = None
         except OSError as exc:
-            raise ServeError(f"socket {path}: {exc.strerror}") from None
+            raise ServeError(f"socket {path}: {(exc.strerror or str(exc)).lower()}") from None
         if mode is not None and not stat.S_ISSOCK(mode):
             raise ServeError(f"socket {path}: the path is taken by something else than a socket; not replaced")
         if mode is not None:
@@ -135,7 +135,7 @@ class SocketServer:
                 os.chown(path, -1, self.gid)
         except OSError as exc:
             sock.close()
-            raise ServeError(f"socket {path}: {exc.strerror or exc}") from None
+            raise ServeError(f"socket {path}: {(exc.strerror or str(exc)).lower()}") from None
         return sock
 
     def _tcp_socket(self, host: str, port: int) -> socket.socket:
@@ -143,14 +143,14 @@ class SocketServer:
             family = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0][0]
             sock = socket.socket(family, socket.SOCK_STREAM)
         except OSError as exc:
-            raise ServeError(f"tcp {host}:{port}: {exc.strerror or exc}") from None
+            raise ServeError(f"tcp {host}:{port}: {(exc.strerror or str(exc)).lower()}") from None
         try:
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             sock.bind((host, port))
             self.tcp_address = sock.getsockname()[:2]
         except OSError as exc:
             sock.close()
-            raise ServeError(f"tcp {host}:{port}: {exc.strerror or exc}") from None
+            raise ServeError(f"tcp {host}:{port}: {(exc.strerror or str(exc)).lower()}") from None
         return sock
 
     def _listen(self, sock: socket.socket) -> None:
