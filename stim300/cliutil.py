@@ -7,11 +7,27 @@ import errno
 import os
 import stat
 import sys
+from importlib.metadata import PackageNotFoundError, version
 
 from .errors import Stim300Error, UsageError
 
 
+def package_version() -> str:
+    """The installed stim300-calib's version (both command lines' --version, the socket's VERSION)."""
+    try:
+        return version("stim300-calib")
+    except PackageNotFoundError:
+        return "unknown (not installed)"
+
+
 class CommandParser(argparse.ArgumentParser):
+    """One-line usage errors; a top-level parser (no parent) also answers --version."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        if "prog" in kwargs and " " not in kwargs["prog"]:
+            self.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
+
     def error(self, message):  # one line, not usage + message
         raise UsageError(f"{self.prog}: {message}")
 

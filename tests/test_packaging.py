@@ -1,6 +1,10 @@
 """A non-editable install must carry every package: pyproject lists them explicitly."""
 
+import os
+import subprocess
+import sys
 import tomllib
+from importlib.metadata import version
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -11,3 +15,12 @@ def test_every_package_is_listed_in_pyproject():
     found = {".".join(p.parent.relative_to(ROOT).parts) for top in ("stim300", "calibd")
              for p in (ROOT / top).rglob("__init__.py")}
     assert listed == found
+
+
+def test_both_commands_say_their_version():
+    expected = version("stim300-calib")
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    for command in ("stim300", "calibd"):
+        done = subprocess.run([sys.executable, "-m", f"{command}.cli", "--version"], capture_output=True, text=True,
+                              env=env, cwd=ROOT, timeout=60)
+        assert (done.returncode, done.stdout, done.stderr) == (0, f"{command} {expected}\n", "")

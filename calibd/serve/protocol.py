@@ -11,9 +11,10 @@ import json
 import re
 from dataclasses import dataclass
 from functools import lru_cache
-from importlib.metadata import PackageNotFoundError, version
 
 import numpy as np
+
+from stim300.cliutil import package_version
 
 from ..errors import CalibdError
 
@@ -44,10 +45,7 @@ class Command:
 
 def release() -> str:
     """The installed package's version, as VERSION reports it."""
-    try:
-        return version("stim300-calib")
-    except PackageNotFoundError:
-        return "unknown"
+    return package_version()
 
 
 def parse_command(line: bytes) -> Command:
