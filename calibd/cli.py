@@ -338,6 +338,8 @@ def cmd_status(args) -> int:
     if not os.path.lexists(state_file):  # Path.exists raises where the directory cannot be read
         raise UsageError(f"{directory}: no state.json (is calibd running with this state directory?)")
     state = _load_state(state_file)
+    if args.json:
+        return _status_json(directory, state)
     age = time.time() - state["updated"]
     print(f"state: {state['state']} ({state['detail']}), updated {age:.0f} s ago")
     for key in ("degraded", "held_back"):
@@ -353,6 +355,19 @@ def cmd_status(args) -> int:
     if result.stale is not None:
         print(f"result: stale since {result.stale['since']}, from the {result.stale['power_up']} power-up")
     print(_summary(result))
+    return 0
+
+
+def _status_json(directory: Path, state: dict) -> int:
+    """`calibd status --json`: {"state": state.json as written, "result": result.json's document
+    or null}, one object for a program (what ?POLL gives on the daemon's socket)."""
+    result = None
+    if (directory / "result.json").exists():
+        try:
+            result = load_result(directory / "result.json").to_dict()
+        except ResultError as exc:
+            raise UsageError(str(exc)) from None
+    print(json.dumps({"state": state, "result": result}, indent=1))
     return 0
 
 
@@ -579,6 +594,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_replay)
     p = sub.add_parser("status", help="the daemon's state and last result")
     p.add_argument("--state-dir", required=True)
+    p.add_argument("--json", action="store_true", help="one JSON object: the state and the result document")
     p.set_defaults(func=cmd_status)
     p = sub.add_parser("sensitivity", help="what alpha/beta errors do to the thesis's estimates (section 7.1)")
     p.add_argument("--alpha-error", type=_number(-10, 10, "deg"), required=True, help="d_alpha, deg")

@@ -194,6 +194,10 @@ def test_replay_command_and_status(tmp_path, capsys):
     assert calibd_main(["status", "--state-dir", str(tmp_path)]) == 0
     status = capsys.readouterr().out
     assert "state: SOLVED" in status and site in status
+    assert calibd_main(["status", "--state-dir", str(tmp_path), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["state"]["state"] == "SOLVED"
+    assert doc["result"] == json.loads((tmp_path / "result.json").read_text())
     assert calibd_main(["replay", str(FIXTURES / "faults_125hz.bin"), "--latitude", "40"]) == 1
 
 
