@@ -9,6 +9,7 @@ static's offset cancels), with 68 % intervals from the chi-square distribution, 
   simulator uses; IEEE 952's flicker coefficient would be B / 0.664);
 - rate random walk K: the +1/2 line fitted where the curve rises again, read at 3 s (IEEE 952),
   or None when the data does not reach a rising part.
+`kalibr_yaml` writes the same figures in SI per sqrt(Hz) as Kalibr's imu.yaml takes them.
 docs/noise.md has the details and the reasons.
 """
 
