@@ -413,13 +413,24 @@ def cmd_plan(args) -> int:
     return 0
 
 
+def _ros_topic(text: str) -> str:
+    """A ROS graph name (letters, digits, _ and /, not starting with a digit): written unquoted into YAML."""
+    name = text.lstrip("/")
+    if not name or name[0].isdigit() or not all(c.isascii() and (c.isalnum() or c in "_/") for c in name):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a ROS topic name (letters, digits, _ and /)")
+    return text
+
+
 def cmd_noise(args) -> int:
     from stim300.atomic import write_atomic
 
-    from .noise import NoiseError, characterise, noise_record, noise_table
+    from .noise import NoiseError, characterise, kalibr_yaml, noise_record, noise_table
 
-    if args.output:
-        not_an_input(args.output, args.capture)
+    for output in (args.output, args.kalibr):
+        if output:
+            not_an_input(output, args.capture)
+    if args.output and args.output == args.kalibr:
+        raise UsageError(f"noise: -o and --kalibr name the same file {args.output}")
     try:
         session = load_session(args.capture, args.start)
     except CalibrationError as exc:  # a decoding refusal names the capture, a power-up's does not
@@ -429,12 +440,14 @@ def cmd_noise(args) -> int:
         channels = characterise(session)
     except NoiseError as exc:
         raise UsageError(f"{args.capture}: {exc}") from None
-    if args.output:
-        document = json.dumps(noise_record(session, channels, args.capture), indent=1) + "\n"
-        try:
-            write_atomic(args.output, document.encode())
-        except OSError as exc:
-            raise write_error(args.output, exc) from None
+    documents = [(args.output, lambda: json.dumps(noise_record(session, channels, args.capture), indent=1) + "\n"),
+                 (args.kalibr, lambda: kalibr_yaml(session, channels, args.rostopic))]
+    for output, document in documents:
+        if output:
+            try:
+                write_atomic(output, document().encode())
+            except OSError as exc:
+                raise write_error(output, exc) from None
     print(f"{args.capture}: {noise_table(channels)}")
     return 0
 
@@ -622,6 +635,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("noise", help="capture -> Allan deviation of every channel from its statics, noise figures")
     p.add_argument("capture")
     p.add_argument("-o", "--output", help="NOISE.json (calibd.noise/1, replaced atomically)")
+    p.add_argument("--kalibr", metavar="IMU.yaml", help="Kalibr's imu.yaml: noise densities and random walks in "
+                   "SI units, update_rate (replaced atomically; docs/noise.md)")
+    p.add_argument("--rostopic", type=_ros_topic, default="/imu0",
+                   help="rostopic written to the Kalibr file (default /imu0)")
     p.add_argument("--start", type=_number(0, 1e9, "s"), default=0.0, help="skip the first S seconds (warm-up)")
     p.set_defaults(func=cmd_noise)
     p = sub.add_parser("simulate", help="scenario -> capture file and CAPTURE.truth.json")

@@ -9,6 +9,7 @@ static's offset cancels), with 68 % intervals from the chi-square distribution, 
   simulator uses; IEEE 952's flicker coefficient would be B / 0.664);
 - rate random walk K: the +1/2 line fitted where the curve rises again, read at 3 s (IEEE 952),
   or None when the data does not reach a rising part.
+`kalibr_yaml` writes the same figures in SI per sqrt(Hz) as Kalibr's imu.yaml takes them.
 docs/noise.md has the details and the reasons.
 """
 
@@ -209,3 +210,41 @@ def noise_table(channels: dict[str, ChannelNoise]) -> str:
     if falling:
         lines.append("* the minimum is at the longest tau: the floor may lie lower (longer statics would show it)")
     return "\n".join(lines)
+
+
+# ---------------------------------------------------------------- Kalibr's imu.yaml
+
+KALIBR_SENSORS = {"gyroscope": "gyro", "accelerometer": "acc"}  # Kalibr's name: ours (no inclinometers)
+KALIBR_SI_UNITS = {"gyro": ("rad/s/sqrt(Hz)", "rad/s^2/sqrt(Hz)"), "acc": ("m/s^2/sqrt(Hz)", "m/s^3/sqrt(Hz)")}
+
+
+def _si_per_sqrt_s(channel: ChannelNoise) -> tuple[float, float, bool]:
+    """A channel's white noise density N and rate random walk K in SI per sqrt(s), and whether K
+    was read on a +1/2 slope. N is the deviation at 1 s of the -1/2 line (sigma^2 = N^2 / tau);
+    K the deviation at 3 s of the +1/2 line (sigma^2 = K^2 tau / 3). Not reached: the largest K
+    the curve allows, the +1/2 line through its minimum, K = B sqrt(3 / tau_B) (an upper bound)."""
+    units = UNITS[channel.name.split("_")[0]]
+    density = channel.random_walk.value / units.random_walk_per_adev / units.per_si
+    if channel.rate_random_walk is not None:
+        return density, channel.rate_random_walk.value / SQRT_S_PER_SQRT_H / units.per_si, True
+    b = channel.bias_instability
+    return density, b.value * np.sqrt(RATE_RANDOM_WALK_TAU_S / b.tau_s) / units.per_si, False
+
+
+def kalibr_yaml(session: Session, channels: dict[str, ChannelNoise], rostopic: str = "/imu0") -> str:
+    """Kalibr's imu.yaml: per sensor the largest of its three axes' figures (Kalibr takes one
+    value per sensor; the largest keeps its filter from trusting any axis more than it should),
+    update_rate the session's sample rate. docs/noise.md gives the formulas."""
+    first = next(iter(channels.values()))
+    lines = [f"# Kalibr IMU noise model from {first.static_s:.1f} s of static data (calibd noise)"]
+    for kalibr, ours in KALIBR_SENSORS.items():
+        figures = [_si_per_sqrt_s(c) for name, c in channels.items() if name.split("_")[0] == ours]
+        density_unit, walk_unit = KALIBR_SI_UNITS[ours]
+        walk_how = ("rate random walk, Allan +1/2 slope at 3 s" if all(read for _, _, read in figures) else
+                    "upper bound B*sqrt(3 s/tau_B) from the bias instability B at tau_B (no +1/2 slope reached)")
+        density, walk = (float(max(column)) for column in list(zip(*figures))[:2])
+        lines += [f"{kalibr}_noise_density: {density!r}  # {density_unit}, white noise: Allan deviation at 1 s, "
+                  f"largest axis",
+                  f"{kalibr}_random_walk: {walk!r}  # {walk_unit}, {walk_how}, largest axis"]
+    lines += [f"rostopic: {rostopic}", f"update_rate: {float(session.rate_hz)!r}  # Hz, the sample rate"]
+    return "\n".join(lines) + "\n"

@@ -3,6 +3,8 @@ confidence intervals against Greenhall's edf and by coverage, the figures read o
 synthetic noise of known truth, and `calibd noise`."""
 
 import json
+import subprocess
+import sys
 from dataclasses import replace
 
 import allantools
@@ -14,9 +16,9 @@ from calibd.allan import FLICKER_TAUS_S, allan_deviation, allan_edf, allan_gm, c
 from calibd.cli import load_session
 from calibd.cli import main as calibd_main
 from calibd.detect import Segment as Detected
-from calibd.noise import CHANNELS, NoiseError, characterise
+from calibd.noise import CHANNELS, NoiseError, characterise, kalibr_yaml
 from calibd.session import Session
-from calibd.units import M_S2_TO_MG, RAD_S_TO_DEG_H
+from calibd.units import DEG, M_S2_TO_MG, RAD_S_TO_DEG_H
 from calibd.scenario import Segment, load_scenario
 from calibd.sim import write_capture
 
@@ -230,3 +232,71 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     assert calibd_main(["noise", str(path)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "no static segment of at least 30 s" in err
+
+
+# ---------------------------------------------------------------- Kalibr's imu.yaml
+
+def kalibr_values(text: str) -> dict:
+    """The key: value pairs of a Kalibr imu.yaml, numbers as floats, comments dropped."""
+    pairs = dict(line.split("#")[0].split(":", 1) for line in text.splitlines() if not line.startswith("#"))
+    values = {k.strip(): v.strip() for k, v in pairs.items()}
+    return {k: v if k == "rostopic" else float(v) for k, v in values.items()}
+
+
+KALIBR_KEYS = {"gyroscope_noise_density", "gyroscope_random_walk", "accelerometer_noise_density",
+               "accelerometer_random_walk", "rostopic", "update_rate"}
+
+
+def test_kalibr_figures_of_a_simulated_static_capture(static_capture):
+    path, noise = static_capture
+    session = load_session(str(path))
+    channels = characterise(session)
+    text = kalibr_yaml(session, channels, "/stim300/imu")
+    values = kalibr_values(text)
+    assert set(values) == KALIBR_KEYS and values["rostopic"] == "/stim300/imu" and values["update_rate"] == 125.0
+    # the simulator's white noise in Kalibr's units: deg/sqrt(h) -> rad/s/sqrt(Hz) is x DEG / 60
+    assert values["gyroscope_noise_density"] == pytest.approx(noise.gyro_arw_deg_sqrt_h * DEG / 60, rel=0.15)
+    assert values["accelerometer_noise_density"] == pytest.approx(noise.acc_vrw_m_s_sqrt_h / 60, rel=0.15)
+    # against allantools: the overlapping deviation at 1 s of the SI data is the density (white noise)
+    for key, data in (("gyroscope_noise_density", session.gyro), ("accelerometer_noise_density", session.acc)):
+        at_1s = [allantools.oadev(data[:, k], rate=session.rate_hz, data_type="freq", taus=[1.0])[1][0]
+                 for k in range(3)]
+        assert values[key] == pytest.approx(max(at_1s), rel=0.05), key
+    # no rate random walk in the simulator: the bound through the minimum, B sqrt(3 s / tau_B)
+    assert "upper bound" in text and "largest axis" in text
+    bounds = [c.bias_instability.value * np.sqrt(3 / c.bias_instability.tau_s) for n, c in channels.items()
+              if n.startswith("gyro")]
+    assert values["gyroscope_random_walk"] == pytest.approx(max(bounds) / RAD_S_TO_DEG_H, rel=1e-12)
+
+
+def test_kalibr_random_walk_is_the_rate_random_walk_in_si():
+    rate, seconds, white, walk = 20, 7200.0, 2.0, 0.1  # deg/h and mg per sqrt(s), as above
+    session = synthetic_session(np.random.default_rng(6), rate, seconds, white, walk)
+    session = replace(session, incl=None)  # a unit without inclinometers: they never enter Kalibr's file
+    statics = [Detected("static", 0, int(rate * seconds), 0.0, seconds, 0.0)]
+    text = kalibr_yaml(session, characterise(session, statics))
+    values = kalibr_values(text)
+    assert set(values) == KALIBR_KEYS and values["rostopic"] == "/imu0" and values["update_rate"] == 20.0
+    assert "+1/2 slope at 3 s" in text and "upper bound" not in text
+    assert values["gyroscope_noise_density"] == pytest.approx(white / RAD_S_TO_DEG_H, rel=0.03)
+    assert values["accelerometer_noise_density"] == pytest.approx(white / M_S2_TO_MG, rel=0.03)
+    # the largest of three axes each scattering by about 15 %: above the truth, not by more than 60 %
+    assert 0.9 < values["gyroscope_random_walk"] / (walk / RAD_S_TO_DEG_H) < 1.6
+    assert 0.9 < values["accelerometer_random_walk"] / (walk / M_S2_TO_MG) < 1.6
+
+
+def test_cli_writes_the_kalibr_file(static_capture, tmp_path):
+    path, _ = static_capture
+    out = tmp_path / "imu.yaml"
+    run = subprocess.run([sys.executable, "-m", "calibd.cli", "noise", str(path), "--kalibr", str(out),
+                          "--rostopic", "/imu1"], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    values = kalibr_values(out.read_text())
+    assert set(values) == KALIBR_KEYS and values["rostopic"] == "/imu1" and values["update_rate"] == 125.0
+    bad = subprocess.run([sys.executable, "-m", "calibd.cli", "noise", str(path), "--kalibr", str(out),
+                          "--rostopic", "imu 1"], capture_output=True, text=True)
+    assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "not a ROS topic name" in bad.stderr
+    assert "Traceback" not in bad.stderr
+    same = subprocess.run([sys.executable, "-m", "calibd.cli", "noise", str(path), "--kalibr", str(path)],
+                          capture_output=True, text=True)
+    assert same.returncode == 2 and same.stderr.count("\n") == 1 and "Traceback" not in same.stderr
