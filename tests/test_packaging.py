@@ -21,6 +21,7 @@ def test_both_commands_say_their_version():
     expected = version("stim300-calib")
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     for command in ("stim300", "calibd"):
-        done = subprocess.run([sys.executable, "-m", f"{command}.cli", "--version"], capture_output=True, text=True,
-                              env=env, cwd=ROOT, timeout=60)
-        assert (done.returncode, done.stdout, done.stderr) == (0, f"{command} {expected}\n", "")
+        for module in (command, f"{command}.cli"):  # `python -m calibd` as well as the module itself
+            done = subprocess.run([sys.executable, "-m", module, "--version"], capture_output=True, text=True,
+                                  env=env, cwd=ROOT, timeout=60)
+            assert (done.returncode, done.stdout, done.stderr) == (0, f"{command} {expected}\n", "")
