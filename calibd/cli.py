@@ -452,19 +452,28 @@ def cmd_noise(args) -> int:
     return 0
 
 
-def _stdout_gone() -> int:
-    """The reader of stdout went away (`| head`): nothing more to say, and no traceback at exit."""
-    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-    return 0
+def _client_program(body) -> int:
+    """`body()` of a program reading the daemon's socket: its failures one line (exit 1); Ctrl-C
+    and a reader of stdout that went away (`| head`) end it quietly (exit 0, no traceback)."""
+    from .client import ClientError
+    from .serve.protocol import ProtocolError
+    try:
+        return body()
+    except (ClientError, ProtocolError) as exc:
+        raise RunError(str(exc)) from None
+    except KeyboardInterrupt:
+        return 0
+    except BrokenPipeError:
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
 
 
 def cmd_pipe(args) -> int:
     """Every message of the daemon's socket on stdout as it was sent, one a line (gpspipe -w)."""
-    from .client import Client, ClientError
-    from .serve.protocol import ProtocolError
+    from .client import Client
 
-    out = sys.stdout.buffer
-    try:
+    def pipe() -> int:
+        out = sys.stdout.buffer
         with Client.connect(args.socket) as client:
             client.command("WATCH", {"enable": True, "samples": args.samples})
             line, written = client.version_line, 0
@@ -475,12 +484,7 @@ def cmd_pipe(args) -> int:
                 if written == args.count:
                     return 0
                 line = client.read_line()
-    except (ClientError, ProtocolError) as exc:
-        raise RunError(str(exc)) from None
-    except KeyboardInterrupt:
-        return 0
-    except BrokenPipeError:
-        return _stdout_gone()
+    return _client_program(pipe)
 
 
 WATCH_REDRAW_S = 0.2  # a terminal is redrawn at most this often
@@ -488,8 +492,7 @@ WATCH_REDRAW_S = 0.2  # a terminal is redrawn at most this often
 
 def cmd_watch(args) -> int:
     """The daemon seen live: redrawn in place on a terminal, one line per event otherwise."""
-    from .client import Client, ClientError
-    from .serve.protocol import ProtocolError
+    from .client import Client
     from .watchview import WatchView, render
 
     terminal = sys.stdout.isatty()
@@ -500,7 +503,7 @@ def cmd_watch(args) -> int:
         if line and not terminal:
             print(line, flush=True)
 
-    try:
+    def watch() -> int:
         with Client.connect(args.socket) as client:
             take(client.version)
             take(client.watch(args.samples))
@@ -516,12 +519,7 @@ def cmd_watch(args) -> int:
                     drawn_s = time.monotonic()
                     sys.stdout.write("\x1b[H\x1b[2J" + "\n".join(render(view, drawn_s)) + "\n")
                     sys.stdout.flush()
-    except (ClientError, ProtocolError) as exc:
-        raise RunError(str(exc)) from None
-    except KeyboardInterrupt:
-        return 0
-    except BrokenPipeError:
-        return _stdout_gone()
+    return _client_program(watch)
 
 
 def _add_client_commands(sub) -> None:
