@@ -9,6 +9,7 @@ one power-up makes a session, from where its warm-up ends or a given start.
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -67,6 +68,7 @@ class CaptureSessions:
     rate_hz: int | float  # the sensor's samples per second (externally triggered: measured)
     sensor: dict
     stream: dict  # the whole capture's stream statistics
+    identity: dict  # which file this is: its size_bytes and sha256 (a report or apply checks it)
 
 
 def block_factor(rate_hz: int | float) -> int:
@@ -317,12 +319,16 @@ def decode_sessions(data, name: str, reads: np.ndarray | None = None,
     with its host read time, so the time base can include datagrams lost for whole counter
     cycles. `drop_before(offset)`: the bytes before `offset` are done with (an mmap can let them go)."""
     reader = _PowerUpReader(name, reads is not None)
+    digest, hashed = hashlib.sha256(), [0]  # hashed as decoded: the bytes are read once
 
     def on_block(samples, scanner, offset):
         reader.consume(samples, scanner)
+        digest.update(memoryview(data)[hashed[0]:offset])
+        hashed[0] = max(hashed[0], offset)
         drop_before(offset)
 
     info = decode_blocks(data, on_block, reads=reads)
+    digest.update(memoryview(data)[hashed[0]:])
     if reader.refusal:
         raise CalibrationError(reader.refusal)
     if not info.stats.datagrams:
@@ -334,7 +340,8 @@ def decode_sessions(data, name: str, reads: np.ndarray | None = None,
         sensor=info.sensor_record() | {"sample_rate_hz": reader.rate_hz},
         stream={"capture": str(name), "datagrams": stats.datagrams, "lost_samples": stats.lost_samples,
                 "inferred_missing": stats.inferred_missing, "crc_errors": stats.crc_errors, "restarts": stats.restarts,
-                "warnings": list(info.warnings)})
+                "warnings": list(info.warnings)},
+        identity={"size_bytes": len(data), "sha256": digest.hexdigest()})
 
 
 def power_up_session(capture: CaptureSessions, number: int | None = None, start_s: float | None = 0.0) -> Session:

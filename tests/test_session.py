@@ -107,3 +107,18 @@ def test_a_stored_temperature_is_the_mean_of_the_gyro_temperatures_there():
     none = SessionBuilder()
     none.add(samples, t, 2000)
     assert np.isnan(none.arrays()["temp"]).all()
+
+
+def test_a_decoded_capture_knows_its_size_and_sha256(tmp_path):
+    """The identity a report or apply checks a capture against is the file's, hashed as decoded."""
+    import hashlib
+
+    from calibd.cli import open_capture
+
+    path = "fixtures/thesis_real_cw_125hz.bin"
+    data = open(path, "rb").read()
+    decoded = open_capture(path)
+    assert decoded.identity == {"size_bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+    copy = tmp_path / "one_byte_less.bin"
+    copy.write_bytes(data[:-1])
+    assert open_capture(str(copy)).identity["sha256"] != decoded.identity["sha256"]
