@@ -56,7 +56,8 @@ def calibrate_capture(capture: CaptureSessions, solve, power_up: int | None = No
         verdict = record_settling(session.time_s, session.temperature_c)
         if verdict is not None and not verdict.settled:
             result = result.flag_poor(result.estimates, NOT_WARMED_UP)
-        return result
+        return replace(result, capture={"path": capture.path, **capture.identity,
+                                        "serial_number": capture.sensor.get("serial_number")})
     raise CalibrationError("; ".join(refusals))
 
 

@@ -86,9 +86,9 @@ class Estimate:
 
 # optional fields, written only when set: the method's own (joint: options, checks, bias_reference;
 # thesis: platform_rate_deg_s, earth_rate_diagnostic; thesis bench: turns_alpha_beta_deg), then
-# the daemon's (session, stale)
+# the capture's identity (offline), then the daemon's (session, stale)
 _OPTIONAL = ("options", "checks", "bias_reference", "platform_rate_deg_s", "earth_rate_diagnostic",
-             "turns_alpha_beta_deg", "session", "stale")
+             "turns_alpha_beta_deg", "capture", "session", "stale")
 
 
 @dataclass(frozen=True)
@@ -110,6 +110,7 @@ class CalibrationResult:
     platform_rate_deg_s: float | None = None  # thesis real case
     earth_rate_diagnostic: dict | None = None  # thesis real case
     turns_alpha_beta_deg: list | None = None  # thesis bench: alpha and beta from each full turn
+    capture: dict | None = None  # offline: the file it was made from (path, size_bytes, sha256, serial_number)
     session: dict | None = None  # daemon: which session, how long, when solved
     stale: dict | None = None  # daemon: why the result no longer applies
     schema: str = SCHEMA

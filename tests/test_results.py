@@ -113,3 +113,22 @@ def test_numpy_scalars_in_a_result_are_written_as_plain_json():
     assert doc["checks"]["turn_angles"] == [{"corrected": True, "gyro_deg": 90.5, "n": 3}]
     with pytest.raises(TypeError):
         result_json(replace(result, checks={"bad": object()}))
+
+
+def test_a_calibrated_capture_names_the_file_it_came_from(tmp_path):
+    """The result says which bytes it rests on: size, SHA-256 and the sensor's serial number."""
+    import hashlib
+
+    from calibd.calibrate import calibrate_capture
+    from calibd.cli import open_capture
+    from calibd.methods import estimator
+
+    path = "fixtures/thesis_real_cw_125hz.bin"
+    data = open(path, "rb").read()
+    method = estimator("joint")
+    site = Site(40.59129)
+    result = calibrate_capture(open_capture(path), lambda s: method.solve(s, site, None, method.options({})))
+    assert result.capture == {"path": path, "size_bytes": len(data), "sha256": hashlib.sha256(data).hexdigest(),
+                              "serial_number": "N25582405002002"}
+    write_result(tmp_path / "r.json", result)
+    assert load_result(tmp_path / "r.json").capture == result.capture
