@@ -160,7 +160,7 @@ class _Applier:
         """One block's output columns: SI vectors, biases off, in the asked frame."""
         columns = {"time_s": time_s}
         for cluster in self.applied.clusters:
-            values = samples[cluster] * SI_PER_SENSOR_UNIT[cluster]  # float64: the biases are below float32's step
+            values = samples[cluster].astype(np.float64) * SI_PER_SENSOR_UNIT[cluster]  # float64: float32 would round
             if cluster in self.correction.biases:
                 values -= self.correction.biases[cluster]
             if self.correction.rotation is not None:
@@ -232,13 +232,13 @@ class CsvWriter:
     def __init__(self, f, meta: dict):
         self.f, self.meta = f, meta
         self.clusters: tuple[str, ...] | None = None
-        self.format = ""
+        self.formats: list[str] = []
 
     def _header(self, columns: dict[str, np.ndarray]) -> None:
         self.clusters = tuple(c for c in CLUSTERS if f"{c}_{UNITS[c]}" in columns)
         names = ["time_s", *(f"{c}_{a}_{UNITS[c]}" for c in self.clusters for a in "xyz"), "counter",
                  *(f"status_{c}" for c in CLUSTERS), "power_up"]
-        self.format = ",".join([TIME_FORMAT, *[VALUE_FORMAT] * 3 * len(self.clusters), *["%d"] * 5]) + "\n"
+        self.formats = [TIME_FORMAT, *[VALUE_FORMAT] * 3 * len(self.clusters), *["%d"] * 5]
         self.f.write(f"# {APPLIED_SCHEMA}: {json.dumps(self.meta)}\n".encode())
         self.f.write(b"# units: time_s s since the power-up's first sample (datagram counter); gyro rad/s; "
                      b"acc and incl m/s^2; status bytes as the sensor sent them\n")
@@ -249,7 +249,7 @@ class CsvWriter:
             self._header(columns)
         table = np.column_stack([columns["time_s"], *(columns[f"{c}_{UNITS[c]}"] for c in self.clusters),
                                  columns["counter"], columns["status"], columns["power_up"]])
-        self.f.write("".join(self.format % tuple(row) for row in table.tolist()).encode())
+        np.savetxt(self.f, table, fmt=self.formats, delimiter=",")
 
 
 class NpzWriter:
