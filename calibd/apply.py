@@ -137,6 +137,7 @@ class _Applier:
         clusters = NORMAL_LAYOUTS[fmt.datagram_id].clusters
         if not self.applied.clusters:
             self.applied.clusters = tuple(c for c in CLUSTERS if c in clusters)
+            self._uncorrected()
         units = {"gyro": fmt.gyro_unit, "acc": fmt.acc_unit, "incl": fmt.incl_unit}
         summed = [f"{WORDS[c]} {units[c].name}" for c in clusters
                   if (units[c].is_angle if c == "gyro" else units[c].is_velocity)]
@@ -155,6 +156,18 @@ class _Applier:
                 self.applied.warnings.append(f"{text}: applied anyway (--force)")
             else:
                 self.refusal = f"{text} (--force applies it anyway)"
+
+    def _uncorrected(self) -> None:
+        """Refuse (unless forced) a capture carrying a cluster the result has no biases for:
+        its columns would pass as measured under a file that says corrected."""
+        missing = [WORDS[c] for c in self.applied.clusters if c not in self.correction.biases]
+        if not missing:
+            return
+        text = f"the result has no {' or '.join(missing)} biases"
+        if self.force:
+            self.applied.warnings.append(f"{text}: those columns are as measured, in SI (--force)")
+        else:
+            self.refusal = f"{text}: those columns would stay uncorrected (--force writes them as measured)"
 
     def _columns(self, samples: np.ndarray, time_s: np.ndarray) -> dict[str, np.ndarray]:
         """One block's output columns: SI vectors, biases off, in the asked frame."""
@@ -186,10 +199,6 @@ def apply_capture(data, name: str, correction: Correction, result_serial: str | 
     if not applied.samples:
         raise ApplyError(f"{name}: no STIM300 datagram found")
     applied.warnings = [*correction.warnings, *applied.warnings, *_identity_warnings(applied, result_serial, name)]
-    missing = [WORDS[c] for c in applied.clusters if c not in correction.biases]
-    if missing:
-        applied.warnings.append(f"the result has no {' or '.join(missing)} biases: those columns are "
-                                "as measured (in SI)")
     if applied.power_ups > 1:
         applied.warnings.append(
             f"{name}: the sensor restarted {applied.power_ups - 1} time(s): the result's biases are one "

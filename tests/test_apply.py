@@ -236,3 +236,15 @@ def test_a_file_that_is_not_a_result_is_refused(tmp_path, capsys):
     assert code == 2 and "not a calibd.result file" in err and err.count("\n") == 1, err
     code, _, err = run(capsys, tmp_path / "missing.json", FIXTURE, "-o", tmp_path / "o.npz")
     assert code == 2 and "no such file" in err, err
+
+
+def test_a_cluster_the_result_has_no_biases_for_is_refused_unless_forced(imu_axes):
+    no_incl = truth_result(drop=[f"incl_bias_{axis}" for axis in "xyz"])
+    with pytest.raises(ApplyError, match="the result has no inclinometer biases: those columns would stay uncorrected"):
+        applied_columns(no_incl)
+    columns, applied = applied_columns(no_incl, force=True)
+    assert any("no inclinometer biases: those columns are as measured" in w for w in applied.warnings)
+    corrected, _ = imu_axes
+    incl_bias = correction(truth_result(), False, False).biases["incl"]
+    np.testing.assert_allclose(columns["incl_m_s2"], corrected["incl_m_s2"] + incl_bias, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(columns["gyro_rad_s"], corrected["gyro_rad_s"])
