@@ -186,13 +186,18 @@ class _Applier:
 
 
 def apply_capture(data, name: str, correction: Correction, result_serial: str | None, force: bool,
-                  write, reads: np.ndarray | None = None) -> Applied:
-    """Decode the capture's bytes block by block and hand each corrected block to `write`.
+                  write, reads: np.ndarray | None = None, drop_before=lambda offset: None) -> Applied:
+    """Decode the capture's bytes block by block and hand each corrected block to `write`
+    (`reads`: its read log; `drop_before(offset)`: the bytes before `offset` are done with).
     ApplyError (one line naming `name`) for a capture that cannot take this result; the
     writer may then have been given some blocks, so it must write to a file replaced only on
     success (`stim300.atomic`)."""
     applier = _Applier(correction, result_serial, force, write)
-    info = decode_blocks(data, lambda samples, scanner, offset: applier.consume(samples, scanner), reads=reads)
+    def on_block(samples, scanner, offset) -> None:
+        applier.consume(samples, scanner)
+        drop_before(offset)
+
+    info = decode_blocks(data, on_block, reads=reads)
     if applier.refusal:
         raise ApplyError(f"{name}: {applier.refusal}")
     applied = applier.applied

@@ -455,7 +455,9 @@ def cmd_noise(args) -> int:
 
 @contextmanager
 def _mapped(path: str):
-    """The bytes of the input file at `path`, mapped rather than read (b"" when empty)."""
+    """The input file at `path` mapped rather than read (b"" when empty), with a function that
+    lets go of the pages before an offset once they are decoded: a long capture's pages never
+    pile up in memory."""
     input_file(path)
     try:
         f = open(path, "rb")
@@ -463,10 +465,15 @@ def _mapped(path: str):
         raise UsageError(f"{path}: cannot read: {(exc.strerror or str(exc)).lower()}") from None
     with f:
         if not os.fstat(f.fileno()).st_size:
-            yield b""
+            yield b"", lambda offset: None
             return
         with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as mapped:
-            yield mapped
+            def let_go(offset: int) -> None:
+                done = offset // mmap.PAGESIZE * mmap.PAGESIZE
+                if done:
+                    mapped.madvise(mmap.MADV_DONTNEED, 0, done)
+
+            yield mapped, let_go
 
 
 APPLY_OUTPUTS = (".npz", ".csv")
@@ -499,12 +506,11 @@ def cmd_apply(args) -> int:
     serial = result.sensor.get("serial_number")
     reads = load_reads(args.capture)
     try:
-        with _mapped(args.capture) as data, atomic_file(args.output, durable=False) as f:
-            if kind == ".csv":
-                applied = apply_capture(data, args.capture, fix, serial, args.force, CsvWriter(f, meta), reads)
-            else:
-                gather = NpzWriter(NpzWriter.capacity_for(len(data)))
-                applied = apply_capture(data, args.capture, fix, serial, args.force, gather, reads)
+        with _mapped(args.capture) as (data, let_go), atomic_file(args.output, durable=False) as f:
+            gather = NpzWriter(NpzWriter.capacity_for(len(data))) if kind == ".npz" else None
+            applied = apply_capture(data, args.capture, fix, serial, args.force, gather or CsvWriter(f, meta),
+                                    reads, let_go)
+            if gather:
                 gather.finish(f, meta)
     except ApplyError as exc:
         raise UsageError(str(exc)) from None
