@@ -35,8 +35,9 @@ UNITS = {"gyro": "rad_s", "acc": "m_s2", "incl": "m_s2"}  # in column and array 
 WORDS = {"gyro": "gyro", "acc": "accelerometer", "incl": "inclinometer"}
 ATTITUDE = ("yaw", "pitch", "roll")
 # 9 significant digits: every STIM300 value is a 24-bit count (exact in float32, which 9 digits
-# round-trip); a corrected value printed so is within 0.6 LSB even at full scale (400 deg/s),
-# far below one sample's noise. Times are whole 0.5 ms counter ticks: 4 decimals are exact.
+# round-trip); a corrected value printed so is within 0.02 LSB at full scale, far below one
+# sample's noise (17 digits would add half the size for digits the sensor never had). Times are
+# whole 0.5 ms counter ticks: 4 decimals are exact.
 VALUE_FORMAT = "%.9g"
 TIME_FORMAT = "%.4f"
 
