@@ -166,6 +166,7 @@ def result_files(tmp_path_factory):
     folder = tmp_path_factory.mktemp("results")
     write_result(folder / "r.json", truth_result())
     write_result(folder / "other.json", truth_result(serial="N00000000000001"))
+    write_result(folder / "poor.json", truth_result(poor=("gyro_bias_z", "roll")))
     return folder
 
 
@@ -210,6 +211,18 @@ def test_another_sensor_is_refused_and_applied_with_force(result_files, tmp_path
     assert forced.returncode == 0, forced.stderr
     assert "warning: the capture is of sensor" in forced.stderr and "applied anyway (--force)" in forced.stderr
     assert len(np.load(tmp_path / "o.npz")["time_s"]) == TRUTH["samples"]
+
+
+def test_poor_estimates_refused_on_the_command_line_and_applied_with_force(result_files, tmp_path):
+    argv = [sys.executable, "-m", "calibd", "apply", str(result_files / "poor.json"), str(FIXTURE),
+            "-o", str(tmp_path / "o.csv"), "--frame"]
+    refused = subprocess.run(argv, capture_output=True, text=True)
+    assert refused.returncode == 2 and refused.stderr.count("\n") == 1, refused.stderr
+    assert "gyro_bias_z, roll are flagged poor: not applied (--force applies it anyway)" in refused.stderr
+    assert not (tmp_path / "o.csv").exists()
+    forced = subprocess.run(argv + ["--force"], capture_output=True, text=True)
+    assert forced.returncode == 0 and "warning: the result's gyro_bias_z, roll are flagged poor" in forced.stderr
+    assert "in the home frame" in forced.stdout
 
 
 @pytest.mark.parametrize("output, says", [
