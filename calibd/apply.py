@@ -194,6 +194,7 @@ def apply_capture(data, name: str, correction: Correction, result_serial: str | 
     writer may then have been given some blocks, so it must write to a file replaced only on
     success (`stim300.atomic`)."""
     applier = _Applier(correction, result_serial, force, write)
+
     def on_block(samples, scanner, offset) -> None:
         applier.consume(samples, scanner)
         drop_before(offset)
