@@ -261,3 +261,10 @@ def test_a_cluster_the_result_has_no_biases_for_is_refused_unless_forced(imu_axe
     incl_bias = correction(truth_result(), False, False).biases["incl"]
     np.testing.assert_allclose(columns["incl_m_s2"], corrected["incl_m_s2"] + incl_bias, rtol=0, atol=1e-12)
     np.testing.assert_array_equal(columns["gyro_rad_s"], corrected["gyro_rad_s"])
+
+
+def test_a_result_that_names_no_sensor_is_applied_with_a_warning():
+    columns, applied = applied_columns(truth_result(serial=None))
+    assert applied.samples == TRUTH["samples"]
+    assert applied.warnings == ["the result names no sensor serial number: cannot check it is of this capture's "
+                                "sensor"]
