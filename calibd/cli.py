@@ -15,6 +15,7 @@ import mmap
 import os
 import sys
 import time
+from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 
@@ -452,6 +453,77 @@ def cmd_noise(args) -> int:
     return 0
 
 
+@contextmanager
+def _mapped(path: str):
+    """The input file at `path` mapped rather than read (b"" when empty), with a function that
+    lets go of the pages before an offset once they are decoded: a long capture's pages never
+    pile up in memory."""
+    input_file(path)
+    try:
+        f = open(path, "rb")
+    except OSError as exc:
+        raise UsageError(f"{path}: cannot read: {(exc.strerror or str(exc)).lower()}") from None
+    with f:
+        if not os.fstat(f.fileno()).st_size:
+            yield b"", lambda offset: None
+            return
+        with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as mapped:
+            def let_go(offset: int) -> None:
+                done = offset // mmap.PAGESIZE * mmap.PAGESIZE
+                if done:
+                    mapped.madvise(mmap.MADV_DONTNEED, 0, done)
+
+            yield mapped, let_go
+
+
+APPLY_OUTPUTS = (".npz", ".csv")
+
+
+def cmd_apply(args) -> int:
+    """A result's biases taken off a capture's samples, in SI, into NPZ or CSV (docs/apply.md)."""
+    import hashlib
+
+    from stim300.atomic import atomic_file
+    from stim300.cliutil import package_version
+
+    from .apply import ApplyError, CsvWriter, NpzWriter, apply_capture, correction, meta_record
+
+    kind = Path(args.output).suffix.lower()
+    if kind not in APPLY_OUTPUTS:
+        raise UsageError(f"apply: {args.output}: unknown output type {kind or '(no extension)'!r}: "
+                         f"name it .npz or .csv")
+    not_an_input(args.output, args.result, args.capture)
+    result_bytes = read_input(args.result, "result file")
+    try:
+        result = load_result(args.result)
+        fix = correction(result, args.frame, args.force)
+    except ResultError as exc:
+        raise UsageError(str(exc)) from None
+    except ApplyError as exc:
+        raise UsageError(f"{args.result}: {exc}") from None
+    meta = meta_record(fix, args.result, hashlib.sha256(result_bytes).hexdigest(), result, args.capture,
+                       package_version())
+    serial = result.sensor.get("serial_number")
+    reads = load_reads(args.capture)
+    try:
+        with _mapped(args.capture) as (data, let_go), atomic_file(args.output, durable=False) as f:
+            gather = NpzWriter(NpzWriter.capacity_for(len(data))) if kind == ".npz" else None
+            applied = apply_capture(data, args.capture, fix, serial, args.force, gather or CsvWriter(f, meta),
+                                    reads, let_go)
+            if gather:
+                gather.finish(f, meta)
+    except ApplyError as exc:
+        raise UsageError(str(exc)) from None
+    except OSError as exc:
+        raise write_error(args.output, exc) from None
+    for text in applied.warnings:
+        print(f"calibd apply: warning: {text}", file=sys.stderr)
+    frame = "the home frame (NWU at the platform's home position)" if args.frame else "IMU axes"
+    print(f"{args.capture}: {applied.samples} samples, {applied.power_ups} power-up(s), biases of {args.result} "
+          f"subtracted, in SI units (rad/s, m/s^2) in {frame} -> {args.output}")
+    return 0
+
+
 def _client_program(body) -> int:
     """`body()` of a program reading the daemon's socket: its failures one line (exit 1); Ctrl-C
     and a reader of stdout that went away (`| head`) end it quietly (exit 0, no traceback)."""
@@ -639,6 +711,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="rostopic written to the Kalibr file (default /imu0)")
     p.add_argument("--start", type=_number(0, 1e9, "s"), default=0.0, help="skip the first S seconds (warm-up)")
     p.set_defaults(func=cmd_noise)
+    p = sub.add_parser("apply", help="result + capture -> bias-corrected samples in SI units (NPZ or CSV)")
+    p.add_argument("result", help="RESULT.json written by calibd calibrate or the daemon")
+    p.add_argument("capture", help="a capture of the same sensor (and power-up) to correct")
+    p.add_argument("-o", "--output", required=True, help="OUT.npz or OUT.csv (replaced atomically)")
+    p.add_argument("--frame", action="store_true",
+                   help="turn the vectors into the home frame: NWU when the platform is at its home position, "
+                        "turning with the platform (needs yaw, pitch and roll)")
+    p.add_argument("--force", action="store_true",
+                   help="apply a result of another sensor or with poor estimates anyway (warned)")
+    p.set_defaults(func=cmd_apply)
     p = sub.add_parser("simulate", help="scenario -> capture file and CAPTURE.truth.json")
     p.add_argument("scenario", help=f"scenario TOML file, or one of: {', '.join(READY_MADE)}")
     p.add_argument("-o", "--output", required=True, help="capture file to write")

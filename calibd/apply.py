@@ -1,0 +1,295 @@
+"""A result applied to a capture: the capture's samples in SI, the result's biases subtracted,
+optionally turned into the platform's home frame (`calibd apply`, docs/apply.md).
+
+One job: a result and decoded samples -> corrected arrays, block by block as the bulk decoder
+hands them over, so a capture of any length streams to a CSV file in one block's memory. The
+command line opens the files; `Correction` says what is subtracted and how vectors turn,
+`apply_capture` runs the decoder and gives each corrected block to a writer (`CsvWriter`,
+`NpzWriter`). Which biases a result has, in the sensor's units, has one home
+(`calibd.serve.correct.result_biases`); here they only become SI.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from stim300.bulk import decode_blocks
+from stim300.capture import stream_info
+from stim300.clock import CounterClock
+from stim300.protocol import INTERNAL_RATE_HZ, NORMAL_LAYOUTS
+
+from .errors import CalibdError
+from .frames import STANDARD_GRAVITY, nav_to_imu
+from .results import CalibrationResult
+from .serve.correct import result_biases
+from .session import PowerUpCuts
+from .units import DEG
+
+APPLIED_SCHEMA = "calibd.applied/1"
+CLUSTERS = ("gyro", "acc", "incl")
+SI_PER_SENSOR_UNIT = {"gyro": DEG, "acc": STANDARD_GRAVITY, "incl": STANDARD_GRAVITY}  # deg/s, g -> rad/s, m/s^2
+UNITS = {"gyro": "rad_s", "acc": "m_s2", "incl": "m_s2"}  # in column and array names
+WORDS = {"gyro": "gyro", "acc": "accelerometer", "incl": "inclinometer"}
+ATTITUDE = ("yaw", "pitch", "roll")
+# 9 significant digits: every STIM300 value is a 24-bit count (exact in float32, which 9 digits
+# round-trip); a corrected value printed so is within 0.02 LSB at full scale, far below one
+# sample's noise (17 digits would add half the size for digits the sensor never had). Times are
+# whole 0.5 ms counter ticks: 4 decimals are exact.
+VALUE_FORMAT = "%.9g"
+TIME_FORMAT = "%.4f"
+
+
+class ApplyError(CalibdError):
+    """A result that cannot be applied to this capture as asked; one line."""
+
+
+@dataclass(frozen=True)
+class Correction:
+    """What apply does to every sample: subtract `biases` (SI per cluster: rad/s, m/s^2), then,
+    with `rotation` (R_NAV^IMU at the home position), express the vectors in the home frame.
+    `warnings`: what --force let pass, one line each."""
+
+    biases: dict[str, np.ndarray]
+    rotation: np.ndarray | None = None
+    warnings: tuple[str, ...] = ()
+
+    @property
+    def frame(self) -> str:
+        return "imu" if self.rotation is None else "home"
+
+
+def correction(result: CalibrationResult, frame: bool, force: bool) -> Correction:
+    """The correction a result gives. Estimates it would use that are flagged poor refuse it
+    (ApplyError naming them) unless `force`, then each is a warning: corrected data are trusted
+    without looking back at the result, so a poor bias must not pass silently. A result
+    without yaw, or with yaw poor, cannot give the home frame: refused even with `force`."""
+    biases = {cluster: value * SI_PER_SENSOR_UNIT[cluster] for cluster, value in result_biases(result).items()}
+    if "gyro" not in biases and "acc" not in biases:
+        raise ApplyError("the result has neither gyro nor accelerometer biases: nothing to apply")
+    used = [f"{cluster}_bias_{axis}" for cluster in biases for axis in "xyz"]
+    rotation = None
+    if frame:
+        missing = [name for name in ATTITUDE if name not in result.estimates]
+        if missing or result.estimates["yaw"].quality == "poor":
+            why = f"has no {', '.join(missing)}" if missing else "has yaw flagged poor"
+            raise ApplyError(f"--frame: the result {why}: the home frame needs yaw, pitch and roll")
+        rotation = nav_to_imu(*(result.estimates[name].value * DEG for name in ATTITUDE))
+        used += list(ATTITUDE)
+    poor = [name for name in used if result.estimates[name].quality == "poor"]
+    warnings = ()
+    if poor:
+        text = f"the result's {', '.join(poor)} {'is' if len(poor) == 1 else 'are'} flagged poor"
+        if not force:
+            raise ApplyError(f"{text}: not applied (--force applies it anyway)")
+        warnings = (f"{text}: applied anyway (--force)",)
+    return Correction(biases, rotation, warnings)
+
+
+@dataclass
+class Applied:
+    """What apply found in the capture: samples written, power-ups, the sensor's serial number
+    (None: no serial-number datagram) and the warnings to show."""
+
+    samples: int = 0
+    power_ups: int = 0
+    serial_number: str | None = None
+    clusters: tuple[str, ...] = ()
+    warnings: list[str] = field(default_factory=list)
+
+
+class _Applier:
+    """Decoded blocks in stream order -> corrected column blocks handed to `write(columns)`.
+
+    A refusal found while decoding (another sensor, outputs that are not rates and
+    accelerations) stops the writing and is raised once the decoder is done, so a mapped
+    capture is never left held."""
+
+    def __init__(self, correction: Correction, result_serial: str | None, force: bool, write):
+        self.correction, self.result_serial, self.force, self.write = correction, result_serial, force, write
+        self.applied = Applied()
+        self.refusal: str | None = None
+        self._cuts = PowerUpCuts()
+        self._clock = CounterClock()
+        self._checked_serial = False
+
+    def consume(self, samples: np.ndarray, scanner) -> None:
+        if self.refusal:
+            return
+        self._check(scanner)
+        if self.refusal:
+            return
+        info = stream_info(scanner)
+        rate_hz = info.rate_hz or INTERNAL_RATE_HZ  # sizes the read log's window only, until the rate is known
+        applied = self.applied
+        for restarted, piece in self._cuts.pieces(samples, applied.samples, info.stats.restart_datagrams):
+            if applied.power_ups == 0 or (restarted and applied.samples):
+                applied.power_ups += 1
+                self._clock = CounterClock()  # times are seconds since the power-up's first sample
+            time_s = self._clock.times(piece["counter"], rate_hz, piece["t_host"]).time_s
+            self.write(self._columns(piece, time_s))
+            applied.samples += len(piece)
+
+    def _check(self, scanner) -> None:
+        """Refuse outputs apply cannot turn into rates and accelerations, and another sensor."""
+        fmt = scanner.format
+        clusters = NORMAL_LAYOUTS[fmt.datagram_id].clusters
+        if not self.applied.clusters:
+            self.applied.clusters = tuple(c for c in CLUSTERS if c in clusters)
+            self._uncorrected()
+        units = {"gyro": fmt.gyro_unit, "acc": fmt.acc_unit, "incl": fmt.incl_unit}
+        summed = [f"{WORDS[c]} {units[c].name}" for c in clusters
+                  if (units[c].is_angle if c == "gyro" else units[c].is_velocity)]
+        if summed:
+            self.refusal = (f"the capture's {', '.join(summed).lower()} outputs are not rates and accelerations: "
+                            "apply writes rad/s and m/s^2 and corrects those only (configure rate and "
+                            "acceleration outputs, as calibration needs)")
+        if self._checked_serial or scanner.serial_number is None:
+            return
+        self._checked_serial = True
+        serial = self.applied.serial_number = scanner.serial_number.text
+        if self.result_serial is not None and serial != self.result_serial:
+            text = (f"the capture is of sensor {serial}, the result of sensor {self.result_serial}: "
+                    "its biases are another sensor's")
+            if self.force:
+                self.applied.warnings.append(f"{text}: applied anyway (--force)")
+            else:
+                self.refusal = f"{text} (--force applies it anyway)"
+
+    def _uncorrected(self) -> None:
+        """Refuse (unless forced) a capture carrying a cluster the result has no biases for:
+        its columns would pass as measured under a file that says corrected."""
+        missing = [WORDS[c] for c in self.applied.clusters if c not in self.correction.biases]
+        if not missing:
+            return
+        text = f"the result has no {' or '.join(missing)} biases"
+        if self.force:
+            self.applied.warnings.append(f"{text}: those columns are as measured, in SI (--force)")
+        else:
+            self.refusal = f"{text}: those columns would stay uncorrected (--force writes them as measured)"
+
+    def _columns(self, samples: np.ndarray, time_s: np.ndarray) -> dict[str, np.ndarray]:
+        """One block's output columns: SI vectors, biases off, in the asked frame."""
+        columns = {"time_s": time_s}
+        for cluster in self.applied.clusters:
+            values = samples[cluster].astype(np.float64) * SI_PER_SENSOR_UNIT[cluster]  # float64: float32 would round
+            if cluster in self.correction.biases:
+                values -= self.correction.biases[cluster]
+            if self.correction.rotation is not None:
+                values = values @ self.correction.rotation  # v_home = R_NAV^IMU.T v_imu, row by row
+            columns[f"{cluster}_{UNITS[cluster]}"] = values
+        columns["counter"] = samples["counter"]
+        columns["status"] = np.column_stack([samples[f"status_{c}"] for c in CLUSTERS])
+        columns["power_up"] = np.full(len(samples), self.applied.power_ups, np.uint16)
+        return columns
+
+
+def apply_capture(data, name: str, correction: Correction, result_serial: str | None, force: bool,
+                  write, reads: np.ndarray | None = None, drop_before=lambda offset: None) -> Applied:
+    """Decode the capture's bytes block by block and hand each corrected block to `write`
+    (`reads`: its read log; `drop_before(offset)`: the bytes before `offset` are done with).
+    ApplyError (one line naming `name`) for a capture that cannot take this result; the
+    writer may then have been given some blocks, so it must write to a file replaced only on
+    success (`stim300.atomic`)."""
+    applier = _Applier(correction, result_serial, force, write)
+
+    def on_block(samples, scanner, offset) -> None:
+        applier.consume(samples, scanner)
+        drop_before(offset)
+
+    info = decode_blocks(data, on_block, reads=reads)
+    if applier.refusal:
+        raise ApplyError(f"{name}: {applier.refusal}")
+    applied = applier.applied
+    if not applied.samples:
+        raise ApplyError(f"{name}: no STIM300 datagram found")
+    applied.warnings = [*correction.warnings, *applied.warnings, *_identity_warnings(applied, result_serial, name)]
+    if applied.power_ups > 1:
+        applied.warnings.append(
+            f"{name}: the sensor restarted {applied.power_ups - 1} time(s): the result's biases are one "
+            "power-up's turn-on biases, samples of the other power-ups carry their own (column power_up)")
+    for text in info.warnings:
+        applied.warnings.append(f"{name}: {text}")
+    return applied
+
+
+def _identity_warnings(applied: Applied, result_serial: str | None, name: str) -> list[str]:
+    """Where the identity check could not be made: a serial-number datagram comes only at a
+    power-up, so many captures lack it, and refusing them would refuse most real captures."""
+    if applied.serial_number is None:
+        return [f"{name}: no serial-number datagram (recorded after the sensor's power-up): "
+                "cannot check the result is of this sensor"]
+    if result_serial is None:
+        return ["the result names no sensor serial number: cannot check it is of this capture's sensor"]
+    return []
+
+
+def meta_record(correction: Correction, result_path: str, result_sha256: str, result: CalibrationResult,
+                capture_path: str, version: str) -> dict:
+    """What an output says of itself: the result applied (path, SHA-256, sensor), the frame,
+    the biases subtracted (SI) and the software."""
+    record = {"schema": APPLIED_SCHEMA, "software": f"calibd {version}",
+              "result": {"path": result_path, "sha256": result_sha256,
+                         "serial_number": result.sensor.get("serial_number")},
+              "capture": capture_path, "frame": correction.frame,
+              "biases_subtracted": {f"{c}_{UNITS[c]}": correction.biases[c].tolist() for c in correction.biases}}
+    if correction.rotation is not None:
+        record["rotation_home_from_imu"] = correction.rotation.T.tolist()
+    return record
+
+
+class CsvWriter:
+    """Corrected blocks as CSV: `#` comment lines (what the file is, in JSON; the units), a
+    header of column names carrying their units, one row per sample. The columns are known
+    with the first block (which clusters the datagram carries), so the header waits for it."""
+
+    def __init__(self, f, meta: dict):
+        self.f, self.meta = f, meta
+        self.clusters: tuple[str, ...] | None = None
+        self.formats: list[str] = []
+
+    def _header(self, columns: dict[str, np.ndarray]) -> None:
+        self.clusters = tuple(c for c in CLUSTERS if f"{c}_{UNITS[c]}" in columns)
+        names = ["time_s", *(f"{c}_{a}_{UNITS[c]}" for c in self.clusters for a in "xyz"), "counter",
+                 *(f"status_{c}" for c in CLUSTERS), "power_up"]
+        self.formats = [TIME_FORMAT, *[VALUE_FORMAT] * 3 * len(self.clusters), *["%d"] * 5]
+        self.f.write(f"# {APPLIED_SCHEMA}: {json.dumps(self.meta)}\n".encode())
+        self.f.write(b"# units: time_s s since the power-up's first sample (datagram counter); gyro rad/s; "
+                     b"acc and incl m/s^2; status bytes as the sensor sent them\n")
+        self.f.write((",".join(names) + "\n").encode())
+
+    def __call__(self, columns: dict[str, np.ndarray]) -> None:
+        if self.clusters is None:
+            self._header(columns)
+        table = np.column_stack([columns["time_s"], *(columns[f"{c}_{UNITS[c]}"] for c in self.clusters),
+                                 columns["counter"], columns["status"], columns["power_up"]])
+        np.savetxt(self.f, table, fmt=self.formats, delimiter=",")
+
+
+class NpzWriter:
+    """Corrected blocks gathered into one array per column, written as an NPZ at `finish`.
+    Each column is allocated once for the most samples the capture's bytes can hold (pages
+    never written cost address space only), so the samples are held once, not as blocks plus
+    their concatenation."""
+
+    def __init__(self, capacity: int):
+        self.capacity, self.n = capacity, 0
+        self.columns: dict[str, np.ndarray] = {}
+
+    @staticmethod
+    def capacity_for(size_bytes: int) -> int:
+        """The most samples `size_bytes` of capture can hold: one per shortest datagram."""
+        return size_bytes // min(layout.wire_length(False) for layout in NORMAL_LAYOUTS.values()) + 1
+
+    def __call__(self, columns: dict[str, np.ndarray]) -> None:
+        n = len(columns["time_s"])
+        for name, values in columns.items():
+            if name not in self.columns:
+                self.columns[name] = np.empty((self.capacity, *values.shape[1:]), values.dtype)
+            self.columns[name][self.n:self.n + n] = values
+        self.n += n
+
+    def finish(self, f, meta: dict) -> None:
+        np.savez(f, **{name: values[:self.n] for name, values in self.columns.items()}, meta=np.array(json.dumps(meta)))
