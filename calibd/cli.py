@@ -43,6 +43,29 @@ from .session import CaptureSessions, Session, decode_sessions, power_up_session
 from .units import DEG
 
 
+@contextmanager
+def mapped_input(path: str):
+    """The input file at `path` mapped rather than read (b"" when empty), with a function that
+    lets go of the pages before an offset once they are decoded: a long capture's pages never
+    pile up in memory."""
+    input_file(path)
+    try:
+        f = open(path, "rb")
+    except OSError as exc:
+        raise UsageError(f"{path}: cannot read: {(exc.strerror or str(exc)).lower()}") from None
+    with f:
+        if not os.fstat(f.fileno()).st_size:
+            yield b"", lambda offset: None
+            return
+        with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as mapped:
+            def let_go(offset: int) -> None:
+                done = offset // mmap.PAGESIZE * mmap.PAGESIZE
+                if done:
+                    mapped.madvise(mmap.MADV_DONTNEED, 0, done)
+
+            yield mapped, let_go
+
+
 def open_capture(path: str, data: bytes | None = None) -> CaptureSessions:
     """The capture at `path` (its bytes, when already read) decoded, its datagrams stamped by the
     read log recorded beside it (PATH.reads.npy) when there is one. Capture files are read here
@@ -51,21 +74,8 @@ def open_capture(path: str, data: bytes | None = None) -> CaptureSessions:
     reads = load_reads(path)
     if data is not None:
         return decode_sessions(data, str(path), reads)
-    input_file(path)
-    try:
-        f = open(path, "rb")
-    except OSError as exc:
-        raise UsageError(f"{path}: cannot read: {(exc.strerror or str(exc)).lower()}") from None
-    with f:
-        if not os.fstat(f.fileno()).st_size:
-            return decode_sessions(b"", str(path), reads)
-        with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as mapped:
-            def let_go(offset: int) -> None:
-                done = offset // mmap.PAGESIZE * mmap.PAGESIZE
-                if done:
-                    mapped.madvise(mmap.MADV_DONTNEED, 0, done)
-
-            return decode_sessions(mapped, str(path), reads, let_go)
+    with mapped_input(path) as (mapped, let_go):
+        return decode_sessions(mapped, str(path), reads, let_go)
 
 
 def load_session(path: str, start_s: float | None = 0.0, data: bytes | None = None,
@@ -453,29 +463,6 @@ def cmd_noise(args) -> int:
     return 0
 
 
-@contextmanager
-def _mapped(path: str):
-    """The input file at `path` mapped rather than read (b"" when empty), with a function that
-    lets go of the pages before an offset once they are decoded: a long capture's pages never
-    pile up in memory."""
-    input_file(path)
-    try:
-        f = open(path, "rb")
-    except OSError as exc:
-        raise UsageError(f"{path}: cannot read: {(exc.strerror or str(exc)).lower()}") from None
-    with f:
-        if not os.fstat(f.fileno()).st_size:
-            yield b"", lambda offset: None
-            return
-        with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as mapped:
-            def let_go(offset: int) -> None:
-                done = offset // mmap.PAGESIZE * mmap.PAGESIZE
-                if done:
-                    mapped.madvise(mmap.MADV_DONTNEED, 0, done)
-
-            yield mapped, let_go
-
-
 APPLY_OUTPUTS = (".npz", ".csv")
 
 
@@ -506,7 +493,7 @@ def cmd_apply(args) -> int:
     serial = result.sensor.get("serial_number")
     reads = load_reads(args.capture)
     try:
-        with _mapped(args.capture) as (data, let_go), atomic_file(args.output, durable=False) as f:
+        with mapped_input(args.capture) as (data, let_go), atomic_file(args.output, durable=False) as f:
             gather = NpzWriter(NpzWriter.capacity_for(len(data))) if kind == ".npz" else None
             applied = apply_capture(data, args.capture, fix, serial, args.force, gather or CsvWriter(f, meta),
                                     reads, let_go)
