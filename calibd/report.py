@@ -65,6 +65,7 @@ def write_report(result_path, capture: CaptureSessions, output, stream=None) -> 
         skipped_s = float(result.stream.get("start_s") or 0.0)
         start_s = analysis_start_s(result)
         power_up = (result.stream.get("power_up") or {}).get("number")
+        _check_identity(result, result_path, capture)
         whole = power_up_session(capture, power_up, 0.0)
         _check_same_capture(result, whole, capture.path)
         session = power_up_session(capture, power_up, start_s) if start_s > 0 else whole
@@ -117,6 +118,10 @@ def _number(value) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
+def _whole(value) -> bool:
+    return _number(value) and value == int(value)
+
+
 def _optional(check):
     return lambda value: value is None or check(value)
 
@@ -143,14 +148,17 @@ def _check_fields(result: CalibrationResult, path) -> None:
                ("sensor", result.sensor, _optional(_record), "an object"),
                ("checks", result.checks, _optional(_record), "an object"),
                ("options", result.options, _optional(_record), "an object"),
+               ("capture", result.capture, _optional(_record), "an object"),
                ("site.latitude_deg", result.site.get("latitude_deg"), *number),
                ("site.height_m", result.site.get("height_m", 0.0), *number),
                ("site.g0_m_s2", result.site.get("g0_m_s2", 0.0), *number),
                ("stream.start_s", stream.get("start_s"), *maybe_number),
-               ("stream.datagrams", stream.get("datagrams"), _optional(lambda v: _number(v) and v == int(v)),
-                "a whole number or null"),
+               ("stream.datagrams", stream.get("datagrams"), _optional(_whole), "a whole number or null"),
                ("stream.power_up", stream.get("power_up"), _optional(_power_up),
                 "null or an object whose number is a whole number >= 1")]
+    if isinstance(result.capture, dict):
+        fields_ += [("capture.size_bytes", result.capture.get("size_bytes"), _whole, "a whole number"),
+                    ("capture.sha256", result.capture.get("sha256"), _text, "a string")]
     for name, e in result.estimates.items():
         fields_ += [(f"estimates.{name}.value", e.value, *number),
                     (f"estimates.{name}.sigma", e.sigma, *maybe_number),
@@ -196,10 +204,26 @@ def analysis_start_s(result: CalibrationResult) -> float:
     return max(first - 1e-6, 0.0)  # the record is rounded to 1 ms: keep the first sample
 
 
-def _check_same_capture(result: CalibrationResult, whole: Session, capture: str) -> None:
+def _check_identity(result: CalibrationResult, result_path, capture: CaptureSessions) -> None:
     """A report on other data than the result's would put its numbers under figures of something
-    else: refused. The datagram count (recorded by `calibd calibrate`) identifies the capture;
-    a result without it (the daemon's) must at least have its segments inside the capture."""
+    else: refused. A result of `calibd calibrate` names its capture by size and SHA-256; another
+    capture of the same length and datagram count (the other turning sense, say) differs there."""
+    recorded = result.capture
+    if recorded is None:
+        return
+    made_from = f"{result_path} was made from {recorded.get('path')}"
+    if recorded["size_bytes"] != capture.identity["size_bytes"]:
+        raise ReportError(f"{capture.path}: {capture.identity['size_bytes']} bytes, but {made_from} of "
+                          f"{recorded['size_bytes']} bytes: not the result's capture")
+    if recorded["sha256"] != capture.identity["sha256"]:
+        raise ReportError(f"{capture.path}: SHA-256 {capture.identity['sha256'][:16]}..., but {made_from} of the "
+                          f"same size with SHA-256 {recorded['sha256'][:16]}...: not the result's capture")
+
+
+def _check_same_capture(result: CalibrationResult, whole: Session, capture: str) -> None:
+    """For a result that does not name its capture's bytes (the daemon's, older versions): the
+    datagram count (recorded by `calibd calibrate`) must match, and the segments lie inside the
+    capture."""
     recorded = result.stream.get("datagrams")
     have = whole.stream["datagrams"]
     if recorded is not None and recorded != have:

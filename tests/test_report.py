@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from calibd.calibrate import joint_fit, joint_real_case, thesis_real_case
+from calibd.calibrate import calibrate_capture, joint_fit, joint_real_case, thesis_real_case
 from calibd.cli import load_session, open_capture
 from calibd.cli import main as calibd_main
 from calibd.estimators.joint import JointOptions
@@ -24,6 +24,7 @@ from calibd.figures import earth_rate_seen, earth_term, guide_points
 from calibd.noise import characterise
 from calibd.report import MATPLOTLIB_MISSING, analysis_start_s, write_report
 from calibd.results import write_result
+from calibd.session import power_up_session
 
 FIXTURES = Path(__file__).resolve().parent.parent / "fixtures"
 CAPTURE = str(FIXTURES / "thesis_real_cw_125hz.bin")
@@ -76,10 +77,13 @@ def parse(page: str, table_id: str = "estimates") -> Cells:
 
 @pytest.fixture(scope="module")
 def made(tmp_path_factory):
-    """The joint result of the thesis fixture, by the library (faster than the command)."""
+    """The joint result of the thesis fixture, by the library (faster than the command), naming
+    its capture as `calibd calibrate` does."""
     directory = tmp_path_factory.mktemp("report")
-    session = load_session(CAPTURE)
-    result = joint_real_case(session, SITE)
+    capture = open_capture(CAPTURE)
+    session = power_up_session(capture)
+    result = calibrate_capture(capture, lambda s: joint_real_case(s, SITE), start_s=0.0)
+    assert result.capture["sha256"] == capture.identity["sha256"]
     write_result(directory / "result.json", result)
     return {"dir": directory, "result": result, "session": session, "path": directory / "result.json"}
 
@@ -227,6 +231,11 @@ def test_matplotlib_missing_is_one_line(made, tmp_path, capsys, monkeypatch):
     ("no estimates", "the result has no estimates"),
     ("missing capture", "no such file"),
     ("other capture", "not the result's capture"),
+    ("other turning sense, same datagram count", "bytes, but"),
+    ("truncated by one byte", "8450517 bytes, but"),
+    ("one byte changed", "same size with SHA-256"),
+    ("no capture record, other capture", "datagrams, but the result was made from a capture of"),
+    ("capture record not an object", "capture is"),
     ("no output directory", "cannot write: no such directory"),
     ("output is a directory", "is a directory"),
 ])
@@ -247,6 +256,22 @@ def test_bad_input_is_one_line(made, tmp_path, capsys, case, message):
         capture = tmp_path / "absent.bin"
     elif case == "other capture":
         capture = FIXTURES / "warmup_then_protocol_125hz.bin"
+    elif case == "other turning sense, same datagram count":
+        capture = FIXTURES / "thesis_real_ccw_125hz.bin"
+    elif case in ("truncated by one byte", "one byte changed"):
+        data = bytearray(Path(CAPTURE).read_bytes())
+        if case == "one byte changed":
+            data[len(data) // 2] ^= 0x01
+        capture = tmp_path / "edited.bin"
+        capture.write_bytes(data[:-1] if case == "truncated by one byte" else data)
+    elif case in ("no capture record, other capture", "capture record not an object"):
+        doc = json.loads(Path(result).read_text())
+        doc["capture"] = "elsewhere"
+        if case == "no capture record, other capture":
+            del doc["capture"]
+            capture = FIXTURES / "warmup_then_protocol_125hz.bin"
+        result = tmp_path / "edited.json"
+        result.write_text(json.dumps(doc))
     elif case == "no output directory":
         output = tmp_path / "absent" / "r.html"
     else:
