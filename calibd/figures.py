@@ -151,14 +151,15 @@ def timeline_figure(whole: Session, segments, roles, warm_up: tuple[float, str],
               ("horizontal\naccelerometers [mg]", whole.acc[:, :2] * M_S2_TO_MG, "acc {}", True),
               ("horizontal\ninclinometers [mg]", None if whole.incl is None else whole.incl[:, :2] * M_S2_TO_MG,
                "incl {}", True)]
-    fig = _new_figure(16.0)
-    axes = fig.subplots(len(panels) + 1, 1, sharex=True, height_ratios=(1.2, 1, 0.8, 1, 1, 0.8))
+    heights = [1.2, 1, 0.8, 1, 1 if whole.incl is not None else 0.3, 0.8 if whole.temperature_c is not None else 0.3]
+    fig = _new_figure(16.0 - 6 * (6 - sum(heights)) / 5)  # a panel saying "none" takes little room
+    axes = fig.subplots(len(panels) + 1, 1, sharex=True, height_ratios=heights)
     for ax, (label, values, name, small) in zip(axes, panels):
-        ax.set_ylabel(label)
-        if values is None:
-            ax.text(0.5, 0.5, "no inclinometers in this datagram", transform=ax.transAxes, ha="center")
+        if values is None:  # the text names it: no label, which would not fit the short panel
+            ax.text(0.5, 0.5, "no inclinometers in this datagram", transform=ax.transAxes, ha="center", va="center")
             ax.set_yticks([])
             continue
+        ax.set_ylabel(label)
         names = [name.format(a) for a in "XYZ"[:values.shape[1]]]
         if small:
             _small_signal_panel(ax, time_s, values, statics, names)
@@ -167,13 +168,14 @@ def timeline_figure(whole: Session, segments, roles, warm_up: tuple[float, str],
         ax.legend(loc="center left", bbox_to_anchor=(1.0, 0.5))  # outside: the traces keep the panel
     temp_ax = axes[-1]
     if whole.temperature_c is None:
-        temp_ax.text(0.5, 0.5, "no temperatures in this datagram", transform=temp_ax.transAxes, ha="center")
+        temp_ax.text(0.5, 0.5, "no temperatures in this datagram", transform=temp_ax.transAxes, ha="center",
+                     va="center")
         temp_ax.set_yticks([])
     else:
         t, low, high, mean = envelope(time_s, whole.temperature_c[:, None])
         temp_ax.fill_between(t, low[:, 0], high[:, 0], color="k", alpha=0.2, lw=0)
         temp_ax.plot(t, mean[:, 0], color="k", lw=0.8)
-    temp_ax.set_ylabel("gyro temperature\n[degC]")
+        temp_ax.set_ylabel("gyro temperature\n[degC]")
     temp_ax.set_xlabel("time from the first datagram [s]")
     span = float(time_s[-1] - time_s[0]) or 1.0
     for seg, role in zip(segments, roles):
@@ -200,8 +202,9 @@ def timeline_figure(whole: Session, segments, roles, warm_up: tuple[float, str],
                    f"Gyro, accelerometer and gyro temperature (the mean of the three gyros') against time "
                    f"(lines: means over {TIMELINE_BINS} bins, "
                    f"bands: each bin's min to max). The small signals get panels of their own, with the bin means "
-                   f"only and a y range from the {ROBUST_PERCENTILES[0]:g}th to the {ROBUST_PERCENTILES[1]:g}th "
-                   f"percentile (turn ramps run off it): the horizontal gyros in deg/h less the rate about {about}, "
+                   f"only and a y range from percentile {ROBUST_PERCENTILES[0]:g} to percentile "
+                   f"{ROBUST_PERCENTILES[1]:g} of those (turn ramps run off it): the horizontal gyros in deg/h "
+                   f"less the rate about {about}, "
                    f"which leaves the Earth rate and the bias (each static's mean: thick bar; it steps with the "
                    f"platform angle by the horizontal Earth rate), and the horizontal accelerometers and "
                    f"inclinometers in mg (the tilt and the bias). Shaded: the {len(segments)} segments found "
