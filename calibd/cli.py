@@ -676,7 +676,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("result", help="RESULT.json written by calibd calibrate")
     p.add_argument("capture", help="the capture the result was made from")
     p.add_argument("-o", "--output", required=True,
-                   help="report.html (self-contained); the figures also go to report_files/*.png beside it")
+                   help="report.html (self-contained); the figures also go to report_files/*.png and *.svg beside it")
     p.set_defaults(func=cmd_report)
     p = sub.add_parser("plan", help="protocol + site + noise -> expected 1-sigma of every estimate, time to a "
                                     "target yaw 1-sigma")

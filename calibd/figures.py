@@ -1,12 +1,14 @@
 """The report's figures: the session timeline, the Earth-rate fit against the platform angle, and
-the Allan deviation of the static data, each drawn on a matplotlib Agg canvas into PNG bytes.
+the Allan deviation of the static data, each drawn into PNG and SVG bytes.
 
 matplotlib is imported inside the functions only (the optional extra `[plot]`); `calibd.report`
-checks it is there before any of these run.
+checks it is there before any of these run. Every figure is FIGURE_WIDTH_IN wide at 100 dpi, the
+page's width in pixels, so the page shows it at its own size and STYLE's point sizes hold there.
 """
 
 from __future__ import annotations
 
+import functools
 import io
 from dataclasses import dataclass
 
@@ -21,37 +23,59 @@ from .noise import UNITS as NOISE_UNITS
 from .results import CalibrationResult
 from .noise import NoiseError, characterise
 from .session import Session
-from .units import DEG, SQRT_S_PER_SQRT_H
+from .units import DEG, M_S2_TO_MG, RAD_S_TO_DEG_H, SQRT_S_PER_SQRT_H
 
-DEG_H = 3600 / DEG  # rad/s -> deg/h
+FIGURE_WIDTH_IN = 12.0  # at DPI: 1200 px, the report page's width (report.CSS), shown unscaled
+DPI = 100
+STYLE = {"font.size": 10, "axes.titlesize": 11, "axes.labelsize": 10, "xtick.labelsize": 9.5,
+         "ytick.labelsize": 9.5, "legend.fontsize": 9, "figure.titlesize": 11,
+         "svg.fonttype": "none", "svg.hashsalt": "calibd.report"}  # SVG text as text: small, searchable
 TIMELINE_BINS = 1500  # plotted points per trace: min/max envelopes keep turns and spikes visible
+ROBUST_PERCENTILES = (1.0, 99.0)  # small-signal panels' y range: spikes (turn ramps) run off it
 TURN_BIN_DEG = 30.0  # turn samples are averaged in bins of platform angle this wide
 ROLE_COLOURS = {"static": "#2ca02c", "index turn": "#1f77b4", "full turn": "#ff7f0e", "other turn": "#7f7f7f"}
 AXIS_COLOURS = ("#d62728", "#2ca02c", "#1f77b4")  # X, Y, Z
 SENSOR_NAMES = {"gyro": "gyros", "acc": "accelerometers", "incl": "inclinometers"}
+YAW_MARKER = "yaw-marker"  # gid of the Earth-rate figure's phase line (an id in the SVG)
 
 
 @dataclass
 class Figure:
-    """One figure of the report: its PNG, or why there is none."""
+    """One figure of the report: its PNG and SVG and the matplotlib figure drawn, or why there is none."""
 
-    name: str  # file stem: report_files/<name>.png
+    name: str  # file stem: report_files/<name>.png and .svg
     title: str
     caption: str
     png: bytes | None = None
+    svg: bytes | None = None
+    drawing: object = None  # the matplotlib Figure, for tests that read what was drawn
     missing: str = ""
 
 
-def _png(canvas, fig) -> bytes:
-    buffer = io.BytesIO()
-    canvas(fig).print_png(buffer)
-    return buffer.getvalue()
+def _styled(draw):
+    """Run a figure function under STYLE (sizes readable at the page's width, SVG text as text)."""
+    @functools.wraps(draw)
+    def styled(*args, **kwargs):
+        from matplotlib import rc_context
+
+        with rc_context(STYLE):
+            return draw(*args, **kwargs)
+    return styled
 
 
-def _new_figure(width_in: float, height_in: float):
+def _figure(name: str, title: str, caption: str, fig) -> Figure:
+    """The figure with its PNG and SVG (no date in the SVG: the same report gives the same file)."""
+    png, svg = io.BytesIO(), io.BytesIO()
+    fig.savefig(png, format="png")
+    fig.set_layout_engine("none")  # laid out by the first drawing: the second keeps it
+    fig.savefig(svg, format="svg", metadata={"Date": None})
+    return Figure(name, title, caption, png.getvalue(), svg.getvalue(), fig)
+
+
+def _new_figure(height_in: float):
     from matplotlib.figure import Figure as MplFigure
 
-    return MplFigure(figsize=(width_in, height_in), dpi=100, layout="constrained")
+    return MplFigure(figsize=(FIGURE_WIDTH_IN, height_in), dpi=DPI, layout="constrained")
 
 
 def envelope(time_s: np.ndarray, values: np.ndarray, bins: int = TIMELINE_BINS):
@@ -66,55 +90,135 @@ def envelope(time_s: np.ndarray, values: np.ndarray, bins: int = TIMELINE_BINS):
             np.maximum.reduceat(values, starts), np.add.reduceat(values, starts) / count)
 
 
-def timeline_figure(canvas, whole: Session, segments, roles, warm_up: tuple[float, str]) -> Figure:
+def platform_axis(result: CalibrationResult) -> np.ndarray | None:
+    """The platform's turning axis in IMU axes, R_int^IMU [0, 0, 1], from the result's alpha and
+    beta (None when it has none)."""
+    if not {"alpha", "beta"} <= set(result.estimates):
+        return None
+    return int_to_imu(result.estimates["alpha"].value * DEG, result.estimates["beta"].value * DEG)[:, 2]
+
+
+def without_platform_rate(gyro: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """The gyros less the rate about the platform axis, N x 3 (same unit): a turn's tens of deg/s
+    gone, the Earth rate and the biases left in the horizontal channels (the vertical Earth rate and
+    the Z bias along the axis go too, but they reach X and Y only through the axis's tilt)."""
+    return gyro - np.outer(gyro @ axis, axis)
+
+
+def robust_limits(values: np.ndarray) -> tuple[float, float]:
+    """A y range holding ROBUST_PERCENTILES of `values` with a margin: turn ramps and spikes run off
+    it instead of flattening the trace."""
+    low, high = np.percentile(values, ROBUST_PERCENTILES)
+    margin = max(0.15 * (high - low), 1e-3 * max(abs(low), abs(high)), 1e-6)
+    return float(low - margin), float(high + margin)
+
+
+def _band_panel(ax, t, low, high, mean, names) -> None:
+    """Large signals: each bin's mean as a line, its minimum to maximum as a band."""
+    for k, name in enumerate(names):
+        ax.fill_between(t, low[:, k], high[:, k], color=AXIS_COLOURS[k], alpha=0.25, lw=0)
+        ax.plot(t, mean[:, k], color=AXIS_COLOURS[k], lw=0.8, label=name)
+
+
+def _small_signal_panel(ax, time_s, values, statics, names) -> None:
+    """Small signals under sample noise: the bin means only (the min-max band would be the
+    noise), a y range from robust percentiles, and each static's mean as a thick bar."""
+    t, _, _, mean = envelope(time_s, values)
+    for k, name in enumerate(names):
+        ax.plot(t, mean[:, k], color=AXIS_COLOURS[k], lw=0.7, alpha=0.6, label=name)
+    for start, stop in statics:
+        a, b = np.searchsorted(time_s, (start, stop))
+        if b > a:
+            level = values[a:b].mean(axis=0)
+            for k in range(values.shape[1]):
+                ax.plot((start, stop), (level[k], level[k]), color=AXIS_COLOURS[k], lw=2.5, solid_capstyle="butt")
+    ax.set_ylim(*robust_limits(mean))
+
+
+@_styled
+def timeline_figure(whole: Session, segments, roles, warm_up: tuple[float, str], axis: np.ndarray | None) -> Figure:
+    """`axis`: the platform axis in IMU axes (`platform_axis`), None to take the IMU's Z."""
     from matplotlib.patches import Patch
 
-    fig = _new_figure(11, 8.5)
-    axes = fig.subplots(3, 1, sharex=True)
-    traces = [("gyro [deg/s]", whole.gyro / DEG, "gyro {}"), ("accelerometer [m/s$^2$]", whole.acc, "acc {}")]
-    for ax, (label, values, name) in zip(axes, traces):
-        t, low, high, mean = envelope(whole.time_s, values)
-        for k, axis in enumerate("XYZ"):
-            ax.fill_between(t, low[:, k], high[:, k], color=AXIS_COLOURS[k], alpha=0.25, lw=0)
-            ax.plot(t, mean[:, k], color=AXIS_COLOURS[k], lw=0.8, label=name.format(axis))
+    statics = [(s.start_s, s.end_s) for s in segments if s.kind == "static"]
+    axis_known = axis is not None
+    axis = np.array([0.0, 0.0, 1.0]) if axis is None else axis
+    time_s = whole.time_s
+    panels = [("gyro [deg/s]", whole.gyro / DEG, "gyro {}", False),
+              ("horizontal gyros less\nplatform rate [deg/h]",
+               without_platform_rate(whole.gyro, axis)[:, :2] * RAD_S_TO_DEG_H, "gyro {}", True),
+              ("accelerometer [m/s$^2$]", whole.acc, "acc {}", False),
+              ("horizontal\naccelerometers [mg]", whole.acc[:, :2] * M_S2_TO_MG, "acc {}", True),
+              ("horizontal\ninclinometers [mg]", None if whole.incl is None else whole.incl[:, :2] * M_S2_TO_MG,
+               "incl {}", True)]
+    heights = [1.2, 1, 0.8, 1, 1 if whole.incl is not None else 0.3, 0.8 if whole.temperature_c is not None else 0.3]
+    fig = _new_figure(16.0 - 6 * (6 - sum(heights)) / 5)  # a panel saying "none" takes little room
+    axes = fig.subplots(len(panels) + 1, 1, sharex=True, height_ratios=heights)
+    for ax, (label, values, name, small) in zip(axes, panels):
+        if values is None:  # the text names it: no label, which would not fit the short panel
+            ax.text(0.5, 0.5, "no inclinometers in this datagram", transform=ax.transAxes, ha="center", va="center")
+            ax.set_yticks([])
+            continue
         ax.set_ylabel(label)
-        ax.legend(loc="best", fontsize=8, ncols=3)
-    temp_ax = axes[2]
+        names = [name.format(a) for a in "XYZ"[:values.shape[1]]]
+        if small:
+            _small_signal_panel(ax, time_s, values, statics, names)
+        else:
+            _band_panel(ax, *envelope(time_s, values), names)
+        ax.legend(loc="center left", bbox_to_anchor=(1.0, 0.5))  # outside: the traces keep the panel
+    temp_ax = axes[-1]
     if whole.temperature_c is None:
-        temp_ax.text(0.5, 0.5, "no temperatures in this datagram", transform=temp_ax.transAxes, ha="center")
+        temp_ax.text(0.5, 0.5, "no temperatures in this datagram", transform=temp_ax.transAxes, ha="center",
+                     va="center")
         temp_ax.set_yticks([])
     else:
-        t, low, high, mean = envelope(whole.time_s, whole.temperature_c[:, None])
+        t, low, high, mean = envelope(time_s, whole.temperature_c[:, None])
         temp_ax.fill_between(t, low[:, 0], high[:, 0], color="k", alpha=0.2, lw=0)
-        temp_ax.plot(t, mean[:, 0], color="k", lw=0.8, label="gyro temperature (mean of X, Y, Z)")
-        temp_ax.legend(loc="lower right", fontsize=8)
-    temp_ax.set_ylabel("temperature [degC]")
+        temp_ax.plot(t, mean[:, 0], color="k", lw=0.8)
+        temp_ax.set_ylabel("gyro temperature\n[degC]")
     temp_ax.set_xlabel("time from the first datagram [s]")
-    span = float(whole.time_s[-1] - whole.time_s[0]) or 1.0
+    span = float(time_s[-1] - time_s[0]) or 1.0
     for seg, role in zip(segments, roles):
         for ax in axes:
             ax.axvspan(seg.start_s, seg.end_s, color=ROLE_COLOURS[role], alpha=0.12 if role == "static" else 0.3, lw=0)
         width = (seg.end_s - seg.start_s) / span
         if seg.kind == "static" and width > 0.012:  # narrower ones get no room for a label
             axes[0].text((seg.start_s + seg.end_s) / 2, 0.5, f"{seg.up} up\nchi {seg.platform_angle_deg:.0f}°",
-                         transform=axes[0].get_xaxis_transform(), ha="center", va="center", fontsize=8,
+                         transform=axes[0].get_xaxis_transform(), ha="center", va="center", fontsize=9,
                          rotation=0 if width > 0.07 else 90, bbox={"facecolor": "white", "alpha": 0.7, "lw": 0})
     warm_end, warm_label = warm_up
     handles = [Patch(color=ROLE_COLOURS[r], alpha=0.35, label=r) for r in ROLE_COLOURS if r in roles]
-    if warm_end > whole.time_s[0]:
+    if warm_end > time_s[0]:
         for ax in axes:
-            ax.axvspan(float(whole.time_s[0]), warm_end, facecolor="none", edgecolor="#d62728", hatch="//", lw=0)
+            ax.axvspan(float(time_s[0]), warm_end, facecolor="none", edgecolor="#d62728", hatch="//", lw=0)
         handles.append(Patch(facecolor="none", edgecolor="#d62728", hatch="//", label=warm_label))
     if handles:
-        fig.legend(handles=handles, loc="outside upper center", ncols=len(handles), fontsize=9)
-    axes[2].set_xlim(float(whole.time_s[0]), float(whole.time_s[-1]))
+        fig.legend(handles=handles, loc="outside upper center", ncols=len(handles), fontsize=10)
+    axes[-1].set_xlim(float(time_s[0]), float(time_s[-1]))
     n_static = sum(r == "static" for r in roles)
-    return Figure("timeline", "Session timeline",
-                  f"Gyro, accelerometer and temperature against time (lines: means over "
-                  f"{TIMELINE_BINS} bins, bands: each bin's min to max). Shaded: the {len(segments)} segments "
-                  f"found ({n_static} statics, labelled with the IMU axis up and the platform angle chi); hatched: "
-                  f"{f'{warm_label} up to {warm_end:.0f} s' if warm_end > whole.time_s[0] else 'no warm-up'}.",
-                  _png(canvas, fig))
+    about = ("the platform axis R_int^IMU [0, 0, 1] of the result's alpha and beta" if axis_known else
+             "the IMU's Z axis (the result has no alpha and beta)")
+    return _figure("timeline", "Session timeline",
+                   f"Gyro, accelerometer and gyro temperature (the mean of the three gyros') against time "
+                   f"(lines: means over {TIMELINE_BINS} bins, "
+                   f"bands: each bin's min to max). The small signals get panels of their own, with the bin means "
+                   f"only and a y range from percentile {ROBUST_PERCENTILES[0]:g} to percentile "
+                   f"{ROBUST_PERCENTILES[1]:g} of those (turn ramps run off it): the horizontal gyros in deg/h "
+                   f"less the rate about {about}, "
+                   f"which leaves the Earth rate and the bias (each static's mean: thick bar; it steps with the "
+                   f"platform angle by the horizontal Earth rate), and the horizontal accelerometers and "
+                   f"inclinometers in mg (the tilt and the bias). Shaded: the {len(segments)} segments found "
+                   f"({n_static} statics, labelled with the IMU axis up and the platform angle chi); hatched: "
+                   f"{f'{warm_label} up to {warm_end:.0f} s' if warm_end > time_s[0] else 'no warm-up'}.",
+                   fig)
+
+
+def north_chi_deg(yaw_deg: float) -> float:
+    """The platform angle (deg, mod 360) at which the IMU's X axis points North: yaw is positive
+    from North towards West, counter-clockwise about Up as chi is, so turning by chi = -yaw takes X
+    to North. There the X gyro's Earth-rate term peaks and Y's crosses zero going down (to within
+    the platform axis's tilt, through which the vertical Earth rate adds a sinusoid of its own)."""
+    return float(-yaw_deg % 360.0)
 
 
 def earth_term(params: np.ndarray, chi: np.ndarray) -> np.ndarray:
@@ -154,7 +258,8 @@ def _binned(chi_deg: np.ndarray, values: np.ndarray, width: float):
     return centres[have], np.column_stack(means), np.column_stack(errors)
 
 
-def earth_rate_figure(canvas, session: Session, site: Site, segments, result: CalibrationResult) -> Figure:
+@_styled
+def earth_rate_figure(session: Session, site: Site, segments, result: CalibrationResult) -> Figure:
     joint = estimator("joint")
     joint_result = result.method == joint.name
     options = joint.options((result.options or {}) if joint_result else {})
@@ -164,8 +269,8 @@ def earth_rate_figure(canvas, session: Session, site: Site, segments, result: Ca
     except CalibrationError as exc:
         return Figure("earth_rate", title, "", missing=f"no joint fit on this capture: {exc}")
     g = fitted.fit.gyro
-    seen = earth_rate_seen(fitted) * DEG_H
-    model = earth_term(g.params, g.chi) * DEG_H
+    seen = earth_rate_seen(fitted) * RAD_S_TO_DEG_H
+    model = earth_term(g.params, g.chi) * RAD_S_TO_DEG_H
     residual = seen - model
     chi_deg = g.chi / DEG
     statics = fitted.inp.statics
@@ -180,9 +285,9 @@ def earth_rate_figure(canvas, session: Session, site: Site, segments, result: Ca
     bin_chi, bin_seen, bin_err = _binned(chi_deg[turning], seen[turning], TURN_BIN_DEG)
     _, bin_res, _ = _binned(chi_deg[turning], residual[turning], TURN_BIN_DEG)
     grid = np.linspace(0.0, 360.0, 361)
-    curve = earth_term(g.params, grid * DEG) * DEG_H
+    curve = earth_term(g.params, grid * DEG) * RAD_S_TO_DEG_H
 
-    fig = _new_figure(10, 7.5)
+    fig = _new_figure(8.0)
     top, bottom = fig.subplots(2, 1, sharex=True, height_ratios=(2, 1))
     for k, axis in enumerate("XY"):
         colour = AXIS_COLOURS[k]
@@ -194,14 +299,20 @@ def earth_rate_figure(canvas, session: Session, site: Site, segments, result: Ca
         bottom.errorbar(static_chi, static_res[:, k], static_err[:, k], fmt="o", color=colour, ms=6, capsize=3)
         bottom.errorbar(bin_chi, bin_res[:, k], bin_err[:, k], fmt="x", color=colour, ms=5, alpha=0.5, lw=0.8)
     bottom.axhline(0.0, color="k", lw=0.8)
-    amplitude, sigma = (x * DEG_H for x in g.amplitude_check)
-    expected = float(np.hypot(*site.earth_rate_nav[:2])) * DEG_H
+    amplitude, sigma = (x * RAD_S_TO_DEG_H for x in g.amplitude_check)
+    expected = float(np.hypot(*site.earth_rate_nav[:2])) * RAD_S_TO_DEG_H
     yaw, yaw_sigma = fitted.fit.estimates["yaw"] / DEG, fitted.fit.sigmas["yaw"] / DEG
     seen_amplitude = (f"horizontal Earth rate fixed to Ω_E cos(lat) = {expected:.2f} deg/h"
                       if options.fixed_amplitude else
                       f"fitted horizontal Earth rate {amplitude:.2f} ± {sigma:.2f} deg/h (Ω_E cos(lat) = "
                       f"{expected:.2f} deg/h)")
-    fig.suptitle(f"{seen_amplitude}; yaw {yaw:.2f} ± {yaw_sigma:.2f} deg", fontsize=10)
+    fig.suptitle(f"{seen_amplitude}; yaw {yaw:.2f} ± {yaw_sigma:.2f} deg")
+    north = north_chi_deg(yaw)
+    for ax in (top, bottom):
+        ax.axvline(north, color="k", ls="--", lw=1.2, gid=YAW_MARKER if ax is top else None)
+    top.text(north + (-1.5 if north > 270 else 1.5), 0.97, f"yaw = {yaw:.2f} ± {yaw_sigma:.2f} deg\n"
+             f"chi = -yaw = {north:.1f}°: X towards North", transform=top.get_xaxis_transform(), va="top",
+             ha="right" if north > 270 else "left", bbox={"facecolor": "white", "alpha": 0.8, "lw": 0})
     top.set_ylabel("gyro less fitted offsets and\nplatform-rate terms [deg/h]")
     bottom.set_ylabel("residual [deg/h]")
     bottom.set_xlabel("platform angle chi mod 360 [deg] (counter-clockwise about Up, 0 at the level static)")
@@ -212,7 +323,7 @@ def earth_rate_figure(canvas, session: Session, site: Site, segments, result: Ca
     top.set_ylim(-1.6 * span, 1.6 * span)
     res_span = max(np.abs(static_res).max() + static_err.max(), 1e-3)
     bottom.set_ylim(-4 * res_span, 4 * res_span)
-    fig.legend(*top.get_legend_handles_labels(), loc="outside lower center", ncols=3, fontsize=8)
+    fig.legend(*top.get_legend_handles_labels(), loc="outside lower center", ncols=3)
     note = "" if joint_result else (f" The result's method ({result.method}) fits no sinusoid: this is "
                                     "the joint estimator's fit on the same segments.")
     stated = result.estimates["yaw"].value if "yaw" in result.estimates else None
@@ -223,8 +334,11 @@ def earth_rate_figure(canvas, session: Session, site: Site, segments, result: Ca
                f"angle: the Earth rate's horizontal component, a sinusoid whose phase is the yaw. Circles: the "
                f"mean of each of the {len(statics)} statics (error bars 1-sigma, white noise scaled by the "
                f"measured excess {g.noise_scale:.2f}); crosses: turn samples averaged in {TURN_BIN_DEG:.0f}° "
-               f"bins of chi. Below: the residuals after the fitted sinusoid.{note}")
-    return Figure("earth_rate", title, caption, _png(canvas, fig))
+               f"bins of chi. Dashed vertical line: chi = -yaw, the platform angle at which the IMU's X axis "
+               f"points North (yaw is positive from North towards West, counter-clockwise about Up as chi is), "
+               f"the sinusoid's phase: X's term peaks there. Below: the residuals after the fitted "
+               f"sinusoid.{note}")
+    return _figure("earth_rate", title, caption, fig)
 
 
 def guide_points(noise) -> list[tuple[float, float] | None]:
@@ -244,7 +358,8 @@ def _allan_panel(ax, members) -> None:
         colour, taus = AXIS_COLOURS[k % 3], np.asarray(noise.taus_s)
         rw, bi, rrw = noise.random_walk, noise.bias_instability, noise.rate_random_walk
         falling = bi.tau_s >= taus[-1]  # no minimum inside the data: an upper bound
-        label = (f"{noise.name}: RW {rw.value:.3g} {rw.unit}, BI {'< ' if falling else ''}{bi.value:.3g} {bi.unit}"
+        label = (f"{noise.name.split('_')[-1].upper()}: RW {rw.value:.3g} {rw.unit}\n"
+                 f"BI {'< ' if falling else ''}{bi.value:.3g} {bi.unit}"
                  + (f", RRW {rrw.value:.3g} {rrw.unit}" if rrw is not None else ""))
         ax.fill_between(taus, noise.adev_low, noise.adev_high, color=colour, alpha=0.2, lw=0)
         ax.loglog(taus, noise.adev, color=colour, lw=1.3, label=label)
@@ -260,10 +375,11 @@ def _allan_panel(ax, members) -> None:
     ax.set_xlabel("averaging time tau [s]")
     ax.set_ylabel(f"Allan deviation [{unit}]")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7, loc="upper right")
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.13), frameon=False)  # below: the curves keep the panel
 
 
-def allan_figure(canvas, session: Session, segments) -> Figure:
+@_styled
+def allan_figure(session: Session, segments) -> Figure:
     title = "Allan deviation of the static data"
     try:
         channels = characterise(session, segments)
@@ -272,9 +388,9 @@ def allan_figure(canvas, session: Session, segments) -> Figure:
     groups = {}
     for name, noise in channels.items():
         groups.setdefault(name.split("_")[0], []).append(noise)
-    fig = _new_figure(16, 5.5)
+    fig = _new_figure(6.5)
     for ax, (sensor, members) in zip(fig.subplots(1, len(groups)), groups.items()):
-        ax.set_title(SENSOR_NAMES.get(sensor, sensor), fontsize=10)
+        ax.set_title(SENSOR_NAMES.get(sensor, sensor))
         _allan_panel(ax, members)
     first = next(iter(channels.values()))
     caption = (f"Overlapping Allan deviation of each channel over the {first.static_s:.0f} s of static data in "
@@ -283,7 +399,7 @@ def allan_figure(canvas, session: Session, segments) -> Figure:
                "(BI, the "
                "curve's minimum, dot; '<' when the curve is still falling at its last tau); dash-dot, slope +1/2 "
                "through the rate random walk (RRW) when the curve rises again.")
-    return Figure("allan", title, caption, _png(canvas, fig))
+    return _figure("allan", title, caption, fig)
 
 
 # ---------------------------------------------------------------- page

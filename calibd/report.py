@@ -4,12 +4,13 @@ A result file holds numbers; the report shows what they rest on. On the capture 
 made from (decoded by the caller), it finds the segments again and draws the session's timeline, the Earth-rate
 sinusoid the horizontal gyros see against the platform angle, and the Allan deviation of the
 static data; it tables every estimate with its 1-sigma beside the thesis method's value on the
-same capture and, for a simulated capture, the truth. `report.html` embeds the figures (data
-URIs, inline CSS: it can be mailed or archived alone); `report_files/*.png` are the same figures.
+same capture and, for a simulated capture, the truth and the error in sigma. `report.html` embeds
+the figures (data URIs, inline CSS: it can be mailed or archived alone); `report_files/*.png` and
+`*.svg` are the same figures.
 
 matplotlib (the optional extra `[plot]`) is imported only inside the functions here and in
-`calibd.figures`, and draws on an Agg canvas: the other commands never load it, and no display
-is needed.
+`calibd.figures`, and draws with its Agg and SVG back ends: the other commands never load it,
+and no display is needed.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from . import detect
 from .warmup import warm_up_end_s, warm_up_label
 from .errors import CalibdError, CalibrationError, SiteError
 from .methods import estimator
-from .figures import Figure, allan_figure, earth_rate_figure, timeline_figure
+from .figures import DPI, FIGURE_WIDTH_IN, Figure, allan_figure, earth_rate_figure, platform_axis, timeline_figure
 from .frames import Site
 from .results import CalibrationResult, SchemaError, load_result, schema_version
 from .scenario import TRUTH_FORMER_NAMES, TRUTH_SCHEMA, TRUTH_VERSION, Truth
@@ -54,7 +55,7 @@ def write_report(result_path, capture: CaptureSessions, output, stream=None) -> 
     """Render the report of the result at `result_path` on the decoded `capture` to `output` and
     its figures directory; returns the files written, the HTML first. A progress bar goes to
     `stream` (stderr) when it is a terminal."""
-    canvas = _agg_canvas()
+    _need_matplotlib()
     result = load_result(result_path)  # it checks the schema, the estimates and the site
     _check_fields(result, result_path)
     site = _site(result, result_path)
@@ -65,6 +66,7 @@ def write_report(result_path, capture: CaptureSessions, output, stream=None) -> 
         skipped_s = float(result.stream.get("start_s") or 0.0)
         start_s = analysis_start_s(result)
         power_up = (result.stream.get("power_up") or {}).get("number")
+        _check_identity(result, result_path, capture)
         whole = power_up_session(capture, power_up, 0.0)
         _check_same_capture(result, whole, capture.path)
         session = power_up_session(capture, power_up, start_s) if start_s > 0 else whole
@@ -74,11 +76,11 @@ def write_report(result_path, capture: CaptureSessions, output, stream=None) -> 
         warm_up = (skipped_s, "warm-up skipped by the result") if skipped_s > 0 else (
             warm_up_end_s(whole.time_s, whole.temperature_c), warm_up_label())
         bar.update(2, STEPS[2])
-        figures = [timeline_figure(canvas, whole, segments, roles, warm_up)]
+        figures = [timeline_figure(whole, segments, roles, warm_up, platform_axis(result))]
         bar.update(3, STEPS[3])
-        figures.append(earth_rate_figure(canvas, session, site, segments, result))
+        figures.append(earth_rate_figure(session, site, segments, result))
         bar.update(4, STEPS[4])
-        figures.append(allan_figure(canvas, session, segments))
+        figures.append(allan_figure(session, segments))
         bar.update(5, STEPS[5])
         method = estimator("thesis")
         try:
@@ -95,14 +97,14 @@ def write_report(result_path, capture: CaptureSessions, output, stream=None) -> 
 
 # ---------------------------------------------------------------- inputs
 
-def _agg_canvas():
-    """The Agg canvas class, or the one-line reason why there is none."""
+def _need_matplotlib() -> None:
+    """matplotlib with its Agg and SVG back ends, or the one-line reason why not."""
     try:
         import matplotlib  # noqa: F401  (the package first: a missing one must say so, not a submodule)
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        import matplotlib.backends.backend_agg  # noqa: F401
+        import matplotlib.backends.backend_svg  # noqa: F401
     except ImportError:
         raise ReportError(MATPLOTLIB_MISSING) from None
-    return FigureCanvasAgg
 
 
 def _site(result: CalibrationResult, path) -> Site:
@@ -115,6 +117,10 @@ def _site(result: CalibrationResult, path) -> Site:
 
 def _number(value) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _whole(value) -> bool:
+    return _number(value) and value == int(value)
 
 
 def _optional(check):
@@ -143,14 +149,17 @@ def _check_fields(result: CalibrationResult, path) -> None:
                ("sensor", result.sensor, _optional(_record), "an object"),
                ("checks", result.checks, _optional(_record), "an object"),
                ("options", result.options, _optional(_record), "an object"),
+               ("capture", result.capture, _optional(_record), "an object"),
                ("site.latitude_deg", result.site.get("latitude_deg"), *number),
                ("site.height_m", result.site.get("height_m", 0.0), *number),
                ("site.g0_m_s2", result.site.get("g0_m_s2", 0.0), *number),
                ("stream.start_s", stream.get("start_s"), *maybe_number),
-               ("stream.datagrams", stream.get("datagrams"), _optional(lambda v: _number(v) and v == int(v)),
-                "a whole number or null"),
+               ("stream.datagrams", stream.get("datagrams"), _optional(_whole), "a whole number or null"),
                ("stream.power_up", stream.get("power_up"), _optional(_power_up),
                 "null or an object whose number is a whole number >= 1")]
+    if isinstance(result.capture, dict):
+        fields_ += [("capture.size_bytes", result.capture.get("size_bytes"), _whole, "a whole number"),
+                    ("capture.sha256", result.capture.get("sha256"), _text, "a string")]
     for name, e in result.estimates.items():
         fields_ += [(f"estimates.{name}.value", e.value, *number),
                     (f"estimates.{name}.sigma", e.sigma, *maybe_number),
@@ -196,10 +205,26 @@ def analysis_start_s(result: CalibrationResult) -> float:
     return max(first - 1e-6, 0.0)  # the record is rounded to 1 ms: keep the first sample
 
 
-def _check_same_capture(result: CalibrationResult, whole: Session, capture: str) -> None:
+def _check_identity(result: CalibrationResult, result_path, capture: CaptureSessions) -> None:
     """A report on other data than the result's would put its numbers under figures of something
-    else: refused. The datagram count (recorded by `calibd calibrate`) identifies the capture;
-    a result without it (the daemon's) must at least have its segments inside the capture."""
+    else: refused. A result of `calibd calibrate` names its capture by size and SHA-256; another
+    capture of the same length and datagram count (the other turning sense, say) differs there."""
+    recorded = result.capture
+    if recorded is None:
+        return
+    made_from = f"{result_path} was made from {recorded.get('path')}"
+    if recorded["size_bytes"] != capture.identity["size_bytes"]:
+        raise ReportError(f"{capture.path}: {capture.identity['size_bytes']} bytes, but {made_from} of "
+                          f"{recorded['size_bytes']} bytes: not the result's capture")
+    if recorded["sha256"] != capture.identity["sha256"]:
+        raise ReportError(f"{capture.path}: SHA-256 {capture.identity['sha256'][:16]}..., but {made_from} of the "
+                          f"same size with SHA-256 {recorded['sha256'][:16]}...: not the result's capture")
+
+
+def _check_same_capture(result: CalibrationResult, whole: Session, capture: str) -> None:
+    """For a result that does not name its capture's bytes (the daemon's, older versions): the
+    datagram count (recorded by `calibd calibrate`) must match, and the segments lie inside the
+    capture."""
     recorded = result.stream.get("datagrams")
     have = whole.stream["datagrams"]
     if recorded is not None and recorded != have:
@@ -230,29 +255,33 @@ def read_truth(capture: str) -> tuple[dict[str, float], dict[str, float]] | None
         return None
 
 
-CSS = """
-body { font-family: sans-serif; margin: 2em auto; max-width: 1200px; color: #222; }
+FAR_SIGMAS = 3.0  # an error beyond this many sigma is highlighted: the sigma or the estimate is wrong
+CSS = (  # the page is as wide as the figures' pixels: they show at their own size, text as sized
+    f"\nbody {{ font-family: sans-serif; margin: 2em auto; padding: 0 1em; max-width: {FIGURE_WIDTH_IN * DPI:.0f}px; "
+    "color: #222; }" + """
 h1 { font-size: 1.5em; } h2 { font-size: 1.2em; margin-top: 1.8em; border-bottom: 1px solid #ccc; }
 table { border-collapse: collapse; margin: 0.5em 0; font-size: 0.9em; }
 th, td { border: 1px solid #ccc; padding: 0.2em 0.6em; text-align: left; }
 td.num { text-align: right; font-family: monospace; }
 tr.poor td { background: #fde8e8; }
 .warning { color: #8a4b00; } .missing { color: #a00; font-style: italic; }
-figure { margin: 1em 0; } figure img { max-width: 100%; border: 1px solid #ddd; }
+figure { margin: 1em 0; } figure img { max-width: 100%; height: auto; box-sizing: border-box; border: 1px solid #ddd; }
+td.far { background: #fbd3d3; font-weight: bold; }
 figcaption { font-size: 0.9em; color: #444; }
-"""
+""")
 
 
 def _e(text) -> str:
     return html.escape(str(text))
 
 
-def _num(value: float | None, name: str, form: str = ".5f") -> str:
+def _num(value: float | None, name: str, form: str = ".5f", far: float = math.inf) -> str:
     """A table cell with a number shown as `form` (five decimals, as `calibd calibrate` prints) and
-    kept whole in data-value."""
+    kept whole in data-value; highlighted beyond +-`far`."""
     if value is None:
         return f'<td class="num" data-name="{name}">n/a</td>'
-    return f'<td class="num" data-name="{name}" data-value="{float(value)!r}">{float(value):{form}}</td>'
+    kind = "num far" if abs(value) > far else "num"
+    return f'<td class="{kind}" data-name="{name}" data-value="{float(value)!r}">{float(value):{form}}</td>'
 
 
 def _estimates_table(result: CalibrationResult, thesis: CalibrationResult | str,
@@ -263,7 +292,7 @@ def _estimates_table(result: CalibrationResult, thesis: CalibrationResult | str,
     thesis_note = f"thesis method ({_e(thesis.method)})" if solved else f"thesis method: n/a ({_e(thesis)})"
     scenario, carried = truth if truth else ({}, {})
     head = ["estimate", "value", "1-sigma", "unit", "quality", "thesis method", "truth", "truth in the data",
-            "value - truth in the data"]
+            "value - truth in the data"] + (["error / sigma"] if truth else [])
     rows = [f"<tr>{''.join(f'<th>{h}</th>' for h in head)}</tr>"]
     for name, e in result.estimates.items():
         other = thesis_estimates.get(name)
@@ -272,14 +301,18 @@ def _estimates_table(result: CalibrationResult, thesis: CalibrationResult | str,
         if name == "yaw" and error is not None:
             error = (error + 180.0) % 360.0 - 180.0
         quality = e.quality or ""
+        in_sigmas = "" if not truth else _num(None if error is None or not e.sigma else error / e.sigma,
+                                               "error_sigmas", ".1f", FAR_SIGMAS)
         rows.append(f'<tr class="{_e(quality)}" data-estimate="{_e(name)}"><td>{_e(name)}</td>'
                     f'{_num(e.value, "value")}{_num(e.sigma, "sigma", ".3g")}<td>{_e(e.unit)}</td>'
                     f'<td>{_e(quality)}</td>{_num(None if other is None else other.value, "thesis")}'
-                    f'{_num(scenario.get(name), "truth")}{_num(true, "carried")}{_num(error, "error")}</tr>')
+                    f'{_num(scenario.get(name), "truth")}{_num(true, "carried")}{_num(error, "error")}'
+                    f'{in_sigmas}</tr>')
     notes = [f"<p>Beside the result: the {thesis_note} on the same capture"
              + (", and the truth of the simulation (CAPTURE.truth.json): the scenario's, and the one the data "
                 "carry (biases moved by temperature and by the session mean of the bias wander, which no "
-                "calibration of this capture can tell from the bias: what the estimate should find)."
+                "calibration of this capture can tell from the bias: what the estimate should find); the error "
+                f"in units of the result's 1-sigma, highlighted beyond {FAR_SIGMAS:g} sigma."
                 if truth else "; no truth file beside the capture.") + "</p>"]
     if solved and thesis.warnings:
         notes.append("<p>Thesis method notes:</p><ul>" + "".join(f"<li>{_e(w)}</li>" for w in thesis.warnings)
@@ -333,11 +366,12 @@ def _segments_table(segments, roles) -> str:
 def _figure_html(figure: Figure, directory: str) -> str:
     if figure.png is None:
         return f'<h2>{_e(figure.title)}</h2><p class="missing">{_e(figure.missing)}</p>'
-    file = f"{directory}/{figure.name}.png"
+    file, vector = (f"{directory}/{figure.name}.{suffix}" for suffix in ("png", "svg"))
     data = base64.b64encode(figure.png).decode("ascii")
     return (f'<h2>{_e(figure.title)}</h2><figure id="{figure.name}"><img src="data:image/png;base64,{data}" '
             f'alt="{_e(file)}" title="{_e(file)}"><figcaption>{_e(figure.caption)} '
-            f'File: <a href="{_e(file)}">{_e(file)}</a></figcaption></figure>')
+            f'Files: <a href="{_e(file)}">{_e(file)}</a>, <a href="{_e(vector)}">{_e(vector)}</a> '
+            f'(vector)</figcaption></figure>')
 
 
 def render_html(result: CalibrationResult, result_name: str, capture: str, whole: Session, segments, roles,
@@ -373,10 +407,11 @@ def _write(output: Path, figures: list[Figure], page: str) -> list[Path]:
     try:
         directory.mkdir(exist_ok=True)
         for f in figures:
-            if f.png is not None:
-                path = directory / f"{f.name}.png"
-                write_atomic(path, f.png, durable=False)  # figures can be made again: no sync
-                written.append(path)
+            for suffix, data in (("png", f.png), ("svg", f.svg)):
+                if data is not None:
+                    path = directory / f"{f.name}.{suffix}"
+                    write_atomic(path, data, durable=False)  # figures can be made again: no sync
+                    written.append(path)
         write_atomic(output, page.encode(), durable=False)
     except OSError as exc:
         raise ReportError(f"{output}: cannot write: {(exc.strerror or str(exc)).lower()}") from None

@@ -7,6 +7,7 @@ import json
 import re
 import shutil
 import sys
+import xml.etree.ElementTree as ET
 from dataclasses import replace
 from html.parser import HTMLParser
 from pathlib import Path
@@ -15,15 +16,19 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from calibd.calibrate import joint_fit, joint_real_case, thesis_real_case
+from calibd.calibrate import calibrate_capture, joint_fit, joint_real_case, thesis_real_case
 from calibd.cli import load_session, open_capture
 from calibd.cli import main as calibd_main
 from calibd.estimators.joint import JointOptions
 from calibd.frames import Site
-from calibd.figures import earth_rate_seen, earth_term, guide_points
+from calibd import detect
+from calibd.figures import (YAW_MARKER, earth_rate_figure, earth_rate_seen, earth_term, guide_points, north_chi_deg,
+                            platform_axis, timeline_figure)
 from calibd.noise import characterise
-from calibd.report import MATPLOTLIB_MISSING, analysis_start_s, write_report
+from calibd.report import FAR_SIGMAS, MATPLOTLIB_MISSING, _estimates_table, analysis_start_s, read_truth, write_report
+from calibd.segments import session_segments
 from calibd.results import write_result
+from calibd.session import power_up_session
 
 FIXTURES = Path(__file__).resolve().parent.parent / "fixtures"
 CAPTURE = str(FIXTURES / "thesis_real_cw_125hz.bin")
@@ -76,10 +81,13 @@ def parse(page: str, table_id: str = "estimates") -> Cells:
 
 @pytest.fixture(scope="module")
 def made(tmp_path_factory):
-    """The joint result of the thesis fixture, by the library (faster than the command)."""
+    """The joint result of the thesis fixture, by the library (faster than the command), naming
+    its capture as `calibd calibrate` does."""
     directory = tmp_path_factory.mktemp("report")
-    session = load_session(CAPTURE)
-    result = joint_real_case(session, SITE)
+    capture = open_capture(CAPTURE)
+    session = power_up_session(capture)
+    result = calibrate_capture(capture, lambda s: joint_real_case(s, SITE), start_s=0.0)
+    assert result.capture["sha256"] == capture.identity["sha256"]
     write_result(directory / "result.json", result)
     return {"dir": directory, "result": result, "session": session, "path": directory / "result.json"}
 
@@ -93,7 +101,8 @@ def rendered(made):
 
 def test_files_exist_and_are_pngs(rendered):
     d = rendered["dir"]
-    assert rendered["written"] == [d / "report.html"] + [d / "report_files" / f"{f}.png" for f in FIGURES]
+    assert rendered["written"] == [d / "report.html"] + [d / "report_files" / f"{f}.{suffix}" for f in FIGURES
+                                                         for suffix in ("png", "svg")]
     for name in FIGURES:
         data = (d / "report_files" / f"{name}.png").read_bytes()
         assert data.startswith(b"\x89PNG\r\n\x1a\n")
@@ -101,6 +110,20 @@ def test_files_exist_and_are_pngs(rendered):
         image.verify()
         assert image.size[0] >= 800 and image.size[1] >= 400
     assert not list(d.glob(".*part")) and not list((d / "report_files").glob(".*part"))  # no temporaries left
+
+
+def test_svg_beside_each_png_with_its_text(rendered):
+    """Vector copies for print: SVG documents whose labels are text, not paths, dated nowhere."""
+    for name, words in (("timeline", "platform rate [deg/h]"), ("earth_rate", "yaw ="), ("allan", "Allan deviation")):
+        data = (rendered["dir"] / "report_files" / f"{name}.svg").read_bytes()
+        root = ET.fromstring(data)
+        assert root.tag == "{http://www.w3.org/2000/svg}svg"
+        text = " ".join("".join(e.itertext()) for e in root.iter("{http://www.w3.org/2000/svg}text"))
+        assert words in text, name
+        assert b"<dc:date>" not in data
+        named = {(tag, key) for tag, key, value in parse(rendered["page"]).attributes
+                 if value == f"report_files/{name}.svg"}
+        assert ("a", "href") in named
 
 
 def test_html_embeds_and_names_every_figure_and_loads_nothing(rendered):
@@ -140,9 +163,76 @@ def test_thesis_and_truth_columns(rendered):
         assert rows[name]["carried"][0] == in_data
         assert rows[name]["error"][0] == pytest.approx(rendered["result"].estimates[name].value - in_data)
         assert abs(rows[name]["error"][0]) < 3 * rows[name]["sigma"][0]  # the joint 1-sigma is honest here
+    assert "<th>error / sigma</th>" in rendered["page"]
+    for name, row in rows.items():
+        exact, shown = row["error_sigmas"]
+        assert exact == pytest.approx(row["error"][0] / row["sigma"][0])
+        assert shown == f"{exact:.1f}" and abs(exact) < 3, name  # no estimate here is off by 3 sigma
     for name, e in thesis.items():
         assert rows[name]["thesis"][0] == pytest.approx(e.value, rel=1e-12, abs=1e-12)
     assert "thesis-linear" in rendered["page"]
+
+
+def test_error_beyond_three_sigma_is_highlighted(made):
+    """A sigma too small for the error it has: the cell says so."""
+    result = made["result"]
+    truth = read_truth(CAPTURE)
+    error = result.estimates["roll"].value - truth[1]["roll"]
+    narrow = replace(result, estimates=result.estimates | {
+        "roll": replace(result.estimates["roll"], sigma=abs(error) / (2 * FAR_SIGMAS))})
+    table = _estimates_table(narrow, "not solved", truth)
+    assert re.findall(r'<td class="num far" data-name="error_sigmas"[^>]*>([-0-9.]+)</td>', table) == \
+        [f"{6.0 if error > 0 else -6.0:.1f}"]
+
+
+def test_timeline_shows_the_small_signals(made):
+    """Panels of their own for the horizontal gyros (deg/h, the platform rate removed) and the
+    horizontal accelerometers and inclinometers (mg), on one time axis; over the full turn the
+    gyro X panel keeps the bias (the Earth rate averages out), not the tens of deg/s of the turn."""
+    session, result = made["session"], made["result"]
+    segments = session_segments(session)
+    roles = detect.segment_roles(segments)
+    fig = timeline_figure(session, segments, roles, (0.0, ""), platform_axis(result)).drawing
+    labels = [ax.get_ylabel() for ax in fig.axes]
+    assert labels == ["gyro [deg/s]", "horizontal gyros less\nplatform rate [deg/h]", "accelerometer [m/s$^2$]",
+                      "horizontal\naccelerometers [mg]", "horizontal\ninclinometers [mg]", "gyro temperature\n[degC]"]
+    assert all(ax.get_shared_x_axes().joined(fig.axes[0], ax) for ax in fig.axes)
+    gyro_x = fig.axes[1].get_lines()[0]
+    turn = next(s for s, r in zip(segments, roles) if r == "full turn")
+    t, x = gyro_x.get_data()
+    inside = (t > turn.start_s + 2) & (t < turn.end_s - 2)  # the constant-rate part
+    assert inside.sum() > 8  # bins of 0.8 s
+    assert np.mean(x[inside]) == pytest.approx(result.estimates["gyro_bias_x"].value, abs=10.0)
+    low, high = fig.axes[1].get_ylim()
+    assert high - low < 500  # deg/h: the turn's 1e5 deg/h do not set the scale
+    accel_x = fig.axes[3].get_lines()[0].get_data()[1]
+    static = session.acc[:1000, 0].mean() * 1000 / 9.80665  # mg
+    assert np.median(accel_x[:50]) == pytest.approx(static, abs=0.5)
+
+
+def test_timeline_of_a_unit_without_inclinometers():
+    session = load_session(str(FIXTURES / "gyro_acc_125hz.bin"))
+    segments = session_segments(session)
+    fig = timeline_figure(session, segments, detect.segment_roles(segments), (0.0, ""), None).drawing
+    assert [t.get_text() for t in fig.axes[4].texts] == ["no inclinometers in this datagram"]
+
+
+def test_earth_rate_figure_marks_the_yaw():
+    """The phase line sits where the IMU's X axis points North, chi = -yaw (yaw counter-clockwise
+    about Up, as chi): there the fitted X term peaks. A heading far from 0 tells the sign."""
+    site = Site(60.0, 120.0)
+    session = load_session(str(FIXTURES / "heading137_lat60_125hz.bin"))
+    result = joint_real_case(session, site)
+    yaw = result.estimates["yaw"].value
+    assert 120 < yaw < 150
+    fig = earth_rate_figure(session, site, session_segments(session), result).drawing
+    marker = [line for line in fig.axes[0].get_lines() if line.get_gid() == YAW_MARKER]
+    assert len(marker) == 1
+    assert marker[0].get_xdata() == pytest.approx([north_chi_deg(yaw)] * 2, abs=1e-9)
+    assert north_chi_deg(yaw) == pytest.approx(360 - yaw)
+    chi, x_term = fig.axes[0].get_lines()[0].get_data()  # gyro X: fitted Earth-rate term
+    assert chi[np.argmax(x_term)] == pytest.approx(north_chi_deg(yaw), abs=1.5)
+    assert any(f"yaw = {yaw:.2f}" in t.get_text() for t in fig.axes[0].texts)
 
 
 def test_segments_are_the_protocols(rendered):
@@ -207,8 +297,10 @@ def test_command_without_truth_file(rendered, tmp_path, capsys):
     assert err == ""  # no bar when stderr is not a terminal
     assert f"report: {tmp_path / 'r.html'}" in out and "timeline.png" in out
     assert (tmp_path / "r_files" / "earth_rate.png").exists()
-    rows = parse((tmp_path / "r.html").read_text()).rows
+    page = (tmp_path / "r.html").read_text()
+    rows = parse(page).rows
     assert all(r["truth"] == r["carried"] == r["error"] == (None, "n/a") for r in rows.values())
+    assert "error / sigma" not in page and not any("error_sigmas" in r for r in rows.values())
     assert rows["yaw"]["value"][0] == rendered["result"].estimates["yaw"].value
 
 
@@ -227,6 +319,11 @@ def test_matplotlib_missing_is_one_line(made, tmp_path, capsys, monkeypatch):
     ("no estimates", "the result has no estimates"),
     ("missing capture", "no such file"),
     ("other capture", "not the result's capture"),
+    ("other turning sense, same datagram count", "bytes, but"),
+    ("truncated by one byte", "8450517 bytes, but"),
+    ("one byte changed", "same size with SHA-256"),
+    ("no capture record, other capture", "datagrams, but the result was made from a capture of"),
+    ("capture record not an object", "capture is"),
     ("no output directory", "cannot write: no such directory"),
     ("output is a directory", "is a directory"),
 ])
@@ -247,6 +344,22 @@ def test_bad_input_is_one_line(made, tmp_path, capsys, case, message):
         capture = tmp_path / "absent.bin"
     elif case == "other capture":
         capture = FIXTURES / "warmup_then_protocol_125hz.bin"
+    elif case == "other turning sense, same datagram count":
+        capture = FIXTURES / "thesis_real_ccw_125hz.bin"
+    elif case in ("truncated by one byte", "one byte changed"):
+        data = bytearray(Path(CAPTURE).read_bytes())
+        if case == "one byte changed":
+            data[len(data) // 2] ^= 0x01
+        capture = tmp_path / "edited.bin"
+        capture.write_bytes(data[:-1] if case == "truncated by one byte" else data)
+    elif case in ("no capture record, other capture", "capture record not an object"):
+        doc = json.loads(Path(result).read_text())
+        doc["capture"] = "elsewhere"
+        if case == "no capture record, other capture":
+            del doc["capture"]
+            capture = FIXTURES / "warmup_then_protocol_125hz.bin"
+        result = tmp_path / "edited.json"
+        result.write_text(json.dumps(doc))
     elif case == "no output directory":
         output = tmp_path / "absent" / "r.html"
     else:
