@@ -104,7 +104,8 @@ class Estimate:
 
     def to_dict(self) -> dict:
         return {"value": self.value, "sigma": self.sigma, "unit": self.unit, "value_si": self.value_si,
-                "sigma_si": self.sigma_si, "unit_si": self.unit_si, **({"quality": self.quality} if self.quality else {})}
+                "sigma_si": self.sigma_si, "unit_si": self.unit_si,
+                **({"quality": self.quality} if self.quality else {})}
 
 
 # optional fields, written only when set: the method's own (joint: options, checks, bias_reference;
