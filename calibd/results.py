@@ -48,8 +48,9 @@ ESTIMATES = {name: (DISPLAY_UNITS[unit][0], unit) for name, unit in (
     *((angle, "deg") for angle in ("pitch", "roll", "yaw", "alpha", "beta")),
     *((f"gyro_bias_{a}", "deg/h") for a in "xyz"),
     *((f"{sensor}_bias_{a}", "mg") for sensor in ("acc", "incl") for a in "xyz"))}
-ROTATION_CONVENTION = ("passive: v_IMU = M v_FROM (NAV = North-West-Up); matrix row-major; quaternion "
-                       "[w, x, y, z], Hamilton, unit, w >= 0, with v_IMU = q v_FROM q* (the same map as the matrix)")
+ROTATION_CONVENTION = ("passive: M takes a vector's components in the frame it is from (NAV: North-West-Up; int: "
+                       "the mounting interface) to its IMU components, v_IMU = M v; matrix row-major; quaternion "
+                       "[w, x, y, z], Hamilton, unit, w >= 0, v_IMU = q v q* (the same map as the matrix)")
 # rotation -> (the function of frames that makes it, its angles in the order it takes them)
 ROTATIONS = {"nav_to_imu": (nav_to_imu, ("yaw", "pitch", "roll")), "int_to_imu": (int_to_imu, ("alpha", "beta"))}
 SOFTWARE = "stim300-calib"
