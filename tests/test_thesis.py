@@ -337,7 +337,8 @@ def test_calibrate_command_writes_the_result_schema(tmp_path, capsys):
     assert result["estimates"]["pitch"]["unit"] == "deg" and result["estimates"]["gyro_bias_y"]["unit"] == "deg/h"
     assert result["estimates"]["acc_bias_y"]["unit"] == "mg"
     assert result["site"] == {"latitude_deg": 40.59129, "height_m": 0.0, "g0_m_s2": 9.79956, "g0_given": True,
-                              "earth_rate_deg_h": pytest.approx(15.0411, abs=1e-4)}
+                              "g0_sigma_m_s2": 0.0, "earth_rate_deg_h": pytest.approx(15.0411, abs=1e-4),
+                              "earth_rate_rad_s": 7.2921150e-5}
     assert result["sensor"]["serial_number"] == "N25582405002002" and result["sensor"]["datagram_id"] == "0xA7"
     assert result["estimates"]["pitch"]["value"] == pytest.approx(-0.3205, abs=0.03)
     printed = capsys.readouterr().out
