@@ -184,7 +184,9 @@ def thesis_real_case(session: Session, site: Site, alpha_beta_deg: tuple[float, 
     result = make_result(est["method"], site, estimates, records, warnings, session.sensor,
                          stream=session.stream, platform_rate_deg_s=est["platform_rate"] / DEG,
                          earth_rate_diagnostic=diagnostics)
-    if alpha_beta is not None and yaw_bound_deg > YAW_SIGMA_POOR_DEG:  # can be as far off as a poor joint yaw
+    if alpha_beta is None:  # not an estimate (the warning says why): flagged, so the rotation says so too
+        result = result.flag_poor(("yaw",))
+    elif yaw_bound_deg > YAW_SIGMA_POOR_DEG:  # can be as far off as a poor joint yaw
         result = result.flag_poor(("gyro_bias_y", "yaw"))
     return result
 
