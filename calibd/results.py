@@ -32,8 +32,8 @@ from stim300.atomic import write_atomic
 from stim300.cliutil import package_version
 
 from .errors import CalibdError
-from .frames import EARTH_RATE, STANDARD_GRAVITY, Site, int_to_imu, nav_to_imu
-from .units import DEG
+from .frames import EARTH_RATE, Site, int_to_imu, nav_to_imu
+from .units import DEG, M_S2_TO_MG, RAD_S_TO_DEG_H
 
 RESULT_SCHEMA = "calibd.result"
 # 2: the same content as 1, written from the typed CalibrationResult; 3: SI values, the rotation
@@ -42,7 +42,7 @@ RESULT_VERSION = 3
 SCHEMA = f"{RESULT_SCHEMA}/{RESULT_VERSION}"
 log = structlog.get_logger("calibd")
 # display unit -> (display units per SI unit, SI unit): the one conversion of estimates
-DISPLAY_UNITS = {"deg": (1 / DEG, "rad"), "deg/h": (3600 / DEG, "rad/s"), "mg": (1000 / STANDARD_GRAVITY, "m/s^2")}
+DISPLAY_UNITS = {"deg": (1 / DEG, "rad"), "deg/h": (RAD_S_TO_DEG_H, "rad/s"), "mg": (M_S2_TO_MG, "m/s^2")}
 # estimate name -> (factor from SI, display unit)
 ESTIMATES = {name: (DISPLAY_UNITS[unit][0], unit) for name, unit in (
     *((angle, "deg") for angle in ("pitch", "roll", "yaw", "alpha", "beta")),
