@@ -56,9 +56,17 @@ def calibrate_capture(capture: CaptureSessions, solve, power_up: int | None = No
         verdict = record_settling(session.time_s, session.temperature_c)
         if verdict is not None and not verdict.settled:
             result = result.flag_poor(result.estimates, NOT_WARMED_UP)
-        return replace(result, capture={"path": capture.path, **capture.identity,
-                                        "serial_number": capture.sensor.get("serial_number")})
+        return replace(result, session_id=capture_session_id(capture, number, session),
+                       capture={"path": capture.path, **capture.identity,
+                                "serial_number": capture.sensor.get("serial_number")})
     raise CalibrationError("; ".join(refusals))
+
+
+def capture_session_id(capture: CaptureSessions, number: int, session: Session) -> str:
+    """The data a result of a capture rests on, as "SHA256[:16]/pN/tSTART": the file's first 16
+    hex digits of SHA-256, the power-up and the start (s into it). The same capture and start
+    options give the same id, whatever the method."""
+    return f"{capture.identity['sha256'][:16]}/p{number}/t{session.stream['start_s']:.3f}"
 
 
 def _lacking(what: str, segments: list[detect.Segment]) -> ProtocolIncomplete:
@@ -176,7 +184,9 @@ def thesis_real_case(session: Session, site: Site, alpha_beta_deg: tuple[float, 
     result = make_result(est["method"], site, estimates, records, warnings, session.sensor,
                          stream=session.stream, platform_rate_deg_s=est["platform_rate"] / DEG,
                          earth_rate_diagnostic=diagnostics)
-    if alpha_beta is not None and yaw_bound_deg > YAW_SIGMA_POOR_DEG:  # can be as far off as a poor joint yaw
+    if alpha_beta is None:  # not an estimate (the warning says why): flagged, so the rotation says so too
+        result = result.flag_poor(("yaw",))
+    elif yaw_bound_deg > YAW_SIGMA_POOR_DEG:  # can be as far off as a poor joint yaw
         result = result.flag_poor(("gyro_bias_y", "yaw"))
     return result
 
@@ -305,19 +315,19 @@ def _tilt_check(inp: joint.JointInput, fit: joint.JointResult, site: Site) -> ga
 def _corrected(inp: joint.JointInput, fit: joint.JointResult, site: Site, options: joint.JointOptions,
                found: list[gaps.TurnAngle]) -> tuple[joint.JointInput, joint.JointResult]:
     """The joint fit redone with the turns' angles corrected to the tilt's; each correction's
-    1-sigma is carried into the sigmas through a fit redone with that correction moved by it."""
+    1-sigma is carried into the covariance through a fit redone with that correction moved by it."""
     def solved(turns):
         corrected_inp = replace(inp, chi_correction=gaps.chi_correction(inp, fit.gyro.chi, turns))
         return corrected_inp, joint.solve(corrected_inp, site, options)
 
     inp, corrected = solved(found)
-    variance = {name: sigma**2 for name, sigma in corrected.sigmas.items()}
+    covariance = corrected.covariance.copy()
     for k, turn in enumerate(found):
         _, moved = solved(found[:k] + [replace(turn, correction_rad=turn.correction_rad + turn.sigma_rad)]
                           + found[k + 1:])
-        for name in variance:
-            variance[name] += (moved.estimates[name] - corrected.estimates[name]) ** 2
-    return inp, replace(corrected, sigmas={name: float(np.sqrt(v)) for name, v in variance.items()})
+        shift = np.array([moved.estimates[name] - value for name, value in corrected.estimates.items()])
+        covariance += np.outer(shift, shift)  # one correction's error moves every estimate together
+    return inp, replace(corrected, covariance=covariance)
 
 
 def joint_real_case(session: Session, site: Site, options: joint.JointOptions = joint.JointOptions(),
@@ -329,9 +339,9 @@ def joint_real_case(session: Session, site: Site, options: joint.JointOptions = 
     warnings = (_session_warnings(session) + _vibration_warnings(fitted, session) + _joint_warnings(fit, site)
                 + _turn_angle_warnings(fitted, session))
     estimates = {name: (fit.estimates[name], fit.sigmas[name]) for name in joint.ESTIMATE_NAMES
-                 if name in fit.estimates}
+                 if name in fit.estimates}  # the order of fit.estimates, which is the covariance's
     result = make_result("joint", site, estimates, [segment_record(s, s.kind) for s in used], warnings,
-                         session.sensor, stream=session.stream,
+                         session.sensor, fit.covariance, stream=session.stream,
                          options={"fixed_amplitude": options.fixed_amplitude, "drift": options.drift},
                          checks=_joint_checks(fit, site) | _turn_angle_checks(fitted, session),
                          bias_reference="turn-on")

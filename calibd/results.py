@@ -1,14 +1,16 @@
-"""The calibration result every method writes (schema calibd.result/2), typed, and its safe storage.
+"""The calibration result every method writes (schema calibd.result/3), typed, and its safe storage.
 
 Estimates are kept in SI inside the code; here they become the units people read: degrees,
 deg/h for gyro biases, mg (1e-3 of the sensor's g, 9.80665 m/s^2) for accelerometer and
-inclinometer biases. A result file is replaced atomically and synced, so a crash never leaves
-a half-written or empty result where the last good one was; `ResultStore` keeps the daemon's
-state directory that way.
+inclinometer biases, each written with its SI value beside it. A result file is replaced
+atomically and synced, so a crash never leaves a half-written or empty result where the last
+good one was; `ResultStore` keeps the daemon's state directory that way. docs/result-schema.md
+describes every field.
 
 Version policy (for every file calibd writes, "NAME/N"): a reader reads its own version and
 older ones (fields they lack take their defaults), refuses a newer one with a message that
 says to upgrade calibd, and refuses other schemas. The version goes up when the content changes.
+A result is always written as the current version, whatever version it was read from.
 """
 
 from __future__ import annotations
@@ -24,25 +26,34 @@ from pathlib import Path
 
 import numpy as np
 import structlog
+from scipy.spatial.transform import Rotation
 
 from stim300.atomic import write_atomic
+from stim300.cliutil import package_version
 
 from .errors import CalibdError
-from .frames import EARTH_RATE, STANDARD_GRAVITY, Site
-from .units import DEG
+from .frames import EARTH_RATE, Site, int_to_imu, nav_to_imu
+from .units import DEG, M_S2_TO_MG, RAD_S_TO_DEG_H
 
 RESULT_SCHEMA = "calibd.result"
-RESULT_VERSION = 2  # 2: the same content as 1, written from the typed CalibrationResult
+# 2: the same content as 1, written from the typed CalibrationResult; 3: SI values, the rotation
+# as matrix and quaternion, the estimates' covariance, software, session_id, the site's g0 sigma
+RESULT_VERSION = 3
 SCHEMA = f"{RESULT_SCHEMA}/{RESULT_VERSION}"
 log = structlog.get_logger("calibd")
-_ANGLE = (1 / DEG, "deg")
-_GYRO = (3600 / DEG, "deg/h")
-_FORCE = (1000 / STANDARD_GRAVITY, "mg")
-# estimate name -> (factor from SI, unit)
-ESTIMATES = {"pitch": _ANGLE, "roll": _ANGLE, "yaw": _ANGLE, "alpha": _ANGLE, "beta": _ANGLE,
-             **{f"gyro_bias_{a}": _GYRO for a in "xyz"},
-             **{f"acc_bias_{a}": _FORCE for a in "xyz"},
-             **{f"incl_bias_{a}": _FORCE for a in "xyz"}}
+# display unit -> (display units per SI unit, SI unit): the one conversion of estimates
+DISPLAY_UNITS = {"deg": (1 / DEG, "rad"), "deg/h": (RAD_S_TO_DEG_H, "rad/s"), "mg": (M_S2_TO_MG, "m/s^2")}
+# estimate name -> (factor from SI, display unit)
+ESTIMATES = {name: (DISPLAY_UNITS[unit][0], unit) for name, unit in (
+    *((angle, "deg") for angle in ("pitch", "roll", "yaw", "alpha", "beta")),
+    *((f"gyro_bias_{a}", "deg/h") for a in "xyz"),
+    *((f"{sensor}_bias_{a}", "mg") for sensor in ("acc", "incl") for a in "xyz"))}
+ROTATION_CONVENTION = ("passive: M takes a vector's components in the frame it is from (NAV: North-West-Up; int: "
+                       "the mounting interface) to its IMU components, v_IMU = M v; matrix row-major; quaternion "
+                       "[w, x, y, z], Hamilton, unit, w >= 0, v_IMU = q v q* (the same map as the matrix)")
+# rotation -> (the function of frames that makes it, its angles in the order it takes them)
+ROTATIONS = {"nav_to_imu": (nav_to_imu, ("yaw", "pitch", "roll")), "int_to_imu": (int_to_imu, ("alpha", "beta"))}
+SOFTWARE = "stim300-calib"
 
 
 class ResultError(CalibdError):
@@ -67,7 +78,8 @@ def schema_version(schema, name: str, newest: int, what: str, aliases: tuple[str
 
 @dataclass(frozen=True)
 class Estimate:
-    """One estimate in the units people read; quality "poor" when it is not to be used as it is."""
+    """One estimate in the units people read; quality "poor" when it is not to be used as it is.
+    Its SI value follows from its unit (DISPLAY_UNITS)."""
 
     value: float
     sigma: float | None
@@ -79,8 +91,21 @@ class Estimate:
         factor, unit = ESTIMATES[name]
         return cls(float(value_si) * factor, None if sigma_si is None else float(sigma_si) * factor, unit)
 
+    @property
+    def unit_si(self) -> str:
+        return DISPLAY_UNITS[self.unit][1]
+
+    @property
+    def value_si(self) -> float:
+        return self.value / DISPLAY_UNITS[self.unit][0]
+
+    @property
+    def sigma_si(self) -> float | None:
+        return None if self.sigma is None else self.sigma / DISPLAY_UNITS[self.unit][0]
+
     def to_dict(self) -> dict:
-        return {"value": self.value, "sigma": self.sigma, "unit": self.unit,
+        return {"value": self.value, "sigma": self.sigma, "unit": self.unit, "value_si": self.value_si,
+                "sigma_si": self.sigma_si, "unit_si": self.unit_si,
                 **({"quality": self.quality} if self.quality else {})}
 
 
@@ -95,7 +120,8 @@ _OPTIONAL = ("options", "checks", "bias_reference", "platform_rate_deg_s", "eart
 class CalibrationResult:
     """What a method found on a session: estimates by name, the segments and data they rest on,
     and what the reader must know (warnings). Changed by copies (`flag_poor`, `with_warning`,
-    `dataclasses.replace`), never in place."""
+    `dataclasses.replace`), never in place. The rotation record is made from the estimates each
+    time it is written, so it always agrees with them (their quality too)."""
 
     method: str
     site: dict  # site_record
@@ -104,6 +130,9 @@ class CalibrationResult:
     warnings: tuple[str, ...] = ()
     sensor: dict = field(default_factory=dict)
     stream: dict = field(default_factory=dict)
+    covariance: dict | None = None  # covariance_record: the joint method's; None: the method has none
+    software: dict | None = None  # name and version of what made it; None: read from a version 1 or 2 file
+    session_id: str | None = None  # the data it rests on (offline: capture, power-up, start; daemon: its session)
     options: dict | None = None  # joint: the options it was solved with
     checks: dict | None = None  # joint: model checks (Earth rate seen, chi-squares, turn angles)
     bias_reference: str | None = None  # joint: "turn-on"
@@ -113,7 +142,7 @@ class CalibrationResult:
     capture: dict | None = None  # offline: the file it was made from (path, size_bytes, sha256, serial_number)
     session: dict | None = None  # daemon: which session, how long, when solved
     stale: dict | None = None  # daemon: why the result no longer applies
-    schema: str = SCHEMA
+    schema: str = SCHEMA  # the version it was read as (it is written as the current one)
 
     def flag_poor(self, names, why: str | None = None) -> CalibrationResult:
         """The result with the estimates `names` flagged poor, and `why` among the warnings."""
@@ -124,16 +153,48 @@ class CalibrationResult:
     def with_warning(self, text: str, first: bool = False) -> CalibrationResult:
         return replace(self, warnings=(text, *self.warnings) if first else (*self.warnings, text))
 
+    def rotation_matrix(self, name: str = "nav_to_imu") -> np.ndarray | None:
+        """The 3 x 3 matrix of ROTATIONS[name] (v_IMU = M v) from the estimated angles; None when
+        one of them is not estimated."""
+        make, angles = ROTATIONS[name]
+        if not all(a in self.estimates for a in angles):
+            return None
+        return make(*(self.estimates[a].value_si for a in angles))
+
+    def covariance_matrix(self, si: bool = False) -> np.ndarray | None:
+        """The estimates' covariance in the order of covariance["names"], in display units
+        (entry i, j in units[i] x units[j]) or SI; None when the method gives none."""
+        if self.covariance is None:
+            return None
+        matrix = np.array(self.covariance["matrix"], dtype=float)
+        if not si:
+            return matrix
+        to_si = np.array([1 / DISPLAY_UNITS[unit][0] for unit in self.covariance["units"]])
+        return matrix * np.outer(to_si, to_si)
+
+    def rotation_record(self) -> dict | None:
+        """Each rotation whose angles are all estimated: matrix, quaternion, and which of its
+        angles are flagged poor (a poor yaw is kept, and said); None when there is none."""
+        records = {}
+        for name, (_, angles) in ROTATIONS.items():
+            matrix = self.rotation_matrix(name)
+            if matrix is not None:
+                records[name] = {"matrix": matrix.tolist(), "quaternion": quaternion(matrix), "angles": list(angles),
+                                 "poor": [a for a in angles if self.estimates[a].quality == "poor"]}
+        return {"convention": ROTATION_CONVENTION, **records} if records else None
+
     def to_dict(self) -> dict:
-        doc = {"schema": self.schema, "method": self.method, "site": self.site,
-               "estimates": {name: e.to_dict() for name, e in self.estimates.items()},
+        doc = {"schema": SCHEMA, "method": self.method, "software": self.software, "session_id": self.session_id,
+               "site": self.site, "estimates": {name: e.to_dict() for name, e in self.estimates.items()},
+               "rotation": self.rotation_record(), "covariance": self.covariance,
                "segments": list(self.segments), "warnings": list(self.warnings), "sensor": self.sensor,
                "stream": self.stream}
         return doc | {name: getattr(self, name) for name in _OPTIONAL if getattr(self, name) is not None}
 
     @classmethod
     def from_dict(cls, doc, where: str = "result") -> CalibrationResult:
-        """A result document of this or an older version; ResultError (one line) otherwise."""
+        """A result document of this or an older version; ResultError (one line) otherwise. What
+        follows from the estimates (SI values, the rotation record) is made again, not read."""
         if not isinstance(doc, dict):
             raise ResultError(f"{where}: not a {RESULT_SCHEMA} result")
         try:
@@ -144,12 +205,16 @@ class CalibrationResult:
         if not (isinstance(estimates, dict) and estimates
                 and all(isinstance(e, dict) and {"value", "unit"} <= set(e) for e in estimates.values())):
             raise ResultError(f"{where}: the result has no estimates (value and unit each)")
+        strange = next((f"{name} in {e['unit']!r}" for name, e in estimates.items()
+                        if e["unit"] not in DISPLAY_UNITS), None)
+        if strange:
+            raise ResultError(f"{where}: estimate {strange}, not one of {', '.join(DISPLAY_UNITS)}")
         if not isinstance(doc.get("site"), dict) or not isinstance(doc.get("method"), str):
             raise ResultError(f"{where}: the result has no site or no method")
         for key in ("segments", "warnings"):
             if not isinstance(doc.get(key, []), list):
                 raise ResultError(f"{where}: {key} is {json.dumps(doc[key])[:40]}, expected a list")
-        known = {"method", "site", "sensor", "stream", *_OPTIONAL}
+        known = {"method", "site", "sensor", "stream", "covariance", "software", "session_id", *_OPTIONAL}
         return cls(**{key: value for key, value in doc.items() if key in known},
                    estimates={name: Estimate(e["value"], e.get("sigma"), e["unit"], e.get("quality"))
                               for name, e in estimates.items()},
@@ -157,20 +222,42 @@ class CalibrationResult:
                    schema=doc["schema"])
 
 
+def quaternion(matrix: np.ndarray) -> list[float]:
+    """The unit quaternion [w, x, y, z] (Hamilton, w >= 0) with q v q* = matrix v."""
+    return Rotation.from_matrix(matrix).as_quat(canonical=True, scalar_first=True).tolist()
+
+
+def covariance_record(names, covariance_si: np.ndarray) -> dict:
+    """The estimates' covariance in display units: entry i, j in units[i] x units[j]."""
+    factors = np.array([ESTIMATES[name][0] for name in names])
+    return {"names": list(names), "units": [ESTIMATES[name][1] for name in names],
+            "matrix": (np.asarray(covariance_si) * np.outer(factors, factors)).tolist()}
+
+
+def software_record() -> dict:
+    return {"name": SOFTWARE, "version": package_version()}
+
+
 def site_record(site: Site) -> dict:
+    """The site the estimates rest on: what was given and what follows from it (g0 and its
+    1-sigma: 0 when given, a typical local anomaly for normal gravity; the Earth rate)."""
     return {"latitude_deg": site.latitude_deg, "height_m": site.height_m, "g0_m_s2": site.gravity,
-            "g0_given": site.g0 is not None, "earth_rate_deg_h": EARTH_RATE * 3600 / DEG}
+            "g0_given": site.g0 is not None, "g0_sigma_m_s2": site.gravity_sigma,
+            "earth_rate_deg_h": EARTH_RATE * 3600 / DEG, "earth_rate_rad_s": EARTH_RATE}
 
 
 def make_result(method: str, site: Site, estimates: dict[str, tuple[float, float | None]], segments: list[dict],
-                warnings: list[str], sensor: dict, **extra) -> CalibrationResult:
-    """The result of a method; `estimates` maps names of ESTIMATES to (value, sigma) in SI."""
+                warnings: list[str], sensor: dict, covariance: np.ndarray | None = None, **extra) -> CalibrationResult:
+    """The result of a method; `estimates` maps names of ESTIMATES to (value, sigma) in SI, and
+    `covariance` (SI), when the method has one, is theirs in the same order."""
     unknown = set(estimates) - set(ESTIMATES)
     if unknown:
         raise ValueError(f"unknown estimate names: {sorted(unknown)}")
     return CalibrationResult(method, site_record(site),
                              {name: Estimate.from_si(name, *pair) for name, pair in estimates.items()},
-                             tuple(segments), tuple(warnings), sensor, **extra)
+                             tuple(segments), tuple(warnings), sensor,
+                             covariance=None if covariance is None else covariance_record(estimates, covariance),
+                             software=software_record(), **extra)
 
 
 def _plain(value):

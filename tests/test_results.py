@@ -36,9 +36,11 @@ def test_a_result_round_trips_through_its_file(tmp_path):
     write_result(tmp_path / "r.json", result)
     assert load_result(tmp_path / "r.json") == result
     doc = json.loads((tmp_path / "r.json").read_text())
-    assert doc["schema"] == SCHEMA == "calibd.result/2"
-    assert list(doc) == ["schema", "method", "site", "estimates", "segments", "warnings", "sensor", "stream",
-                         "options", "checks", "bias_reference"]  # unset fields are not written
+    assert doc["schema"] == SCHEMA == "calibd.result/3"
+    assert list(doc) == ["schema", "method", "software", "session_id", "site", "estimates", "rotation", "covariance",
+                         "segments", "warnings", "sensor", "stream",
+                         "options", "checks", "bias_reference"]  # unset optional fields are not written
+    assert doc["rotation"] is None and doc["covariance"] is None  # no pitch and roll; no covariance given
     assert doc["estimates"]["yaw"]["quality"] == "poor" and "quality" not in doc["estimates"]["gyro_bias_x"]
 
 
@@ -52,7 +54,9 @@ def test_changes_are_copies():
 
 
 def test_a_version_1_file_is_read(tmp_path):
-    """A result as calibd wrote it before the typed result: schema 1, no optional fields."""
+    """A result as calibd wrote it before the typed result: schema 1, no optional fields. What
+    version 3 adds takes its default (None: not known), or follows from the estimates (SI), and
+    it is written back as the current version."""
     doc = {"schema": "calibd.result/1", "method": "thesis-linear", "site": {"latitude_deg": 40.0},
            "estimates": {"yaw": {"value": 0.0, "sigma": None, "unit": "deg"}}, "warnings": ["w"]}
     path = tmp_path / "old.json"
@@ -61,11 +65,17 @@ def test_a_version_1_file_is_read(tmp_path):
     assert result.schema == "calibd.result/1" and result.method == "thesis-linear"
     assert result.estimates["yaw"] == Estimate(0.0, None, "deg") and result.warnings == ("w",)
     assert result.stream == {} and result.segments == () and result.checks is None and result.stale is None
-    assert json.loads(result_json(result)) == doc | {"segments": [], "sensor": {}, "stream": {}}
+    assert result.software is None and result.session_id is None and result.covariance is None
+    assert result.estimates["yaw"].value_si == 0.0 and result.estimates["yaw"].unit_si == "rad"
+    assert json.loads(result_json(result)) == doc | {
+        "schema": SCHEMA, "software": None, "session_id": None, "rotation": None, "covariance": None,
+        "estimates": {"yaw": {"value": 0.0, "sigma": None, "unit": "deg", "value_si": 0.0, "sigma_si": None,
+                              "unit_si": "rad"}},
+        "segments": [], "sensor": {}, "stream": {}}
 
 
 @pytest.mark.parametrize("schema, message", [
-    ("calibd.result/3", "r.json is calibd.result/3, newer than this calibd reads (up to 2): upgrade calibd"),
+    ("calibd.result/4", "r.json is calibd.result/4, newer than this calibd reads (up to 3): upgrade calibd"),
     ("calibd.noise/1", "r.json is 'calibd.noise/1', not a calibd.result file"),
     ("calibd.result/x", "r.json is 'calibd.result/x', not a calibd.result file"),
     (None, "r.json is None, not a calibd.result file"),
@@ -99,10 +109,10 @@ def test_status_refuses_a_newer_result_in_one_line(tmp_path, capsys):
     from calibd.cli import main as calibd_main
 
     (tmp_path / "state.json").write_text(json.dumps({"state": "SOLVED", "detail": "solved", "updated": 0}))
-    (tmp_path / "result.json").write_text(json.dumps(joint_like().to_dict() | {"schema": "calibd.result/3"}))
+    (tmp_path / "result.json").write_text(json.dumps(joint_like().to_dict() | {"schema": "calibd.result/4"}))
     assert calibd_main(["status", "--state-dir", str(tmp_path)]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "calibd.result/3, newer than this calibd reads (up to 2): upgrade calibd" in err
+    assert err.count("\n") == 1 and "calibd.result/4, newer than this calibd reads (up to 3): upgrade calibd" in err
 
 
 def test_numpy_scalars_in_a_result_are_written_as_plain_json():

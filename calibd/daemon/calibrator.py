@@ -14,6 +14,7 @@ solve), `solve` (the method); the listeners hear what happens.
 
 from __future__ import annotations
 
+import uuid
 from collections.abc import Sequence
 
 import numpy as np
@@ -47,6 +48,7 @@ class Calibrator:
         self.detail = "waiting for data"
         self.result = previous  # an earlier daemon's (result.json) until this one solves: a restart marks it stale
         self.sessions = 0
+        self.session_id: str | None = None
         self.sensor: dict = {}
         self._cuts = PowerUpCuts()
         self._new_power_up()
@@ -146,6 +148,7 @@ class Calibrator:
         self.collector.start_session(start_s, self.detection)
         self._trigger.session_started(self.collector.end_s, self.method.resolve_every_s)
         self.sessions += 1
+        self.session_id = str(uuid.uuid4())  # unique to this session, in every result of it
         self._set(State.COLLECTING, detail)
 
     def _look(self) -> tuple[Session, list[detect.Segment]]:
@@ -157,7 +160,7 @@ class Calibrator:
         """Solve on the session so far (`looked`: it and its segments, when just looked at)."""
         session, segments = looked or self._look()
         self._trigger.solved(self.collector.end_s, self.method.resolve_every_s)
-        attempt = solve(session, segments, self.site, self.method, self.sessions)
+        attempt = solve(session, segments, self.site, self.method, self.sessions, self.session_id)
         if attempt.result is not None:
             self.result = attempt.result
             self._set(State.SOLVED, attempt.detail)

@@ -31,8 +31,9 @@ class Attempt:
 
 
 def solve(session: Session, segments: list[detect.Segment], site: Site, method: MethodConfig,
-          number: int) -> Attempt:
-    """Solve session `number` (its segments found) with the configured method."""
+          number: int, session_id: str | None = None) -> Attempt:
+    """Solve session `number` (its segments found) with the configured method; `session_id`:
+    the daemon session's id, written in every result of it."""
     duration_s = float(session.time_s[-1])
     chosen = estimator(method.name)
     lacking = chosen.missing(segments)
@@ -47,8 +48,9 @@ def solve(session: Session, segments: list[detect.Segment], site: Site, method: 
         log.exception("solve_failed")
         return Attempt(None, f"solve failed: {type(exc).__name__}: {exc} (a fault in calibd; the log has its "
                              "traceback)", failed=True)
-    result = replace(result, session={"number": number, "duration_s": duration_s,
-                                      "solved_at": datetime.now(timezone.utc).isoformat(timespec="seconds")})
+    result = replace(result, session_id=session_id,
+                     session={"number": number, "duration_s": duration_s,
+                              "solved_at": datetime.now(timezone.utc).isoformat(timespec="seconds")})
     yaw = result.estimates["yaw"]
     sigma = f" +- {yaw.sigma:.2f}" if yaw.sigma is not None else ""
     return Attempt(result, f"solved on {duration_s:.0f} s: yaw {yaw.value:.2f}{sigma} deg")

@@ -557,11 +557,16 @@ def _jacobian(f, x: np.ndarray, steps: np.ndarray) -> np.ndarray:
 @dataclass
 class JointResult:
     estimates: dict[str, float]  # SI
-    sigmas: dict[str, float]  # SI, 1-sigma
+    covariance: np.ndarray  # of the estimates, SI, rows in the order of `estimates`
     gyro: GyroFit
     incl: ForceFit | None  # None: the unit has no inclinometers
     acc: ForceFit
     jacobian: np.ndarray  # d estimates / d (gyro, [incl,] acc params)
+
+    @property
+    def sigmas(self) -> dict[str, float]:
+        """1-sigma of each estimate, SI: the covariance's diagonal, so the two never disagree."""
+        return dict(zip(self.estimates, np.sqrt(np.diag(self.covariance)).tolist()))
 
     @property
     def tilt(self) -> ForceFit:
@@ -588,9 +593,7 @@ def solve(inp: JointInput, site: Site, options: JointOptions = JointOptions(),
     cov = parameter_covariance(gyro, incl, acc, site.gravity_sigma)
     steps = np.sqrt(np.diag(cov)) * 1e-3 + 1e-15
     jac = _jacobian(chain, x, steps)
-    sigma = np.sqrt(np.diag(jac @ cov @ jac.T))
-    values = chain(x)
-    return JointResult(values, dict(zip(values, sigma.tolist())), gyro, incl, acc, jac)
+    return JointResult(chain(x), jac @ cov @ jac.T, gyro, incl, acc, jac)
 
 
 def parameter_covariance(gyro: GyroFit, incl: ForceFit | None, acc: ForceFit, g0_sigma: float) -> np.ndarray:
