@@ -1,4 +1,5 @@
-"""`stim300 decode | info`: tables in physical units, capture health, one-line errors."""
+"""`stim300 decode | info`: tables in physical units, capture health, one-line errors; calibd's
+printed estimates: value and sigma rounded alike, columns aligned."""
 
 import json
 import subprocess
@@ -7,6 +8,8 @@ import sys
 import numpy as np
 import pytest
 
+from calibd.cli import main as calibd_main
+from calibd.units import value_sigma, value_sigma_texts
 from captures import capture
 from stim300.cli import main
 from stim300.protocol import Status
@@ -156,3 +159,32 @@ def test_a_rate_the_counter_confirms_is_taken(tmp_path, capsys):
     assert code == 0 and err == ""
     info = json.loads(out)
     assert info["sample_rate_hz"] == 250 and info["lost_samples"] == 0
+
+
+@pytest.mark.parametrize("value, sigma, texts", [
+    (-3.33030, 1.75, ("-3.3", "1.8")), (-0.321412, 0.00123, ("-0.3214", "0.0012")),
+    (98.63005, 0.667, ("98.63", "0.67")),
+    (1234.5, 250.0, ("1234", "250")), (-3.33030, None, ("-3.3303", None)), (-4e-9, None, ("0.0000", None)),
+    (0.5, float("nan"), ("0.5000", None)), (0.5, 0.0, ("0.5000", None)),
+])
+def test_a_value_is_rounded_at_its_sigmas_second_digit(value, sigma, texts):
+    assert value_sigma_texts(value, sigma) == texts
+    unit = "deg"
+    assert value_sigma(value, sigma, unit) == (f"{texts[0]} +- {texts[1]} {unit}" if texts[1] else f"{texts[0]} {unit}")
+
+
+def test_calibrate_prints_estimates_rounded_and_aligned(tmp_path, capsys):
+    code = calibd_main(["calibrate", "fixtures/thesis_real_cw_125hz.bin", "--latitude", "40.59129",
+                        "-o", str(tmp_path / "r.json")])
+    out = capsys.readouterr().out
+    assert code == 0
+    result = json.loads((tmp_path / "r.json").read_text())
+    rows = [line for line in out.splitlines() if " +- " in line]
+    assert len(rows) == len(result["estimates"])
+    for line in rows:
+        name, value, _, sigma, unit = line.split()
+        estimate = result["estimates"][name]
+        assert (value, sigma) == value_sigma_texts(estimate["value"], estimate["sigma"]) and unit == estimate["unit"]
+        assert len(sigma.replace(".", "").lstrip("0")) == 2  # two significant digits, no more
+    assert len({line.index(" +- ") for line in rows}) == 1 and len({len(line.split(" +- ")[0]) for line in rows}) == 1
+    assert len({line.rindex(" ") for line in rows if line.endswith(" deg")}) == 1
