@@ -78,7 +78,8 @@ def _session_warnings(session: Session) -> list[str]:
                       f"{CYCLE_S:.3f} s counter cycles); that time was added")
     if session.incl is None:
         faults.append(NO_INCLINOMETERS)
-    return faults + warm_up_warnings(session.time_s, session.temperature_c)
+    from_capture = "power_up" in session.stream  # calibd calibrate's --start can move its start; the daemon's cannot
+    return faults + warm_up_warnings(session.time_s, session.temperature_c, start_hint=from_capture)
 
 
 NO_INCLINOMETERS = ("the unit has no inclinometers: pitch, roll and the accelerometer biases come from the "
