@@ -4,6 +4,7 @@ printed estimates: value and sigma rounded alike, columns aligned."""
 import json
 import subprocess
 import sys
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -188,3 +189,27 @@ def test_calibrate_prints_estimates_rounded_and_aligned(tmp_path, capsys):
         assert len(sigma.replace(".", "").lstrip("0")) == 2  # two significant digits, no more
     assert len({line.index(" +- ") for line in rows}) == 1 and len({len(line.split(" +- ")[0]) for line in rows}) == 1
     assert len({line.rindex(" ") for line in rows if line.endswith(" deg")}) == 1
+
+
+@pytest.mark.parametrize("method", ["joint", "thesis"])
+def test_a_bench_capture_refused_by_a_single_mounting_method_points_to_the_bench(method, tmp_path, capsys):
+    code = calibd_main(["calibrate", "fixtures/thesis_bench_125hz.bin", "--latitude", "40.59129", "--method", method,
+                        "-o", str(tmp_path / "r.json")])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.splitlines()) == 1 and not (tmp_path / "r.json").exists()
+    assert err.rstrip().endswith("; this looks like the bench campaign: use --method thesis --bench")
+    code = calibd_main(["calibrate", "fixtures/thesis_bench_125hz.bin", "--latitude", "40.59129", "--method", "thesis",
+                        "--bench", "-o", str(tmp_path / "r.json")])
+    assert code == 0 and json.loads((tmp_path / "r.json").read_text())["method"] == "thesis-bench"
+
+
+def test_a_refusal_of_what_is_not_the_bench_campaign_has_no_bench_hint():
+    from calibd.calibrate import ProtocolIncomplete, joint_real_case
+    from calibd.cli import load_session
+    from calibd.frames import Site
+
+    session = load_session("fixtures/thesis_real_cw_125hz.bin")
+    first_10_s = {name: getattr(session, name)[:1250] for name in ("time_s", "gyro", "acc", "incl", "temperature_c")}
+    with pytest.raises(ProtocolIncomplete) as refused:  # the level static alone: no turn after it
+        joint_real_case(replace(session, **first_10_s), Site(40.59129))
+    assert "no turn after the level static" in str(refused.value) and "bench" not in str(refused.value)
