@@ -9,6 +9,7 @@ Errors in files, scenarios or arguments end with one line on stderr and exit sta
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import mmap
@@ -273,15 +274,17 @@ def cmd_replay(args) -> int:
     if args.warmup_window is not None:
         warmup = replace(warmup, window_s=args.warmup_window)
     data = read_input(args.capture)
+    bar = Progress("replay", len(data), "B")
+    out = bar.above(sys.stdout)  # a state line printed while the bar is drawn goes above it
     last = [None]
 
     def print_state(state, detail):
         if state != last[0] or detail.startswith("solved"):
-            print(f"[{state.value}] {detail}", flush=True)
+            print(f"[{state.value}] {detail}", file=out, flush=True)
             last[0] = state
 
     def print_stale(result):
-        print(f"[{result.stale['power_up']} power-up] {result.stale['reason']}", flush=True)
+        print(f"[{result.stale['power_up']} power-up] {result.stale['reason']}", file=out, flush=True)
 
     listeners = [StateLog(), Callbacks(state=print_state, stale=print_stale)]
     if args.state_dir:  # a capture is a world of its own: an earlier result there is not shown
@@ -307,7 +310,7 @@ def cmd_replay(args) -> int:
         if hub is not None:
             hub.close()
         raise
-    with Progress("replay", len(data), "B") as bar:
+    with bar, contextlib.redirect_stderr(bar.above(sys.stderr)):  # and so does a log line
         replay(source, calibrator, progress=lambda done, total: bar.update(done), hub=hub)
     if calibrator.result is None or calibrator.result.stale is not None:
         stale = " (the last result is the previous power-up's, marked stale)" if calibrator.result else ""
