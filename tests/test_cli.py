@@ -104,6 +104,27 @@ def test_info_text_has_units(capture_file, capsys):
     assert "125 Hz" in out and "2.400 s" in out and "datagrams        299" in out
 
 
+def test_info_shows_the_configuration_as_grouped_lines_with_units(tmp_path, capsys):
+    config = Configuration.build(sample_rate_hz=500, crlf=True, gyro_lpf_hz=(262, 131, 66),
+                                 incl_axes=(True, True, False), parity=2, stop_bits=2)
+    data, _, _ = capture(50, 0xA7, True, rate=500)
+    path = tmp_path / "c.bin"
+    path.write_bytes(encode_special(config, True) + data)
+    code, out, _ = run(["info", path], capsys)
+    assert code == 0 and "{" not in out
+    shown = out[out.index("configuration    "):].splitlines()
+    groups = [line.strip() for line in shown if line.startswith("  ") and not line.startswith("    ")]
+    assert groups == ["gyro", "acc", "incl", "serial line", "outputs"]
+    for row in ("    low-pass        262 Hz / 131 Hz / 66 Hz (X / Y / Z)", "    range           +-400 deg/s",
+                "    unit            rate (deg/s)", "    range           +-10 g", "    axes            X, Y",
+                "    range           +-1.7 g", "    bit rate        921600 bps", "    framing         2 stop bits, "
+                "parity odd", "    CR LF           yes", "    datagram        0xA7 (gyro, acc, incl, temperatures)",
+                "    sample rate     500 Hz"):
+        assert row in shown, row
+    code, out, _ = run(["info", path, "--json"], capsys)
+    assert json.loads(out)["configuration"]["gyro_lpf_hz"] == [262, 131, 66]  # the machine form keeps the fields
+
+
 @pytest.mark.parametrize("case", ["missing", "directory", "empty", "not_stim300", "bad_datagram", "bad_range",
                                   "bad_unit", "bad_suffix", "no_output_dir", "output_is_dir"])
 def test_bad_input_is_one_line_and_nonzero(case, capture_file, tmp_path, capsys):
