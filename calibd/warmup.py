@@ -111,9 +111,10 @@ def start_words(verdict: Settling | None, rule: WarmupConfig = WARM_UP_RULE) -> 
 def warm_up_warnings(time_s: np.ndarray, temperature_c: np.ndarray | None,
                      rule: WarmupConfig = WARM_UP_RULE, start_hint: bool = False) -> list[str]:
     """What a record's temperatures say about its biases: not checkable, never settled, or
-    settled only after its start. `start_hint`: the record is a capture's power-up (times since
-    its first sample), so the warning says the `calibd calibrate --start` that leaves the warm-up
-    out; the daemon has no such option, its results do not say it."""
+    settled only after its start. `start_hint`: the record is a capture's power-up (its times
+    count from the power-up's first sample, as `calibd calibrate --start` does), so the warning
+    says the --start that leaves the warm-up out; the daemon has no such option, and its
+    sessions count from their own start, so its results do not say it."""
     verdict = record_settling(time_s, temperature_c, rule)
     if verdict is None:
         return ["no temperatures in the datagram: warm-up cannot be checked"]
