@@ -69,8 +69,14 @@ def capture_session_id(capture: CaptureSessions, number: int, session: Session) 
     return f"{capture.identity['sha256'][:16]}/p{number}/t{session.stream['start_s']:.3f}"
 
 
+BENCH_HINT = "this looks like the bench campaign: use --method thesis --bench"
+
+
 def _lacking(what: str, segments: list[detect.Segment]) -> ProtocolIncomplete:
-    return ProtocolIncomplete(what, detect.protocol_progress(segments))
+    """The refusal of a method whose protocol the segments lack; when they hold the whole bench
+    campaign instead (a single-mounting method meets six mountings), it says which method fits."""
+    found = detect.protocol_progress(segments)
+    return ProtocolIncomplete(what, f"{found}; {BENCH_HINT}" if not bench_lacking(segments) else found)
 
 
 def _session_warnings(session: Session) -> list[str]:
@@ -86,7 +92,8 @@ def _session_warnings(session: Session) -> list[str]:
                       f"{CYCLE_S:.3f} s counter cycles); that time was added")
     if session.incl is None:
         faults.append(NO_INCLINOMETERS)
-    return faults + warm_up_warnings(session.time_s, session.temperature_c)
+    from_capture = "power_up" in session.stream  # calibd calibrate's --start can move its start; the daemon's cannot
+    return faults + warm_up_warnings(session.time_s, session.temperature_c, start_hint=from_capture)
 
 
 NO_INCLINOMETERS = ("the unit has no inclinometers: pitch, roll and the accelerometer biases come from the "
@@ -207,6 +214,15 @@ def bench_positions(segments: list[detect.Segment]) -> dict[str, detect.Segment]
         if s.kind == "static":
             positions.setdefault(s.up, s)
     return positions
+
+
+def bench_lacking(segments: list[detect.Segment]) -> list[str]:
+    """What the bench campaign lacks in these segments: a static with each axis up, a full turn."""
+    positions = bench_positions(segments)
+    lacking = [f"a static with {axis} up" for axis in thesis.UP_AXES if axis not in positions]
+    if not detect.full_turns(segments):
+        lacking.append(f"a full turn (at least {detect.FULL_TURN_MIN_DEG:.0f} deg)")
+    return lacking
 
 
 def thesis_bench(session: Session, site: Site, segments: list[detect.Segment] | None = None) -> CalibrationResult:

@@ -9,6 +9,7 @@ Errors in files, scenarios or arguments end with one line on stderr and exit sta
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import mmap
@@ -40,7 +41,7 @@ from .serve.hub import Hub
 from .serve.protocol import SAMPLE_KINDS
 from .serve.sockets import ServeError
 from .session import CaptureSessions, Session, decode_sessions, power_up_session
-from .units import DEG
+from .units import DEG, value_sigma_texts
 
 
 @contextmanager
@@ -158,10 +159,14 @@ def _summary(result: CalibrationResult) -> str:
     session = _session_line(result)
     if session:
         lines.append(f"  session: {session}")
+    texts = {name: value_sigma_texts(e.value, e.sigma) for name, e in result.estimates.items()}
+    value_width = max((len(v) for v, _ in texts.values()), default=0)
+    sigma_width = max((len(s) for _, s in texts.values() if s), default=0)
     for name, e in result.estimates.items():
-        sigma = "" if e.sigma is None else f" +- {e.sigma:.3g}"
+        value, sigma = texts[name]
+        sigma = f" +- {sigma:>{sigma_width}}" if sigma else " " * (sigma_width + 4) if sigma_width else ""
         poor = "  (poor)" if e.quality == "poor" else ""
-        lines.append(f"  {name:12s} {e.value:12.5f}{sigma} {e.unit}{poor}")
+        lines.append(f"  {name:12s} {value:>{value_width}}{sigma} {e.unit}{poor}")
     lines += [f"  warning: {w}" for w in result.warnings]
     return "\n".join(lines)
 
@@ -280,15 +285,17 @@ def cmd_replay(args) -> int:
     if args.warmup_window is not None:
         warmup = replace(warmup, window_s=args.warmup_window)
     data = read_input(args.capture)
+    bar = Progress("replay", len(data), "B")
+    out = bar.above(sys.stdout)  # a state line printed while the bar is drawn goes above it
     last = [None]
 
     def print_state(state, detail):
         if state != last[0] or detail.startswith("solved"):
-            print(f"[{state.value}] {detail}", flush=True)
+            print(f"[{state.value}] {detail}", file=out, flush=True)
             last[0] = state
 
     def print_stale(result):
-        print(f"[{result.stale['power_up']} power-up] {result.stale['reason']}", flush=True)
+        print(f"[{result.stale['power_up']} power-up] {result.stale['reason']}", file=out, flush=True)
 
     listeners = [StateLog(), Callbacks(state=print_state, stale=print_stale)]
     if args.state_dir:  # a capture is a world of its own: an earlier result there is not shown
@@ -314,7 +321,7 @@ def cmd_replay(args) -> int:
         if hub is not None:
             hub.close()
         raise
-    with Progress("replay", len(data), "B") as bar:
+    with bar, contextlib.redirect_stderr(bar.above(sys.stderr)):  # and so does a log line
         replay(source, calibrator, progress=lambda done, total: bar.update(done), hub=hub)
     if calibrator.result is None or calibrator.result.stale is not None:
         stale = " (the last result is the previous power-up's, marked stale)" if calibrator.result else ""
@@ -343,43 +350,76 @@ def _load_state(state_file: Path) -> dict:
     return state
 
 
-def cmd_status(args) -> int:
-    directory = Path(args.state_dir)
-    state_file = directory / "state.json"
+def _status(directory: Path, as_json: bool, one_line: bool = False) -> str:
+    """What `calibd status` prints for the state directory: the state and the last result in
+    words, or (`as_json`) the object {"state": state.json as written, "result": result.json's
+    document or null}, what ?POLL gives on the daemon's socket (`one_line`: one JSON line).
+    UsageError (one line) for a directory without a state.json or a file that is not calibd's."""
+    state_file, result_file = directory / "state.json", directory / "result.json"
     if not os.path.lexists(state_file):  # Path.exists raises where the directory cannot be read
         raise UsageError(f"{directory}: no state.json (is calibd running with this state directory?)")
     state = _load_state(state_file)
-    if args.json:
-        return _status_json(directory, state)
-    age = time.time() - state["updated"]
-    print(f"state: {state['state']} ({state['detail']}), updated {age:.0f} s ago")
-    for key in ("degraded", "held_back"):
-        if isinstance(state.get(key), str):
-            print(f"{key.replace('_', ' ')}: {state[key]}")
-    if not (directory / "result.json").exists():
-        print("no result yet")
-        return 0
     try:
-        result = load_result(directory / "result.json")
+        result = load_result(result_file) if result_file.exists() else None
     except ResultError as exc:
         raise UsageError(str(exc)) from None  # a newer calibd's result, or not a result: say which
+    if as_json:
+        document = {"state": state, "result": None if result is None else result.to_dict()}
+        return json.dumps(document) if one_line else json.dumps(document, indent=1)
+    lines = [f"state: {state['state']} ({state['detail']}), updated {time.time() - state['updated']:.0f} s ago"]
+    lines += [f"{key.replace('_', ' ')}: {state[key]}" for key in ("degraded", "held_back")
+              if isinstance(state.get(key), str)]
+    if result is None:
+        return "\n".join(lines + ["no result yet"])
     if result.stale is not None:
-        print(f"result: stale since {result.stale['since']}, from the {result.stale['power_up']} power-up")
-    print(_summary(result))
+        lines.append(f"result: stale since {result.stale['since']}, from the {result.stale['power_up']} power-up")
+    return "\n".join(lines + [_summary(result)])
+
+
+def cmd_status(args) -> int:
+    directory = Path(args.state_dir)
+    if args.follow:
+        return _client_program(lambda: _follow_status(directory, args.json))
+    print(_status(directory, args.json))
     return 0
 
 
-def _status_json(directory: Path, state: dict) -> int:
-    """`calibd status --json`: {"state": state.json as written, "result": result.json's document
-    or null}, one object for a program (what ?POLL gives on the daemon's socket)."""
-    result = None
-    if (directory / "result.json").exists():
-        try:
-            result = load_result(directory / "result.json").to_dict()
-        except ResultError as exc:
-            raise UsageError(str(exc)) from None
-    print(json.dumps({"state": state, "result": result}, indent=1))
-    return 0
+STATUS_POLL_S = 0.5  # how often --follow looks at the state directory's files
+
+
+def _file_stamp(path: Path) -> tuple[int, int, int] | None:
+    """What changes when a file is replaced (atomically: a new inode) or rewritten: its inode,
+    size and modification time (ns); None while it is absent or cannot be looked at."""
+    try:
+        stat = os.stat(path)
+    except OSError:
+        return None
+    return stat.st_ino, stat.st_size, stat.st_mtime_ns
+
+
+def _follow_status(directory: Path, as_json: bool) -> int:
+    """`calibd status --follow`: the status, then again each time state.json or result.json
+    changes (a block of lines, or one JSON line each). A state directory that goes away or holds
+    a file calibd cannot read is said once on stderr and waited for (a daemon's runtime directory
+    goes with the daemon and comes back when it starts again); only the first look refuses."""
+    files = (directory / "state.json", directory / "result.json")
+    seen, said = None, None
+    while True:
+        stamps = [_file_stamp(path) for path in files]
+        if stamps != seen:
+            try:
+                text = _status(directory, as_json, one_line=True)
+            except UsageError as exc:
+                if seen is None:
+                    raise
+                if str(exc) != said:
+                    print(f"calibd: {exc}; waiting for it to change", file=sys.stderr, flush=True)
+                    said = str(exc)
+            else:
+                print(text if as_json or seen is None else f"\n{text}", flush=True)
+                said = None
+            seen = stamps
+        time.sleep(STATUS_POLL_S)
 
 
 def cmd_report(args) -> int:
@@ -665,6 +705,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("status", help="the daemon's state and last result")
     p.add_argument("--state-dir", required=True)
     p.add_argument("--json", action="store_true", help="one JSON object: the state and the result document")
+    p.add_argument("-f", "--follow", action="store_true",
+                   help="keep printing: again each time state.json or result.json changes (with --json: one JSON "
+                        "object per line); Ctrl-C ends")
     p.set_defaults(func=cmd_status)
     p = sub.add_parser("sensitivity", help="what alpha/beta errors do to the thesis's estimates (section 7.1)")
     p.add_argument("--alpha-error", type=_number(-10, 10, "deg"), required=True, help="d_alpha, deg")

@@ -14,9 +14,8 @@ from typing import Any, Protocol
 
 from . import detect
 from .errors import CalibdError
-from .calibrate import bench_positions, joint_real_case, thesis_bench, thesis_real_case
+from .calibrate import bench_lacking, joint_real_case, thesis_bench, thesis_real_case
 from .estimators.joint import JointOptions
-from .estimators.thesis import UP_AXES
 
 
 class OptionError(CalibdError):
@@ -126,11 +125,7 @@ class ThesisBench:
         return None
 
     def missing(self, segments):
-        positions = bench_positions(segments)
-        lacking = [f"a static with {axis} up" for axis in UP_AXES if axis not in positions]
-        if not detect.full_turns(segments):
-            lacking.append(f"a full turn (at least {detect.FULL_TURN_MIN_DEG:.0f} deg)")
-        return ", ".join(lacking) or None
+        return ", ".join(bench_lacking(segments)) or None
 
     def solve(self, session, site, segments, options: None):
         return thesis_bench(session, site, segments)

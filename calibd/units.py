@@ -8,3 +8,22 @@ DEG = math.pi / 180  # rad per deg
 RAD_S_TO_DEG_H = 3600 / DEG  # deg/h per rad/s
 M_S2_TO_MG = 1000 / STANDARD_GRAVITY  # mg per m/s^2
 SQRT_S_PER_SQRT_H = 60.0  # a random walk per sqrt(s) is 60 times that per sqrt(h)
+
+NO_SIGMA_DECIMALS = 4  # an estimate without a 1-sigma (the thesis's chains): the data rarely say more
+
+
+def value_sigma_texts(value: float, sigma: float | None) -> tuple[str, str | None]:
+    """A value and its 1-sigma as text, both rounded where the sigma's second significant digit
+    is (further digits are noise); without a usable sigma, the value at NO_SIGMA_DECIMALS and None."""
+    usable = sigma is not None and math.isfinite(sigma) and sigma > 0
+    decimals = min(max(1 - math.floor(math.log10(sigma)), 0), 9) if usable else NO_SIGMA_DECIMALS
+    text = f"{value:.{decimals}f}"
+    if text.startswith("-") and float(text) == 0:  # -0.0000 says nothing a 0.0000 does not
+        text = text[1:]
+    return text, f"{sigma:.{decimals}f}" if usable else None
+
+
+def value_sigma(value: float, sigma: float | None, unit: str) -> str:
+    """`value +- sigma unit` (value_sigma_texts), or `value unit` without a sigma."""
+    value_text, sigma_text = value_sigma_texts(value, sigma)
+    return f"{value_text} +- {sigma_text} {unit}" if sigma_text else f"{value_text} {unit}"

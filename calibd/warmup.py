@@ -10,6 +10,7 @@ verdict's words (a session's start, its warnings, the report's label) are said h
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -108,9 +109,12 @@ def start_words(verdict: Settling | None, rule: WarmupConfig = WARM_UP_RULE) -> 
 
 
 def warm_up_warnings(time_s: np.ndarray, temperature_c: np.ndarray | None,
-                     rule: WarmupConfig = WARM_UP_RULE) -> list[str]:
+                     rule: WarmupConfig = WARM_UP_RULE, start_hint: bool = False) -> list[str]:
     """What a record's temperatures say about its biases: not checkable, never settled, or
-    settled only after its start."""
+    settled only after its start. `start_hint`: the record is a capture's power-up (its times
+    count from the power-up's first sample, as `calibd calibrate --start` does), so the warning
+    says the --start that leaves the warm-up out; the daemon has no such option, and its
+    sessions count from their own start, so its results do not say it."""
     verdict = record_settling(time_s, temperature_c, rule)
     if verdict is None:
         return ["no temperatures in the datagram: warm-up cannot be checked"]
@@ -120,8 +124,9 @@ def warm_up_warnings(time_s: np.ndarray, temperature_c: np.ndarray | None,
                 "up, biases drift with temperature"]
     early_s = verdict.start_s - time_s[0]
     if early_s > 1.0:
+        hint = f" (calibrate with --start {math.ceil(verdict.start_s)} to leave it out)" if start_hint else ""
         return [f"the first {early_s:.0f} s of the data are warm-up (the temperature settles within "
-                f"{rule_words(rule)} only from {verdict.start_s:.0f} s of the power-up): biases drift"]
+                f"{rule_words(rule)} only from {verdict.start_s:.0f} s of the power-up): biases drift{hint}"]
     return []
 
 

@@ -6,26 +6,18 @@ line are the text, kept free of the terminal so tests read them directly.
 
 from __future__ import annotations
 
-import math
 from collections import deque
 from dataclasses import dataclass, field
 
 from .client import Device, Error, Fault, Message, Overflow, Poll, Result, Samples, State, Version, Watch
 from .results import CalibrationResult
+from .units import value_sigma
 
 RATE_WINDOW_S = 2.0  # stream time the measured sample rate is averaged over
 SAMPLES_LINE_EVERY_S = 10.0  # plain lines: the sample rate is said this often (stream time)
 # progress keys end in their unit; longest first, so "_deg_s" is not read as "_s"
 _SUFFIX_UNITS = (("_deg_s", "deg/s"), ("_deg_h", "deg/h"), ("_deg", "deg"), ("_hz", "Hz"), ("_mg", "mg"),
                  ("_s", "s"))
-
-
-def value_sigma(value: float, sigma: float | None, unit: str) -> str:
-    """`value +- sigma unit` with the value rounded where the sigma's second digit is."""
-    if sigma is None or not math.isfinite(sigma) or sigma <= 0:
-        return f"{value:.6g} {unit}"
-    decimals = min(max(1 - math.floor(math.log10(sigma)), 0), 9)
-    return f"{value:.{decimals}f} +- {sigma:.{decimals}f} {unit}"
 
 
 def progress_text(progress: dict) -> str:

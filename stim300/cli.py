@@ -28,6 +28,7 @@ from .progress import Progress
 from .protocol import (ACC_RANGE_LSB_EXP, COUNTER_MODULUS, DEFAULT_BIT_RATE, INTERNAL_RATE_HZ, NORMAL_LAYOUTS,
                        SAMPLE_RATES_HZ, AccUnit, Format, GyroUnit, Status)
 from .reads import load_reads
+from .special import Configuration
 
 AXES = "xyz"
 GYRO_UNITS = {"rate": GyroUnit.RATE, "incremental": GyroUnit.INCREMENTAL_ANGLE,
@@ -269,7 +270,7 @@ def status_counts(samples) -> dict[str, dict[str, int]]:
     return counts
 
 
-def _describe(info: dict) -> str:
+def _describe(info: dict, configuration: Configuration | None = None) -> str:
     def value(v, unit=""):
         return "-" if v is None else f"{v}{unit}"
     lines = [
@@ -297,16 +298,75 @@ def _describe(info: dict) -> str:
         f"part number      {value(info['part_number'])}",
         f"serial number    {value(info['serial_number'])}",
     ]
-    if info["configuration"]:
-        lines.append("configuration    " + json.dumps(info["configuration"]))
+    if configuration is not None:
+        lines += _configuration_lines(configuration)
     lines += [f"warning          {text}" for text in info["warnings"]]
     return "\n".join(lines)
+
+
+GYRO_RANGE_DEG_S = {0: "400"}  # configuration gyro range code -> +- deg/s (the one the data sheet names)
+INCL_RANGE_G = {0: "1.7"}  # inclinometer range code -> +- g
+
+
+def _configuration_lines(c: Configuration) -> list[str]:
+    """The configuration datagram as indented `key  value` lines, grouped by block, with units.
+    A code the byte map does not define shows as read (a warning line says so)."""
+    def axes(active) -> str:
+        return ", ".join(axis for axis, on in zip("XYZ", active) if on) or "none"
+
+    def per_axis(texts) -> str:
+        texts = [str(t) for t in texts]
+        return texts[0] if len(set(texts)) == 1 else " / ".join(texts) + " (X / Y / Z)"
+
+    def unit(code) -> str:
+        if not hasattr(code, "name"):
+            return str(code)
+        return code.name.lower().replace("_", " ") + (f" ({code.symbol})" if hasattr(code, "symbol") else "")
+
+    def ranges(codes, table: dict, symbol: str) -> str:
+        return per_axis(f"+-{table[code]} {symbol}" if code in table else f"code {code}" for code in codes)
+
+    def yes(flag: bool) -> str:
+        return "yes" if flag else "no"
+
+    content = ["gyro"] + [name for name, on in (("acc", c.acc_included), ("incl", c.incl_included),
+                                                ("temperatures", c.temp_included), (c.aux_kind, c.aux_kind)) if on]
+    groups = {
+        "gyro": [("axes", axes(c.gyro_axes)), ("unit", unit(c.gyro_unit)),
+                 ("range", ranges(c.gyro_range_codes, GYRO_RANGE_DEG_S, "deg/s")),
+                 ("low-pass", per_axis(f"{hz} Hz" for hz in c.gyro_lpf_hz)),
+                 ("g-compensation", f"preset {c.gyro_g_compensation}")],
+        "acc": [("axes", axes(c.acc_axes)), ("unit", unit(c.acc_unit)),
+                ("range", per_axis(f"+-{g} g" for g in c.acc_range_g)),
+                ("low-pass", per_axis(f"{hz} Hz" for hz in c.acc_lpf_hz))],
+        "incl": [("axes", axes(c.incl_axes)), ("unit", unit(c.incl_unit)),
+                 ("range", ranges(c.incl_range_codes, INCL_RANGE_G, "g")),
+                 ("low-pass", per_axis(f"{hz} Hz" for hz in c.incl_lpf_hz))],
+        "serial line": [("bit rate", "user-defined (not in the datagram)" if c.bit_rate_bps is None
+                         else f"{c.bit_rate_bps} bps"),
+                        ("framing", f"{c.stop_bits} stop bit{'s' if c.stop_bits != 1 else ''}, "
+                                    f"parity {unit(c.parity)}"),
+                        ("termination", f"{yes(c.line_termination)} (RS422 120 ohm)"), ("CR LF", yes(c.crlf))],
+        "outputs": [("datagram", f"0x{c.datagram_id:02X} ({', '.join(content)})"),
+                    ("sample rate", "external trigger" if c.external_trigger else
+                     f"{c.sample_rate_hz} Hz" if c.sample_rate_hz else f"code {c.sample_rate_code}"),
+                    ("pps input", f"yes, {unit(c.pps_unit)}, low-pass {c.pps_lpf_hz} Hz" if c.has_pps_input
+                     else "no (an aux input)"),
+                    ("tov level", f"{'3.3' if c.tov_3v3 else '5'} V"),
+                    ("at start-up", f"tov toggled: {yes(c.tov_toggle_at_startup)}, bias trim datagram: "
+                                    f"{yes(c.bto_at_startup)}")],
+    }
+    lines = [f"configuration    revision {c.revision}, firmware {c.firmware_revision}"]
+    for group, rows in groups.items():
+        lines.append(f"  {group}")
+        lines += [f"    {key:<15} {value}" for key, value in rows]
+    return lines
 
 
 def cmd_info(args) -> int:
     samples, stream = _decode(args.capture, _format(args))
     info = capture_info(samples, stream)
-    print(json.dumps(info, indent=1) if args.json else _describe(info))
+    print(json.dumps(info, indent=1) if args.json else _describe(info, stream.configuration))
     return 0
 
 

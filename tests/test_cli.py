@@ -1,12 +1,16 @@
-"""`stim300 decode | info`: tables in physical units, capture health, one-line errors."""
+"""`stim300 decode | info`: tables in physical units, capture health, one-line errors; calibd's
+printed estimates: value and sigma rounded alike, columns aligned."""
 
 import json
 import subprocess
 import sys
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
+from calibd.cli import main as calibd_main
+from calibd.units import value_sigma, value_sigma_texts
 from captures import capture
 from stim300.cli import main
 from stim300.protocol import Status
@@ -100,6 +104,27 @@ def test_info_text_has_units(capture_file, capsys):
     assert "125 Hz" in out and "2.400 s" in out and "datagrams        299" in out
 
 
+def test_info_shows_the_configuration_as_grouped_lines_with_units(tmp_path, capsys):
+    config = Configuration.build(sample_rate_hz=500, crlf=True, gyro_lpf_hz=(262, 131, 66),
+                                 incl_axes=(True, True, False), parity=2, stop_bits=2)
+    data, _, _ = capture(50, 0xA7, True, rate=500)
+    path = tmp_path / "c.bin"
+    path.write_bytes(encode_special(config, True) + data)
+    code, out, _ = run(["info", path], capsys)
+    assert code == 0 and "{" not in out
+    shown = out[out.index("configuration    "):].splitlines()
+    groups = [line.strip() for line in shown if line.startswith("  ") and not line.startswith("    ")]
+    assert groups == ["gyro", "acc", "incl", "serial line", "outputs"]
+    for row in ("    low-pass        262 Hz / 131 Hz / 66 Hz (X / Y / Z)", "    range           +-400 deg/s",
+                "    unit            rate (deg/s)", "    range           +-10 g", "    axes            X, Y",
+                "    range           +-1.7 g", "    bit rate        921600 bps", "    framing         2 stop bits, "
+                "parity odd", "    CR LF           yes", "    datagram        0xA7 (gyro, acc, incl, temperatures)",
+                "    sample rate     500 Hz"):
+        assert row in shown, row
+    code, out, _ = run(["info", path, "--json"], capsys)
+    assert json.loads(out)["configuration"]["gyro_lpf_hz"] == [262, 131, 66]  # the machine form keeps the fields
+
+
 @pytest.mark.parametrize("case", ["missing", "directory", "empty", "not_stim300", "bad_datagram", "bad_range",
                                   "bad_unit", "bad_suffix", "no_output_dir", "output_is_dir"])
 def test_bad_input_is_one_line_and_nonzero(case, capture_file, tmp_path, capsys):
@@ -156,3 +181,56 @@ def test_a_rate_the_counter_confirms_is_taken(tmp_path, capsys):
     assert code == 0 and err == ""
     info = json.loads(out)
     assert info["sample_rate_hz"] == 250 and info["lost_samples"] == 0
+
+
+@pytest.mark.parametrize("value, sigma, texts", [
+    (-3.33030, 1.75, ("-3.3", "1.8")), (-0.321412, 0.00123, ("-0.3214", "0.0012")),
+    (98.63005, 0.667, ("98.63", "0.67")),
+    (1234.5, 250.0, ("1234", "250")), (-3.33030, None, ("-3.3303", None)), (-4e-9, None, ("0.0000", None)),
+    (0.5, float("nan"), ("0.5000", None)), (0.5, 0.0, ("0.5000", None)),
+])
+def test_a_value_is_rounded_at_its_sigmas_second_digit(value, sigma, texts):
+    assert value_sigma_texts(value, sigma) == texts
+    unit = "deg"
+    assert value_sigma(value, sigma, unit) == (f"{texts[0]} +- {texts[1]} {unit}" if texts[1] else f"{texts[0]} {unit}")
+
+
+def test_calibrate_prints_estimates_rounded_and_aligned(tmp_path, capsys):
+    code = calibd_main(["calibrate", "fixtures/thesis_real_cw_125hz.bin", "--latitude", "40.59129",
+                        "-o", str(tmp_path / "r.json")])
+    out = capsys.readouterr().out
+    assert code == 0
+    result = json.loads((tmp_path / "r.json").read_text())
+    rows = [line for line in out.splitlines() if " +- " in line]
+    assert len(rows) == len(result["estimates"])
+    for line in rows:
+        name, value, _, sigma, unit = line.split()
+        estimate = result["estimates"][name]
+        assert (value, sigma) == value_sigma_texts(estimate["value"], estimate["sigma"]) and unit == estimate["unit"]
+        assert len(sigma.replace(".", "").lstrip("0")) == 2  # two significant digits, no more
+    assert len({line.index(" +- ") for line in rows}) == 1 and len({len(line.split(" +- ")[0]) for line in rows}) == 1
+    assert len({line.rindex(" ") for line in rows if line.endswith(" deg")}) == 1
+
+
+@pytest.mark.parametrize("method", ["joint", "thesis"])
+def test_a_bench_capture_refused_by_a_single_mounting_method_points_to_the_bench(method, tmp_path, capsys):
+    code = calibd_main(["calibrate", "fixtures/thesis_bench_125hz.bin", "--latitude", "40.59129", "--method", method,
+                        "-o", str(tmp_path / "r.json")])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.splitlines()) == 1 and not (tmp_path / "r.json").exists()
+    assert err.rstrip().endswith("; this looks like the bench campaign: use --method thesis --bench")
+    code = calibd_main(["calibrate", "fixtures/thesis_bench_125hz.bin", "--latitude", "40.59129", "--method", "thesis",
+                        "--bench", "-o", str(tmp_path / "r.json")])
+    assert code == 0 and json.loads((tmp_path / "r.json").read_text())["method"] == "thesis-bench"
+
+
+def test_a_refusal_of_what_is_not_the_bench_campaign_has_no_bench_hint():
+    from calibd.calibrate import ProtocolIncomplete, joint_real_case
+    from calibd.cli import load_session
+    from calibd.frames import Site
+
+    session = load_session("fixtures/thesis_real_cw_125hz.bin")
+    first_10_s = {name: getattr(session, name)[:1250] for name in ("time_s", "gyro", "acc", "incl", "temperature_c")}
+    with pytest.raises(ProtocolIncomplete) as refused:  # the level static alone: no turn after it
+        joint_real_case(replace(session, **first_10_s), Site(40.59129))
+    assert "no turn after the level static" in str(refused.value) and "bench" not in str(refused.value)

@@ -324,7 +324,7 @@ def test_value_sigma_rounds_to_the_sigmas_second_digit():
     assert value_sigma(137.23456, 0.0123, "deg") == "137.235 +- 0.012 deg"
     assert value_sigma(12.3456, 2.5, "deg/h") == "12.3 +- 2.5 deg/h"
     assert value_sigma(1234.5, 250.0, "mg") == "1234 +- 250 mg"
-    assert value_sigma(0.5, None, "mg") == "0.5 mg"
+    assert value_sigma(0.5, None, "mg") == "0.5000 mg"
 
 
 def test_progress_says_every_key_with_its_unit():
@@ -350,7 +350,7 @@ def test_render_shows_state_progress_estimates_with_sigma_and_units():
                  "progress warm yes, session 312.5 s, statics 3, headings 2, turns 1, missing: a turn between two",
                  "result   joint, 312.5 s of data, received 60 s ago",
                  "yaw          137.200 +- 0.012 deg", "gyro_bias_x  0.619 +- 0.021 deg/h",
-                 "acc_bias_z   1.01972 mg", "warning: a warning",
+                 "acc_bias_z   1.0197 mg", "warning: a warning",
                  "faults   crc_errors 2 (+1), lost_samples 5"):
         assert text in screen, text
     assert "STALE" not in screen and "\nsamples " not in screen

@@ -93,3 +93,35 @@ def test_without_temperatures_the_rule_has_no_verdict(warming):
     assert warm_up_warnings(t, None) == ["no temperatures in the datagram: warm-up cannot be checked"]
     assert "no temperatures" in start_words(None)
     assert warm_up_end_s(t, None) == t[0]
+
+
+def test_the_warm_up_warning_says_the_start_that_leaves_it_out_where_a_user_can_give_one(warming):
+    """A capture's power-up can be restarted later (`calibd calibrate --start`): its warning says the
+    value; the daemon has no such option, and its warning does not mention one."""
+    t, temp = warming
+    verdict = record_settling(t, temp)
+    start = int(np.ceil(verdict.start_s))
+    [hinted] = warm_up_warnings(t, temp, start_hint=True)
+    assert hinted.endswith(f"(calibrate with --start {start} to leave it out)")
+    assert hinted.startswith(warm_up_warnings(t, temp)[0]) and "--start" not in warm_up_warnings(t, temp)[0]
+    late = t >= start
+    assert warm_up_warnings(t[late], temp[late], start_hint=True) == []  # the hinted start has no warm-up left
+
+
+def test_calibrate_from_power_on_names_the_start_and_the_daemons_session_does_not(tmp_path, capsys):
+    from dataclasses import replace
+
+    from calibd.calibrate import _session_warnings
+    from calibd.cli import main
+
+    capture = str(FIXTURES / "warmup_then_protocol_125hz.bin")
+    assert main(["calibrate", capture, "--latitude", "40.59129", "--start", "0", "-o", str(tmp_path / "r.json")]) == 0
+    [warning] = [line for line in capsys.readouterr().out.splitlines() if "warm-up" in line]
+    start = warning.rsplit("--start ", 1)[1].split()[0]
+    assert main(["calibrate", capture, "--latitude", "40.59129", "--start", start, "-o", str(tmp_path / "r.json")]) == 0
+    assert "warm-up" not in capsys.readouterr().out
+    session = load_session(capture, 0.0)
+    daemons = replace(session, stream={k: v for k, v in session.stream.items() if k != "power_up"})
+    assert any("--start" in w for w in _session_warnings(session))
+    assert not any("--start" in w for w in _session_warnings(daemons)) and any("warm-up" in w for w in
+                                                                                _session_warnings(daemons))
