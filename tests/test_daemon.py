@@ -226,12 +226,27 @@ def _write_paced(master: int, data: bytes, bytes_per_s: float, deadline: float) 
         while view:
             assert time.monotonic() < deadline, "the daemon stopped reading"
             if select.select([], [master], [], 1.0)[1]:
-                view = view[os.write(master, view):]
+                os.set_blocking(master, False)  # a pty with less room than the chunk must not block the test
+                try:
+                    view = view[os.write(master, view):]
+                except BlockingIOError:
+                    pass
+                finally:
+                    os.set_blocking(master, True)
+
+
+def _log_of(daemon) -> str:
+    """The end of a daemon's log, for a failing assertion: stopped first, as reading the pipe of a
+    running daemon would wait for it forever."""
+    if daemon.poll() is None:
+        daemon.kill()
+    return daemon.stderr.read().decode()[-2000:]
 
 
 def _wait_for_result(result_file: Path, daemon, deadline: float) -> None:
     while not result_file.exists():
-        assert time.monotonic() < deadline and daemon.poll() is None, daemon.stderr.read().decode()[-2000:]
+        if time.monotonic() > deadline or daemon.poll() is not None:
+            raise AssertionError(f"no result before the deadline, or the daemon ended: {_log_of(daemon)}")
         time.sleep(0.2)
 
 
