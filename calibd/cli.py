@@ -217,7 +217,8 @@ def cmd_sensitivity(args) -> int:
     site = _site(args)
     s = sensitivity(args.alpha_error * DEG, args.beta_error * DEG, args.platform_rate * DEG, site)
     print(f"interface-tilt errors d_alpha {args.alpha_error:g} deg, d_beta {args.beta_error:g} deg at a platform "
-          f"rate of {args.platform_rate:g} deg/s, latitude {site.latitude_deg:g} deg (thesis section 7.1):")
+          f"rate of {args.platform_rate:g} deg/s, latitude {site.latitude_deg:g} deg (docs/thesis-estimators.md, "
+          "sensitivity to interface-tilt errors):")
     print(f"  inclinometer X bias error  {s['incl_bias_x'] / STANDARD_GRAVITY * 1000:.4f} mg  (g0 sin d_beta)")
     print(f"  gyro Y bias error          {s['gyro_bias_y'] / DEG * 3600:.3f} deg/h  (rate x d_alpha)")
     print(f"  yaw error                  {s['yaw'] / DEG:.2f} deg  (gyro Y error / Omega_E cos(lat))")
@@ -615,7 +616,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--state-dir", required=True)
     p.add_argument("--json", action="store_true", help="one JSON object: the state and the result document")
     p.set_defaults(func=cmd_status)
-    p = sub.add_parser("sensitivity", help="what alpha/beta errors do to the thesis's estimates (section 7.1)")
+    p = sub.add_parser("sensitivity", help="what alpha/beta errors do to the thesis method's estimates "
+                                           "(docs/thesis-estimators.md)")
     p.add_argument("--alpha-error", type=_number(-10, 10, "deg"), required=True, help="d_alpha, deg")
     p.add_argument("--beta-error", type=_number(-10, 10, "deg"), required=True, help="d_beta, deg")
     p.add_argument("--platform-rate", type=_number(-1000, 1000, "deg/s"), required=True, help="deg/s")
