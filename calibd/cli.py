@@ -128,9 +128,9 @@ def _site_value(field: str):
     return parse
 
 
-def _add_site_options(p: argparse.ArgumentParser, required: bool) -> None:
+def _add_site_options(p: argparse.ArgumentParser, required: bool, optional_when: str = "without --config") -> None:
     p.add_argument("--latitude", type=_site_value("latitude_deg"), required=required,
-                   help="site latitude, deg" + ("" if required else " (without --config)"))
+                   help="site latitude, deg" + ("" if required else f" ({optional_when})"))
     p.add_argument("--height", type=_site_value("height_m"), default=0.0, help="site height, m (default 0)")
     p.add_argument("--g0", type=_site_value("g0"), help="measured gravity, m/s^2 (default: normal gravity)")
 
@@ -631,7 +631,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_report)
     p = sub.add_parser("plan", help="protocol + site + noise -> expected 1-sigma of every estimate, time to a "
                                     "target yaw 1-sigma (docs/planner.md)")
-    _add_site_options(p, required=False)
+    _add_site_options(p, required=False, optional_when="needed with --protocol; replaces a scenario's [site]")
     which = p.add_mutually_exclusive_group(required=True)
     which.add_argument("--protocol", help="a built-in protocol: thesis, continuous or index")
     which.add_argument("--scenario", metavar="SCENARIO.toml",
