@@ -96,6 +96,7 @@ def _session_warnings(session: Session) -> list[str]:
     return faults + warm_up_warnings(session.time_s, session.temperature_c, start_hint=from_capture)
 
 
+THESIS_DOC = "docs/thesis-estimators.md"  # where a user reads what the thesis method's warnings mean
 NO_INCLINOMETERS = ("the unit has no inclinometers: pitch, roll and the accelerometer biases come from the "
                     "accelerometers alone, and no inclinometer bias is estimated")
 
@@ -127,7 +128,7 @@ def _partial_period(covered_deg: float, site: Site) -> tuple[float, str]:
         return 0.0, ""
     bound = thesis.unaveraged_earth_rate(covered_deg * DEG, site)
     return bound, (f"the full turn's constant-rate part covers {covered_deg:.0f} deg, not a whole revolution: the "
-                   f"horizontal Earth rate does not average out of its mean gyro (eq. 6.31); at "
+                   f"horizontal Earth rate does not average out of the turn's mean gyro; at "
                    f"{site.latitude_deg:.2f} deg latitude the rest is up to {bound / DEG * 3600:.2f} deg/h")
 
 
@@ -165,17 +166,19 @@ def thesis_real_case(session: Session, site: Site, alpha_beta_deg: tuple[float, 
     yaw_bound_deg = earth_bound / (EARTH_RATE * np.cos(np.radians(site.latitude_deg))) / DEG  # eq. 6.32
     if partial and alpha_beta is None:  # eq. 7.3 puts the turn's Y and X means into alpha and beta
         tilt_bound_deg = earth_bound / abs(est["platform_rate"]) / DEG
-        partial += f", which eq. 7.3 takes for interface tilt: up to {tilt_bound_deg:.4f} deg on alpha and beta"
+        partial += f", which the linear run takes for interface tilt: up to {tilt_bound_deg:.4f} deg on alpha and beta"
     elif partial:
-        partial += f" on the gyro Y bias, so up to {yaw_bound_deg:.1f} deg on yaw (eq. 6.32)"
+        partial += f" on the gyro Y bias, so up to {yaw_bound_deg:.1f} deg on yaw (yaw rests on that bias)"
+    if partial:
+        partial += f" ({THESIS_DOC}, the full turn as a platform runs it)"
     warnings = ([partial] if partial else []) + _session_warnings(session)
-    warnings.append("incl_bias_z is assumed 0: rotations about the vertical cannot observe it (thesis 6.1)")
+    warnings.append(f"incl_bias_z is assumed 0: rotations about the vertical cannot observe it ({THESIS_DOC})")
     if alpha_beta is not None:
         warnings.append("alpha and beta are a-priori values given by the user, not estimates")
     else:
-        warnings.append("yaw is not observable with same-dataset (linear) alpha and beta: eq. 7.3 folds the "
-                        "level static's Earth-rate term into alpha, so eq. 6.32 returns 0 up to platform-rate "
-                        "errors; this yaw is not an estimate")
+        warnings.append("yaw is not observable with same-dataset (linear) alpha and beta: the linear tilt takes the "
+                        "level static's Earth-rate term into alpha, so the yaw step returns 0 up to platform-rate "
+                        f"errors; this yaw is not an estimate ({THESIS_DOC})")
     if rate is None:
         warnings.append("platform rate taken from the gyros (no telemetry given)")
     estimates = {"pitch": (est["pitch"], None), "roll": (est["roll"], None), "yaw": (est["yaw"], None),

@@ -36,7 +36,7 @@ from .estimators.thesis import sensitivity
 from .frames import STANDARD_GRAVITY, Site, site_value_error
 from .live import configure_logging, replay, run
 from .results import CalibrationResult, ResultError, ResultStore, StateDirError, load_result, write_result
-from .scenario import READY_MADE, ScenarioError, load_scenario
+from .scenario import READY_MADE, Noise, ScenarioError, load_scenario
 from .serve.hub import Hub
 from .serve.protocol import SAMPLE_KINDS
 from .serve.sockets import ServeError
@@ -140,9 +140,9 @@ def _site_value(field: str):
     return parse
 
 
-def _add_site_options(p: argparse.ArgumentParser, required: bool) -> None:
+def _add_site_options(p: argparse.ArgumentParser, required: bool, optional_when: str = "without --config") -> None:
     p.add_argument("--latitude", type=_site_value("latitude_deg"), required=required,
-                   help="site latitude, deg" + ("" if required else " (without --config)"))
+                   help="site latitude, deg" + ("" if required else f" ({optional_when})"))
     p.add_argument("--height", type=_site_value("height_m"), default=0.0, help="site height, m (default 0)")
     p.add_argument("--g0", type=_site_value("g0"), help="measured gravity, m/s^2 (default: normal gravity)")
 
@@ -233,7 +233,8 @@ def cmd_sensitivity(args) -> int:
     site = _site(args)
     s = sensitivity(args.alpha_error * DEG, args.beta_error * DEG, args.platform_rate * DEG, site)
     print(f"interface-tilt errors d_alpha {args.alpha_error:g} deg, d_beta {args.beta_error:g} deg at a platform "
-          f"rate of {args.platform_rate:g} deg/s, latitude {site.latitude_deg:g} deg (thesis section 7.1):")
+          f"rate of {args.platform_rate:g} deg/s, latitude {site.latitude_deg:g} deg (docs/thesis-estimators.md, "
+          "sensitivity to interface-tilt errors):")
     print(f"  inclinometer X bias error  {s['incl_bias_x'] / STANDARD_GRAVITY * 1000:.4f} mg  (g0 sin d_beta)")
     print(f"  gyro Y bias error          {s['gyro_bias_y'] / DEG * 3600:.3f} deg/h  (rate x d_alpha)")
     print(f"  yaw error                  {s['yaw'] / DEG:.2f} deg  (gyro Y error / Omega_E cos(lat))")
@@ -446,19 +447,27 @@ PLAN_NOISE_OPTIONS = {  # calibd plan option -> (calibd.scenario.Noise field, un
 
 
 def cmd_plan(args) -> int:
-    from .planner import PlanError, noise_from_json, report, time_to_target  # the simulator only here
-    from .scenario import Noise
+    from .planner import (PlanError, builtin_protocol, noise_from_json, protocol_from_scenario,  # the simulator
+                          report, time_to_target)  # only here
 
     given = {field: getattr(args, field) for field, _, _ in PLAN_NOISE_OPTIONS.values()
              if getattr(args, field) is not None}
     if args.noise and given:
         raise UsageError("plan: give --noise FILE or noise figures (--arw, ...), not both")
-    site = _site(args)
+    if args.latitude is None and (args.protocol or args.g0 is not None or args.height):
+        raise UsageError("plan: --latitude is needed with --protocol, --height or --g0 (a scenario file has its own "
+                         "[site], which --latitude replaces)")
     try:
+        if args.scenario:
+            scenario = load_scenario(args.scenario)
+            protocol = protocol_from_scenario(scenario, args.scenario)
+        else:
+            protocol = builtin_protocol(args.protocol)
+        site = protocol.scenario.site if args.latitude is None else _site(args)
         figures = noise_from_json(read_input(args.noise, "noise file"), args.noise) if args.noise \
-            else replace(Noise(), **given)
-        reach = time_to_target(args.protocol, site, figures, args.target_yaw_deg * DEG)
-    except PlanError as exc:
+            else replace(protocol.figures, **given)
+        reach = time_to_target(protocol, site, figures, args.target_yaw_deg * DEG)
+    except (PlanError, ScenarioError) as exc:
         raise UsageError(str(exc)) from None
     print(report(reach, figures))
     return 0
@@ -709,7 +718,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="keep printing: again each time state.json or result.json changes (with --json: one JSON "
                         "object per line); Ctrl-C ends")
     p.set_defaults(func=cmd_status)
-    p = sub.add_parser("sensitivity", help="what alpha/beta errors do to the thesis's estimates (section 7.1)")
+    p = sub.add_parser("sensitivity", help="what alpha/beta errors do to the thesis method's estimates "
+                                           "(docs/thesis-estimators.md)")
     p.add_argument("--alpha-error", type=_number(-10, 10, "deg"), required=True, help="d_alpha, deg")
     p.add_argument("--beta-error", type=_number(-10, 10, "deg"), required=True, help="d_beta, deg")
     p.add_argument("--platform-rate", type=_number(-1000, 1000, "deg/s"), required=True, help="deg/s")
@@ -722,15 +732,20 @@ def build_parser() -> argparse.ArgumentParser:
                    help="report.html (self-contained); the figures also go to report_files/*.png and *.svg beside it")
     p.set_defaults(func=cmd_report)
     p = sub.add_parser("plan", help="protocol + site + noise -> expected 1-sigma of every estimate, time to a "
-                                    "target yaw 1-sigma")
-    _add_site_options(p, required=True)
-    p.add_argument("--protocol", required=True, help="thesis, continuous or index (docs/planner.md)")
+                                    "target yaw 1-sigma (docs/planner.md)")
+    _add_site_options(p, required=False, optional_when="needed with --protocol; replaces a scenario's [site]")
+    which = p.add_mutually_exclusive_group(required=True)
+    which.add_argument("--protocol", help="a built-in protocol: thesis, continuous or index")
+    which.add_argument("--scenario", metavar="SCENARIO.toml",
+                       help="your own protocol: a scenario file as calibd simulate takes (its statics and turns, "
+                            "its [site] unless --latitude is given, its [noise] unless noise options are given)")
     p.add_argument("--target-yaw-deg", type=_number(0.001, 90, "deg"), default=1.0,
                    help="yaw 1-sigma to reach, deg (default 1)")
     p.add_argument("--noise", help="NOISE.json (calibd.noise/1, from calibd noise) instead of the figures below")
     for option, (field, unit, what) in PLAN_NOISE_OPTIONS.items():
+        stim300 = getattr(Noise(), field)
         p.add_argument(option, dest=field, type=_number(0, 1000, unit), metavar=unit.upper(),
-                       help=f"{what}, {unit} (default: the STIM300's, calibd/scenario.py)")
+                       help=f"{what}, {unit} (default: the scenario's [noise], else the STIM300's {stim300:g} {unit})")
     p.set_defaults(func=cmd_plan)
     p = sub.add_parser("noise", help="capture -> Allan deviation of every channel from its statics, noise figures")
     p.add_argument("capture")

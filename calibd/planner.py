@@ -18,19 +18,22 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from stim300.protocol import NORMAL_LAYOUTS
+
 from .errors import CalibdError
-from .estimators.joint import JointInput, SensorNoise, datasheet_noise, solve
+from .estimators.joint import JointInput, SensorNoise, Underdetermined, datasheet_noise, solve
 from .frames import STANDARD_GRAVITY, Site
 from .noise import NOISE_SCHEMA, NOISE_VERSION
 from .results import ESTIMATES, SchemaError, schema_version
-from .scenario import Noise, Segment, load_scenario
+from .scenario import Faults, Noise, Scenario, Segment, Sensor, load_scenario
 from .sim import schedule, simulate
 from .units import DEG
 
 MG = STANDARD_GRAVITY / 1000
 PROTOCOLS = ("thesis", "continuous", "index")
-WHAT_SCALES = {"thesis": "static durations scaled, turns kept", "index": "static durations scaled, turns kept",
-               "continuous": "number of whole turns scaled, statics kept"}
+STATICS, TURNS = "statics", "turns"  # what a protocol scales to reach a target
+WHAT_SCALES = {STATICS: "static durations scaled, turns kept", TURNS: "number of whole turns scaled, statics kept"}
+CAROUSEL_DEG = 720.0  # a turn of two revolutions or more is continuous rotation: its whole turns scale
 PLAN_RATE_HZ = 5  # the sigmas match 125 Hz to 1e-4 (see the module docstring)
 MAX_SESSION_S = 7200.0  # beyond hours, flicker slower than the model's slowest component (30000 s) matters
 MIN_SCALE = 0.1  # shortest layout searched: a tenth of the nominal statics (1 min level static), or one turn
@@ -49,45 +52,99 @@ class PlanError(CalibdError):
 
 # ---------------------------------------------------------------- protocols
 
-def protocol_segments(protocol: str, scale: float) -> tuple[Segment, ...]:
-    """The protocol's segments with its scalable part times `scale` (1 = nominal).
+@dataclass(frozen=True)
+class Protocol:
+    """What is planned: a scenario's steps (statics and turns in order, the first the level
+    static) with its truth and site, and which part scales with the data time. The planner
+    simulates it without noise, warm-up or faults at 125 Hz: for given noise densities the
+    sigmas depend on neither the sensor's rate nor its datagram, only on whether it has
+    inclinometers."""
 
-    thesis: the thesis-real scenario (10 min level static, four -90 deg index turns each followed
-    by 2 min static, a full turn of -360 deg, 30 s static); `scale` multiplies every static.
-    index: the same without the full turn and its static. continuous: the continuous scenario
-    (2 min static, ten and a quarter turns at 10 deg/s, 1 min static: the last static 90 deg from
-    the first, as the estimator separates the accelerometer tilt from the biases only with statics
-    at platform angles apart); `scale` multiplies the number of whole turns (at least one)."""
-    if protocol not in PROTOCOLS:
-        raise PlanError(f"unknown protocol {protocol!r} (known: {', '.join(PROTOCOLS)})")
-    if protocol == "continuous":
-        first, turn, last = load_scenario("continuous").segments
-        turns = max(1, round((abs(turn.angle_deg) - 90) / 360 * scale))
-        return first, replace(turn, angle_deg=math.copysign(360 * turns + 90, turn.angle_deg)), last
-    segments = load_scenario("thesis-real").segments
-    if protocol == "index":
-        segments = segments[:9]
-    return tuple(replace(s, duration_s=s.duration_s * scale) if s.kind == "static" else s for s in segments)
+    name: str
+    scenario: Scenario
+    scales: str  # STATICS or TURNS
+    figures: Noise  # the scenario's noise figures: the default noise of the plan
+    inclinometers: bool
 
 
-def _scenario(protocol: str, scale: float, site: Site):
-    """The protocol's scenario without noise, warm-up or temperature drift, at `site`."""
-    base = load_scenario("continuous" if protocol == "continuous" else "thesis-real")
-    return replace(base, site=site, segments=protocol_segments(protocol, scale),
-                   noise=replace(base.noise, enabled=False), warmup=replace(base.warmup, power_on_s=1e9))
+def protocol_from_scenario(scenario: Scenario, name: str) -> Protocol:
+    """The protocol a scenario's steps make; PlanError when the joint estimator cannot plan them
+    (a bench re-mount, no level static first, no turn). Turns of two revolutions or more make it
+    a continuous-rotation protocol, whose whole turns scale; otherwise its statics scale."""
+    segments = scenario.segments
+    for number, segment in enumerate(segments, 1):
+        if segment.kind == "position":
+            raise PlanError(f"{name}: [[segments]] #{number}: a position segment re-mounts the IMU; the planner "
+                            f"plans the joint estimator on a mounted IMU (statics and turns)")
+    if segments[0].kind != "static":
+        raise PlanError(f"{name}: [[segments]] #1: the protocol must start with a static (the level static)")
+    if not any(s.kind == "turn" for s in segments):
+        raise PlanError(f"{name}: no turn: yaw and the interface tilt need the platform to turn")
+    carousel = any(s.kind == "turn" and abs(s.angle_deg) >= CAROUSEL_DEG for s in segments)
+    quiet = replace(scenario, sensor=Sensor(), noise=replace(scenario.noise, enabled=False),
+                    warmup=replace(scenario.warmup, power_on_s=1e9), faults=Faults())
+    inclinometers = "incl" in NORMAL_LAYOUTS[scenario.sensor.datagram_id].clusters
+    figures = scenario.noise if inclinometers else \
+        replace(scenario.noise, incl_vrw_m_s_sqrt_h=None, incl_bias_instability_mg=None)
+    return Protocol(name, quiet, TURNS if carousel else STATICS, figures, inclinometers)
 
 
-def duration_s(protocol: str, scale: float) -> float:
+def builtin_protocol(name: str) -> Protocol:
+    """thesis: the thesis-real scenario (10 min level static, four -90 deg index turns each
+    followed by 2 min static, a full turn of -360 deg, 30 s static). index: the same without the
+    full turn and its static. continuous: the continuous scenario (2 min static, ten and a
+    quarter turns at 10 deg/s, 1 min static: the last static 90 deg from the first, as the
+    estimator separates the accelerometer tilt from the biases only with statics at platform
+    angles apart)."""
+    if name not in PROTOCOLS:
+        raise PlanError(f"unknown protocol {name!r} (known: {', '.join(PROTOCOLS)})")
+    scenario = load_scenario("continuous" if name == "continuous" else "thesis-real")
+    if name == "index":
+        scenario = replace(scenario, segments=scenario.segments[:9])
+    return protocol_from_scenario(scenario, name)
+
+
+def _protocol(protocol: Protocol | str) -> Protocol:
+    return protocol if isinstance(protocol, Protocol) else builtin_protocol(protocol)
+
+
+def _whole_turns(segment: Segment, scale: float) -> Segment:
+    """A continuous-rotation turn with its number of whole turns times `scale` (at least one), the
+    part of a revolution beyond them kept (so the last static stays where it was)."""
+    whole = abs(segment.angle_deg) // 360
+    turns = max(1, round(whole * scale))
+    return replace(segment, angle_deg=math.copysign(360 * turns + abs(segment.angle_deg) - 360 * whole,
+                                                     segment.angle_deg))
+
+
+def protocol_segments(protocol: Protocol | str, scale: float) -> tuple[Segment, ...]:
+    """The protocol's segments with its scalable part times `scale` (1 = nominal): every static's
+    duration, or the whole turns of its continuous-rotation turns."""
+    protocol = _protocol(protocol)
+    if protocol.scales == TURNS:
+        return tuple(_whole_turns(s, scale) if s.kind == "turn" and abs(s.angle_deg) >= CAROUSEL_DEG else s
+                     for s in protocol.scenario.segments)
+    return tuple(replace(s, duration_s=s.duration_s * scale) if s.kind == "static" else s
+                 for s in protocol.scenario.segments)
+
+
+def _scenario(protocol: Protocol, scale: float, site: Site):
+    """The protocol's scenario, scaled, without noise, warm-up or temperature drift, at `site`."""
+    return replace(protocol.scenario, site=site, segments=protocol_segments(protocol, scale))
+
+
+def duration_s(protocol: Protocol | str, scale: float) -> float:
     """Data time of the scaled protocol, from the level static to the end (no simulation)."""
-    return schedule(_scenario(protocol, scale, Site(0.0)))[-1].end_s
+    return schedule(_scenario(_protocol(protocol), scale, Site(0.0)))[-1].end_s
 
 
-def _resolution_s(protocol: str) -> float:
-    """The smallest step the protocol's data time takes as its scale changes (one revolution
-    for whole turns; statics scale continuously)."""
-    if protocol != "continuous":
+def _resolution_s(protocol: Protocol) -> float:
+    """The step the protocol's data time takes as its scale changes, at most: one revolution of
+    each continuous-rotation turn for whole turns; statics scale continuously."""
+    if protocol.scales != TURNS:
         return 0.0
-    return 360.0 / load_scenario("continuous").segments[1].peak_rate_deg_s
+    return sum(360.0 / s.peak_rate_deg_s for s in protocol.scenario.segments
+               if s.kind == "turn" and abs(s.angle_deg) >= CAROUSEL_DEG)
 
 
 def describe(segments: tuple[Segment, ...]) -> str:
@@ -166,7 +223,7 @@ def _figure(channels: dict, channel: str, name: str, unit: str, where: str) -> f
 
 @dataclass
 class Plan:
-    protocol: str
+    protocol: Protocol
     scale: float
     segments: tuple[Segment, ...]
     duration_s: float
@@ -183,7 +240,7 @@ class Plan:
         return solve(self.session, self.site, noise=flicker).sigmas["yaw"]
 
 
-def _session(protocol: str, scale: float, site: Site, inclinometers: bool = True) -> tuple[JointInput, float]:
+def _session(protocol: Protocol, scale: float, site: Site, inclinometers: bool) -> tuple[JointInput, float]:
     """The scaled protocol's noise-free session as the joint estimator takes it, block-averaged
     to PLAN_RATE_HZ (averages of interval averages: the model stays exact); statics are the
     whole blocks inside the scheduled static segments. Without `inclinometers` the session is a
@@ -214,14 +271,21 @@ def check_site(site: Site) -> None:
                         f"{math.degrees(math.acos(MIN_COS_LATITUDE)):.1f} deg")
 
 
-def plan(protocol: str, site: Site, figures: Noise, scale: float = 1.0) -> Plan:
+def plan(protocol: Protocol | str, site: Site, figures: Noise, scale: float = 1.0) -> Plan:
     """Every estimate's expected 1-sigma for the protocol at `scale`, from the joint estimator;
-    for a unit without inclinometers when `figures` has no inclinometer figures."""
+    for a unit without inclinometers when the protocol's sensor or `figures` has none."""
     check_site(site)
+    protocol = _protocol(protocol)
     segments = protocol_segments(protocol, scale)
-    inp, seconds = _session(protocol, scale, site, figures.incl_vrw_m_s_sqrt_h is not None)
-    noise = datasheet_noise(figures, inp.rate_hz)
-    return Plan(protocol, scale, segments, seconds, solve(inp, site, noise=noise).sigmas, site, inp, noise)
+    inclinometers = protocol.inclinometers and figures.incl_vrw_m_s_sqrt_h is not None
+    inp, seconds = _session(protocol, scale, site, inclinometers)
+    noise = datasheet_noise(figures if inclinometers else replace(
+        figures, incl_vrw_m_s_sqrt_h=None, incl_bias_instability_mg=None), inp.rate_hz)
+    try:
+        sigmas = solve(inp, site, noise=noise).sigmas
+    except Underdetermined as exc:  # what the protocol lacks, said for the protocol
+        raise PlanError(f"{protocol.name}: {exc}") from None
+    return Plan(protocol, scale, segments, seconds, sigmas, site, inp, noise)
 
 
 @dataclass
@@ -236,8 +300,9 @@ class Reach:
     short_of_it: Plan | None
 
 
-def scale_for_duration(protocol: str, seconds: float) -> float:
+def scale_for_duration(protocol: Protocol | str, seconds: float) -> float:
     """The largest scale whose data time is at most `seconds` (bisection on the schedule)."""
+    protocol = _protocol(protocol)
     lo, hi = MIN_SCALE, MIN_SCALE
     while duration_s(protocol, hi) <= seconds:
         lo, hi = hi, 2 * hi
@@ -247,7 +312,7 @@ def scale_for_duration(protocol: str, seconds: float) -> float:
     return lo
 
 
-def time_to_target(protocol: str, site: Site, figures: Noise, target_yaw: float,
+def time_to_target(protocol: Protocol | str, site: Site, figures: Noise, target_yaw: float,
                    max_session_s: float = MAX_SESSION_S) -> Reach:
     """The shortest scaled protocol (WHAT_SCALES) whose yaw 1-sigma is at most `target_yaw` (rad).
     From the nominal layout the scale halves down to MIN_SCALE or doubles up to the longest
@@ -255,6 +320,7 @@ def time_to_target(protocol: str, site: Site, figures: Noise, target_yaw: float,
     bracket to TIME_TOLERANCE of the data time (one revolution for whole turns; the data time is
     an increasing affine function of the scale). More data of the same layout never raises the
     sigma here, so the search is monotone."""
+    protocol = _protocol(protocol)
     nominal = plan(protocol, site, figures)
     longest_scale = scale_for_duration(protocol, max_session_s)
     if nominal.sigmas["yaw"] <= target_yaw:
@@ -278,8 +344,8 @@ def time_to_target(protocol: str, site: Site, figures: Noise, target_yaw: float,
 
 # ---------------------------------------------------------------- the report
 
-def _figures_text(figures: Noise) -> str:
-    incl = ("no inclinometers" if figures.incl_vrw_m_s_sqrt_h is None else
+def _figures_text(figures: Noise, inclinometers: bool) -> str:
+    incl = ("no inclinometers" if not inclinometers else
             f"incl {figures.incl_vrw_m_s_sqrt_h:.3g} m/s/sqrt(h), {figures.incl_bias_instability_mg:.3g} mg")
     return (f"gyro {figures.gyro_arw_deg_sqrt_h:.3g} deg/sqrt(h), {figures.gyro_bias_instability_deg_h:.3g} deg/h; "
             f"acc {figures.acc_vrw_m_s_sqrt_h:.3g} m/s/sqrt(h), {figures.acc_bias_instability_mg:.3g} mg; "
@@ -289,15 +355,16 @@ def _figures_text(figures: Noise) -> str:
 def report(reach: Reach, figures: Noise) -> str:
     """What `calibd plan` prints: the nominal layout and its sigmas, then the time to the target."""
     nominal, site = reach.nominal, reach.nominal.site
-    lines = [f"{nominal.protocol} protocol at latitude {site.latitude_deg:g} deg, g0 {site.gravity:.5f} m/s^2",
-             f"noise: {_figures_text(figures)}",
+    protocol = nominal.protocol
+    lines = [f"{protocol.name} protocol at latitude {site.latitude_deg:g} deg, g0 {site.gravity:.5f} m/s^2",
+             f"noise: {_figures_text(figures, nominal.session.incl is not None)}",
              f"nominal: {nominal.duration_s / 60:.1f} min of data: {describe(nominal.segments)}",
              "expected 1-sigma of the joint estimates:"]
     for name, sigma in nominal.sigmas.items():
         factor, unit = ESTIMATES[name]
         lines.append(f"  {name:12s} {sigma * factor:10.3g} {unit}")
     target = reach.target_yaw / DEG
-    lines.append(f"time to a yaw 1-sigma of {target:g} deg ({WHAT_SCALES[nominal.protocol]}):")
+    lines.append(f"time to a yaw 1-sigma of {target:g} deg ({WHAT_SCALES[protocol.scales]}):")
     if reach.reached is None:
         longest = reach.short_of_it
         floor, there, minutes = longest.flicker_yaw() / DEG, longest.sigmas["yaw"] / DEG, longest.duration_s / 60
@@ -307,7 +374,7 @@ def report(reach: Reach, figures: Noise) -> str:
         else:
             lines.append(f"  not reachable within {minutes:.1f} min, the longest searched: {there:.4g} deg there; "
                          f"bias instability alone would leave {floor:.4g} deg")
-        if nominal.protocol != "continuous":
+        if protocol.scales != TURNS:
             lines.append("  (continuous rotation averages bias instability away: --protocol continuous)")
     else:
         got = reach.reached

@@ -246,7 +246,7 @@ class _Table:
         if not self.needed:
             return UndefinedCode(code)
         raise FormatError(f"configuration {name}: code {code:#x} is not defined in the byte map "
-                          f"(protocol doc §8.1; defined: {self.describe}), and the values cannot be "
+                          f"(defined: {self.describe}), and the values cannot be "
                           "decoded without it")
 
 

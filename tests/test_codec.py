@@ -15,7 +15,7 @@ from stim300.crc import SCALAR_ROWS, crc32_mpeg2, crc_columns, datagram_crc
 from stim300.protocol import (ACC_RANGE_LSB_EXP, NORMAL_LAYOUTS, AccUnit, Format, GyroUnit, PpsUnit, normal_id,
                               status_names)
 
-VECTORS = Path(__file__).resolve().parent / "vectors"  # copies of shared/vectors: real bytes, see README there
+VECTORS = Path(__file__).resolve().parent / "vectors"  # real bytes from units; their sources: README there
 
 
 def test_crc_check_value():

@@ -217,3 +217,103 @@ def test_bad_noise_files_are_one_line(content, message, tmp_path, capsys):
         path = noise_file(tmp_path, **{key: None if value == "None" else value})
     code, _, err = run(["plan", "--latitude", "40", "--protocol", "thesis", "--noise", path], capsys)
     assert code == 2 and message in err and len(err.strip().splitlines()) == 1, err
+
+
+def scenario_file(tmp_path, source="thesis-real", name="mine.toml", **replacements) -> Path:
+    """A ready-made scenario's TOML copied to a file, each `old=new` text replaced."""
+    text = (Path(planner.__file__).parent / "scenarios" / f"{source}.toml").read_text()
+    for old, new in replacements.values():
+        assert old in text
+        text = text.replace(old, new)
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def test_a_scenario_equal_to_a_builtin_protocol_plans_the_same(tmp_path, thesis_plan):
+    """The planner reads a scenario's steps as the built-in protocols' are read: a copy of the
+    thesis-real scenario is the thesis protocol, of the continuous one the continuous protocol
+    (its whole turns scale)."""
+    path = scenario_file(tmp_path)
+    mine = planner.protocol_from_scenario(load_scenario(str(path)), str(path))
+    assert mine.scales == planner.STATICS and mine.figures == STIM300
+    assert planner.plan(mine, SITE, mine.figures).sigmas == thesis_plan.sigmas
+    carousel = planner.protocol_from_scenario(load_scenario(str(scenario_file(tmp_path, "continuous"))), "carousel")
+    assert carousel.scales == planner.TURNS
+    for scale in (0.5, 1.0, 3.0):
+        assert planner.protocol_segments(carousel, scale) == planner.protocol_segments("continuous", scale)
+    assert planner.duration_s(carousel, 3.0) == planner.duration_s("continuous", 3.0)
+
+
+def test_plan_command_takes_a_scenario_file(tmp_path, capsys):
+    """`calibd plan --scenario` prints what `--protocol` prints for the same steps (its site from
+    the scenario's [site]); only the name differs."""
+    path = scenario_file(tmp_path, index=("duration_s = 120\n\n[[segments]]\ntype = \"turn\"\nangle_deg = -360",
+                                          "duration_s = 120\n\n[[segments]]\ntype = \"turn\"\nangle_deg = -90"))
+    index = ["plan", "--latitude", "40.59129", "--g0", "9.79956", "--protocol", "index", "--target-yaw-deg", "2.5"]
+    code, builtin, err = run(index, capsys)
+    assert code == 0, err
+    text = path.read_text().split("[[segments]]")
+    path.write_text("[[segments]]".join(text[:10]))  # level static, four index turns and statics: the index protocol
+    code, out, err = run(["plan", "--scenario", path, "--target-yaw-deg", "2.5"], capsys)
+    assert code == 0, err
+    assert out.splitlines()[0] == f"{path} protocol at latitude 40.5913 deg, g0 9.79956 m/s^2"
+    assert out.splitlines()[1:] == builtin.splitlines()[1:]
+
+
+def test_longer_statics_in_a_scenario_give_smaller_sigmas(tmp_path, thesis_plan):
+    path = scenario_file(tmp_path, level=("duration_s = 600\n", "duration_s = 1200\n"),
+                         index=("duration_s = 120\n", "duration_s = 240\n"))
+    longer = planner.plan(planner.protocol_from_scenario(load_scenario(str(path)), "longer"), SITE, STIM300)
+    assert longer.duration_s == pytest.approx(thesis_plan.duration_s + 600 + 4 * 120)
+    for name, sigma in thesis_plan.sigmas.items():  # flicker keeps most of them far from 1 / sqrt(2)
+        assert longer.sigmas[name] < (0.92 if name == "yaw" or name.startswith("gyro") else 1.0) * sigma, name
+
+
+def test_a_scenario_gives_the_plan_its_site_noise_and_sensor(tmp_path, capsys):
+    """The scenario's [site] and [noise] are the plan's unless options replace them; a unit
+    without inclinometers (datagram 0x91) is planned without them."""
+    path = scenario_file(tmp_path, site=("latitude_deg = 40.59129", "latitude_deg = -33.9"),
+                         noise=("[warmup]", "[noise]\ngyro_arw_deg_sqrt_h = 0.3\n\n[warmup]"),
+                         datagram=('datagram = "0xA7"', 'datagram = "0x91"'))
+    argv = ["plan", "--scenario", path, "--target-yaw-deg", "5"]
+    code, out, err = run(argv, capsys)
+    assert code == 0, err
+    assert "at latitude -33.9 deg, g0 9.79956 m/s^2" in out
+    assert "noise: gyro 0.3 deg/sqrt(h), 0.3 deg/h; acc 0.07 m/s/sqrt(h), 0.04 mg; no inclinometers" in out
+    assert "incl_bias" not in out and re.search(r"^  pitch +[0-9.e-]+ deg$", out, re.M)
+    code, out, err = run(argv + ["--latitude", "10", "--arw", "0.2"], capsys)
+    assert code == 0, err
+    assert "at latitude 10 deg" in out and "noise: gyro 0.2 deg/sqrt(h)" in out
+
+
+@pytest.mark.parametrize("segments,message", [
+    ('[[segments]]\ntype = "static"\nduration_s = 300\n', "no turn: yaw and the interface tilt need the platform"),
+    ('[[segments]]\ntype = "turn"\nangle_deg = 90\npeak_rate_deg_s = 20\naccel_deg_s2 = 20\n'
+     '[[segments]]\ntype = "static"\nduration_s = 60\n', "[[segments]] #1: the protocol must start with a static"),
+    ('[[segments]]\ntype = "static"\nduration_s = 300\n[[segments]]\ntype = "turn"\nangle_deg = 360\n'
+     'peak_rate_deg_s = 20\naccel_deg_s2 = 20\n[[segments]]\ntype = "static"\nduration_s = 60\n',
+     "the statics cover too few platform angles"),
+    ('[[segments]]\ntype = "position"\nup = "-Z"\nduration_s = 60\n', "#1: a position segment re-mounts the IMU"),
+    ('[[segments]]\ntype = "static"\nduration_s = -1\n', "[[segments]] #1 duration_s: -1.0 is not a positive"),
+    ("[[segments]\n", "not valid TOML"),
+])
+def test_bad_scenario_files_are_one_line(segments, message, tmp_path, capsys):
+    path = tmp_path / "mine.toml"
+    path.write_text(f"[site]\nlatitude_deg = 45\n{segments}")
+    code, _, err = run(["plan", "--scenario", path], capsys)
+    assert code == 2 and message in err and len(err.strip().splitlines()) == 1, err
+    assert err.startswith(f"calibd: {path}") and "Traceback" not in err
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["--scenario", "missing.toml"], "missing.toml: no such scenario file"),
+    (["--scenario", "thesis-real", "--protocol", "thesis"], "not allowed with argument --scenario"),
+    (["--latitude", "40"], "one of the arguments --protocol --scenario is required"),
+    (["--protocol", "thesis"], "--latitude is needed with --protocol"),
+    (["--scenario", "thesis-real", "--g0", "9.8"], "--latitude is needed with --protocol, --height or --g0"),
+])
+def test_plan_command_scenario_usage_errors(argv, message, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    code, _, err = run(["plan", *argv], capsys)
+    assert code == 2 and message in err and len(err.strip().splitlines()) == 1, err

@@ -268,8 +268,8 @@ def test_record_reports_a_missing_port_in_one_line(tmp_path, capsys):
     assert not list(tmp_path.glob("imu.bin*"))
 
 
-# Echo, exit line and the first bytes of a 0x93 datagram, as the real unit sent them
-# (same 40 bytes as shared/vectors/pystim300_servicemode_exit_fragment.bin).
+# Echo, exit line and the first bytes of a 0x93 datagram, as a real unit sent them (a fixture of
+# pystim300's tests, taken from a TS1524 rev. 31 unit; tests/vectors/README.md).
 EXIT_FRAGMENT = b"x N\rSYSTEM RETURNING TO NORMAL MODE\r" + bytes.fromhex("93000180")
 REPORT = b"SERIAL NUMBER = N25580000001\rPRODUCT = STIM300\rSAMPLE RATE [Hz] = 2000"
 # End of the datagram in progress when SERVICEMODE arrived; "\r>" inside is not a prompt.
