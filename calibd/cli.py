@@ -1,7 +1,8 @@
-"""`calibd run | replay | status | calibrate | sensitivity | plan | noise | report | simulate | pipe |
-watch`: the daemon, its pipeline on a capture, its state; one-shot calibration; what alpha/beta
-errors cost; what a protocol will give before it is run; the noise of a capture; a report people
-can look at; captures with known truth; the daemon's socket as JSON lines and as a live view.
+"""`calibd run | replay | status | calibrate | sensitivity | plan | noise | report | apply | simulate |
+pipe | watch`: the daemon, its pipeline on a capture, its state; one-shot calibration; what
+alpha/beta errors cost; what a protocol will give before it is run; the noise of a capture; a
+report people can look at; a result applied to a capture; captures with known truth; the daemon's
+socket as JSON lines and as a live view.
 
 Errors in files, scenarios or arguments end with one line on stderr and exit status 2.
 """
@@ -690,7 +691,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="joint: fit a linear gyro drift per channel (thermal ramps); costs precision")
     p.set_defaults(func=cmd_calibrate)
     p = sub.add_parser("run", help="the daemon: read the port, calibrate after every power-up")
-    p.add_argument("--config", required=True, help="TOML configuration (see systemd/calibd.example.toml)")
+    p.add_argument("--config", required=True, help="TOML configuration: [serial], [site], [output], [warmup], "
+                   "[detection], [method], [serve] (README, calibd run)")
     p.add_argument("--port", help="serial port overriding the configuration's (the systemd unit passes /dev/%%i)")
     p.set_defaults(func=cmd_run)
     p = sub.add_parser("replay", help="the daemon's pipeline on a capture, printing states and results")

@@ -1,6 +1,7 @@
 """STIM300 protocol tables: datagram identifiers, layouts, lengths, scale factors, status bits.
 
-Facts and their sources are in docs/stim300-protocol.md (TS1524 rev.31 and public peers).
+The facts are Safran's STIM300 datasheet's (TS1524 rev.31), checked against public drivers and real bytes
+(tests/vectors).
 This module holds tables and the little logic needed to read them; nothing here touches bytes
 of a stream.
 """
