@@ -22,6 +22,7 @@ from calibd.methods import estimator
 from calibd.results import ResultStore
 from calibd.segments import session_segments
 from calibd.session import PowerUpCuts, SessionBuilder
+from calibd.units import value_sigma
 from calibd.warmup import settling
 from stim300.bulk import decode_capture
 from stim300.codec import SAMPLE_DTYPE
@@ -204,7 +205,7 @@ def test_a_solve_says_what_the_protocol_lacks_or_gives_the_result_with_its_sessi
     assert solved.result.session["number"] == 4
     assert solved.result.session["duration_s"] == pytest.approx(float(session.time_s[-1]))
     yaw = solved.result.estimates["yaw"]
-    assert solved.detail == f"solved on {session.time_s[-1]:.0f} s: yaw {yaw.value:.2f} +- {yaw.sigma:.2f} deg"
+    assert solved.detail == f"solved on {session.time_s[-1]:.0f} s: yaw {value_sigma(yaw.value, yaw.sigma, 'deg')}"
     stale = stale_result(solved.result, "why")
     assert stale.stale["reason"] == "why" and stale.warnings[0] == "stale: why"
     assert solved.result.stale is None  # a copy: the result itself is unchanged

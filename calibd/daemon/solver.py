@@ -16,6 +16,7 @@ from ..frames import Site
 from ..methods import estimator
 from ..results import CalibrationResult
 from ..session import Session
+from ..units import value_sigma
 
 log = structlog.get_logger("calibd")
 
@@ -52,8 +53,7 @@ def solve(session: Session, segments: list[detect.Segment], site: Site, method: 
                      session={"number": number, "duration_s": duration_s,
                               "solved_at": datetime.now(timezone.utc).isoformat(timespec="seconds")})
     yaw = result.estimates["yaw"]
-    sigma = f" +- {yaw.sigma:.2f}" if yaw.sigma is not None else ""
-    return Attempt(result, f"solved on {duration_s:.0f} s: yaw {yaw.value:.2f}{sigma} deg")
+    return Attempt(result, f"solved on {duration_s:.0f} s: yaw {value_sigma(yaw.value, yaw.sigma, yaw.unit)}")
 
 
 def stale_result(result: CalibrationResult, reason: str) -> CalibrationResult:
