@@ -160,11 +160,6 @@ def _check_fields(result: CalibrationResult, path) -> None:
     if isinstance(result.capture, dict):
         fields_ += [("capture.size_bytes", result.capture.get("size_bytes"), _whole, "a whole number"),
                     ("capture.sha256", result.capture.get("sha256"), _text, "a string")]
-    for name, e in result.estimates.items():
-        fields_ += [(f"estimates.{name}.value", e.value, *number),
-                    (f"estimates.{name}.sigma", e.sigma, *maybe_number),
-                    (f"estimates.{name}.unit", e.unit, _text, "a string"),
-                    (f"estimates.{name}.quality", e.quality, _optional(_text), "a string or null")]
     fields_ += [(f"warnings[{k}]", w, _text, "a string") for k, w in enumerate(result.warnings)]
     for k, segment in enumerate(result.segments):
         fields_.append((f"segments[{k}]", segment, _record, "an object"))

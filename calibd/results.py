@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import errno
 import json
+import math
 import os
 import time
 from dataclasses import dataclass, field, replace
@@ -209,6 +210,10 @@ class CalibrationResult:
                         if e["unit"] not in DISPLAY_UNITS), None)
         if strange:
             raise ResultError(f"{where}: estimate {strange}, not one of {', '.join(DISPLAY_UNITS)}")
+        wrong = next(((f"estimates.{name}.{key}", e.get(key), expect) for name, e in estimates.items()
+                      for key, fits, expect in _ESTIMATE_KINDS if not fits(e.get(key))), None)
+        if wrong:  # every reader (status, report, apply, the daemon) may compute with them
+            raise ResultError(f"{where}: {wrong[0]} is {json.dumps(wrong[1])[:40]}, expected {wrong[2]}")
         if not isinstance(doc.get("site"), dict) or not isinstance(doc.get("method"), str):
             raise ResultError(f"{where}: the result has no site or no method")
         for key in ("segments", "warnings"):
@@ -220,6 +225,16 @@ class CalibrationResult:
                               for name, e in estimates.items()},
                    segments=tuple(doc.get("segments", ())), warnings=tuple(doc.get("warnings", ())),
                    schema=doc["schema"])
+
+
+def _finite(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+# an estimate's fields a reader computes with: (key, the kind it must be, the kind in words)
+_ESTIMATE_KINDS = (("value", _finite, "a number"),
+                   ("sigma", lambda v: v is None or _finite(v) and v >= 0, "a number >= 0 or null"),
+                   ("quality", lambda v: v is None or isinstance(v, str), "a string or null"))
 
 
 def quaternion(matrix: np.ndarray) -> list[float]:

@@ -125,7 +125,11 @@ CASES = {  # name: (program, argv with {placeholders}, exit status, text in the 
     "report estimate value a string": ("calibd", ["report", "{result_value_text}", GOOD, "-o", "{out}/r.html"], 2,
                                        'estimates.pitch.value is "x", expected a number'),
     "report sigma a list": ("calibd", ["report", "{result_sigma_list}", GOOD, "-o", "{out}/r.html"], 2,
-                            "estimates.yaw.sigma is [], expected a number or null"),
+                            "estimates.yaw.sigma is [], expected a number >= 0 or null"),
+    "apply estimate value a string": ("calibd", ["apply", "{result_value_text}", GOOD, "-o", "{out}/a.npz"], 2,
+                                      'estimates.pitch.value is "x", expected a number'),
+    "status --json sigma a list": ("calibd", ["status", "--state-dir", "{state_dir_sigma_list}", "--json"], 2,
+                                   "estimates.yaw.sigma is [], expected a number >= 0 or null"),
     "report latitude null": ("calibd", ["report", "{result_latitude_null}", GOOD, "-o", "{out}/r.html"], 2,
                              "site.latitude_deg is null, expected a number"),
     "report power-up a string": ("calibd", ["report", "{result_power_up_text}", GOOD, "-o", "{out}/r.html"], 2,
@@ -178,6 +182,11 @@ def _results(good: Path, d: Path) -> dict[str, str]:
         edit(record)
         (d / f"{name}.json").write_text(json.dumps(record))
         places[f"result_{name}"] = str(d / f"{name}.json")
+    state = d / "state_sigma_list"  # a daemon's state directory whose result.json is of the wrong kinds
+    state.mkdir()
+    (state / "state.json").write_text(json.dumps({"state": "SOLVED", "detail": "solved", "updated": 0.0}))
+    (state / "result.json").write_text((d / "sigma_list.json").read_text())
+    places["state_dir_sigma_list"] = str(state)
     return places
 
 
@@ -198,7 +207,7 @@ def test_bad_input_is_one_line_and_leaves_nothing(name, tmp_path, capsys, reques
     out = tmp_path / "out"
     out.mkdir()
     places |= {"out": str(out), "capture": places["one"]}
-    if any("{result" in str(a) for a in argv):
+    if any("{result" in str(a) or "{state_dir" in str(a) for a in argv):
         places |= _results(request.getfixturevalue("result_file"), ins)
     kinds = {p: stat.S_IFMT(os.lstat(p).st_mode) for p in ("/dev/null", "/dev/full", places["fifo"])}
     main = calibd_main if program == "calibd" else stim300_main
