@@ -14,7 +14,8 @@ from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
-from stim300.errors import FormatError
+from stim300.cliutil import input_file
+from stim300.errors import FormatError, UsageError
 from stim300.protocol import ACC_RANGE_LSB_EXP, NORMAL_LAYOUTS, SAMPLE_RATES_HZ
 from stim300.special import PartNumber, SerialNumber
 
@@ -348,11 +349,15 @@ def load_scenario(source: str) -> Scenario:
         text = resources.files("calibd").joinpath("scenarios", f"{source}.toml").read_text()
         where = f"{source} (ready-made)"
     else:
-        path = Path(source)
-        if not path.is_file():
-            raise ScenarioError(f"{source}: no such scenario file (ready-made ones: {', '.join(READY_MADE)})")
+        ready_made = f"ready-made ones: {', '.join(READY_MADE)}"
+        if not Path(source).exists():
+            raise ScenarioError(f"{source}: no such scenario file ({ready_made})")
+        try:  # a directory or a device (/dev/zero) is not a scenario either, and said so
+            input_file(source, "scenario file")
+        except UsageError as exc:
+            raise ScenarioError(f"{exc} ({ready_made})") from None
         try:
-            text = path.read_text()
+            text = Path(source).read_text()
         except (OSError, UnicodeDecodeError) as exc:
             raise ScenarioError(f"{source}: cannot read: {exc}") from None
         where = source

@@ -94,7 +94,7 @@ CASES = {  # name: (program, argv with {placeholders}, exit status, text in the 
                                  "/dev/zero: not a regular file"),
     "run config /dev/zero": ("calibd", ["run", "--config", "/dev/zero"], 2, "/dev/zero: not a regular file"),
     "simulate scenario /dev/zero": ("calibd", ["simulate", "/dev/zero", "-o", "{out}/c.bin"], 2,
-                                    "/dev/zero: no such scenario file"),
+                                    "/dev/zero: not a regular file (a device or FIFO), expected a scenario file"),
     "plan noise /dev/zero": ("calibd", ["plan", "--latitude", "60", "--protocol", "thesis", "--noise", "/dev/zero"],
                              2, "/dev/zero: not a regular file"),
     "info /dev/zero": ("stim300", ["info", "/dev/zero"], 2, "/dev/zero: not a regular file"),
