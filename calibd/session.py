@@ -334,13 +334,10 @@ def decode_sessions(data, name: str, reads: np.ndarray | None = None,
     if not info.stats.datagrams:
         raise CalibrationError(f"{name}: no STIM300 datagram found")
     reader.finish(info)
-    stats = info.stats
     return CaptureSessions(
         path=str(name), power_ups=reader.power_ups, rate_hz=reader.rate_hz,
         sensor=info.sensor_record() | {"sample_rate_hz": reader.rate_hz},
-        stream={"capture": str(name), "datagrams": stats.datagrams, "lost_samples": stats.lost_samples,
-                "inferred_missing": stats.inferred_missing, "crc_errors": stats.crc_errors, "restarts": stats.restarts,
-                "warnings": list(info.warnings)},
+        stream={"capture": str(name), **info.stream_record()},
         identity={"size_bytes": len(data), "sha256": digest.hexdigest()})
 
 

@@ -67,6 +67,13 @@ class StreamInfo:
                 "datagram_id": None if ident is None else f"0x{ident:02X}", "sample_rate_hz": self.rate_hz,
                 "sample_rate": self.rate_words()}
 
+    def stream_record(self) -> dict:
+        """The stream's statistics as a result records them (JSON-ready): what came, what was lost
+        or refused, so offline and daemon results say the same."""
+        s = self.stats
+        return {"datagrams": s.datagrams, "lost_samples": s.lost_samples, "inferred_missing": s.inferred_missing,
+                "crc_errors": s.crc_errors, "restarts": s.restarts, "warnings": list(self.warnings)}
+
 
 @dataclass(frozen=True, eq=False)
 class Capture:

@@ -245,6 +245,11 @@ def test_listeners_hear_the_state_sequence_of_a_fixture_replay_in_their_order(tm
     written = json.loads((tmp_path / "result.json").read_text())
     assert written["estimates"]["yaw"]["value"] == calibrator.result.estimates["yaw"].value
     assert len(list((tmp_path / "history").iterdir())) == len(recorder.results)
+    stream = written["stream"]  # the stream's statistics, as an offline result has them
+    decoded = decode_capture(HEADING137.read_bytes()).info.stats
+    assert (stream["datagrams"], stream["lost_samples"], stream["crc_errors"]) == (
+        decoded.datagrams, decoded.lost_samples, decoded.crc_errors)
+    assert {"inferred_missing", "restarts", "warnings"} <= set(stream) and stream["session"] == 1
 
 
 def test_systemds_status_line_is_a_listener(monkeypatch):

@@ -50,6 +50,7 @@ class Calibrator:
         self.sessions = 0
         self.session_id: str | None = None
         self.sensor: dict = {}
+        self.stream_stats: dict = {}
         self._cuts = PowerUpCuts()
         self._new_power_up()
 
@@ -58,9 +59,10 @@ class Calibrator:
         """New settings (SIGHUP): they apply from the next solution on (detection: the next session)."""
         self.site, self.warmup, self.method, self.detection = site, warmup, method, detection
 
-    def sensor_seen(self, identity: dict) -> None:
-        """The sensor as the stream names it (serial and part number, datagram, rate): results carry it."""
-        self.sensor = identity
+    def sensor_seen(self, identity: dict, stream: dict | None = None) -> None:
+        """The sensor as the stream names it (serial and part number, datagram, rate) and the
+        stream's statistics since the daemon began reading (StreamInfo.stream_record): results carry them."""
+        self.sensor, self.stream_stats = identity, stream or {}
 
     def feed(self, samples: np.ndarray, rate_hz: int, first: int = 0, restart_datagrams=()) -> None:
         """A batch of decoded samples (stim300.codec.SAMPLE_DTYPE) in stream order: `first` is the
@@ -153,7 +155,8 @@ class Calibrator:
 
     def _look(self) -> tuple[Session, list[detect.Segment]]:
         """The session so far and its segments."""
-        session = self.collector.session(self.sensor, {"capture": self.source, "session": self.sessions})
+        session = self.collector.session(self.sensor, {"capture": self.source, **self.stream_stats,
+                                                        "session": self.sessions})
         return session, self.collector.segments(session)
 
     def _solve(self, looked: tuple[Session, list[detect.Segment]] | None = None) -> None:
