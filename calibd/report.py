@@ -36,6 +36,7 @@ from .results import CalibrationResult, SchemaError, load_result, schema_version
 from .scenario import TRUTH_FORMER_NAMES, TRUTH_SCHEMA, TRUTH_VERSION, Truth
 from .segments import segment_record, session_segments
 from .session import CaptureSessions, Session, power_up_session
+from .units import value_sigma_texts
 
 MATPLOTLIB_MISSING = "calibd report needs matplotlib: pip install 'stim300-calib[plot]'"
 STEPS = ("capture", "segments", "timeline", "Earth-rate fit", "Allan deviation", "thesis method", "files")
@@ -270,13 +271,16 @@ def _e(text) -> str:
     return html.escape(str(text))
 
 
-def _num(value: float | None, name: str, form: str = ".5f", far: float = math.inf) -> str:
-    """A table cell with a number shown as `form` (five decimals, as `calibd calibrate` prints) and
-    kept whole in data-value; highlighted beyond +-`far`."""
+def _num(value: float | None, name: str, form: str = ".5f", far: float = math.inf, text: str | None = None) -> str:
+    """A table cell with a number shown as `text`, else as `form` (a -0.0 as 0.0), and kept whole in
+    data-value; highlighted beyond +-`far`."""
     if value is None:
         return f'<td class="num" data-name="{name}">n/a</td>'
     kind = "num far" if abs(value) > far else "num"
-    return f'<td class="{kind}" data-name="{name}" data-value="{float(value)!r}">{float(value):{form}}</td>'
+    if text is None:
+        text = f"{float(value):{form}}"
+        text = text[1:] if text.startswith("-") and float(text) == 0 else text
+    return f'<td class="{kind}" data-name="{name}" data-value="{float(value)!r}">{text}</td>'
 
 
 def _estimates_table(result: CalibrationResult, thesis: CalibrationResult | str,
@@ -298,8 +302,10 @@ def _estimates_table(result: CalibrationResult, thesis: CalibrationResult | str,
         quality = e.quality or ""
         in_sigmas = "" if not truth else _num(None if error is None or not e.sigma else error / e.sigma,
                                                "error_sigmas", ".1f", FAR_SIGMAS)
+        value_text, sigma_text = value_sigma_texts(e.value, e.sigma)  # rounded where the sigma says
         rows.append(f'<tr class="{_e(quality)}" data-estimate="{_e(name)}"><td>{_e(name)}</td>'
-                    f'{_num(e.value, "value")}{_num(e.sigma, "sigma", ".3g")}<td>{_e(e.unit)}</td>'
+                    f'{_num(e.value, "value", text=value_text)}{_num(e.sigma, "sigma", text=sigma_text)}'
+                    f'<td>{_e(e.unit)}</td>'
                     f'<td>{_e(quality)}</td>{_num(None if other is None else other.value, "thesis")}'
                     f'{_num(scenario.get(name), "truth")}{_num(true, "carried")}{_num(error, "error")}'
                     f'{in_sigmas}</tr>')

@@ -29,6 +29,7 @@ from calibd.report import FAR_SIGMAS, MATPLOTLIB_MISSING, _estimates_table, anal
 from calibd.segments import session_segments
 from calibd.results import write_result
 from calibd.session import power_up_session
+from calibd.units import value_sigma_texts
 
 FIXTURES = Path(__file__).resolve().parent.parent / "fixtures"
 CAPTURE = str(FIXTURES / "thesis_real_cw_125hz.bin")
@@ -143,10 +144,11 @@ def test_table_numbers_equal_the_result_file(rendered):
     rows = parse(rendered["page"]).rows
     assert list(rows) == list(saved["estimates"])
     for name, e in saved["estimates"].items():
-        for column in ("value", "sigma"):
+        texts = value_sigma_texts(e["value"], e["sigma"])  # shown as calibd calibrate prints them
+        for column, text in zip(("value", "sigma"), texts):
             exact, shown = rows[name][column]
-            assert exact == e[column]
-            assert float(shown) == pytest.approx(e[column], rel=5e-3, abs=5e-6)  # what is shown rounds it
+            assert exact == e[column] and shown == text
+            assert float(shown) == pytest.approx(e[column], rel=0.05, abs=0.05 * e["sigma"])  # rounded at the sigma
 
 
 def test_thesis_and_truth_columns(rendered):
@@ -167,7 +169,8 @@ def test_thesis_and_truth_columns(rendered):
     for name, row in rows.items():
         exact, shown = row["error_sigmas"]
         assert exact == pytest.approx(row["error"][0] / row["sigma"][0])
-        assert shown == f"{exact:.1f}" and abs(exact) < 3, name  # no estimate here is off by 3 sigma
+        assert float(shown) == round(exact, 1) and not shown.startswith("-0.0"), name  # no "-0.0"
+        assert abs(exact) < 3, name  # no estimate here is off by 3 sigma
     for name, e in thesis.items():
         assert rows[name]["thesis"][0] == pytest.approx(e.value, rel=1e-12, abs=1e-12)
     assert "thesis-linear" in rendered["page"]
