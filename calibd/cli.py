@@ -42,7 +42,7 @@ from .serve.hub import Hub
 from .serve.protocol import SAMPLE_KINDS
 from .serve.sockets import ServeError
 from .session import CaptureSessions, Session, decode_sessions, power_up_session
-from .units import DEG, value_sigma_texts
+from .units import DEG, estimate_rows
 
 
 @contextmanager
@@ -160,14 +160,7 @@ def _summary(result: CalibrationResult) -> str:
     session = _session_line(result)
     if session:
         lines.append(f"  session: {session}")
-    texts = {name: value_sigma_texts(e.value, e.sigma) for name, e in result.estimates.items()}
-    value_width = max((len(v) for v, _ in texts.values()), default=0)
-    sigma_width = max((len(s) for _, s in texts.values() if s), default=0)
-    for name, e in result.estimates.items():
-        value, sigma = texts[name]
-        sigma = f" +- {sigma:>{sigma_width}}" if sigma else " " * (sigma_width + 4) if sigma_width else ""
-        poor = "  (poor)" if e.quality == "poor" else ""
-        lines.append(f"  {name:12s} {value:>{value_width}}{sigma} {e.unit}{poor}")
+    lines += [f"  {row}" for row in estimate_rows(result.estimates)]
     lines += [f"  warning: {w}" for w in result.warnings]
     return "\n".join(lines)
 

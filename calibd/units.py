@@ -27,3 +27,20 @@ def value_sigma(value: float, sigma: float | None, unit: str) -> str:
     """`value +- sigma unit` (value_sigma_texts), or `value unit` without a sigma."""
     value_text, sigma_text = value_sigma_texts(value, sigma)
     return f"{value_text} +- {sigma_text} {unit}" if sigma_text else f"{value_text} {unit}"
+
+
+def estimate_rows(estimates) -> list[str]:
+    """One aligned line per estimate (objects with value, sigma, unit, quality, by name): the
+    name, the value and `+- sigma` right-aligned at their rounding (value_sigma_texts), the unit,
+    and the quality in brackets when one is set."""
+    texts = {name: value_sigma_texts(e.value, e.sigma) for name, e in estimates.items()}
+    name_width = max((len(name) for name in estimates), default=0)
+    value_width = max((len(v) for v, _ in texts.values()), default=0)
+    sigma_width = max((len(s) for _, s in texts.values() if s), default=0)
+    rows = []
+    for name, e in estimates.items():
+        value, sigma = texts[name]
+        sigma = f" +- {sigma:>{sigma_width}}" if sigma else " " * (sigma_width + 4) if sigma_width else ""
+        quality = f"  ({e.quality})" if e.quality else ""
+        rows.append(f"{name:<{name_width}}  {value:>{value_width}}{sigma} {e.unit}{quality}")
+    return rows

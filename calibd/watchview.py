@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 from .client import Device, Error, Fault, Message, Overflow, Poll, Result, Samples, State, Version, Watch
 from .results import CalibrationResult
-from .units import value_sigma
+from .units import estimate_rows, value_sigma
 
 RATE_WINDOW_S = 2.0  # stream time the measured sample rate is averaged over
 SAMPLES_LINE_EVERY_S = 10.0  # plain lines: the sample rate is said this often (stream time)
@@ -177,10 +177,7 @@ def render(view: WatchView, now_s: float) -> list[str]:
         stale = stale_text(view.result)
         if stale:
             lines.append(f"         {stale}")
-        width = max(len(name) for name in view.result.estimates)
-        for name, e in view.result.estimates.items():
-            quality = f"  ({e.quality})" if e.quality else ""
-            lines.append(f"  {name:<{width}}  {value_sigma(e.value, e.sigma, e.unit)}{quality}")
+        lines += [f"  {row}" for row in estimate_rows(view.result.estimates)]
         lines += [f"  warning: {w}" for w in view.result.warnings]
     faults = "none reported" if view.faults is None else _counts(view.faults.counts, view.faults.increase)
     lines.append(f"faults   {faults}")

@@ -349,8 +349,9 @@ def test_render_shows_state_progress_estimates_with_sigma_and_units():
                  "state    COLLECTING (for 98 s): collecting: 3 statics",
                  "progress warm yes, session 312.5 s, statics 3, headings 2, turns 1, missing: a turn between two",
                  "result   joint, 312.5 s of data, received 60 s ago",
-                 "yaw          137.200 +- 0.012 deg", "gyro_bias_x  0.619 +- 0.021 deg/h",
-                 "acc_bias_z   1.0197 mg", "warning: a warning",
+                 "  yaw          137.200 +- 0.012 deg\n  gyro_bias_x    0.619 +- 0.021 deg/h\n"
+                 "  acc_bias_z    1.0197          mg\n",  # aligned as calibd calibrate prints them
+                 "warning: a warning",
                  "faults   crc_errors 2 (+1), lost_samples 5"):
         assert text in screen, text
     assert "STALE" not in screen and "\nsamples " not in screen
