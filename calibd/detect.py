@@ -395,12 +395,16 @@ def segment_roles(segments: list[Segment]) -> list[str]:
     return roles
 
 
+def index_headings(segments: list[Segment]) -> set[int]:
+    """The index headings (0..3, quarter turns of the platform) the statics cover."""
+    return {round((s.platform_angle_deg % 360) / 90) % 4 for s in segments if s.kind == "static"
+            and abs(s.platform_angle_deg / 90 - round(s.platform_angle_deg / 90)) * 90 <= INDEX_TOLERANCE_DEG}
+
+
 def protocol_progress(segments: list[Segment]) -> str:
     """What a session has so far, in the protocol's words: statics and the platform headings
     they cover, turns by role (index ~90 deg, full >= 350 deg in total, other)."""
-    statics = [s for s in segments if s.kind == "static"]
-    headings = {round((s.platform_angle_deg % 360) / 90) % 4 for s in statics
-                if abs(s.platform_angle_deg / 90 - round(s.platform_angle_deg / 90)) * 90 <= INDEX_TOLERANCE_DEG}
+    headings = index_headings(segments)
     roles = segment_roles(segments)
 
     def count(role: str) -> str:

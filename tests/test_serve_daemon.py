@@ -96,6 +96,8 @@ def test_replay_serve_gives_state_results_and_the_feeds_samples_and_ignores_garb
     assert {"WARMING_UP", "COLLECTING", "SOLVED"} <= set(states)
     solved = next(m for m in messages if m["class"] == "STATE" and m["state"] == "SOLVED")
     assert solved["progress"]["warm"] is True and solved["progress"]["session_s"] > 100
+    last = [m for m in messages if m["class"] == "STATE" and m["state"] == "SOLVED"][-1]["progress"]
+    assert (last["index_headings"], last["index_turns"]) == (4, 4)  # the whole protocol, as offline detection
     results = [m["result"] for m in messages if m["class"] == "RESULT"]
     assert results and results[-1] == json.loads((state_dir / "result.json").read_text())
     batches = [m for m in messages if m["class"] == "SAMPLES"]

@@ -130,7 +130,8 @@ class Hub(Listener):
         final = list(collector.tracker.final)
         roles = detect.segment_roles(final)
         return {"warm": True, "sessions": calibrator.sessions, "session_s": round(collector.end_s - start_s, 1),
-                "statics": roles.count("static"), "index_turns": roles.count("index turn"),
+                "statics": roles.count("static"), "index_headings": len(detect.index_headings(final)),
+                "index_turns": roles.count("index turn"),
                 "full_turns": roles.count("full turn"), "other_turns": roles.count("other turn"),
                 "missing": estimator(calibrator.method.name).missing(final)}
 
