@@ -319,16 +319,18 @@ def decode_sessions(data, name: str, reads: np.ndarray | None = None,
     with its host read time, so the time base can include datagrams lost for whole counter
     cycles. `drop_before(offset)`: the bytes before `offset` are done with (an mmap can let them go)."""
     reader = _PowerUpReader(name, reads is not None)
-    digest, hashed = hashlib.sha256(), [0]  # hashed as decoded: the bytes are read once
+    digest, hashed = hashlib.sha256(), 0  # hashed as decoded: the bytes are read once
 
     def on_block(samples, scanner, offset):
+        nonlocal hashed
         reader.consume(samples, scanner)
-        digest.update(memoryview(data)[hashed[0]:offset])
-        hashed[0] = max(hashed[0], offset)
+        if offset > hashed:
+            digest.update(memoryview(data)[hashed:offset])
+            hashed = offset
         drop_before(offset)
 
     info = decode_blocks(data, on_block, reads=reads)
-    digest.update(memoryview(data)[hashed[0]:])
+    digest.update(memoryview(data)[hashed:])
     if reader.refusal:
         raise CalibrationError(reader.refusal)
     if not info.stats.datagrams:
