@@ -210,6 +210,10 @@ def apply_capture(data, name: str, correction: Correction, result_serial: str | 
         applied.warnings.append(
             f"{name}: the sensor restarted {applied.power_ups - 1} time(s): the result's biases are one "
             "power-up's turn-on biases, samples of the other power-ups carry their own (column power_up)")
+    lost = info.stats.lost_samples
+    if lost:
+        applied.warnings.append(f"{name}: {lost} samples lost in the capture (the datagram counter shows the gaps): "
+                                "no row stands for them, and time_s jumps across each gap")
     for text in info.warnings:
         applied.warnings.append(f"{name}: {text}")
     return applied

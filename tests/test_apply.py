@@ -124,6 +124,22 @@ def test_biases_come_off_exactly_and_times_follow_the_counter():
     assert any("no serial-number datagram" in w for w in applied.warnings)
 
 
+def test_a_gap_and_garbage_keep_the_time_base_and_lose_only_what_is_lost():
+    """Datagrams lost mid-stream and a garbage burst: the rest is corrected, the times jump by
+    the lost datagrams' duration (the counter says it), and the garbage gives no row."""
+    _, samples, fmt = capture(600, 0xA7, False, rate=250)
+    for cluster in ("gyro", "acc", "incl"):
+        samples[f"status_{cluster}"] = 0
+    encoded = encode_samples(samples, 0xA7, fmt, False)
+    kept = np.r_[0:200, 220:600]  # 20 datagrams (0.08 s at 250 Hz, within one 0.128 s counter cycle) lost
+    data = b"".join([encoded[:200].tobytes(), bytes(range(7, 250, 3)) * 3, encoded[220:].tobytes()])
+    columns, applied = applied_columns(truth_result(serial=None), data=data)
+    assert applied.samples == len(kept)
+    np.testing.assert_array_equal(columns["counter"], samples["counter"][kept])
+    np.testing.assert_allclose(columns["time_s"], kept / 250, rtol=0, atol=1e-12)
+    assert any("20 samples lost" in w for w in applied.warnings)
+
+
 def test_a_restart_is_warned_and_numbered_and_restarts_the_times():
     scenario = replace(load_scenario("thesis-real"), seed=5, segments=(Segment("static", duration_s=4),))
     one = capture_bytes(simulate(scenario))[0]
