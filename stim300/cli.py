@@ -28,7 +28,7 @@ from .progress import Progress
 from .protocol import (ACC_RANGE_LSB_EXP, COUNTER_MODULUS, DEFAULT_BIT_RATE, INTERNAL_RATE_HZ, NORMAL_LAYOUTS,
                        SAMPLE_RATES_HZ, AccUnit, Format, GyroUnit, Status)
 from .reads import load_reads
-from .special import Configuration
+from .special import Configuration, UndefinedCode
 
 AXES = "xyz"
 GYRO_UNITS = {"rate": GyroUnit.RATE, "incremental": GyroUnit.INCREMENTAL_ANGLE,
@@ -323,8 +323,15 @@ def _configuration_lines(c: Configuration) -> list[str]:
             return str(code)
         return code.name.lower().replace("_", " ") + (f" ({code.symbol})" if hasattr(code, "symbol") else "")
 
+    def code(value) -> str:
+        """A code no table here names: an undefined one says so itself (UndefinedCode)."""
+        return str(value) if isinstance(value, UndefinedCode) else f"code {value}"
+
+    def hz(value) -> str:
+        return f"{value} Hz" if isinstance(value, int) else str(value)
+
     def ranges(codes, table: dict, symbol: str) -> str:
-        return per_axis(f"+-{table[code]} {symbol}" if code in table else f"code {code}" for code in codes)
+        return per_axis(f"+-{table[c]} {symbol}" if c in table else code(c) for c in codes)
 
     def yes(flag: bool) -> str:
         return "yes" if flag else "no"
@@ -334,23 +341,24 @@ def _configuration_lines(c: Configuration) -> list[str]:
     groups = {
         "gyro": [("axes", axes(c.gyro_axes)), ("unit", unit(c.gyro_unit)),
                  ("range", ranges(c.gyro_range_codes, GYRO_RANGE_DEG_S, "deg/s")),
-                 ("low-pass", per_axis(f"{hz} Hz" for hz in c.gyro_lpf_hz)),
+                 ("low-pass", per_axis(hz(v) for v in c.gyro_lpf_hz)),
                  ("g-compensation", f"preset {c.gyro_g_compensation}")],
         "acc": [("axes", axes(c.acc_axes)), ("unit", unit(c.acc_unit)),
                 ("range", per_axis(f"+-{g} g" for g in c.acc_range_g)),
-                ("low-pass", per_axis(f"{hz} Hz" for hz in c.acc_lpf_hz))],
+                ("low-pass", per_axis(hz(v) for v in c.acc_lpf_hz))],
         "incl": [("axes", axes(c.incl_axes)), ("unit", unit(c.incl_unit)),
                  ("range", ranges(c.incl_range_codes, INCL_RANGE_G, "g")),
-                 ("low-pass", per_axis(f"{hz} Hz" for hz in c.incl_lpf_hz))],
-        "serial line": [("bit rate", "user-defined (not in the datagram)" if c.bit_rate_bps is None
-                         else f"{c.bit_rate_bps} bps"),
+                 ("low-pass", per_axis(hz(v) for v in c.incl_lpf_hz))],
+        "serial line": [("bit rate", code(c.bit_rate_code) if isinstance(c.bit_rate_code, UndefinedCode)
+                         else "user-defined (not in the datagram)" if c.bit_rate_bps is None
+                         else f"{c.bit_rate_bps} bit/s"),
                         ("framing", f"{c.stop_bits} stop bit{'s' if c.stop_bits != 1 else ''}, "
                                     f"parity {unit(c.parity)}"),
                         ("termination", f"{yes(c.line_termination)} (RS422 120 ohm)"), ("CR LF", yes(c.crlf))],
         "outputs": [("datagram", f"0x{c.datagram_id:02X} ({', '.join(content)})"),
                     ("sample rate", "external trigger" if c.external_trigger else
-                     f"{c.sample_rate_hz} Hz" if c.sample_rate_hz else f"code {c.sample_rate_code}"),
-                    ("pps input", f"yes, {unit(c.pps_unit)}, low-pass {c.pps_lpf_hz} Hz" if c.has_pps_input
+                     f"{c.sample_rate_hz} Hz" if c.sample_rate_hz else code(c.sample_rate_code)),
+                    ("pps input", f"yes, {unit(c.pps_unit)}, low-pass {hz(c.pps_lpf_hz)}" if c.has_pps_input
                      else "no (an aux input)"),
                     ("tov level", f"{'3.3' if c.tov_3v3 else '5'} V"),
                     ("at start-up", f"tov toggled: {yes(c.tov_toggle_at_startup)}, bias trim datagram: "

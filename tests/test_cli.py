@@ -117,12 +117,24 @@ def test_info_shows_the_configuration_as_grouped_lines_with_units(tmp_path, caps
     assert groups == ["gyro", "acc", "incl", "serial line", "outputs"]
     for row in ("    low-pass        262 Hz / 131 Hz / 66 Hz (X / Y / Z)", "    range           +-400 deg/s",
                 "    unit            rate (deg/s)", "    range           +-10 g", "    axes            X, Y",
-                "    range           +-1.7 g", "    bit rate        921600 bps", "    framing         2 stop bits, "
+                "    range           +-1.7 g", "    bit rate        921600 bit/s", "    framing         2 stop bits, "
                 "parity odd", "    CR LF           yes", "    datagram        0xA7 (gyro, acc, incl, temperatures)",
                 "    sample rate     500 Hz"):
         assert row in shown, row
     code, out, _ = run(["info", path, "--json"], capsys)
     assert json.loads(out)["configuration"]["gyro_lpf_hz"] == [262, 131, 66]  # the machine form keeps the fields
+
+
+def test_info_shows_an_undefined_configuration_code_as_read(tmp_path, capsys):
+    """A real unit's configuration with bit-rate code 4, which the byte map does not define: shown
+    as what it is, not as a user-defined bit rate."""
+    config = bytes.fromhex("bc4b1f06407144407044407044400c00003330000000a91f9809")
+    data, _, _ = capture(50, 0x93, False, rate=125)
+    path = tmp_path / "c.bin"
+    path.write_bytes(config + data)
+    code, out, _ = run(["info", path], capsys)
+    assert code == 0 and "    bit rate        undefined code 0x4" in out.splitlines()
+    assert "user-defined" not in out and "warning" in out
 
 
 @pytest.mark.parametrize("case", ["missing", "directory", "empty", "not_stim300", "bad_datagram", "bad_range",
