@@ -234,7 +234,9 @@ def _si_per_sqrt_s(channel: ChannelNoise) -> tuple[float, float, bool]:
 def kalibr_yaml(session: Session, channels: dict[str, ChannelNoise], rostopic: str = "/imu0") -> str:
     """Kalibr's imu.yaml: per sensor the largest of its three axes' figures (Kalibr takes one
     value per sensor; the largest keeps its filter from trusting any axis more than it should),
-    update_rate the session's sample rate. docs/noise.md gives the formulas."""
+    update_rate the sensor's sample rate: the rate of the messages Kalibr's filter gets, which turns
+    each density into a per-sample noise (the densities do not change with calibd's block
+    averaging, the rate they are used at does). docs/noise.md gives the formulas."""
     first = next(iter(channels.values()))
     lines = [f"# Kalibr IMU noise model from {first.static_s:.1f} s of static data (calibd noise)"]
     for kalibr, ours in KALIBR_SENSORS.items():
@@ -246,5 +248,6 @@ def kalibr_yaml(session: Session, channels: dict[str, ChannelNoise], rostopic: s
         lines += [f"{kalibr}_noise_density: {density!r}  # {density_unit}, white noise: Allan deviation at 1 s, "
                   f"largest axis",
                   f"{kalibr}_random_walk: {walk!r}  # {walk_unit}, {walk_how}, largest axis"]
-    lines += [f"rostopic: {rostopic}", f"update_rate: {float(session.rate_hz)!r}  # Hz, the sample rate"]
+    rate_hz = session.sensor.get("sample_rate_hz", session.rate_hz)  # a session made without a sensor record: its own
+    lines += [f"rostopic: {rostopic}", f"update_rate: {float(rate_hz)!r}  # Hz, the sensor's sample rate"]
     return "\n".join(lines) + "\n"

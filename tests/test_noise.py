@@ -5,6 +5,7 @@ synthetic noise of known truth, and `calibd noise`."""
 import json
 import subprocess
 import sys
+from pathlib import Path
 from dataclasses import replace
 
 import allantools
@@ -267,6 +268,17 @@ def test_kalibr_figures_of_a_simulated_static_capture(static_capture):
     bounds = [c.bias_instability.value * np.sqrt(3 / c.bias_instability.tau_s) for n, c in channels.items()
               if n.startswith("gyro")]
     assert values["gyroscope_random_walk"] == pytest.approx(max(bounds) / RAD_S_TO_DEG_H, rel=1e-12)
+
+
+def test_kalibr_update_rate_is_the_sensors_rate_not_the_averaged_one():
+    """A 2000 Hz capture is characterised on 125 Hz block means; Kalibr's filter gets 2000 Hz
+    messages, so its per-sample noise needs 2000 (125 would make it 4 times too small)."""
+    fast = load_session(str(Path(__file__).parent.parent / "fixtures" / "static_turn_2000hz.bin"))
+    assert (fast.rate_hz, fast.sensor["sample_rate_hz"]) == (125, 2000)  # stored averaged, the sensor's kept
+    rate, seconds = 125, 3600.0
+    session = replace(synthetic_session(np.random.default_rng(7), rate, seconds, 2.0, 0.0), sensor=fast.sensor)
+    statics = [Detected("static", 0, int(rate * seconds), 0.0, seconds, 0.0)]
+    assert kalibr_values(kalibr_yaml(session, characterise(session, statics)))["update_rate"] == 2000.0
 
 
 def test_kalibr_random_walk_is_the_rate_random_walk_in_si():
