@@ -26,7 +26,7 @@ from .clock import counter_times
 from .errors import UsageError
 from .progress import Progress
 from .protocol import (ACC_RANGE_LSB_EXP, COUNTER_MODULUS, DEFAULT_BIT_RATE, INTERNAL_RATE_HZ, NORMAL_LAYOUTS,
-                       SAMPLE_RATES_HZ, AccUnit, Format, GyroUnit, Status)
+                       SAMPLE_RATES_HZ, STANDARD_BIT_RATES, AccUnit, Format, GyroUnit, Status)
 from .reads import load_reads
 from .special import Configuration, UndefinedCode
 
@@ -515,7 +515,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _add_config_parser(sub) -> None:
-    from .configure import LPF_CODES, SAMPLE_RATE_CODES
+    from .configure import LPF_CODES, SAMPLE_RATE_CODES, USER_BIT_RATE_BPS
     p = sub.add_parser("config", help="read, and set, the sensor's configuration through Service Mode")
     p.add_argument("port", help="device path (/dev/ttyUSB0) or pyserial URL")
     p.add_argument("--baud", type=_positive(int), default=DEFAULT_BIT_RATE,
@@ -534,7 +534,8 @@ def _add_config_parser(sub) -> None:
         g.add_argument(f"--{group}-lpf", type=lpf, metavar="HZ",
                        help=f"{group} low-pass filter -3 dB frequency: {', '.join(map(str, LPF_CODES))} Hz")
     g.add_argument("--bit-rate", type=_bit_rate, metavar="BPS",
-                   help="374400, 460800, 921600, 1843200, or 1500..5184000 (the port follows)")
+                   help=f"{', '.join(map(str, STANDARD_BIT_RATES))}, or {'..'.join(map(str, USER_BIT_RATE_BPS))} bit/s "
+                        "(the port follows)")
     g.add_argument("--save", action="store_true", help="write the configuration to flash (asks first)")
     g.add_argument("--yes", action="store_true", help="with --save: do not ask")
     p.set_defaults(func=cmd_config)

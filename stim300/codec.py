@@ -215,7 +215,7 @@ def encode_samples(samples: np.ndarray, datagram_id: int, fmt: Format, crlf: boo
         frames[:, off["status_aux"]] = samples["status_aux"]
     frames[:, off["counter"]] = samples["counter"]
     _put_ints(frames, off["latency"], samples["latency_us"][:, None], 2)
-    _put_ints(frames, layout.pre_crc, crc_columns(frames, layout.pre_crc)[:, None], 4)
+    seal(frames, layout)
     if crlf:
         frames[:, -2:] = np.frombuffer(CR_LF, np.uint8)
     return frames

@@ -244,9 +244,6 @@ class Changes:
     incl_lpf_hz: int | None = None
     bit_rate_bps: int | None = None
 
-    def any(self) -> bool:
-        return any(value is not None for value in asdict(self).values())
-
 
 @dataclass(frozen=True)
 class Command:
@@ -312,10 +309,6 @@ class Outcome:
                 and getattr(self.before, f.name) != getattr(self.after, f.name)]
 
 
-class SaveRefused(ConfigureError):
-    """`--save` and the unit reports no flash saves left."""
-
-
 def configure(ser: serial.Serial, changes: Changes, save: bool = False,
               confirm: Callable[[SensorReport], bool] = lambda report: True, timeout: float = 3.0) -> Outcome:
     """Enter Service Mode, apply `changes` one by one, re-read the report, save if asked.
@@ -330,7 +323,7 @@ def configure(ser: serial.Serial, changes: Changes, save: bool = False,
         before = read_report(ser, timeout)  # not the entry banner: datagram bytes may precede it
         commands = plan(changes, before)
         if save and before.remaining_saves == 0:
-            raise SaveRefused("--save: the sensor reports 0 flash saves remaining: nothing was changed")
+            raise ConfigureError("--save: the sensor reports 0 flash saves remaining: nothing was changed")
         after = before
         for command in commands:
             try:

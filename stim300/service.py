@@ -146,7 +146,7 @@ def _drain(ser: serial.Serial, timeout: float) -> None:
     deadline = time.monotonic() + timeout
     quiet_since = time.monotonic()
     while time.monotonic() - quiet_since < ENTER_SETTLE_S and time.monotonic() < deadline:
-        if ser.read(max(1, ser.in_waiting)):
+        if _read_available(ser):
             quiet_since = time.monotonic()
 
 
