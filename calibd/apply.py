@@ -22,8 +22,8 @@ from stim300.clock import CounterClock
 from stim300.protocol import INTERNAL_RATE_HZ, NORMAL_LAYOUTS
 
 from .errors import CalibdError
-from .frames import STANDARD_GRAVITY, nav_to_imu
-from .results import CalibrationResult
+from .frames import STANDARD_GRAVITY
+from .results import ROTATIONS, CalibrationResult
 from .serve.correct import result_biases
 from .session import PowerUpCuts
 from .units import DEG
@@ -33,7 +33,7 @@ CLUSTERS = ("gyro", "acc", "incl")
 SI_PER_SENSOR_UNIT = {"gyro": DEG, "acc": STANDARD_GRAVITY, "incl": STANDARD_GRAVITY}  # deg/s, g -> rad/s, m/s^2
 UNITS = {"gyro": "rad_s", "acc": "m_s2", "incl": "m_s2"}  # in column and array names
 WORDS = {"gyro": "gyro", "acc": "accelerometer", "incl": "inclinometer"}
-ATTITUDE = ("yaw", "pitch", "roll")
+ATTITUDE = ROTATIONS["nav_to_imu"][1]  # yaw, pitch, roll
 # 9 significant digits: every STIM300 value is a 24-bit count (exact in float32, which 9 digits
 # round-trip); a corrected value printed so is within 0.02 LSB at full scale, far below one
 # sample's noise (17 digits would add half the size for digits the sensor never had). Times are
@@ -72,11 +72,11 @@ def correction(result: CalibrationResult, frame: bool, force: bool) -> Correctio
     used = [f"{cluster}_bias_{axis}" for cluster in biases for axis in "xyz"]
     rotation = None
     if frame:
+        rotation = result.rotation_matrix("nav_to_imu")
         missing = [name for name in ATTITUDE if name not in result.estimates]
-        if missing or result.estimates["yaw"].quality == "poor":
+        if rotation is None or result.estimates["yaw"].quality == "poor":
             why = f"has no {', '.join(missing)}" if missing else "has yaw flagged poor"
             raise ApplyError(f"--frame: the result {why}: the home frame needs yaw, pitch and roll")
-        rotation = nav_to_imu(*(result.estimates[name].value * DEG for name in ATTITUDE))
         used += list(ATTITUDE)
     poor = [name for name in used if result.estimates[name].quality == "poor"]
     warnings = ()

@@ -36,7 +36,7 @@ from .methods import estimator
 from .estimators.thesis import sensitivity
 from .frames import STANDARD_GRAVITY, Site, site_value_error
 from .live import configure_logging, replay, run
-from .results import CalibrationResult, ResultError, ResultStore, StateDirError, load_result, write_result
+from .results import CalibrationResult, ResultError, ResultStore, StateDirError, load_result, parse_result, write_result
 from .scenario import READY_MADE, Noise, ScenarioError, load_scenario
 from .serve.hub import Hub
 from .serve.protocol import SAMPLE_KINDS
@@ -525,7 +525,7 @@ def cmd_apply(args) -> int:
     not_an_input(args.output, args.result, args.capture)
     result_bytes = read_input(args.result, "result file")
     try:
-        result = load_result(args.result)
+        result = parse_result(result_bytes, args.result)  # the bytes hashed into the output's meta
         fix = correction(result, args.frame, args.force)
     except ResultError as exc:
         raise UsageError(str(exc)) from None

@@ -93,9 +93,8 @@ def envelope(time_s: np.ndarray, values: np.ndarray, bins: int = TIMELINE_BINS):
 def platform_axis(result: CalibrationResult) -> np.ndarray | None:
     """The platform's turning axis in IMU axes, R_int^IMU [0, 0, 1], from the result's alpha and
     beta (None when it has none)."""
-    if not {"alpha", "beta"} <= set(result.estimates):
-        return None
-    return int_to_imu(result.estimates["alpha"].value * DEG, result.estimates["beta"].value * DEG)[:, 2]
+    tilt = result.rotation_matrix("int_to_imu")
+    return None if tilt is None else tilt[:, 2]
 
 
 def without_platform_rate(gyro: np.ndarray, axis: np.ndarray) -> np.ndarray:

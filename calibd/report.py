@@ -32,11 +32,11 @@ from .errors import CalibdError, CalibrationError, SiteError
 from .methods import estimator
 from .figures import DPI, FIGURE_WIDTH_IN, Figure, allan_figure, earth_rate_figure, platform_axis, timeline_figure
 from .frames import Site
-from .results import CalibrationResult, SchemaError, load_result, schema_version
+from .results import CalibrationResult, SchemaError, is_finite_number, load_result, schema_version
 from .scenario import TRUTH_FORMER_NAMES, TRUTH_SCHEMA, TRUTH_VERSION, Truth
 from .segments import segment_record, session_segments
 from .session import CaptureSessions, Session, power_up_session
-from .units import value_sigma_texts
+from .units import fixed, value_sigma_texts
 
 MATPLOTLIB_MISSING = "calibd report needs matplotlib: pip install 'stim300-calib[plot]'"
 STEPS = ("capture", "segments", "timeline", "Earth-rate fit", "Allan deviation", "thesis method", "files")
@@ -116,12 +116,8 @@ def _site(result: CalibrationResult, path) -> Site:
         raise ReportError(f"{path}: no usable site in the result ({exc})") from None
 
 
-def _number(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-
-
 def _whole(value) -> bool:
-    return _number(value) and value == int(value)
+    return is_finite_number(value) and value == int(value)
 
 
 def _optional(check):
@@ -144,7 +140,7 @@ def _power_up(value) -> bool:
 def _check_fields(result: CalibrationResult, path) -> None:
     """The fields the report reads, of the kinds it reads them as: a hand-edited or foreign
     result.json is refused in one line naming the field, not a traceback halfway through."""
-    number, maybe_number = (_number, "a number"), (_optional(_number), "a number or null")
+    number, maybe_number = (is_finite_number, "a number"), (_optional(is_finite_number), "a number or null")
     stream = result.stream if isinstance(result.stream, dict) else {}
     fields_ = [("stream", result.stream, _optional(_record), "an object"),
                ("sensor", result.sensor, _optional(_record), "an object"),
@@ -271,15 +267,13 @@ def _e(text) -> str:
     return html.escape(str(text))
 
 
-def _num(value: float | None, name: str, form: str = ".5f", far: float = math.inf, text: str | None = None) -> str:
-    """A table cell with a number shown as `text`, else as `form` (a -0.0 as 0.0), and kept whole in
+def _num(value: float | None, name: str, decimals: int = 5, far: float = math.inf, text: str | None = None) -> str:
+    """A table cell with a number shown as `text`, else to `decimals` decimals, and kept whole in
     data-value; highlighted beyond +-`far`."""
     if value is None:
         return f'<td class="num" data-name="{name}">n/a</td>'
     kind = "num far" if abs(value) > far else "num"
-    if text is None:
-        text = f"{float(value):{form}}"
-        text = text[1:] if text.startswith("-") and float(text) == 0 else text
+    text = fixed(float(value), decimals) if text is None else text
     return f'<td class="{kind}" data-name="{name}" data-value="{float(value)!r}">{text}</td>'
 
 
@@ -301,7 +295,7 @@ def _estimates_table(result: CalibrationResult, thesis: CalibrationResult | str,
             error = (error + 180.0) % 360.0 - 180.0
         quality = e.quality or ""
         in_sigmas = "" if not truth else _num(None if error is None or not e.sigma else error / e.sigma,
-                                               "error_sigmas", ".1f", FAR_SIGMAS)
+                                               "error_sigmas", 1, FAR_SIGMAS)
         value_text, sigma_text = value_sigma_texts(e.value, e.sigma)  # rounded where the sigma says
         rows.append(f'<tr class="{_e(quality)}" data-estimate="{_e(name)}"><td>{_e(name)}</td>'
                     f'{_num(e.value, "value", text=value_text)}{_num(e.sigma, "sigma", text=sigma_text)}'

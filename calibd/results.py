@@ -227,13 +227,13 @@ class CalibrationResult:
                    schema=doc["schema"])
 
 
-def _finite(value) -> bool:
+def is_finite_number(value) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 # an estimate's fields a reader computes with: (key, the kind it must be, the kind in words)
-_ESTIMATE_KINDS = (("value", _finite, "a number"),
-                   ("sigma", lambda v: v is None or _finite(v) and v >= 0, "a number >= 0 or null"),
+_ESTIMATE_KINDS = (("value", is_finite_number, "a number"),
+                   ("sigma", lambda v: v is None or is_finite_number(v) and v >= 0, "a number >= 0 or null"),
                    ("quality", lambda v: v is None or isinstance(v, str), "a string or null"))
 
 
@@ -293,12 +293,21 @@ def write_result(path, result: CalibrationResult) -> None:
 
 def load_result(path) -> CalibrationResult:
     try:
-        doc = json.loads(Path(path).read_text())
-    except (OSError, UnicodeDecodeError) as exc:
+        data = Path(path).read_bytes()
+    except OSError as exc:
         raise ResultError(f"{path}: cannot read: {exc}") from None
+    return parse_result(data, path)
+
+
+def parse_result(data: bytes, where) -> CalibrationResult:
+    """A result file's bytes (read once, e.g. to hash them too) as a result; `where` names it."""
+    try:
+        doc = json.loads(data.decode())
+    except UnicodeDecodeError as exc:
+        raise ResultError(f"{where}: cannot read: {exc}") from None
     except json.JSONDecodeError as exc:
-        raise ResultError(f"{path}: not JSON: {exc}") from None
-    return CalibrationResult.from_dict(doc, str(path))
+        raise ResultError(f"{where}: not JSON: {exc}") from None
+    return CalibrationResult.from_dict(doc, str(where))
 
 
 class StateDirError(CalibdError):

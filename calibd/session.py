@@ -68,7 +68,7 @@ class CaptureSessions:
     rate_hz: int | float  # the sensor's samples per second (externally triggered: measured)
     sensor: dict
     stream: dict  # the whole capture's stream statistics
-    identity: dict  # which file this is: its size_bytes and sha256 (a report or apply checks it)
+    identity: dict  # which file this is: its size_bytes and sha256 (results record it, a report checks it)
 
 
 def block_factor(rate_hz: int | float) -> int:

@@ -17,10 +17,13 @@ def value_sigma_texts(value: float, sigma: float | None) -> tuple[str, str | Non
     is (further digits are noise); without a usable sigma, the value at NO_SIGMA_DECIMALS and None."""
     usable = sigma is not None and math.isfinite(sigma) and sigma > 0
     decimals = min(max(1 - math.floor(math.log10(sigma)), 0), 9) if usable else NO_SIGMA_DECIMALS
+    return fixed(value, decimals), f"{sigma:.{decimals}f}" if usable else None
+
+
+def fixed(value: float, decimals: int) -> str:
+    """`value` to `decimals` decimals; a -0.0000 as 0.0000 (it says nothing a 0 does not)."""
     text = f"{value:.{decimals}f}"
-    if text.startswith("-") and float(text) == 0:  # -0.0000 says nothing a 0.0000 does not
-        text = text[1:]
-    return text, f"{sigma:.{decimals}f}" if usable else None
+    return text[1:] if text.startswith("-") and float(text) == 0 else text
 
 
 def value_sigma(value: float, sigma: float | None, unit: str) -> str:
