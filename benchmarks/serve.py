@@ -130,7 +130,7 @@ def measure(data: bytes, seconds: float, serve: bool) -> dict:
             stalled.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
             stalled.connect(str(sock_path))
             stalled.sendall(b'?WATCH={"enable":true,"samples":"raw"};\n')  # and never reads again
-            readers = [PtyReader(Path(tmp) / name) for name in ("raw", "corrected")] if serve else []
+            readers = [PtyReader(Path(tmp) / name) for name in ("raw", "corrected")]
             for thread in (*clients, *readers):
                 thread.start()
             threading.Timer(seconds / 2, abuse, (sock_path,)).start()

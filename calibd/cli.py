@@ -310,8 +310,7 @@ def cmd_replay(args) -> int:
         listeners.append(hub)
     calibrator = Calibrator(site, warmup, method, listeners, source=args.capture, detection=detection)
     try:
-        tap = hub and hub.tap
-        source = PtySource(data, speed, tap=tap) if args.pty or serve else CaptureSource(data, speed, tap=tap)
+        source = PtySource(data, speed, tap=hub and hub.tap) if args.pty or serve else CaptureSource(data, speed)
     except BaseException:
         if hub is not None:
             hub.close()

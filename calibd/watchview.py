@@ -86,7 +86,6 @@ class WatchView:
     batches: deque = field(default_factory=deque)  # (t first, t last, count) of recent SAMPLES
     samples_said_t: float | None = None
     last_error: str | None = None
-    messages: int = 0
 
     def sample_rate_hz(self) -> float | None:
         """Samples per second of stream time over the last RATE_WINDOW_S."""
@@ -98,7 +97,6 @@ class WatchView:
 
     def update(self, message, now_s: float) -> str | None:
         """Take one message; the line it is worth on its own (None: nothing worth a line)."""
-        self.messages += 1
         if isinstance(message, Version):
             self.version = message
             return f"calibd {message.release}, protocol {message.proto_major}.{message.proto_minor}"

@@ -12,8 +12,8 @@ possible) and silence accounting (`silent_s`), while a backend implements `_read
 - `PtySource`: a capture written into a pseudo-terminal and read back by a `PortSource`: the
   daemon's own serial path, without a sensor.
 
-Each takes an optional `tap`, given to its parser (`StreamParser.tap`): every byte it reads,
-settled, for whoever passes the stream on.
+A port (and so a pty) takes an optional `tap`, given to its parser (`StreamParser.tap`): every
+byte it reads, settled, for whoever passes the stream on.
 
 A source that knows its stream ended returns None with `ended` True; a port never ends unless
 its reader thread failed (then `error` holds why).
@@ -167,12 +167,12 @@ class CaptureSource(SampleSource):
     the port reader stamped it live; without one, `t_host` is NaN."""
 
     def __init__(self, data, speed: float | None = None, reads: np.ndarray | None = None,
-                 chunk_bytes: int = 65536, tap=None):
+                 chunk_bytes: int = 65536):
         super().__init__(speed)
         self._data = memoryview(data).cast("B")
         self._reads = reads
         self._chunk_bytes = chunk_bytes
-        self.parser = StreamParser(tap=tap)
+        self.parser = StreamParser()
         self.done_bytes = 0
         self.total_bytes = len(self._data)
 

@@ -43,11 +43,6 @@ class Command:
     args: dict | None = None
 
 
-def release() -> str:
-    """The installed package's version, as VERSION reports it."""
-    return package_version()
-
-
 def parse_command(line: bytes) -> Command:
     """One command line (without its newline) -> Command; ProtocolError for anything else."""
     try:
@@ -92,7 +87,7 @@ def decode(line: bytes | str) -> dict:
 
 
 def version_message() -> dict:
-    return {"class": "VERSION", "release": release(), "proto_major": PROTO_MAJOR, "proto_minor": PROTO_MINOR}
+    return {"class": "VERSION", "release": package_version(), "proto_major": PROTO_MAJOR, "proto_minor": PROTO_MINOR}
 
 
 def error_message(text: str) -> dict:
