@@ -19,12 +19,14 @@ from structlog.testing import capture_logs
 
 import calibd.results
 from calibd.cli import main as calibd_main
-from calibd.daemon import State
+from calibd.daemon import Calibrator, Callbacks, State
 from calibd.daemon.solver import stale_result
-from calibd.live import Watchdog
+from calibd.live import Watchdog, replay
 from calibd.frames import Site
-from calibd.results import CalibrationResult, Estimate, ResultStore, StateDirError, site_record
+from calibd.results import CalibrationResult, Estimate, ResultStore, StateDirError, site_record, write_result
 from stim300.bulk import decode_capture
+from stim300.source import CaptureSource
+from stim300.special import SerialNumber, encode_special
 from test_daemon import FIXTURES, HEADING137, _calibd_run, _plug, _read_log_until, _stop, _write_paced
 
 AS_ROOT = os.geteuid() == 0
@@ -197,6 +199,41 @@ def test_a_stale_result_is_marked_once_and_a_result_without_a_session_counts_as_
     store.on_result(replace(result(2.0), session=None))  # no session: taken as 0 s long, so shorter
     held_back = json.loads((tmp_path / "state.json").read_text())["held_back"]
     assert kept_sigma(tmp_path) == 1.0 and "on 0 s is larger" in held_back
+
+
+FIXTURE_UNIT = "N25582405002002"  # the serial number in the fixtures' power-up datagrams
+OTHER_UNIT = "N25582405009999"
+SWAPPED = f"the sensor on the port is {FIXTURE_UNIT}, the result is of sensor {OTHER_UNIT}"
+REQUEST_AT = 100_032  # a datagram boundary in the capture, where a requested serial-number datagram comes
+
+
+@pytest.mark.parametrize("result_serial, start_byte, requested, why", [
+    (OTHER_UNIT, 0, False, SWAPPED),
+    (FIXTURE_UNIT, 0, False, None),  # the same unit
+    (OTHER_UNIT, 5000, False, None),  # no serial-number datagram: the daemon started after the power-up
+    (OTHER_UNIT, 5000, True, SWAPPED),  # its serial number asked for (I, CR written into the raw pty)
+    (None, 0, False, None)])  # the result names no sensor
+def test_an_earlier_daemons_result_of_another_sensor_is_marked_stale_once(tmp_path, result_serial, start_byte,
+                                                                        requested, why):
+    """result.json left by an earlier daemon is served until this one solves: when the stream's
+    serial-number datagram names another unit, it is marked stale at once and once (every batch
+    names the sensor again); an unknown serial number on either side proves nothing."""
+    write_result(tmp_path / "result.json", replace(result(), sensor={"serial_number": result_serial}))
+    store = ResultStore(tmp_path)
+    previous, heard = store.previous(), []
+    calibrator = Calibrator(Site(60.0), listeners=[store, Callbacks(stale=heard.append)], previous=previous)
+    data = HEADING137.read_bytes()  # its first 40 s: warming up, no result of its own
+    answer = encode_special(SerialNumber(FIXTURE_UNIT), crlf=False) if requested else b""
+    replay(CaptureSource(data[start_byte:REQUEST_AT] + answer + data[REQUEST_AT:200_000]), calibrator)
+    assert calibrator.sensor["serial_number"] == (FIXTURE_UNIT if start_byte == 0 or requested else None)
+    assert calibrator.sessions == 0
+    written = json.loads((tmp_path / "result.json").read_text())
+    if why is None:
+        assert heard == [] and calibrator.result is previous and written.get("stale") is None
+        return
+    assert [stale.stale["reason"] for stale in heard] == [why] and calibrator.result is heard[0]
+    assert written["stale"]["reason"] == why and written["warnings"][0] == f"stale: {why}"
+    assert written["estimates"]["yaw"]["value"] == 10.0  # the result as it was, marked
 
 
 @pytest.mark.parametrize("content, why", [

@@ -7,7 +7,8 @@ with RESTARTED (the sensor power-cycled: turn-on biases changed, a new session s
 stopped after a turn, and the session's segments hold what the method needs), again every
 `resolve_every_s` of new data, and once more at the end of the data (`finish`: the end of a
 replay, or a sensor restart, which ends the previous power-up's data). A restart marks the
-previous power-up's result stale at once (`stale_result`). The work is its collaborators':
+previous power-up's result stale at once (`stale_result`), and so does a stream naming another
+sensor than an earlier daemon's result does. The work is its collaborators':
 `Collector` (one power-up's data), `WarmWatch` (the warm-up rule), `SolveTrigger` (when to
 solve), `solve` (the method); the listeners hear what happens.
 """
@@ -36,7 +37,8 @@ from .warmwatch import Warmth, WarmWatch
 class Calibrator:
     """The daemon's states and their transitions; `listeners` hear every state, result and stale
     result, in their order. `previous` is the result an earlier daemon left (result.json): it
-    stands until this one solves, and a sensor restart marks it stale like its own."""
+    stands until this one solves, and a sensor restart marks it stale like its own, as does a
+    stream whose serial number is not the result's (another unit on the port)."""
 
     def __init__(self, site: Site, warmup: WarmupConfig = WarmupConfig(), method: MethodConfig = MethodConfig(),
                  listeners: Sequence[Listener] = (), source: str = "live",
@@ -47,6 +49,7 @@ class Calibrator:
         self.state = State.STARTING
         self.detail = "waiting for data"
         self.result = previous  # an earlier daemon's (result.json) until this one solves: a restart marks it stale
+        self._inherited = previous  # checked against the stream's sensor while it is the result held
         self.sessions = 0
         self.session_id: str | None = None
         self.sensor: dict = {}
@@ -63,6 +66,7 @@ class Calibrator:
         """The sensor as the stream names it (serial and part number, datagram, rate) and the
         stream's statistics since the daemon began reading (StreamInfo.stream_record): results carry them."""
         self.sensor, self.stream_stats = identity, stream or {}
+        self._check_inherited(identity.get("serial_number"))
 
     def feed(self, samples: np.ndarray, rate_hz: int, first: int = 0, restart_datagrams=()) -> None:
         """A batch of decoded samples (stim300.codec.SAMPLE_DTYPE) in stream order: `first` is the
@@ -132,19 +136,36 @@ class Calibrator:
         self._trigger = SolveTrigger()
         self._gap = False
 
+    def _check_inherited(self, serial: str | None) -> None:
+        """An earlier daemon's result of another sensor (a unit swapped on the port) is stale at
+        once. A serial number comes only in the sensor's power-up datagrams: when the daemon
+        started after them, or the result names none, nothing is known, and only a restart tells."""
+        if self._inherited is None or self.result is not self._inherited:
+            return
+        theirs = self._inherited.sensor.get("serial_number")
+        if serial is not None and theirs is not None and serial != theirs:
+            self._mark_stale(f"the sensor on the port is {serial}, the result is of sensor {theirs}")
+
     def _power_cycled(self) -> None:
         """A restart ends the previous power-up's data: solve it to its end, mark its result as
         belonging to that power-up (turn-on biases change at every power-up), start afresh."""
         self.finish()
         reason = "sensor restarted: turn-on biases changed, starting a new session"
-        if self.result is not None and self.result.stale is None:
-            self.result = stale_result(self.result, "the sensor restarted after this result: it belongs to the "
-                                                    "previous power-up (turn-on biases change at every power-up)")
-            for listener in self.listeners:
-                listener.on_stale(self.result)
+        if self._mark_stale("the sensor restarted after this result: it belongs to the previous power-up "
+                            "(turn-on biases change at every power-up)"):
             reason += "; the last result is the previous power-up's, marked stale"
         self._set(State.RESTARTED, reason)
         self._new_power_up()
+
+    def _mark_stale(self, reason: str) -> bool:
+        """The result held no longer applies: marked stale (once) and the listeners told, so
+        result.json, POLL and the corrected pty stop serving it as current. False: nothing to mark."""
+        if self.result is None or self.result.stale is not None:
+            return False
+        self.result = stale_result(self.result, reason)
+        for listener in self.listeners:
+            listener.on_stale(self.result)
+        return True
 
     def _start_session(self, start_s: float, detail: str) -> None:
         self.collector.start_session(start_s, self.detection)
