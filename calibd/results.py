@@ -357,7 +357,8 @@ class ResultStore:
     def previous(self) -> CalibrationResult | None:
         """result.json as an earlier daemon left it (None: none, or unreadable, said in the log).
         Not the kept result: whether it is of the sensor's current power-up is not known until
-        the sensor restarts (then the Calibrator marks it stale and result.json says so)."""
+        the sensor restarts or the stream names another sensor (then the Calibrator marks it
+        stale and result.json says so)."""
         path = self.dir / "result.json"
         if path.is_symlink() or not path.is_file():
             return None
