@@ -19,7 +19,7 @@ from structlog.testing import capture_logs
 
 import calibd.results
 from calibd.cli import main as calibd_main
-from calibd.daemon import Calibrator, Callbacks, State
+from calibd.daemon import Calibrator, Callbacks, State, StateLog
 from calibd.daemon.solver import stale_result
 from calibd.live import Watchdog, replay
 from calibd.frames import Site
@@ -221,10 +221,13 @@ def test_an_earlier_daemons_result_of_another_sensor_is_marked_stale_once(tmp_pa
     write_result(tmp_path / "result.json", replace(result(), sensor={"serial_number": result_serial}))
     store = ResultStore(tmp_path)
     previous, heard = store.previous(), []
-    calibrator = Calibrator(Site(60.0), listeners=[store, Callbacks(stale=heard.append)], previous=previous)
+    calibrator = Calibrator(Site(60.0), listeners=[store, Callbacks(stale=heard.append), StateLog()],
+                            previous=previous)
     data = HEADING137.read_bytes()  # its first 40 s: warming up, no result of its own
     answer = encode_special(SerialNumber(FIXTURE_UNIT), crlf=False) if requested else b""
-    replay(CaptureSource(data[start_byte:REQUEST_AT] + answer + data[REQUEST_AT:200_000]), calibrator)
+    with capture_logs() as logs:
+        replay(CaptureSource(data[start_byte:REQUEST_AT] + answer + data[REQUEST_AT:200_000]), calibrator)
+    assert [e["reason"] for e in logs if e["event"] == "result_stale"] == ([] if why is None else [why])
     assert calibrator.sensor["serial_number"] == (FIXTURE_UNIT if start_byte == 0 or requested else None)
     assert calibrator.sessions == 0
     written = json.loads((tmp_path / "result.json").read_text())

@@ -39,7 +39,7 @@ class Listener(Protocol):
         """A new result."""
 
     def on_stale(self, result: CalibrationResult) -> None:
-        """The last result, now marked as the previous power-up's (the sensor restarted)."""
+        """The last result, now marked stale (the sensor restarted, or another sensor is on the port)."""
 
 
 @dataclass(frozen=True)
@@ -62,7 +62,8 @@ class Callbacks(Listener):
 
 class StateLog(Listener):
     """The structured log: a `state` event at each change of state (FAULT at warning level: the
-    data stopped), a `solved` event per result."""
+    data stopped), a `solved` event per result, a `result_stale` warning when the last result
+    stops applying (a restart, or another sensor on the port: the state need not change)."""
 
     def __init__(self) -> None:
         self._state = State.STARTING
@@ -75,3 +76,6 @@ class StateLog(Listener):
     def on_result(self, result: CalibrationResult) -> None:
         log.info("solved", **{name: round(e.value, 6) for name, e in result.estimates.items()},
                  units={name: e.unit for name, e in result.estimates.items()})
+
+    def on_stale(self, result: CalibrationResult) -> None:
+        log.warning("result_stale", reason=result.stale["reason"])
