@@ -32,6 +32,7 @@ from ..daemon import Calibrator, Listener, State
 from ..errors import CalibdError
 from ..methods import estimator
 from ..results import CalibrationResult, result_json
+from ..session import PowerUpCuts
 from .protocol import (SAMPLES_MAX_S, Command, ProtocolError, device_message, fault_message, poll_message,
                        result_message, samples_line, state_message)
 from .correct import result_biases
@@ -59,6 +60,8 @@ class Hub(Listener):
         self._state = {"state": State.STARTING.value, "detail": "waiting for data", "progress": {}}
         self._result = previous
         self._bias: dict[str, np.ndarray] | None = None  # this power-up's, in SENSOR_UNITS
+        self._cuts = PowerUpCuts()  # the tap's: where the sensor restarted
+        self._restart_unheard = False  # the tap saw a restart the calibrator has not yet said (RESTARTED)
         self._info: StreamInfo | None = None
         self._overrun = 0
         self._pending: list[np.ndarray] = []
@@ -98,22 +101,29 @@ class Hub(Listener):
     # ------------------------------------------------------------------ the calibrator's events (pump thread)
     def on_state(self, state: State, detail: str) -> None:
         if state == State.RESTARTED:
-            self._bias = None
+            with self._lock:
+                self._bias, self._restart_unheard = None, False
+                if self.corrected_pty is not None:
+                    self.corrected_pty.set_result(None)
         self._state = {"state": state.value, "detail": detail, "progress": self._progress()}
         self._publish(state_message(**self._state))
 
     def on_result(self, result: CalibrationResult) -> None:
-        self._bias = {block: bias.astype(np.float32) for block, bias in result_biases(result).items()} or None
-        self._new_result(result)
+        """Published always; its biases corrected with only while no restart has come since
+        (the calibrator solves the old power-up to its end after the tap has seen the new one)."""
+        bias = {block: bias.astype(np.float32) for block, bias in result_biases(result).items()} or None
+        self._new_result(result, bias)
 
     def on_stale(self, result: CalibrationResult) -> None:
-        self._bias = None
-        self._new_result(result)
+        self._new_result(result, None)
 
-    def _new_result(self, result: CalibrationResult) -> None:
+    def _new_result(self, result: CalibrationResult, bias: dict[str, np.ndarray] | None) -> None:
         self._result = result
-        if self.corrected_pty is not None:
-            self.corrected_pty.set_result(None if result.stale else result)
+        with self._lock:  # not between the tap's restart check and its own dropping of the biases
+            armed = not (self._restart_unheard or result.stale)
+            self._bias = bias if armed else None
+            if self.corrected_pty is not None:
+                self.corrected_pty.set_result(result if armed else None)
         if self.config.result_copy is not None:
             self._write_copy(result)
         self._publish(result_message(result.to_dict()))
@@ -166,7 +176,15 @@ class Hub(Listener):
     # ------------------------------------------------------------------ the parser's tap (reader thread)
     def tap(self, settled) -> None:
         """Each settled feed: its bytes to the ptys, its samples queued for the server thread.
-        Never blocks or raises (the oldest queued samples go when the server thread lags)."""
+        Never blocks or raises (the oldest queued samples go when the server thread lags).
+        A sensor restart (`PowerUpCuts`, the calibrator's rule) ends the corrections here, before
+        the calibrator hears of it: the new power-up's turn-on biases are not the last result's."""
+        pieces = self._cuts.pieces(settled.samples, settled.first, settled.restart_datagrams)
+        if any(restarted for restarted, _ in pieces):
+            with self._lock:
+                self._bias, self._restart_unheard = None, True
+                if self.corrected_pty is not None:
+                    self.corrected_pty.set_result(None)
         if self.raw_pty is not None:
             self.raw_pty.tap(settled)
         if self.corrected_pty is not None:

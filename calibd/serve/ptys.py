@@ -22,7 +22,6 @@ from pathlib import Path
 
 import structlog
 
-from stim300.codec import start_up_flags
 from stim300.stream import Settled
 
 from ..errors import CalibdError
@@ -256,9 +255,9 @@ class CorrectedPty:
     biases taken off each normal datagram's values (`calibd.serve.correct`).
 
     Before a result of this power-up (`before_result`): "hold" carries nothing, "raw" the bytes
-    unchanged. A datagram with the start-up status bit (the sensor restarted) ends the result
-    here at once, before the daemon's `set_result(None)`: the new power-up has new biases.
-    Requests written into it are read and refused (they belong to the raw pty)."""
+    unchanged. The hub ends the result (`set_result(None)`) in the same tap that brings a sensor
+    restart, before the new power-up's first datagram is written. Requests written into it are
+    read and refused (they belong to the raw pty)."""
 
     def __init__(self, link: Path, before_result: str = "hold", group: str | None = None):
         if before_result not in BEFORE_RESULT:
@@ -279,8 +278,6 @@ class CorrectedPty:
     def tap(self, settled: Settled) -> None:
         """The parser's tap (reader thread): never blocks, never raises."""
         corrector = self._corrector  # one read: set_result runs in another thread
-        if corrector is not None and len(settled.samples) and start_up_flags(settled.samples).any():
-            corrector = self._corrector = None
         try:
             data = corrector.apply(settled) if corrector is not None else settled.data
         except Exception:  # noqa: BLE001 - the reader thread must go on; the bytes are held back
