@@ -1,7 +1,6 @@
 """The raw and corrected ptys on real pseudo-terminals: bytes out of the link, requests in,
 biases out of the corrected datagrams, links made and removed."""
 
-import grp
 import os
 import select
 import stat
@@ -19,6 +18,7 @@ from calibd.frames import STANDARD_GRAVITY
 from calibd.results import CalibrationResult, Estimate
 from calibd.serve.hub import Hub
 from calibd.serve.ptys import CorrectedPty, PtyError, RawPty
+from calibd.serve.sockets import ServeError
 from stim300.bulk import decode_capture
 from stim300.codec import encode_samples
 from stim300.protocol import AccUnit, GyroUnit, Status
@@ -396,12 +396,14 @@ def test_a_regular_file_or_a_missing_directory_is_refused(link):
 
 
 def test_the_slave_gets_the_group_and_an_unknown_group_is_one_line(link):
-    group = grp.getgrgid(os.getgid()).gr_name
-    raw = RawPty(link, forward=lambda request: None, group=group)
+    raw = RawPty(link, forward=lambda request: None, gid=os.getgid())
     try:
         assert os.stat(link).st_gid == os.getgid()
     finally:
         raw.close()
-    with pytest.raises(PtyError, match="group 'no-such-group-here' does not exist"):
-        RawPty(link, forward=lambda request: None, group="no-such-group-here")
+    with pytest.raises(ServeError, match="^group 'no-such-group-here': no such group"):
+        Hub(ServeConfig(raw_pty=link, group="no-such-group-here"), "port")
     assert not os.path.lexists(link)
+    with pytest.raises(ServeError, match=f"^corrected_pty {link.parent}/missing/imu: directory "
+                                         f"{link.parent}/missing does not exist$"):
+        Hub(ServeConfig(corrected_pty=link.parent / "missing" / "imu"), "port")

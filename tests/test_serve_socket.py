@@ -196,6 +196,8 @@ def test_samples_are_the_decode_of_the_feed(served, tmp_path):
     assert batches[0]["incl"] is not None and batches[0]["corrected"] is False
     device = (client.send(b"?DEVICE;\n"), client.until("DEVICE"))[1]
     assert device["rate_hz"] == 2000 and device["units"] == {"gyro": "deg/s", "acc": "g", "incl": "g"}
+    configuration = decode_capture(data).info.configuration.as_dict()  # names, with the rate the codes give
+    assert device["configuration"] == json.loads(json.dumps(configuration)) and configuration["sample_rate_hz"] == 2000
 
 
 def test_corrected_samples_are_raw_minus_the_power_ups_biases(served, tmp_path):

@@ -15,9 +15,6 @@ import grp
 import os
 import stat
 import threading
-from dataclasses import asdict
-from enum import Enum
-from pathlib import Path
 
 import numpy as np
 import structlog
@@ -29,14 +26,13 @@ from stim300.clock import CounterClock
 from .. import detect
 from ..config import ServeConfig
 from ..daemon import Calibrator, Listener, State
-from ..errors import CalibdError
 from ..methods import estimator
 from ..results import CalibrationResult, result_json
 from ..session import PowerUpCuts
 from .protocol import (SAMPLES_MAX_S, Command, ProtocolError, device_message, fault_message, poll_message,
                        result_message, samples_line, state_message)
 from .correct import result_biases
-from .ptys import CorrectedPty, RawPty
+from .ptys import CorrectedPty, PtyError, RawPty
 from .sockets import ServeError, SocketServer
 
 log = structlog.get_logger("calibd")
@@ -77,11 +73,11 @@ class Hub(Listener):
                 if self._result is not None:
                     self._write_copy(self._result, at_start=True)
             if config.raw_pty is not None:
-                self.raw_pty = _pty("raw_pty", config.raw_pty, lambda: RawPty(
-                    config.raw_pty, self._forward, config.allow_service_mode, config.group))
+                self.raw_pty = _pty("raw_pty", lambda: RawPty(
+                    config.raw_pty, self._forward, config.allow_service_mode, self.gid))
             if config.corrected_pty is not None:
-                self.corrected_pty = _pty("corrected_pty", config.corrected_pty, lambda: CorrectedPty(
-                    config.corrected_pty, config.corrected_before_result, config.group))
+                self.corrected_pty = _pty("corrected_pty", lambda: CorrectedPty(
+                    config.corrected_pty, config.corrected_before_result, self.gid))
             if config.socket is not None or config.tcp is not None:
                 self.server = SocketServer(config.socket, config.tcp, self.gid, self._answer,
                                            self._cut_samples).start()
@@ -246,7 +242,7 @@ class Hub(Listener):
             if info is None:
                 return device_message(self.port, {}, None, None)
             units = {block: unit for block, unit in info.format.units().items() if block in SENSOR_UNITS}
-            configuration = None if info.configuration is None else _json_ready(asdict(info.configuration))
+            configuration = None if info.configuration is None else info.configuration.as_dict()
             return device_message(self.port, info.sensor_record(), units, configuration)
         raise ProtocolError(f"?{command.name} takes no part in this server")
 
@@ -260,22 +256,10 @@ def _group_id(name: str | None) -> int | None:
         raise ServeError(f"group {name!r}: no such group (create it, or drop group from [serve])") from None
 
 
-def _pty(key: str, link: Path, make):
-    """A pty made by `make()`, its failure one ServeError line naming the key and link."""
-    if not link.parent.is_dir():
-        raise ServeError(f"{key} {link}: no such directory {link.parent}")
+def _pty(key: str, make):
+    """A pty made by `make()`, its failure one ServeError line naming the key (a PtyError names
+    the link)."""
     try:
         return make()
-    except OSError as exc:
-        raise ServeError(f"{key} {link}: {(exc.strerror or str(exc)).lower()}") from None
-    except CalibdError as exc:
-        raise ServeError(f"{key} {link}: {exc}") from None
-
-
-def _json_ready(value):
-    """A dataclass record with enums (as their names) and tuples, for JSON."""
-    if isinstance(value, dict):
-        return {k: _json_ready(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_ready(v) for v in value]
-    return value.name if isinstance(value, Enum) else value
+    except PtyError as exc:
+        raise ServeError(f"{key} {exc}") from None
