@@ -20,7 +20,7 @@ from calibd.frames import Site
 from calibd.results import ResultStore, make_result, result_json, write_result
 from calibd.serve import hub as hub_module
 from calibd.serve import sockets
-from calibd.serve.correct import result_biases
+from calibd.serve.correct import result_biases, sample_units, samples_correctable
 from calibd.serve.hub import Hub
 from calibd.serve.protocol import MAX_LINE_BYTES, SAMPLES_MAX_S
 from calibd.serve.sockets import ServeError
@@ -28,6 +28,8 @@ from calibd.units import DEG
 from stim300.bulk import decode_capture
 from stim300.capture import stream_info
 from stim300.codec import SAMPLE_DTYPE
+from stim300.protocol import AccUnit, GyroUnit
+from stim300.special import Configuration
 from stim300.stream import StreamParser
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
@@ -322,6 +324,18 @@ def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+@pytest.mark.parametrize("gyro_unit, acc_unit, incl_unit, correctable", [
+    (GyroUnit.RATE, AccUnit.ACCELERATION, AccUnit.ACCELERATION, True),
+    (GyroUnit.AVERAGE_RATE_DELAYED, AccUnit.AVERAGE_ACCELERATION, AccUnit.ACCELERATION, True),
+    (GyroUnit.INCREMENTAL_ANGLE, AccUnit.ACCELERATION, AccUnit.ACCELERATION, False),
+    (GyroUnit.RATE, AccUnit.INTEGRATED_VELOCITY_MS, AccUnit.ACCELERATION, False),
+    (GyroUnit.RATE, AccUnit.ACCELERATION, AccUnit.INCREMENTAL_VELOCITY, False)])
+def test_samples_are_corrected_in_rates_and_accelerations_only(gyro_unit, acc_unit, incl_unit, correctable):
+    fmt = Configuration.build(gyro_unit=gyro_unit, acc_unit=acc_unit, incl_unit=incl_unit).format
+    assert samples_correctable(fmt) is correctable
+    assert (sample_units(fmt) == {"gyro": "deg/s", "acc": "g", "incl": "g"}) is correctable
 
 
 def test_state_and_result_and_faults_reach_watchers(served, tmp_path):

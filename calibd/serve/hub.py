@@ -31,7 +31,7 @@ from ..results import CalibrationResult, result_json
 from ..session import PowerUpCuts
 from .protocol import (SAMPLES_MAX_S, Command, ProtocolError, device_message, fault_message, poll_message,
                        result_message, samples_line, state_message)
-from .correct import result_biases
+from .correct import result_biases, sample_units, samples_correctable
 from .ptys import CorrectedPty, PtyError, RawPty
 from .sockets import ServeError, SocketServer
 
@@ -39,7 +39,6 @@ log = structlog.get_logger("calibd")
 
 RESULT_COPY_MODE = 0o640
 PENDING_SAMPLES = 8000  # samples the tap keeps for the server thread at most (4 s at 2000 Hz)
-SENSOR_UNITS = {"gyro": "deg/s", "acc": "g", "incl": "g"}  # the units biases are subtracted in
 
 
 class Hub(Listener):
@@ -55,7 +54,7 @@ class Hub(Listener):
         self._calibrator: Calibrator | None = None
         self._state = {"state": State.STARTING.value, "detail": "waiting for data", "progress": {}}
         self._result = previous
-        self._bias: dict[str, np.ndarray] | None = None  # this power-up's, in SENSOR_UNITS
+        self._bias: dict[str, np.ndarray] | None = None  # this power-up's, in the sensor's base units
         self._cuts = PowerUpCuts()  # the tap's: where the sensor restarted
         self._restart_unheard = False  # the tap saw a restart the calibrator has not yet said (RESTARTED)
         self._info: StreamInfo | None = None
@@ -213,8 +212,7 @@ class Hub(Listener):
         samples = np.concatenate(pending)
         time_s = self._clock.times(samples["counter"], info.rate_hz, samples["t_host"]).time_s
         bias, hold = self._bias, self.config.corrected_before_result == "hold"
-        units = {block: unit for block, unit in info.format.units().items() if block in SENSOR_UNITS}
-        if units != SENSOR_UNITS:
+        if not samples_correctable(info.format):
             bias = None  # incremental or integrated units: not corrected (docs/serving.md)
         batches = []
         step = max(1, int(SAMPLES_MAX_S * info.rate_hz))
@@ -241,9 +239,8 @@ class Hub(Listener):
             info = self._info
             if info is None:
                 return device_message(self.port, {}, None, None)
-            units = {block: unit for block, unit in info.format.units().items() if block in SENSOR_UNITS}
             configuration = None if info.configuration is None else info.configuration.as_dict()
-            return device_message(self.port, info.sensor_record(), units, configuration)
+            return device_message(self.port, info.sensor_record(), sample_units(info.format), configuration)
         raise ProtocolError(f"?{command.name} takes no part in this server")
 
 
