@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from structlog.testing import capture_logs
 
 from calibd.config import MethodConfig, ServeConfig, WarmupConfig
 from calibd.daemon import Calibrator, Callbacks, State
@@ -388,10 +389,17 @@ def test_the_tap_never_holds_more_than_its_bound(tmp_path, monkeypatch):
     hub = Hub(ServeConfig(socket=tmp_path / "s.sock"), "port")
     hub.server.close()  # the server thread gone: nobody cuts the samples
     parser = StreamParser(tap=hub.tap)
-    for offset in range(0, 300_000, 4096):
-        parser.feed(DATA_2000[offset:offset + 4096])
-    assert hub._pending_count <= 500 + 4096 // 40
+    with capture_logs() as logs:
+        for offset in range(0, 300_000, 4096):
+            parser.feed(DATA_2000[offset:offset + 4096])
+        assert hub._pending_count <= 500 + 4096 // 40
+        assert hub.dropped_samples == parser.stats.datagrams - hub._pending_count > 0  # each one counted
+        hub.stream_seen(stream_info(parser), {}, {})
+        assert hub._cut_samples({"raw"})  # the server thread catches up: the episode ends
+        parser.feed(DATA_2000[300_000:304_096])
     hub.close()
+    events = [(entry["event"], entry.get("dropped_samples")) for entry in logs if entry["event"].startswith("samples_")]
+    assert events == [("samples_dropping", None), ("samples_drops_ended", hub.dropped_samples)]  # once per episode
 
 
 def test_clients_beyond_the_limit_are_told_and_closed(served, tmp_path, monkeypatch):

@@ -61,6 +61,8 @@ class Hub(Listener):
         self._overrun = 0
         self._pending: list[np.ndarray] = []
         self._pending_count = 0
+        self.dropped_samples = 0  # samples the tap let go because the server thread lagged
+        self._episode_dropped = 0  # of them, since the server thread last took the queue
         self._lock = threading.Lock()
         self._clock = CounterClock()  # the server thread's: SAMPLES "t"
         self.raw_pty = self.corrected_pty = self.server = None
@@ -185,11 +187,18 @@ class Hub(Listener):
         if self.corrected_pty is not None:
             self.corrected_pty.tap(settled)
         if self.server is not None and len(settled.samples):
+            dropped = 0
             with self._lock:
                 self._pending.append(settled.samples)
                 self._pending_count += len(settled.samples)
                 while self._pending_count > PENDING_SAMPLES and len(self._pending) > 1:
-                    self._pending_count -= len(self._pending.pop(0))
+                    dropped += len(self._pending.pop(0))
+                self._pending_count -= dropped
+                begins = dropped and not self._episode_dropped
+                self._episode_dropped += dropped
+                self.dropped_samples += dropped
+            if begins:
+                log.warning("samples_dropping", why="the socket server's thread lags: the oldest queued samples go")
 
     def _forward(self, request: bytes) -> None:
         if self.port_writer is None:
@@ -207,6 +216,9 @@ class Hub(Listener):
             return []  # until the rate is known nothing can be timed: the samples wait (bounded)
         with self._lock:
             pending, self._pending, self._pending_count = self._pending, [], 0
+            ended, self._episode_dropped = self._episode_dropped, 0
+        if ended:
+            log.info("samples_drops_ended", dropped_samples=ended)
         if not pending:
             return []
         samples = np.concatenate(pending)
