@@ -106,8 +106,9 @@ class Hub(Listener):
         self._publish(state_message(**self._state))
 
     def on_result(self, result: CalibrationResult) -> None:
-        """Published always; its biases corrected with only while no restart has come since
-        (the calibrator solves the old power-up to its end after the tap has seen the new one)."""
+        """Always published; its biases are subtracted only when the tap has seen no restart the
+        calibrator has not yet said (the calibrator solves the old power-up to its end after the
+        tap has seen the new one: that result's biases are the old power-up's)."""
         bias = {block: bias.astype(np.float32) for block, bias in result_biases(result).items()} or None
         self._new_result(result, bias)
 
