@@ -313,11 +313,16 @@ class Settled:
     """The bytes one feed settled, for a tap (`StreamParser.tap`): every byte fed is in exactly
     one Settled, in stream order, datagrams whole; `samples` were decoded from `data`, and
     `runs` says where: (layout, format, offsets into `data`, start, stop) with
-    samples[start:stop] decoded from the datagrams at those offsets (`format_runs`)."""
+    samples[start:stop] decoded from the datagrams at those offsets (`format_runs`). `first` is
+    the stream number of samples[0], `restart_datagrams` the parser's restarts from `first` on
+    (each restarted sensor's first stream number, `Stats.restart_datagrams`): what a tap needs to
+    cut at power-ups by the same rule as the daemon (`calibd.session.PowerUpCuts`)."""
 
     data: bytes
     samples: np.ndarray
     runs: tuple
+    first: int = 0
+    restart_datagrams: tuple[int, ...] = ()
 
 
 class StreamParser:
@@ -365,7 +370,9 @@ class StreamParser:
             i = nxt
         samples, runs = self._decode(buf, t_host)
         if self.tap is not None and i:
-            self.tap(Settled(bytes(buf[:i]), samples, runs))
+            first = self.stats.datagrams - len(samples)
+            restarts = tuple(k for k in self.stats.restart_datagrams if k >= first)
+            self.tap(Settled(bytes(buf[:i]), samples, runs, first, restarts))
         del buf[:i]
         scanner.advance(i)
         return samples

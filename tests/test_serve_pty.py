@@ -1,7 +1,6 @@
 """The raw and corrected ptys on real pseudo-terminals: bytes out of the link, requests in,
 biases out of the corrected datagrams, links made and removed."""
 
-import grp
 import os
 import select
 import stat
@@ -14,9 +13,12 @@ import pytest
 from structlog.testing import capture_logs
 
 from captures import exact_samples
+from calibd.config import ServeConfig
 from calibd.frames import STANDARD_GRAVITY
 from calibd.results import CalibrationResult, Estimate
+from calibd.serve.hub import Hub
 from calibd.serve.ptys import CorrectedPty, PtyError, RawPty
+from calibd.serve.sockets import ServeError
 from stim300.bulk import decode_capture
 from stim300.codec import encode_samples
 from stim300.protocol import AccUnit, GyroUnit, Status
@@ -329,26 +331,32 @@ def test_before_a_result_hold_carries_nothing_and_raw_the_raw_bytes(tmp_path):
         raw.close()
 
 
-def test_a_datagram_in_start_up_ends_the_result_before_the_daemon_says_so(link):
+def test_the_start_up_bit_coming_on_ends_the_result_before_the_daemon_says_so(link):
+    """The hub's tap cuts at a restart (here the start-up bit rising, its power-up datagrams
+    lost) and the corrected pty passes the new power-up's datagrams unchanged at once."""
     fmt = Configuration.build(sample_rate_hz=2000).format
     samples = exact_samples(120, fmt, fmt.datagram_id, np.random.default_rng(3))
     for cluster in ("gyro", "acc", "incl"):
         samples["status_" + cluster] = np.where(np.arange(120) < 80, 0, Status.START_UP)  # restarted at 80
     frames = encode_samples(samples, fmt.datagram_id, fmt, crlf=False)
     before, after = frames[:80].tobytes(), frames[80:].tobytes()
-    corrected = CorrectedPty(link, before_result="raw")
-    corrected.set_result(result())
+    hub = Hub(ServeConfig(corrected_pty=link, corrected_before_result="raw"), "port")
+    hub.on_result(result())
     reader = LinkReader(link)
     try:
-        parser = StreamParser(fmt, tap=corrected.tap)
+        parser = StreamParser(fmt, tap=hub.tap)
         parser.feed(before)
         parser.feed(after)
         out = reader.wait_for(len(frames.tobytes()))
+        hub.on_result(result())  # the old power-up's finishing solve, before the daemon says RESTARTED
+        parser.feed(after)
+        again = reader.wait_for(len(out) + len(after))[len(out):]
     finally:
         reader.close()
-        corrected.close()
+        hub.close()
     assert len(out) == len(before) + len(after)
     assert out[:len(before)] != before and out[len(before):] == after  # corrected, then raw after the restart
+    assert again == after  # that result is published, not subtracted from the new power-up's datagrams
 
 
 def test_a_bad_before_result_is_one_line():
@@ -388,12 +396,14 @@ def test_a_regular_file_or_a_missing_directory_is_refused(link):
 
 
 def test_the_slave_gets_the_group_and_an_unknown_group_is_one_line(link):
-    group = grp.getgrgid(os.getgid()).gr_name
-    raw = RawPty(link, forward=lambda request: None, group=group)
+    raw = RawPty(link, forward=lambda request: None, gid=os.getgid())
     try:
         assert os.stat(link).st_gid == os.getgid()
     finally:
         raw.close()
-    with pytest.raises(PtyError, match="group 'no-such-group-here' does not exist"):
-        RawPty(link, forward=lambda request: None, group="no-such-group-here")
+    with pytest.raises(ServeError, match="^group 'no-such-group-here': no such group"):
+        Hub(ServeConfig(raw_pty=link, group="no-such-group-here"), "port")
     assert not os.path.lexists(link)
+    with pytest.raises(ServeError, match=f"^corrected_pty {link.parent}/missing/imu: directory "
+                                         f"{link.parent}/missing does not exist$"):
+        Hub(ServeConfig(corrected_pty=link.parent / "missing" / "imu"), "port")

@@ -13,14 +13,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from structlog.testing import capture_logs
 
-from calibd.config import ServeConfig
-from calibd.daemon import Calibrator, State
+from calibd.config import MethodConfig, ServeConfig, WarmupConfig
+from calibd.daemon import Calibrator, Callbacks, State
 from calibd.frames import Site
 from calibd.results import ResultStore, make_result, result_json, write_result
 from calibd.serve import hub as hub_module
 from calibd.serve import sockets
-from calibd.serve.correct import result_biases
+from calibd.serve.correct import result_biases, sample_units, samples_correctable
 from calibd.serve.hub import Hub
 from calibd.serve.protocol import MAX_LINE_BYTES, SAMPLES_MAX_S
 from calibd.serve.sockets import ServeError
@@ -28,6 +29,8 @@ from calibd.units import DEG
 from stim300.bulk import decode_capture
 from stim300.capture import stream_info
 from stim300.codec import SAMPLE_DTYPE
+from stim300.protocol import AccUnit, GyroUnit
+from stim300.special import Configuration
 from stim300.stream import StreamParser
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
@@ -196,6 +199,8 @@ def test_samples_are_the_decode_of_the_feed(served, tmp_path):
     assert batches[0]["incl"] is not None and batches[0]["corrected"] is False
     device = (client.send(b"?DEVICE;\n"), client.until("DEVICE"))[1]
     assert device["rate_hz"] == 2000 and device["units"] == {"gyro": "deg/s", "acc": "g", "incl": "g"}
+    configuration = decode_capture(data).info.configuration.as_dict()  # names, with the rate the codes give
+    assert device["configuration"] == json.loads(json.dumps(configuration)) and configuration["sample_rate_hz"] == 2000
 
 
 def test_corrected_samples_are_raw_minus_the_power_ups_biases(served, tmp_path):
@@ -322,6 +327,18 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+@pytest.mark.parametrize("gyro_unit, acc_unit, incl_unit, correctable", [
+    (GyroUnit.RATE, AccUnit.ACCELERATION, AccUnit.ACCELERATION, True),
+    (GyroUnit.AVERAGE_RATE_DELAYED, AccUnit.AVERAGE_ACCELERATION, AccUnit.ACCELERATION, True),
+    (GyroUnit.INCREMENTAL_ANGLE, AccUnit.ACCELERATION, AccUnit.ACCELERATION, False),
+    (GyroUnit.RATE, AccUnit.INTEGRATED_VELOCITY_MS, AccUnit.ACCELERATION, False),
+    (GyroUnit.RATE, AccUnit.ACCELERATION, AccUnit.INCREMENTAL_VELOCITY, False)])
+def test_samples_are_corrected_in_rates_and_accelerations_only(gyro_unit, acc_unit, incl_unit, correctable):
+    fmt = Configuration.build(gyro_unit=gyro_unit, acc_unit=acc_unit, incl_unit=incl_unit).format
+    assert samples_correctable(fmt) is correctable
+    assert (sample_units(fmt) == {"gyro": "deg/s", "acc": "g", "incl": "g"}) is correctable
+
+
 def test_state_and_result_and_faults_reach_watchers(served, tmp_path):
     hub = served(result_copy=tmp_path / "copy.json", group=OWN_GROUP)
     client = Client(tmp_path / "calibd.sock")
@@ -372,10 +389,17 @@ def test_the_tap_never_holds_more_than_its_bound(tmp_path, monkeypatch):
     hub = Hub(ServeConfig(socket=tmp_path / "s.sock"), "port")
     hub.server.close()  # the server thread gone: nobody cuts the samples
     parser = StreamParser(tap=hub.tap)
-    for offset in range(0, 300_000, 4096):
-        parser.feed(DATA_2000[offset:offset + 4096])
-    assert hub._pending_count <= 500 + 4096 // 40
+    with capture_logs() as logs:
+        for offset in range(0, 300_000, 4096):
+            parser.feed(DATA_2000[offset:offset + 4096])
+        assert hub._pending_count <= 500 + 4096 // 40
+        assert hub.dropped_samples == parser.stats.datagrams - hub._pending_count > 0  # each one counted
+        hub.stream_seen(stream_info(parser), {}, {})
+        assert hub._cut_samples({"raw"})  # the server thread catches up: the episode ends
+        parser.feed(DATA_2000[300_000:304_096])
     hub.close()
+    events = [(entry["event"], entry.get("dropped_samples")) for entry in logs if entry["event"].startswith("samples_")]
+    assert events == [("samples_dropping", None), ("samples_drops_ended", hub.dropped_samples)]  # once per episode
 
 
 def test_clients_beyond_the_limit_are_told_and_closed(served, tmp_path, monkeypatch):
@@ -418,3 +442,81 @@ def test_a_fault_answering_a_command_is_an_error_line_and_the_server_runs_on(ser
     error = client.message()
     assert error["class"] == "ERROR" and "internal error answering ?DEVICE: RuntimeError: boom" in error["message"]
     assert client.message()["class"] == "VERSION"
+
+
+def test_after_a_sensor_restart_nothing_is_corrected_with_the_previous_power_ups_biases(tmp_path, monkeypatch):
+    """Two power-ups through a real Calibrator, the reader and server threads going on while the
+    calibrator solves the old power-up to its end (its result arrives after the tap has seen
+    the restart): no corrected SAMPLES batch and no corrected pty datagram of the new power-up
+    loses the old biases; once the new power-up has its own result, its biases are taken off."""
+    monkeypatch.setattr(sockets.SocketServer, "start", lambda self: self)  # the test cuts the samples itself
+    hub = Hub(ServeConfig(socket=tmp_path / "s.sock", corrected_pty=tmp_path / "imu", corrected_before_result="raw"),
+              "port")
+    written = []  # what the corrected pty was given, one entry per settled feed
+    monkeypatch.setattr(hub.corrected_pty._pty, "write", written.append)
+    capture = (FIXTURES / "heading137_lat60_125hz.bin").read_bytes()
+    chunks = [(power_up, part[k:k + 4096]) for power_up, part in enumerate((capture, capture))
+              for k in range(0, len(part), 4096)]
+    fed, served, settled = [], [], []  # samples for the calibrator; (phase, cut); (phase, settled bytes)
+    phase = {"now": "old", "bias": None}  # which power-up is being read; the biases its results give
+
+    def tap(feed_settled):
+        settled.append((phase["now"], feed_settled.data))
+        hub.tap(feed_settled)
+
+    parser = StreamParser(tap=tap)
+
+    def read() -> None:
+        """The reader and server threads: one chunk through the parser, the samples cut."""
+        if not chunks:
+            return
+        power_up, data = chunks.pop(0)
+        if power_up == 1 and phase["now"] == "old":
+            phase["now"] = "new, unsolved"
+        first = parser.stats.datagrams
+        fed.append((parser.feed(data, 0.0), first))
+        hub.stream_seen(stream_info(parser), {}, {})
+        served.append((phase["now"], phase["bias"], hub._cut_samples({"raw", "corrected"})))
+
+    def result(result):
+        if phase["now"] != "old" and State.RESTARTED in phase:
+            phase["now"] = "new, solved"
+        if phase["now"] != "new, unsolved":
+            phase["bias"] = result_biases(result)
+        read()  # the reader goes on while the pump thread tells the listeners
+
+    meanwhile = Callbacks(result=result, stale=lambda result: read(),
+                          state=lambda state, detail: phase.setdefault(state, True))
+    calibrator = Calibrator(Site(60.0), WarmupConfig(window_s=10.0), MethodConfig(resolve_every_s=1e9),
+                            [hub, meanwhile])
+    hub.watch(calibrator)
+    try:
+        while chunks:
+            read()
+            while fed:
+                samples, first = fed.pop(0)
+                calibrator.feed(samples, 125, first, parser.stats.restart_datagrams)
+        calibrator.finish()
+    finally:
+        hub.close()
+    assert phase["now"] == "new, solved"
+    checked = {"old": 0, "new, unsolved": 0, "new, solved": 0}
+    for now, bias, cut in served:
+        lines = dict(cut)
+        if "corrected" not in lines:
+            continue
+        raw, corrected = json.loads(lines["raw"]), json.loads(lines["corrected"])
+        gyro = np.array(raw["gyro"]) - np.array(corrected["gyro"])
+        if now == "new, unsolved":
+            assert corrected["corrected"] is False and not gyro.any()
+            checked[now] += 1
+        elif corrected["corrected"]:
+            assert np.allclose(gyro, bias["gyro"], atol=1e-6)
+            checked[now] += 1
+    assert checked["old"] and checked["new, unsolved"] > 3 and checked["new, solved"]
+    pty = {"old": 0, "new, unsolved": 0, "new, solved": 0}
+    for (now, data), out in zip(settled, written, strict=True):
+        if now == "new, unsolved":
+            assert out == data  # the new power-up's datagrams as they came
+        pty[now] += out != data
+    assert pty["old"] and pty["new, solved"]

@@ -29,6 +29,23 @@ _FORCE_PER_BASE = {AccUnit.ACCELERATION: "base", AccUnit.AVERAGE_ACCELERATION: "
                    AccUnit.INCREMENTAL_VELOCITY: "interval_m_s"}
 
 
+def sample_units(fmt: Format) -> dict[str, str]:
+    """The units of the sensor blocks a bias is taken from (the SAMPLES and DEVICE units)."""
+    return {block: unit for block, unit in fmt.units().items() if block in ("gyro", "acc", "incl")}
+
+
+def samples_correctable(fmt: Format) -> bool:
+    """Whether decoded samples of this format take `result_biases` as they are: every block in
+    the sensor's base unit (a rate, an acceleration), none incremental or integrated."""
+    return (_GYRO_PER_BASE.get(_gyro_unit(fmt.gyro_unit)) == "base"
+            and _FORCE_PER_BASE.get(fmt.acc_unit) == _FORCE_PER_BASE.get(fmt.incl_unit) == "base")
+
+
+def _gyro_unit(unit) -> GyroUnit:
+    """The gyro output unit without its delayed flag."""
+    return GyroUnit(unit & 0x7)
+
+
 def result_biases(result: CalibrationResult) -> dict[str, np.ndarray]:
     """The result's biases in the sensor's base units (gyro deg/s, accelerometer and
     inclinometer g), for each cluster whose three estimates the result has."""
@@ -61,7 +78,7 @@ class Corrector:
             return settled.data
         out = bytearray(settled.data)
         view = np.frombuffer(out, np.uint8)
-        for layout, fmt, offsets, start, stop in settled.runs:
+        for layout, fmt, offsets, _, _ in settled.runs:
             subtract = self._counts_for(layout, fmt)
             if not subtract:
                 continue
@@ -88,7 +105,7 @@ class Corrector:
                 if cluster not in self.biases:
                     continue
                 unit, kinds = units[cluster]
-                scale = self._scale(cluster, GyroUnit(unit & 0x7) if cluster == "gyro" else unit, kinds, rate_hz)
+                scale = self._scale(cluster, _gyro_unit(unit) if cluster == "gyro" else unit, kinds, rate_hz)
                 if scale is not None:
                     counts.append((layout.offsets[cluster],
                                    np.rint(self.biases[cluster] * scale / scales[cluster]).astype(np.int32)))

@@ -15,9 +15,6 @@ import grp
 import os
 import stat
 import threading
-from dataclasses import asdict
-from enum import Enum
-from pathlib import Path
 
 import numpy as np
 import structlog
@@ -29,20 +26,19 @@ from stim300.clock import CounterClock
 from .. import detect
 from ..config import ServeConfig
 from ..daemon import Calibrator, Listener, State
-from ..errors import CalibdError
 from ..methods import estimator
 from ..results import CalibrationResult, result_json
+from ..session import PowerUpCuts
 from .protocol import (SAMPLES_MAX_S, Command, ProtocolError, device_message, fault_message, poll_message,
                        result_message, samples_line, state_message)
-from .correct import result_biases
-from .ptys import CorrectedPty, RawPty
+from .correct import result_biases, sample_units, samples_correctable
+from .ptys import CorrectedPty, PtyError, RawPty
 from .sockets import ServeError, SocketServer
 
 log = structlog.get_logger("calibd")
 
 RESULT_COPY_MODE = 0o640
 PENDING_SAMPLES = 8000  # samples the tap keeps for the server thread at most (4 s at 2000 Hz)
-SENSOR_UNITS = {"gyro": "deg/s", "acc": "g", "incl": "g"}  # the units biases are subtracted in
 
 
 class Hub(Listener):
@@ -58,11 +54,15 @@ class Hub(Listener):
         self._calibrator: Calibrator | None = None
         self._state = {"state": State.STARTING.value, "detail": "waiting for data", "progress": {}}
         self._result = previous
-        self._bias: dict[str, np.ndarray] | None = None  # this power-up's, in SENSOR_UNITS
+        self._bias: dict[str, np.ndarray] | None = None  # this power-up's, in the sensor's base units
+        self._cuts = PowerUpCuts()  # the tap's: where the sensor restarted
+        self._restart_unheard = False  # the tap saw a restart the calibrator has not yet said (RESTARTED)
         self._info: StreamInfo | None = None
         self._overrun = 0
         self._pending: list[np.ndarray] = []
         self._pending_count = 0
+        self.dropped_samples = 0  # samples the tap let go because the server thread lagged
+        self._episode_dropped = 0  # of them, since the server thread last took the queue
         self._lock = threading.Lock()
         self._clock = CounterClock()  # the server thread's: SAMPLES "t"
         self.raw_pty = self.corrected_pty = self.server = None
@@ -74,11 +74,11 @@ class Hub(Listener):
                 if self._result is not None:
                     self._write_copy(self._result, at_start=True)
             if config.raw_pty is not None:
-                self.raw_pty = _pty("raw_pty", config.raw_pty, lambda: RawPty(
-                    config.raw_pty, self._forward, config.allow_service_mode, config.group))
+                self.raw_pty = _pty("raw_pty", lambda: RawPty(
+                    config.raw_pty, self._forward, config.allow_service_mode, self.gid))
             if config.corrected_pty is not None:
-                self.corrected_pty = _pty("corrected_pty", config.corrected_pty, lambda: CorrectedPty(
-                    config.corrected_pty, config.corrected_before_result, config.group))
+                self.corrected_pty = _pty("corrected_pty", lambda: CorrectedPty(
+                    config.corrected_pty, config.corrected_before_result, self.gid))
             if config.socket is not None or config.tcp is not None:
                 self.server = SocketServer(config.socket, config.tcp, self.gid, self._answer,
                                            self._cut_samples).start()
@@ -98,22 +98,30 @@ class Hub(Listener):
     # ------------------------------------------------------------------ the calibrator's events (pump thread)
     def on_state(self, state: State, detail: str) -> None:
         if state == State.RESTARTED:
-            self._bias = None
+            with self._lock:
+                self._bias, self._restart_unheard = None, False
+                if self.corrected_pty is not None:
+                    self.corrected_pty.set_result(None)
         self._state = {"state": state.value, "detail": detail, "progress": self._progress()}
         self._publish(state_message(**self._state))
 
     def on_result(self, result: CalibrationResult) -> None:
-        self._bias = {block: bias.astype(np.float32) for block, bias in result_biases(result).items()} or None
-        self._new_result(result)
+        """Always published; its biases are subtracted only when the tap has seen no restart the
+        calibrator has not yet said (the calibrator solves the old power-up to its end after the
+        tap has seen the new one: that result's biases are the old power-up's)."""
+        bias = {block: bias.astype(np.float32) for block, bias in result_biases(result).items()} or None
+        self._new_result(result, bias)
 
     def on_stale(self, result: CalibrationResult) -> None:
-        self._bias = None
-        self._new_result(result)
+        self._new_result(result, None)
 
-    def _new_result(self, result: CalibrationResult) -> None:
+    def _new_result(self, result: CalibrationResult, bias: dict[str, np.ndarray] | None) -> None:
         self._result = result
-        if self.corrected_pty is not None:
-            self.corrected_pty.set_result(None if result.stale else result)
+        with self._lock:  # not between the tap's restart check and its own dropping of the biases
+            armed = not (self._restart_unheard or result.stale)
+            self._bias = bias if armed else None
+            if self.corrected_pty is not None:
+                self.corrected_pty.set_result(result if armed else None)
         if self.config.result_copy is not None:
             self._write_copy(result)
         self._publish(result_message(result.to_dict()))
@@ -166,17 +174,32 @@ class Hub(Listener):
     # ------------------------------------------------------------------ the parser's tap (reader thread)
     def tap(self, settled) -> None:
         """Each settled feed: its bytes to the ptys, its samples queued for the server thread.
-        Never blocks or raises (the oldest queued samples go when the server thread lags)."""
+        Never blocks or raises (the oldest queued samples go when the server thread lags).
+        A sensor restart (`PowerUpCuts`, the calibrator's rule) ends the corrections here, before
+        the calibrator hears of it: the new power-up's turn-on biases are not the last result's."""
+        pieces = self._cuts.pieces(settled.samples, settled.first, settled.restart_datagrams)
+        if any(restarted for restarted, _ in pieces):
+            with self._lock:
+                self._bias, self._restart_unheard = None, True
+                if self.corrected_pty is not None:
+                    self.corrected_pty.set_result(None)
         if self.raw_pty is not None:
             self.raw_pty.tap(settled)
         if self.corrected_pty is not None:
             self.corrected_pty.tap(settled)
         if self.server is not None and len(settled.samples):
+            dropped = 0
             with self._lock:
                 self._pending.append(settled.samples)
                 self._pending_count += len(settled.samples)
                 while self._pending_count > PENDING_SAMPLES and len(self._pending) > 1:
-                    self._pending_count -= len(self._pending.pop(0))
+                    dropped += len(self._pending.pop(0))
+                self._pending_count -= dropped
+                begins = dropped and not self._episode_dropped
+                self._episode_dropped += dropped
+                self.dropped_samples += dropped
+            if begins:
+                log.warning("samples_dropping", why="the socket server's thread lags: the oldest queued samples go")
 
     def _forward(self, request: bytes) -> None:
         if self.port_writer is None:
@@ -194,13 +217,15 @@ class Hub(Listener):
             return []  # until the rate is known nothing can be timed: the samples wait (bounded)
         with self._lock:
             pending, self._pending, self._pending_count = self._pending, [], 0
+            ended, self._episode_dropped = self._episode_dropped, 0
+        if ended:
+            log.info("samples_drops_ended", dropped_samples=ended)
         if not pending:
             return []
         samples = np.concatenate(pending)
         time_s = self._clock.times(samples["counter"], info.rate_hz, samples["t_host"]).time_s
         bias, hold = self._bias, self.config.corrected_before_result == "hold"
-        units = {block: unit for block, unit in info.format.units().items() if block in SENSOR_UNITS}
-        if units != SENSOR_UNITS:
+        if not samples_correctable(info.format):
             bias = None  # incremental or integrated units: not corrected (docs/serving.md)
         batches = []
         step = max(1, int(SAMPLES_MAX_S * info.rate_hz))
@@ -227,9 +252,8 @@ class Hub(Listener):
             info = self._info
             if info is None:
                 return device_message(self.port, {}, None, None)
-            units = {block: unit for block, unit in info.format.units().items() if block in SENSOR_UNITS}
-            configuration = None if info.configuration is None else _json_ready(asdict(info.configuration))
-            return device_message(self.port, info.sensor_record(), units, configuration)
+            configuration = None if info.configuration is None else info.configuration.as_dict()
+            return device_message(self.port, info.sensor_record(), sample_units(info.format), configuration)
         raise ProtocolError(f"?{command.name} takes no part in this server")
 
 
@@ -242,22 +266,10 @@ def _group_id(name: str | None) -> int | None:
         raise ServeError(f"group {name!r}: no such group (create it, or drop group from [serve])") from None
 
 
-def _pty(key: str, link: Path, make):
-    """A pty made by `make()`, its failure one ServeError line naming the key and link."""
-    if not link.parent.is_dir():
-        raise ServeError(f"{key} {link}: no such directory {link.parent}")
+def _pty(key: str, make):
+    """A pty made by `make()`, its failure one ServeError line naming the key (a PtyError names
+    the link)."""
     try:
         return make()
-    except OSError as exc:
-        raise ServeError(f"{key} {link}: {(exc.strerror or str(exc)).lower()}") from None
-    except CalibdError as exc:
-        raise ServeError(f"{key} {link}: {exc}") from None
-
-
-def _json_ready(value):
-    """A dataclass record with enums (as their names) and tuples, for JSON."""
-    if isinstance(value, dict):
-        return {k: _json_ready(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_ready(v) for v in value]
-    return value.name if isinstance(value, Enum) else value
+    except PtyError as exc:
+        raise ServeError(f"{key} {exc}") from None

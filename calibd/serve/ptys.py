@@ -10,7 +10,6 @@ request rule allows them; the answers then reach every reader through the stream
 
 from __future__ import annotations
 
-import grp
 import os
 import selectors
 import threading
@@ -22,9 +21,9 @@ from pathlib import Path
 
 import structlog
 
-from stim300.codec import start_up_flags
 from stim300.stream import Settled
 
+from ..config import BEFORE_RESULT
 from ..errors import CalibdError
 from ..results import CalibrationResult
 from .correct import Corrector
@@ -37,12 +36,11 @@ DROPS_QUIET_S = 5.0  # a drop episode ends once writes have all gone through for
 READ_BYTES = 256
 QUERIES = frozenset({b"N", b"I", b"C", b"T", b"E"})  # each asks for one special datagram (protocol §9)
 MODE_CHANGES = frozenset({b"SERVICEMODE", b"UTILITYMODE", b"R"})  # each stops the stream for every reader
-BEFORE_RESULT = ("hold", "raw")
 
 
 class PtyError(CalibdError):
     """A pty or its link the daemon cannot set up (a path that is not a symlink, a missing
-    directory, an unknown group); one line."""
+    directory, a group the node cannot be given); one line."""
 
 
 def request_refusal(line: bytes, allow_mode_changes: bool) -> str | None:
@@ -61,15 +59,15 @@ class LinkedPty:
     """A pty whose slave is linked at `link`: `write` never blocks (what the pty does not take is
     dropped and counted in `dropped_bytes`), and each line a client writes (CR or CR LF ended)
     goes to `on_line` from a reader thread; a line longer than MAX_REQUEST_BYTES is discarded.
+    The slave node gets group `gid` (None: the daemon's).
 
     The daemon keeps the slave open, so writes do not fail while no client has it open."""
 
-    def __init__(self, link: Path, group: str | None, on_line: Callable[[bytes], None]):
+    def __init__(self, link: Path, gid: int | None, on_line: Callable[[bytes], None]):
         self.link = Path(link)
         self.dropped_bytes = 0
         self._on_line = on_line
         _check_link(self.link)
-        gid = None if group is None else _group_id(group)
         self._write_lock = threading.Lock()  # the master fd is not closed under a write
         self._master = self._slave = self._wake_r = self._wake_w = None
         try:
@@ -82,7 +80,7 @@ class LinkedPty:
                 self.path = os.ttyname(self._slave)
             except OSError as exc:
                 raise PtyError(f"{link}: cannot open a pty: {(exc.strerror or str(exc)).lower()}") from None
-            _prepare_node(self.path, gid, group)
+            _prepare_node(self.path, gid)
             _replace_link(self.link, self.path)
         except BaseException:
             self._close_fds()
@@ -184,21 +182,14 @@ def _check_link(link: Path) -> None:
         raise PtyError(f"{link}: exists and is not a symlink; refusing to replace it with a pty link")
 
 
-def _group_id(group: str) -> int:
-    try:
-        return grp.getgrnam(group).gr_gid
-    except KeyError:
-        raise PtyError(f"group {group!r} does not exist") from None
-
-
-def _prepare_node(path: str, gid: int | None, group: str | None) -> None:
+def _prepare_node(path: str, gid: int | None) -> None:
     """Mode 0660 and the group, so members of the group read and write the slave."""
     try:
         os.chmod(path, SLAVE_MODE)
         if gid is not None:
             os.chown(path, -1, gid)
     except OSError as exc:
-        raise PtyError(f"{path}: cannot give it mode 0660{f' and group {group}' if group else ''}: "
+        raise PtyError(f"{path}: cannot give it mode 0660{'' if gid is None else f' and group id {gid}'}: "
                        f"{exc.strerror.lower()}") from None
 
 
@@ -222,12 +213,12 @@ class RawPty:
     (e.g. `PortReader.write`), with a CR."""
 
     def __init__(self, link: Path, forward: Callable[[bytes], object], allow_service_mode: bool = False,
-                 group: str | None = None):
+                 gid: int | None = None):
         self.forward = forward
         self.allow_service_mode = allow_service_mode
         self.requests_forwarded = 0
         self.requests_refused = 0
-        self._pty = LinkedPty(link, group, self._request)
+        self._pty = LinkedPty(link, gid, self._request)
 
     @property
     def dropped_bytes(self) -> int:
@@ -256,17 +247,17 @@ class CorrectedPty:
     biases taken off each normal datagram's values (`calibd.serve.correct`).
 
     Before a result of this power-up (`before_result`): "hold" carries nothing, "raw" the bytes
-    unchanged. A datagram with the start-up status bit (the sensor restarted) ends the result
-    here at once, before the daemon's `set_result(None)`: the new power-up has new biases.
-    Requests written into it are read and refused (they belong to the raw pty)."""
+    unchanged. The hub ends the result (`set_result(None)`) in the same tap that brings a sensor
+    restart, before the new power-up's first datagram is written. Requests written into it are
+    read and refused (they belong to the raw pty)."""
 
-    def __init__(self, link: Path, before_result: str = "hold", group: str | None = None):
+    def __init__(self, link: Path, before_result: str = "hold", gid: int | None = None):
         if before_result not in BEFORE_RESULT:
             raise PtyError(f"corrected_before_result = {before_result!r}: expected one of {', '.join(BEFORE_RESULT)}")
         self.before_result = before_result
         self._corrector: Corrector | None = None
         self._failing = False
-        self._pty = LinkedPty(link, group, self._request)
+        self._pty = LinkedPty(link, gid, self._request)
 
     @property
     def dropped_bytes(self) -> int:
@@ -279,8 +270,6 @@ class CorrectedPty:
     def tap(self, settled: Settled) -> None:
         """The parser's tap (reader thread): never blocks, never raises."""
         corrector = self._corrector  # one read: set_result runs in another thread
-        if corrector is not None and len(settled.samples) and start_up_flags(settled.samples).any():
-            corrector = self._corrector = None
         try:
             data = corrector.apply(settled) if corrector is not None else settled.data
         except Exception:  # noqa: BLE001 - the reader thread must go on; the bytes are held back
