@@ -293,16 +293,16 @@ def write_result(path, result: CalibrationResult) -> None:
 
 def load_result(path) -> CalibrationResult:
     try:
-        data = Path(path).read_bytes()
-    except OSError as exc:
+        text = Path(path).read_text()
+    except (OSError, UnicodeDecodeError) as exc:
         raise ResultError(f"{path}: cannot read: {exc}") from None
-    return parse_result(data, path)
+    return parse_result(text, path)
 
 
-def parse_result(data: bytes, where) -> CalibrationResult:
-    """A result file's bytes (read once, e.g. to hash them too) as a result; `where` names it."""
+def parse_result(data: str | bytes, where) -> CalibrationResult:
+    """A result file's text or bytes (read once, e.g. to hash them too) as a result; `where` names it."""
     try:
-        doc = json.loads(data.decode())
+        doc = json.loads(data)
     except UnicodeDecodeError as exc:
         raise ResultError(f"{where}: cannot read: {exc}") from None
     except json.JSONDecodeError as exc:
