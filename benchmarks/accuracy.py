@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from calibd.calibrate import joint_fit, joint_real_case, thesis_real_case
+from calibd import spec
 from calibd.errors import CalibrationError
 from calibd.estimators.joint import white_noise_bound
 from calibd.frames import NORMAL_GRAVITY_SIGMA, STANDARD_GRAVITY, Site, normal_gravity
@@ -52,10 +53,12 @@ NAMES = ["pitch", "roll", "yaw", "alpha", "beta", "gyro_bias_x", "gyro_bias_y", 
 UNITS = {**{n: "deg" for n in NAMES[:5]}, **{n: "deg/h" for n in NAMES[5:8]}, **{n: "mg" for n in NAMES[8:]}}
 ARW = 0.15 / 60 * DEG  # rad/sqrt(s): the datasheet angle random walk the bound assumes
 GYRO_DRIVEN = ("yaw", "alpha", "beta", "gyro_bias_x", "gyro_bias_y", "gyro_bias_z")  # what the gyro bound covers
-RUN_SETS = ("g0 given", "normal gravity", "one index", "no inclinometers", "vibrating static")
+RUN_SETS = ("g0 given", "normal gravity", "one index", "no inclinometers", "vibrating static", "field", "limit")
 SEED_OFFSET = {"g0 given": 0, "normal gravity": 100_000, "one index": 200_000, "no inclinometers": 300_000,
-               "vibrating static": 400_000}
+               "vibrating static": 400_000, "field": 500_000, "limit": 600_000}
+CALIBRATE_PATH = ("one index", "vibrating static", "field", "limit")  # through calibd calibrate: flags count
 VIBRATION = 12.5  # times the sensor's white noise (scenario.Segment.vibration)
+FIELD_RIPPLE = 0.02  # once-per-revolution rate ripple of the field and limit sets' turns
 
 
 def names(run_set: str) -> list[str]:
@@ -81,7 +84,26 @@ def random_scenario(seed: int, run_set: str = "g0 given"):
     if run_set == "normal gravity":
         lat = site.latitude_deg
         site = Site(lat, site.height_m, normal_gravity(lat, site.height_m) + rng.normal(0, NORMAL_GRAVITY_SIGMA))
+    if run_set in ("field", "limit"):
+        truth = replace(truth, **factory_residuals(rng, run_set))
+        segments = tuple(replace(s, ripple=FIELD_RIPPLE) if s.kind == "turn" else s for s in segments)
     return replace(base, seed=seed, truth=truth, segments=segments, site=site)
+
+
+def factory_residuals(rng: np.random.Generator, run_set: str) -> dict:
+    """Each triad's scale factors and misalignment elements (Truth's fields): drawn with the
+    datasheet's limits as 2 sigma (field), or at the limits with random signs (limit)."""
+    out = {}
+    for sensor, triad in spec.triads(spec.DEFAULT_ACC_RANGE_G).items():
+        if run_set == "field":
+            scale = rng.normal(0, triad.scale_factor_sigma_ppm, 3)
+            misalignment = rng.normal(0, triad.misalignment_sigma_mrad, 6)
+        else:
+            scale = rng.choice([-1, 1], 3) * triad.scale_factor_ppm
+            misalignment = rng.choice([-1, 1], 6) * triad.misalignment_mrad
+        out[f"{sensor}_scale_ppm"] = tuple(scale)
+        out[f"{sensor}_misalignment_mrad"] = tuple(misalignment)
+    return out
 
 
 def one_session(seed: int, run_set: str) -> dict:
@@ -110,13 +132,14 @@ def one_session(seed: int, run_set: str) -> dict:
     def values(result):
         return {n: e.value for n, e in result.estimates.items()}
 
-    out = {"refused": None, "poor": False}
-    if run_set in ("one index", "vibrating static"):
+    out = {"refused": None, "poor": False, "poor_names": []}
+    if run_set in CALIBRATE_PATH:
         try:
             result = joint_real_case(session, site)
         except CalibrationError as exc:
             return out | {"refused": str(exc)}
-        out["poor"] = any(e.quality == "poor" for e in result.estimates.values())
+        out["poor_names"] = [n for n, e in result.estimates.items() if e.quality == "poor"]
+        out["poor"] = bool(out["poor_names"])
         estimates, sigmas = values(result), {n: e.sigma for n, e in result.estimates.items()}
     else:
         fitted = joint_fit(session, site)
@@ -148,13 +171,15 @@ def table(results: list[dict], estimated: list[str]) -> str:
     def column(key, i):
         return f"{rms(arr[key][:, i]):.4g}" if key in arr else "-"
 
-    lines = ["| estimate | unit | joint RMS error | RMS(error / sigma) | within 1 / 2 / 3 sigma | "
-             "white-noise bound | thesis nominal RMS | thesis linear RMS |", "|---|---|---|---|---|---|---|---|"]
+    lines = ["| estimate | unit | joint RMS error | RMS(error / sigma) | within 1 / 2 / 3 sigma | beyond 3 sigma, "
+             "not flagged | white-noise bound | thesis nominal RMS | thesis linear RMS |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for i, name in enumerate(estimated):
         err, sigma = arr["joint"][:, i], arr["sigma"][:, i]
         bound = np.mean(arr["bound"][:, i]) if "bound" in arr else float("nan")
         within = " / ".join(f"{100 * np.mean(np.abs(err) <= k * sigma):.0f}%" for k in (1, 2, 3))
-        lines.append(f"| {name} | {UNITS[name]} | {rms(err):.4g} | {rms(err / sigma):.2f} | {within} | "
+        unflagged = sum(abs(r["joint"][i]) > 3 * r["sigma"][i] and name not in r["poor_names"] for r in solved)
+        lines.append(f"| {name} | {UNITS[name]} | {rms(err):.4g} | {rms(err / sigma):.2f} | {within} | {unflagged} | "
                      f"{f'{bound:.4g}' if np.isfinite(bound) else '-'} | {column('nominal', i)} | "
                      f"{column('linear', i)} |")
     return "\n".join(lines)

@@ -175,9 +175,9 @@ def fit_noise_model(residuals: np.ndarray, rate_hz: float, corr_taus=FLICKER_TAU
     matches that of `residuals` (static, samples x channels, pooled), in relative terms."""
     n = len(residuals)
     taus, adev = allan_deviation(residuals, rate_hz, 2.0 ** np.arange(int(np.log2(max(n // 4, 1))) + 1) / rate_hz)
-    if not len(taus):
-        return float(np.var(residuals)), 0.0
     target = (adev**2).mean(axis=1)
+    if not len(taus) or not np.all(target > 0):  # too short, or noise-free: nothing to fit a model to
+        return float(np.var(residuals)), 0.0
     rows = np.column_stack([1.0 / (taus * rate_hz), sum(allan_gm(taus, 1.0, c) for c in corr_taus)])
     coef, _ = nnls(rows / target[:, None], np.ones(len(taus)))
     return float(coef[0]), float(coef[1])

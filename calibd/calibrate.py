@@ -14,11 +14,11 @@ from scipy.special import gammaincc
 
 from stim300.clock import CYCLE_S
 
-from . import detect, gaps
+from . import detect, gaps, spec
 from .errors import CalibrationError
 from .estimators import joint, thesis
 from .frames import EARTH_RATE, STANDARD_GRAVITY, Site, int_to_imu
-from .results import CalibrationResult, make_result
+from .results import ESTIMATES, CalibrationResult, make_result
 from .scenario import Noise
 from .segments import segment_record, session_segments
 from .session import CaptureSessions, Session, power_up_session
@@ -325,8 +325,8 @@ def _tilt_check(inp: joint.JointInput, fit: joint.JointResult, site: Site) -> ga
     """The turns' angles against the tilt; None when the statics cannot tell them."""
     a = int_to_imu(fit.estimates["alpha"], fit.estimates["beta"])
     try:
-        return gaps.check_turn_angles(inp, fit.gyro.chi, a, site.gravity, fit.acc.noise, fit.tilt.noise,
-                                      fit.tilt.params[joint.TILT_PARAMS])
+        return gaps.check_turn_angles(inp, fit.gyro.chi, a, site.gravity, fit.acc.noise, fit.incl and fit.incl.noise,
+                                      fit.tilt.params[joint.TILT_PARAMS], fit.factory)
     except (joint.Underdetermined, np.linalg.LinAlgError):
         return None
 
@@ -340,13 +340,13 @@ def _corrected(inp: joint.JointInput, fit: joint.JointResult, site: Site, option
         return corrected_inp, joint.solve(corrected_inp, site, options)
 
     inp, corrected = solved(found)
-    covariance = corrected.covariance.copy()
+    turn_angles = np.zeros_like(corrected.covariance)
     for k, turn in enumerate(found):
         _, moved = solved(found[:k] + [replace(turn, correction_rad=turn.correction_rad + turn.sigma_rad)]
                           + found[k + 1:])
         shift = np.array([moved.estimates[name] - value for name, value in corrected.estimates.items()])
-        covariance += np.outer(shift, shift)  # one correction's error moves every estimate together
-    return inp, replace(corrected, covariance=covariance)
+        turn_angles += np.outer(shift, shift)  # one correction's error moves every estimate together
+    return inp, replace(corrected, budget=corrected.budget | {"turn_angles": turn_angles})
 
 
 def joint_real_case(session: Session, site: Site, options: joint.JointOptions = joint.JointOptions(),
@@ -363,12 +363,27 @@ def joint_real_case(session: Session, site: Site, options: joint.JointOptions = 
                          session.sensor, fit.covariance, stream=session.stream,
                          options={"fixed_amplitude": options.fixed_amplitude, "drift": options.drift},
                          checks=_joint_checks(fit, site) | _turn_angle_checks(fitted, session),
-                         bias_reference="turn-on")
+                         bias_reference="turn-on", error_budget=error_budget_record(fit, options))
     if fit.sigmas["yaw"] / DEG > YAW_SIGMA_POOR_DEG:
         result = result.flag_poor(("yaw",))
     if fitted.final_tilt and fitted.final_tilt.p_value < CHI2_ALARM_P:
         result = result.flag_poor(PLATFORM_ANGLE_ESTIMATES)
     return result
+
+
+def error_budget_record(fit: joint.JointResult, options: joint.JointOptions) -> dict:
+    """The result's error_budget: each estimate's sigma by its parts (display units; their squares
+    add up to the sigma's square) and the factory residuals' prior, term by term."""
+    sigma = {name: {part: value * ESTIMATES[name][0] for part, value in parts.items()}
+             for name, parts in fit.sigma_budget().items()}
+    factory = None
+    if fit.factory is not None:
+        factory = {"reference": spec.SPECIFICATIONS,
+                   "acc_range_g": options.factory_range_g,
+                   "terms": {t.name: {"sigma": t.sigma_in_unit, "unit": t.unit, "source": "prior"}
+                             for t in fit.factory.terms}}
+    return {"frame": "housing", "tilt_from": "inclinometers" if fit.tilt is fit.incl else "accelerometers",
+            "parts": list(next(iter(sigma.values()))), "sigma": sigma, "factory_residuals": factory}
 
 
 VIBRATION_FACTOR = 3.0  # a static whose noise per sample exceeds the specified this many times is named
@@ -384,15 +399,17 @@ def _vibration_warnings(fitted: JointFit, session: Session) -> list[str]:
     measured noise (`joint.static_inflation`), so the estimates and sigmas stay honest; the
     warning says what the data are worth."""
     inp = fitted.inp
-    spec = joint.datasheet_noise(Noise(), inp.rate_hz)
     warnings = []
     for k, (start, stop) in enumerate(inp.statics):
+        # the datasheet's inclinometer figures are at 0 g: an axis along gravity is noisier
+        along = None if inp.incl is None else inp.incl[start:stop].mean(axis=0) / STANDARD_GRAVITY
+        figures = joint.datasheet_noise(Noise(), inp.rate_hz, along)
         loud = []
         for sensor, values in (("gyro", inp.gyro), ("acc", inp.acc), ("incl", inp.incl)):
             if values is None:
                 continue
             measured = np.sqrt(joint.sample_variance(values, [(start, stop)])[0])
-            specified = np.sqrt(getattr(spec, sensor).white)
+            specified = np.sqrt(np.mean(getattr(figures, sensor).white))  # as measured: the channels' mean
             if measured > VIBRATION_FACTOR * specified:
                 name, factor, unit, walk, walk_factor, walk_unit = _SPEC_WORDS[sensor]
                 density = specified / np.sqrt(inp.rate_hz) * walk_factor
@@ -492,6 +509,11 @@ def _joint_warnings(fit: joint.JointResult, site: Site) -> list[str]:
                 f"horizontal {forces} biases rest on the gyro-derived alpha and beta "
                 "(a single rotation axis cannot separate them from the IMU tilt otherwise): an error "
                 "d_beta moves the X biases by g0 d_beta, and their 1-sigma carries it"]
+    if fit.factory is not None:
+        warnings.append("every 1-sigma carries the factory residuals the STIM300 datasheet allows (each triad's "
+                        "misalignment to the housing and scale factors, as a prior: a single vertical axis cannot "
+                        "see them): they limit pitch, roll, alpha, beta and the accelerometer and inclinometer "
+                        "biases (the result's error_budget says how much)")
     if site.g0 is None:
         warnings.append(f"Z {forces} biases rest on normal gravity: their 1-sigma includes "
                         f"{site.gravity_sigma / STANDARD_GRAVITY * 1000:.3f} mg for a typical local gravity anomaly, "

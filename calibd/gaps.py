@@ -18,12 +18,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg import block_diag
 from scipy.optimize import least_squares
 from scipy.special import gammaincc
 
-from .estimators.joint import JointInput, NoiseModel, Underdetermined, mean_variance, static_inflation
+from .estimators.joint import (FactoryEffects, JointInput, NoiseModel, Underdetermined, alpha_beta, mean_variance,
+                               static_inflation)
 from .allan import FLICKER_TAUS_S
-from .frames import r3
+from .frames import int_to_imu, r3
 
 FOUND_SIGMAS = 4.0  # a correction this many sigma from zero is a loss (5 turns: 3e-4 false alarms a session)
 CHECKABLE_SIGMA_RAD = np.radians(1.0)  # a turn pinned less well than this is not checked
@@ -94,11 +96,14 @@ def _model(params: np.ndarray, static_chi: np.ndarray, a: np.ndarray, g0: float,
 
 
 def check_turn_angles(inp: JointInput, chi: np.ndarray, a: np.ndarray, g0: float,
-                      acc_noise: NoiseModel, incl_noise: NoiseModel, u0: np.ndarray) -> TiltCheck:
+                      acc_noise: NoiseModel, incl_noise: NoiseModel, u0: np.ndarray,
+                      factory: FactoryEffects | None = None) -> TiltCheck:
     """Fit (u, b_acc[, b_incl], one angle correction per turn) to the statics' mean forces,
     weighted by the covariance the sensors' noise models give those means (`incl_noise` is
-    unused for a unit without inclinometers: `inp.incl` None). `chi`: the
-    joint fit's platform angle; `a`: R_int^IMU; `u0`: the joint fit's (u1, u2) to start from.
+    unused for a unit without inclinometers: `inp.incl` None) and the factory residuals'
+    prior (`factory`: how each moves the modelled means; a quiet accelerometer sees a gyro
+    scale factor's angle error and the triads' misalignment acting on the turning tilt). `chi`:
+    the joint fit's platform angle; `a`: R_int^IMU; `u0`: the joint fit's (u1, u2) to start from.
     Raises Underdetermined when the statics do not determine the corrections."""
     statics = inp.statics
     static_chi = np.array([chi[s:e].mean() for s, e in statics])
@@ -107,12 +112,18 @@ def check_turn_angles(inp: JointInput, chi: np.ndarray, a: np.ndarray, g0: float
     forces = [(inp.acc, acc_noise)] + ([] if inp.incl is None else [(inp.incl, incl_noise)])
     first = _corrections_from(len(forces))
     means = np.stack([[values[s:e].mean(axis=0) for s, e in statics] for values, _ in forces])
-    whiten = [np.linalg.inv(np.linalg.cholesky(static_means_covariance(noise, inp, static_inflation(values, statics))))
-              for values, noise in forces]
+    # covariance of the misfit (sensors, statics, channels) flattened: each channel's means as the
+    # noise model gives them, and every factory residual's move of them
+    cov = block_diag(*[_by_channel(static_means_covariance(noise, inp, static_inflation(values, statics)))
+                       for values, noise in forces])
+    if factory is not None:
+        u = np.array([*u0, np.sqrt(1.0 - u0[0] ** 2 - u0[1] ** 2)])
+        moves = factory_moves(factory, static_chi, a, g0, u, ("acc", "incl")[:len(forces)])
+        cov += moves.reshape(len(factory.terms), -1).T @ moves.reshape(len(factory.terms), -1)
+    whiten = np.linalg.inv(np.linalg.cholesky(cov))
 
     def residuals(params):
-        misfit = means - _model(params, static_chi, a, g0, len(forces))
-        return np.concatenate([(w @ m).ravel() for w, m in zip(whiten, misfit)])
+        return whiten @ (means - _model(params, static_chi, a, g0, len(forces))).ravel()
 
     start = np.concatenate([u0, *(m[0] - g0 * a[:, 2] for m in means), np.zeros(len(statics) - 1)])
     null = least_squares(lambda p: residuals(np.concatenate([p, start[first:]])), start[:first],
@@ -128,8 +139,36 @@ def check_turn_angles(inp: JointInput, chi: np.ndarray, a: np.ndarray, g0: float
     return TiltCheck(turns, float(2 * null.cost), dof)
 
 
+def _by_channel(per_channel: np.ndarray) -> np.ndarray:
+    """(3, S, S) covariances of each channel's means -> the covariance of the means laid out
+    static by static, channel by channel (independent channels)."""
+    s = per_channel.shape[1]
+    out = np.zeros((s, 3, s, 3))
+    for c in range(3):
+        out[:, c, :, c] = per_channel[c]
+    return out.reshape(3 * s, 3 * s)
+
+
+def factory_moves(factory: FactoryEffects, static_chi: np.ndarray, a: np.ndarray, g0: float, u: np.ndarray,
+                  sensors: tuple[str, ...]) -> np.ndarray:
+    """(terms, sensors, statics, 3): how each factory residual at its 1-sigma moves the statics'
+    modelled mean forces g0 A R3(chi) u: a force triad's error acts on its own sensor's tilt
+    vector; a gyro's moves the platform axis (A) and the statics' angles of both."""
+    tilt = g0 * (a @ r3(static_chi) @ u)  # (S, 3)
+    moves = np.zeros((len(factory.terms), len(sensors), len(static_chi), 3))
+    for index, term in enumerate(factory.terms):
+        if term.sensor == "gyro":
+            k, chi = factory.gyro_refits[index]
+            moves[index] = g0 * (int_to_imu(*alpha_beta(k)) @ r3(chi) @ u) - tilt
+        elif term.sensor in sensors:
+            error = np.zeros((3, 3))
+            error[term.row, term.col] = term.sigma
+            moves[index, sensors.index(term.sensor)] = tilt @ error.T
+    return moves
+
+
 def static_means_covariance(noise: NoiseModel, inp: JointInput, inflation: np.ndarray | None = None) -> np.ndarray:
-    """Covariance of one channel's means over the statics: white noise and the flicker's fast
+    """(3, S, S): covariance of each channel's means over the statics: white noise and the flicker's fast
     components as in each mean's own variance, and between statics the part of each flicker
     component that the time between them has not decorrelated (the slow ones are nearly common to
     all statics, and taken as independent they would make every angle look twice as uncertain).
@@ -139,12 +178,15 @@ def static_means_covariance(noise: NoiseModel, inp: JointInput, inflation: np.nd
     end_s = np.array([inp.time_s[e - 1] for _, e in inp.statics]) + 1.0 / inp.rate_hz
     length_s = end_s - start_s
     gap_s = np.maximum(start_s[None, :] - end_s[:, None], start_s[:, None] - end_s[None, :])
-    cov = np.zeros((len(inp.statics), len(inp.statics)))
+    common = np.zeros((len(inp.statics), len(inp.statics)))
     for corr_s in FLICKER_TAUS_S[:4]:
         decay = corr_s / length_s * (1 - np.exp(-length_s / corr_s))
-        cov += noise.flicker * np.outer(decay, decay) * np.exp(-np.clip(gap_s, 0.0, None) / corr_s)
+        common += np.outer(decay, decay) * np.exp(-np.clip(gap_s, 0.0, None) / corr_s)
     inflation = np.ones(len(inp.statics)) if inflation is None else inflation
-    np.fill_diagonal(cov, [mean_variance(noise, e - s, inp.rate_hz, f) for (s, e), f in zip(inp.statics, inflation)])
+    own = np.array([mean_variance(noise, e - s, inp.rate_hz, f) for (s, e), f in zip(inp.statics, inflation)])
+    cov = noise.flicker[:, None, None] * common
+    for c in range(3):
+        np.fill_diagonal(cov[c], own[:, c])
     return cov
 
 

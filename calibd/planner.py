@@ -21,7 +21,7 @@ import numpy as np
 from stim300.protocol import NORMAL_LAYOUTS
 
 from .errors import CalibdError
-from .estimators.joint import JointInput, SensorNoise, Underdetermined, datasheet_noise, solve
+from .estimators.joint import JointInput, JointOptions, SensorNoise, Underdetermined, datasheet_noise, solve
 from .frames import STANDARD_GRAVITY, Site
 from .noise import NOISE_SCHEMA, NOISE_VERSION
 from .results import ESTIMATES, SchemaError, schema_version
@@ -174,9 +174,9 @@ def describe(segments: tuple[Segment, ...]) -> str:
 # ---------------------------------------------------------------- noise
 
 def noise_from_json(data: bytes, where: str) -> Noise:
-    """Figures from a `calibd.noise/1` file (written by `calibd noise`). The three axes of a
-    sensor share one noise model in the estimator, which pools their Allan variances: each
-    figure is the root mean square of the three axes'. A file without any inclinometer channel
+    """Figures from a `calibd.noise/1` file (written by `calibd noise`): one per sensor, the root
+    mean square of the three axes' (the estimator fits each channel's own; a plan takes a
+    sensor's axes alike, but for the inclinometer axis along gravity). A file without any inclinometer channel
     is a unit's without inclinometers: its figures have none (None)."""
     try:
         doc = json.loads(data)
@@ -228,6 +228,7 @@ class Plan:
     segments: tuple[Segment, ...]
     duration_s: float
     sigmas: dict[str, float]  # SI (rad, rad/s, m/s^2), 1-sigma of every joint estimate
+    factory: dict[str, float]  # SI, the part of each sigma the factory residuals' prior makes (none: 0)
     site: Site
     session: JointInput  # the noise-free session the sigmas come from, at PLAN_RATE_HZ
     noise: SensorNoise
@@ -271,21 +272,26 @@ def check_site(site: Site) -> None:
                         f"{math.degrees(math.acos(MIN_COS_LATITUDE)):.1f} deg")
 
 
-def plan(protocol: Protocol | str, site: Site, figures: Noise, scale: float = 1.0) -> Plan:
-    """Every estimate's expected 1-sigma for the protocol at `scale`, from the joint estimator;
-    for a unit without inclinometers when the protocol's sensor or `figures` has none."""
+def plan(protocol: Protocol | str, site: Site, figures: Noise, scale: float = 1.0,
+         options: JointOptions = JointOptions()) -> Plan:
+    """Every estimate's expected 1-sigma for the protocol at `scale`, from the joint estimator
+    (with the factory residuals' prior unless `options` leaves it out); for a unit without
+    inclinometers when the protocol's sensor or `figures` has none. The inclinometer figures
+    are taken at 0 g and made larger on the axis along gravity, as the estimator takes them."""
     check_site(site)
     protocol = _protocol(protocol)
     segments = protocol_segments(protocol, scale)
     inclinometers = protocol.inclinometers and figures.incl_vrw_m_s_sqrt_h is not None
     inp, seconds = _session(protocol, scale, site, inclinometers)
+    along = None if inp.incl is None else inp.incl[slice(*inp.statics[0])].mean(axis=0) / STANDARD_GRAVITY
     noise = datasheet_noise(figures if inclinometers else replace(
-        figures, incl_vrw_m_s_sqrt_h=None, incl_bias_instability_mg=None), inp.rate_hz)
+        figures, incl_vrw_m_s_sqrt_h=None, incl_bias_instability_mg=None), inp.rate_hz, along)
     try:
-        sigmas = solve(inp, site, noise=noise).sigmas
+        result = solve(inp, site, options, noise=noise)
     except Underdetermined as exc:  # what the protocol lacks, said for the protocol
         raise PlanError(f"{protocol.name}: {exc}") from None
-    return Plan(protocol, scale, segments, seconds, sigmas, site, inp, noise)
+    factory = {name: parts.get("factory_residuals", 0.0) for name, parts in result.sigma_budget().items()}
+    return Plan(protocol, scale, segments, seconds, result.sigmas, factory, site, inp, noise)
 
 
 @dataclass
@@ -359,10 +365,11 @@ def report(reach: Reach, figures: Noise) -> str:
     lines = [f"{protocol.name} protocol at latitude {site.latitude_deg:g} deg, g0 {site.gravity:.5f} m/s^2",
              f"noise: {_figures_text(figures, nominal.session.incl is not None)}",
              f"nominal: {nominal.duration_s / 60:.1f} min of data: {describe(nominal.segments)}",
-             "expected 1-sigma of the joint estimates:"]
+             "expected 1-sigma of the joint estimates (of it, the factory residuals' prior: what more data "
+             "cannot lower):"]
     for name, sigma in nominal.sigmas.items():
         factor, unit = ESTIMATES[name]
-        lines.append(f"  {name:12s} {sigma * factor:10.3g} {unit}")
+        lines.append(f"  {name:12s} {sigma * factor:10.3g} {unit:6s} ({nominal.factory[name] * factor:.3g})")
     target = reach.target_yaw / DEG
     lines.append(f"time to a yaw 1-sigma of {target:g} deg ({WHAT_SCALES[protocol.scales]}):")
     if reach.reached is None:

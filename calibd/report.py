@@ -239,7 +239,8 @@ def read_truth(capture: str) -> tuple[dict[str, float], dict[str, float]] | None
     try:
         record = json.loads(path.read_text())
         schema_version(record["schema"], TRUTH_SCHEMA, TRUTH_VERSION, str(path), TRUTH_FORMER_NAMES)
-        truth = Truth(**{f.name: record["truth"][f.name] for f in fields(Truth)})
+        # a version 1 truth has no factory residuals: they were none
+        truth = Truth(**{f.name: record["truth"].get(f.name, f.default) for f in fields(Truth)})
         carried = Truth(**{f.name: getattr(truth, f.name) if f.name not in record.get("bias_during_capture", {})
                            else record["bias_during_capture"][f.name]["session"] for f in fields(Truth)})
         return truth.estimates(), carried.estimates()

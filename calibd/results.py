@@ -1,4 +1,4 @@
-"""The calibration result every method writes (schema calibd.result/3), typed, and its safe storage.
+"""The calibration result every method writes (schema calibd.result/4), typed, and its safe storage.
 
 Estimates are kept in SI inside the code; here they become the units people read: degrees,
 deg/h for gyro biases, mg (1e-3 of the sensor's g, 9.80665 m/s^2) for accelerometer and
@@ -38,8 +38,10 @@ from .units import DEG, M_S2_TO_MG, RAD_S_TO_DEG_H
 
 RESULT_SCHEMA = "calibd.result"
 # 2: the same content as 1, written from the typed CalibrationResult; 3: SI values, the rotation
-# as matrix and quaternion, the estimates' covariance, software, session_id, the site's g0 sigma
-RESULT_VERSION = 3
+# as matrix and quaternion, the estimates' covariance, software, session_id, the site's g0 sigma;
+# 4: the joint method's error_budget (each sigma by its terms; the factory residuals' prior), its
+# sigmas and covariance now carrying the factory residuals
+RESULT_VERSION = 4
 SCHEMA = f"{RESULT_SCHEMA}/{RESULT_VERSION}"
 log = structlog.get_logger("calibd")
 # display unit -> (display units per SI unit, SI unit): the one conversion of estimates
@@ -110,10 +112,10 @@ class Estimate:
                 **({"quality": self.quality} if self.quality else {})}
 
 
-# optional fields, written only when set: the method's own (joint: options, checks, bias_reference;
-# thesis: platform_rate_deg_s, earth_rate_diagnostic; thesis bench: turns_alpha_beta_deg), then
-# the capture's identity (offline), then the daemon's (session, stale)
-_OPTIONAL = ("options", "checks", "bias_reference", "platform_rate_deg_s", "earth_rate_diagnostic",
+# optional fields, written only when set: the method's own (joint: options, checks, bias_reference,
+# error_budget; thesis: platform_rate_deg_s, earth_rate_diagnostic; thesis bench:
+# turns_alpha_beta_deg), then the capture's identity (offline), then the daemon's (session, stale)
+_OPTIONAL = ("options", "checks", "bias_reference", "error_budget", "platform_rate_deg_s", "earth_rate_diagnostic",
              "turns_alpha_beta_deg", "capture", "session", "stale")
 
 
@@ -137,6 +139,7 @@ class CalibrationResult:
     options: dict | None = None  # joint: the options it was solved with
     checks: dict | None = None  # joint: model checks (Earth rate seen, chi-squares, turn angles)
     bias_reference: str | None = None  # joint: "turn-on"
+    error_budget: dict | None = None  # joint: each sigma by its terms, and the factory residuals' prior
     platform_rate_deg_s: float | None = None  # thesis real case
     earth_rate_diagnostic: dict | None = None  # thesis real case
     turns_alpha_beta_deg: list | None = None  # thesis bench: alpha and beta from each full turn

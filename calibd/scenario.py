@@ -19,6 +19,7 @@ from stim300.errors import FormatError, UsageError
 from stim300.protocol import ACC_RANGE_LSB_EXP, NORMAL_LAYOUTS, SAMPLE_RATES_HZ
 from stim300.special import PartNumber, SerialNumber
 
+from . import spec
 from .errors import CalibdError, SiteError
 from .frames import Site
 
@@ -34,7 +35,10 @@ RANGES = {  # table: {key: (low, high, unit)} for every number of the truth, noi
     "truth": {"yaw_deg": (-360.0, 360.0, "deg"), "pitch_deg": (-90.0, 90.0, "deg"), "roll_deg": (-180.0, 180.0, "deg"),
               "alpha_deg": (-10.0, 10.0, "deg"), "beta_deg": (-10.0, 10.0, "deg"),
               "gyro_bias_deg_h": (-36000.0, 36000.0, "deg/h"), "acc_bias_mg": (-1000.0, 1000.0, "mg"),
-              "incl_bias_mg": (-1000.0, 1000.0, "mg")},
+              "incl_bias_mg": (-1000.0, 1000.0, "mg"),
+              # a first-order model of the factory residuals: beyond, it means nothing
+              **{f"{s}_scale_ppm": (-10_000.0, 10_000.0, "ppm") for s in ("gyro", "acc", "incl")},
+              **{f"{s}_misalignment_mrad": (-50.0, 50.0, "mrad") for s in ("gyro", "acc", "incl")}},
     "noise": {key: (0.0, 10.0 if key == "temperature_noise_c" else NOISE_MAX, "")
               for key in ("gyro_arw_deg_sqrt_h", "gyro_bias_instability_deg_h", "acc_vrw_m_s_sqrt_h",
                           "acc_bias_instability_mg", "incl_vrw_m_s_sqrt_h", "incl_bias_instability_mg",
@@ -67,7 +71,7 @@ class Sensor:
 
 
 TRUTH_SCHEMA = "calibd.truth"  # the truth file beside a simulated capture (calibd.sim.truth_record)
-TRUTH_VERSION = 1
+TRUTH_VERSION = 2  # 2: the triads' factory residuals (scale factors, misalignment) in the truth
 TRUTH_FORMER_NAMES = ("stim300-calib/truth",)  # its name before calibd.truth: read as the same version
 
 
@@ -83,6 +87,20 @@ class Truth:
     gyro_bias_deg_h: tuple[float, float, float] = (0.0, 0.0, 0.0)
     acc_bias_mg: tuple[float, float, float] = (0.0, 0.0, 0.0)
     incl_bias_mg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    # Factory residuals of each triad (`spec.triad_error`): the sensor outputs (I + E) times the
+    # input in housing axes, E from scale-factor errors (ppm, X Y Z) and the off-diagonal
+    # elements (mrad, in the order of spec.OFF_DIAGONAL_NAMES: xy xz yx yz zx zy). The angles
+    # above describe the housing.
+    gyro_scale_ppm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    acc_scale_ppm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    incl_scale_ppm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    gyro_misalignment_mrad: tuple[float, ...] = (0.0,) * 6
+    acc_misalignment_mrad: tuple[float, ...] = (0.0,) * 6
+    incl_misalignment_mrad: tuple[float, ...] = (0.0,) * 6
+
+    def triad_error(self, sensor: str):
+        """E of one triad ("gyro", "acc", "incl"): its output is (I + E) times the housing-axes input."""
+        return spec.triad_error(getattr(self, f"{sensor}_scale_ppm"), getattr(self, f"{sensor}_misalignment_mrad"))
 
     def estimates(self) -> dict[str, float]:
         """The truth under the result schema's estimate names and units (deg, deg/h, mg)."""
@@ -96,22 +114,27 @@ class Truth:
 
 @dataclass(frozen=True)
 class Noise:
-    """STIM300 noise figures. Gyro ARW 0.15 deg/sqrt(h) and bias instability 0.3 deg/h, and
-    accelerometer bias instability 0.04 mg, are the thesis's (section 3.3); accelerometer VRW
-    0.07 m/s/sqrt(h) is the datasheet's typical for 10 g units. No inclinometer noise figure was
-    found in the sources read: the defaults (VRW 0.03 m/s/sqrt(h), bias instability 0.01 mg)
-    are assumptions reflecting its lower bandwidth. Bias instability is the minimum of the
-    Allan deviation, as the manufacturer defines it. The inclinometer figures are None for a
-    unit without inclinometers (a noise file of one, read by the planner)."""
+    """STIM300 noise figures, by default the datasheet's for a 10 g unit (`calibd.spec`; the
+    scenario parser takes the sensor's own range, `Noise.datasheet`). Bias instability is the
+    minimum of the Allan deviation, as the manufacturer defines it. The inclinometer figures are
+    those at 0 g; an axis along gravity is 35 % noisier (`spec.incl_noise_factor`), as the
+    simulator makes it. The inclinometer figures are None for a unit without inclinometers (a
+    noise file of one, read by the planner)."""
 
     enabled: bool = True
-    gyro_arw_deg_sqrt_h: float = 0.15
-    gyro_bias_instability_deg_h: float = 0.3
-    acc_vrw_m_s_sqrt_h: float = 0.07
-    acc_bias_instability_mg: float = 0.04
-    incl_vrw_m_s_sqrt_h: float | None = 0.03
-    incl_bias_instability_mg: float | None = 0.01
+    gyro_arw_deg_sqrt_h: float = spec.GYRO.random_walk
+    gyro_bias_instability_deg_h: float = spec.GYRO.bias_instability
+    acc_vrw_m_s_sqrt_h: float = spec.ACC[spec.DEFAULT_ACC_RANGE_G].random_walk
+    acc_bias_instability_mg: float = spec.ACC[spec.DEFAULT_ACC_RANGE_G].bias_instability
+    incl_vrw_m_s_sqrt_h: float | None = spec.INCL.random_walk
+    incl_bias_instability_mg: float | None = spec.INCL.bias_instability
     temperature_noise_c: float = 0.01
+
+    @classmethod
+    def datasheet(cls, acc_range_g: int = spec.DEFAULT_ACC_RANGE_G) -> Noise:
+        """The datasheet's figures for a unit whose accelerometers have this range (g)."""
+        acc = spec.triads(acc_range_g)["acc"]
+        return cls(acc_vrw_m_s_sqrt_h=acc.random_walk, acc_bias_instability_mg=acc.bias_instability)
 
 
 @dataclass(frozen=True)
@@ -183,6 +206,7 @@ class _Table:
 
     def get(self, key: str, default, kind=float, check=None, expect: str = ""):
         self.used.add(key)
+        length = len(default) if isinstance(default, tuple) else 3  # of a list (kind tuple)
         if key not in self.data:
             return default
         value = self.data[key]
@@ -192,16 +216,16 @@ class _Table:
                     raise TypeError
                 value = float(value)
             elif kind is tuple:
-                if not isinstance(value, list) or len(value) != 3:
+                if not isinstance(value, list) or len(value) != length:
                     raise TypeError
                 value = tuple(float(v) for v in value if not isinstance(v, bool) and isinstance(v, (int, float)))
-                if len(value) != 3 or not all(map(math.isfinite, value)):
+                if len(value) != length or not all(map(math.isfinite, value)):
                     raise TypeError
             elif not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
                 raise TypeError
         except TypeError:
             names = {float: "a number", int: "an integer", bool: "true or false", str: "a string",
-                     tuple: "a list of 3 numbers", dict: "a table", list: "a list"}
+                     tuple: f"a list of {length} numbers", dict: "a table", list: "a list"}
             self.fail(key, f"{value!r} is not {names[kind]}")
         if check is not None and not check(value):
             self.fail(key, f"{value!r} is not {expect}")
@@ -271,9 +295,10 @@ def site_from_table(t: _Table) -> Site:
     return site
 
 
-def _fields(cls, t: _Table):
+def _fields(cls, t: _Table, defaults=None):
+    """The table's keys as a `cls`, each missing one taken from `defaults` (default: cls())."""
     values = {}
-    for name, default in vars(cls()).items():
+    for name, default in vars(cls() if defaults is None else defaults).items():
         kind = tuple if isinstance(default, tuple) else type(default) if default is not None else float
         values[name] = t.get(name, default, kind)
     t.finish()
@@ -330,8 +355,10 @@ def parse_scenario(data: dict, where: str) -> Scenario:
                     bit_flips=faults_t.get("bit_flips", 0, int, lambda v: v >= 0, "a count >= 0"),
                     restart_at_s=faults_t.get("restart_at_s", None, float, _positive, "a positive time in s"))
     faults_t.finish()
-    scenario = Scenario(name=name, seed=seed, sensor=_sensor(table("sensor")), site=site_from_table(table("site")),
-                        truth=_fields(Truth, table("truth")), noise=_fields(Noise, table("noise")),
+    sensor = _sensor(table("sensor"))
+    scenario = Scenario(name=name, seed=seed, sensor=sensor, site=site_from_table(table("site")),
+                        truth=_fields(Truth, table("truth")),
+                        noise=_fields(Noise, table("noise"), Noise.datasheet(sensor.acc_range_g)),
                         warmup=_fields(Warmup, table("warmup")), segments=segments, faults=faults)
     top.finish()
     for table, ranges in RANGES.items():

@@ -4,10 +4,13 @@ Physics as docs/method.md (Rotation conventions):
 R_NAV^IMU(t) = M · R_int^IMU · R3(chi(t)) · R_NAV^int, with chi the platform angle about the
 interface Z axis (counter-clockwise positive) and M the bench re-mounting (identity unless a
 `position` segment says otherwise);
-gyro = R(t)·Omega_E + M·R_int^IMU·[0, 0, chi'] + b_g + noise,
-accelerometer and inclinometer = R(t)·[0, 0, g0] + b + noise, in the sensor's units (g of
-9.80665 m/s^2). Rates are averages over each sample interval, so they integrate exactly to the
-angle turned. Everything is vectorised over samples; the bytes come from `stim300.codec`.
+gyro = (I + E_g)·(R(t)·Omega_E + M·R_int^IMU·[0, 0, chi']) + b_g + noise,
+accelerometer and inclinometer = (I + E)·R(t)·[0, 0, g0] + b + noise, in the sensor's units (g
+of 9.80665 m/s^2), with E each triad's factory residuals (scale factor and misalignment,
+`Truth.triad_error`): R(t) and the truth's angles describe the housing. The inclinometers'
+noise is larger along gravity (`spec.incl_noise_factor`). Rates are averages over each sample
+interval, so they integrate exactly to the angle turned. Everything is vectorised over
+samples; the bytes come from `stim300.codec`.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from stim300.protocol import (COUNTER_MODULUS, INTERNAL_RATE_HZ, NORMAL_LAYOUTS,
                               GyroUnit, Status)
 from stim300.special import Configuration, PartNumber, SerialNumber, encode_special
 
+from . import spec
 from .allan import FLICKER_TAUS_S, flicker_sigma
 from .frames import EARTH_RATE, STANDARD_GRAVITY, euler_321, int_to_imu, nav_to_imu, r1, r2, r3
 from .scenario import TRUTH_SCHEMA, TRUTH_VERSION, Scenario, ScenarioError
@@ -203,9 +207,11 @@ def simulate(scenario: Scenario) -> Simulation:
     since_power_on = t_mid + w.power_on_s
     temperature = w.settled_c - (w.settled_c - w.ambient_c) * np.exp(-since_power_on / w.time_constant_s)
     excess = (temperature - w.settled_c)[:, None]
-    gyro = omega / DEG + (np.asarray(truth.gyro_bias_deg_h) + excess * w.gyro_tempco_deg_h_per_c) / 3600
-    acc = force + (np.asarray(truth.acc_bias_mg) + excess * w.acc_tempco_mg_per_c) / 1000
-    incl = force + (np.asarray(truth.incl_bias_mg) + excess * w.incl_tempco_mg_per_c) / 1000
+    sensed = {name: np.eye(3) + truth.triad_error(name) for name in ("gyro", "acc", "incl")}  # factory residuals
+    gyro = omega @ sensed["gyro"].T / DEG \
+        + (np.asarray(truth.gyro_bias_deg_h) + excess * w.gyro_tempco_deg_h_per_c) / 3600
+    acc = force @ sensed["acc"].T + (np.asarray(truth.acc_bias_mg) + excess * w.acc_tempco_mg_per_c) / 1000
+    incl = force @ sensed["incl"].T + (np.asarray(truth.incl_bias_mg) + excess * w.incl_tempco_mg_per_c) / 1000
 
     noise = scenario.noise
     wander = {"gyro": np.zeros(3), "acc": np.zeros(3), "incl": np.zeros(3)}  # coloured noise, session mean
@@ -220,6 +226,9 @@ def simulate(scenario: Scenario) -> Simulation:
                 ("incl", incl, noise.incl_vrw_m_s_sqrt_h / 60 / STANDARD_GRAVITY,
                  noise.incl_bias_instability_mg * mg / STANDARD_GRAVITY)):
             total, coloured = sensor_noise(rng, n, rate, density, instability)
+            if name == "incl":  # noisier along gravity (spec.INCL_NOISE_AT_1G)
+                factor = spec.incl_noise_factor(force)
+                total, coloured = total * factor, coloured * factor
             values += total
             wander[name] = coloured.mean(axis=0)
             if shaker is not None:

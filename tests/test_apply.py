@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from calibd import spec
 from calibd.apply import ApplyError, NpzWriter, apply_capture, correction
 from calibd.cli import main
 from calibd.frames import Site, nav_to_imu
@@ -61,14 +62,17 @@ def home_static_mean(columns, name):
 
 
 def sigmas():
-    """1-sigma of a home-static mean of corrected gyro (rad/s) and accelerometer (m/s^2) data:
-    white noise over the static, and the bias instability's wander, by which the static's bias
-    differs from the session's mean the result holds."""
+    """1-sigma of a home-static mean of corrected gyro (rad/s), accelerometer and inclinometer
+    (m/s^2) data: white noise over the static, and the bias instability's wander, by which the
+    static's bias differs from the session's mean the result holds (the inclinometers' taken at
+    1 g, where they are noisiest)."""
     noise, span = TRUTH["noise"], HOME_STATIC_S[1] - HOME_STATIC_S[0]
     gyro = np.hypot(noise["gyro_arw_deg_sqrt_h"] / 60 / np.sqrt(span) * DEG,
                     noise["gyro_bias_instability_deg_h"] * DEG / 3600)
     acc = np.hypot(noise["acc_vrw_m_s_sqrt_h"] / 60 / np.sqrt(span), noise["acc_bias_instability_mg"] * 9.80665e-3)
-    return gyro, acc
+    incl = spec.INCL_NOISE_AT_1G * np.hypot(noise["incl_vrw_m_s_sqrt_h"] / 60 / np.sqrt(span),
+                                            noise["incl_bias_instability_mg"] * 9.80665e-3)
+    return gyro, acc, incl
 
 
 @pytest.fixture(scope="module")
@@ -81,7 +85,7 @@ def test_a_home_static_corrected_is_the_earth_rate_and_gravity_in_imu_axes(imu_a
     site = Site(TRUTH["site"]["latitude_deg"], TRUTH["site"]["height_m"])
     t = TRUTH["truth"]
     r_nav_imu = nav_to_imu(t["yaw_deg"] * DEG, t["pitch_deg"] * DEG, t["roll_deg"] * DEG)
-    gyro_sigma, acc_sigma = sigmas()
+    gyro_sigma, acc_sigma, _ = sigmas()
     assert applied.samples == TRUTH["samples"] and applied.power_ups == 1 and applied.serial_number == SERIAL
     assert not applied.warnings
     np.testing.assert_allclose(home_static_mean(columns, "gyro_rad_s"), r_nav_imu @ site.earth_rate_nav,
@@ -98,11 +102,11 @@ def test_the_home_frame_turns_a_home_static_into_nwu():
     lat = TRUTH["site"]["latitude_deg"] * DEG
     omega = 7.2921150e-5
     g0 = TRUTH["site"]["g0"]
-    gyro_sigma, acc_sigma = sigmas()
+    gyro_sigma, acc_sigma, incl_sigma = sigmas()
     np.testing.assert_allclose(home_static_mean(columns, "gyro_rad_s"), [omega * np.cos(lat), 0, omega * np.sin(lat)],
                                atol=K * gyro_sigma)
     np.testing.assert_allclose(home_static_mean(columns, "acc_m_s2"), [0, 0, g0], atol=K * acc_sigma)
-    np.testing.assert_allclose(home_static_mean(columns, "incl_m_s2"), [0, 0, g0], atol=K * acc_sigma)
+    np.testing.assert_allclose(home_static_mean(columns, "incl_m_s2"), [0, 0, g0], atol=K * incl_sigma)
 
 
 def test_biases_come_off_exactly_and_times_follow_the_counter():

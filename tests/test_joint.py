@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from calibd import detect
+from calibd import detect, spec
 from calibd.allan import FLICKER_TAUS_S
 from calibd.calibrate import _joint_warnings, joint_real_case
 from calibd.cli import load_session
@@ -159,7 +159,7 @@ def test_sigma_is_honest_on_a_small_monte_carlo():
         scenario = replace(THESIS, seed=seed)
         sim = simulate(scenario)
         inp = exact_input(sim)
-        result = solve(inp, scenario.site)
+        result = solve(inp, scenario.site, PERFECT)
         truth = scenario.truth.estimates()
         carried = truth_record(sim, {})["bias_during_capture"]
         for name, key in (("gyro_bias", "gyro_bias_deg_h"), ("acc_bias", "acc_bias_mg"), ("incl_bias", "incl_bias_mg")):
@@ -184,6 +184,7 @@ def quiet_thesis():
 
 STIM300 = datasheet_noise(Noise(), THESIS.sensor.sample_rate_hz)
 NONE = NoiseModel(0.0, 0.0)
+PERFECT = JointOptions(factory_range_g=None)  # the noise terms alone: no factory residuals' prior
 
 
 def test_a_beta_error_moves_the_x_biases_by_g0_d_beta(quiet_thesis):
@@ -206,7 +207,7 @@ def test_horizontal_bias_sigma_carries_alpha_beta(quiet_thesis):
     """Noise-free accelerometers and inclinometers, STIM300 gyros: the horizontal biases' only
     error is the gyro-derived tilt's, so their sigma is g0 times alpha's and beta's."""
     scenario, inp = quiet_thesis
-    result = solve(inp, scenario.site, noise=SensorNoise(STIM300.gyro, NONE, NONE))
+    result = solve(inp, scenario.site, PERFECT, noise=SensorNoise(STIM300.gyro, NONE, NONE))
     g0, s = scenario.site.gravity, result.sigmas
     assert s["beta"] > 0
     for sensor in ("acc", "incl"):
@@ -234,21 +235,26 @@ def test_bias_sigma_includes_the_wander_over_the_session(quiet_thesis):
     component counted (the 30000 s one is nearly constant over the session: it is the wander)."""
     scenario, inp = quiet_thesis
     flicker = STIM300.acc.flicker
-    result = solve(inp, scenario.site, noise=SensorNoise(NONE, NoiseModel(0.0, flicker), NONE))
+    result = solve(inp, scenario.site, PERFECT, noise=SensorNoise(NONE, NoiseModel(0.0, flicker), NONE))
     t = np.concatenate([inp.time_s[a:b:25] for a, b in inp.statics])  # 5 Hz is fine enough for 3 s and up
     lag = np.abs(t[:, None] - t[None, :])
     per_component = [np.mean(np.exp(-lag / c)) for c in FLICKER_TAUS_S]
-    assert result.sigmas["acc_bias_z"] ** 2 == pytest.approx(flicker * sum(per_component), rel=0.02)
-    assert flicker * per_component[-1] > 0.3 * result.sigmas["acc_bias_z"] ** 2  # the slowest is a large share
+    assert result.sigmas["acc_bias_z"] ** 2 == pytest.approx(flicker[2] * sum(per_component), rel=0.02)
+    assert flicker[2] * per_component[-1] > 0.3 * result.sigmas["acc_bias_z"] ** 2  # the slowest is a large share
 
 
 def test_fitted_flicker_is_at_least_the_datasheets(quiet_thesis):
     """A static of minutes cannot resolve flicker under the white noise (noise-free data: none
-    at all); the covariance then uses the STIM300 datasheet's rather than none."""
+    at all); the covariance then uses the STIM300 datasheet's rather than none, the
+    inclinometer's 35 % larger on the axis along gravity."""
     scenario, inp = quiet_thesis
     result = solve(inp, scenario.site)
-    assert result.gyro.noise.flicker == STIM300.gyro.flicker > 0
-    assert result.acc.noise.flicker == STIM300.acc.flicker and result.incl.noise.flicker == STIM300.incl.flicker
+    assert np.all(result.gyro.noise.flicker == STIM300.gyro.flicker) and np.all(STIM300.gyro.flicker > 0)
+    assert np.all(result.acc.noise.flicker == STIM300.acc.flicker)
+    along = inp.incl[slice(*inp.statics[0])].mean(axis=0) / scenario.site.gravity
+    assert result.incl.noise.flicker == pytest.approx(STIM300.incl.flicker * spec.incl_noise_factor(along) ** 2,
+                                                      rel=2e-3)
+    assert result.incl.noise.flicker[2] == pytest.approx(STIM300.incl.flicker[0] * 1.35**2, rel=1e-3)
 
 
 def one_index(scenario):

@@ -3,12 +3,14 @@ takes pitch, roll and the accelerometer biases from the accelerometers; inclinom
 are absent, never zeros; the thesis's methods and gyro-only units are refused in one line."""
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
 
 from calibd.cli import main as calibd_main
 from calibd.noise import characterise
+from calibd.estimators.joint import JointOptions
 from calibd.planner import noise_from_json, plan
 from calibd.scenario import Noise
 from calibd.frames import Site
@@ -84,12 +86,19 @@ def test_noise_has_six_channels_and_plan_reads_the_file_as_a_unit_without_inclin
     doc = json.loads(path.read_text())
     assert list(doc["channels"]) == [f"{s}_{a}" for s in ("gyro", "acc") for a in "xyz"]
     figures = noise_from_json(path.read_bytes(), str(path))
-    assert figures.incl_vrw_m_s_sqrt_h is None and figures.acc_vrw_m_s_sqrt_h == pytest.approx(0.07, rel=0.05)
+    assert figures.incl_vrw_m_s_sqrt_h is None and figures.acc_vrw_m_s_sqrt_h == pytest.approx(0.024, rel=0.05)
     planned = plan("thesis", Site(45.0), figures)
     assert planned.session.incl is None and not [n for n in planned.sigmas if n.startswith("incl_")]
-    with_incl = plan("thesis", Site(45.0), Noise())
-    # the accelerometers' tilt is noisier than the inclinometers': pitch and roll lose precision
-    assert planned.sigmas["pitch"] > with_incl.sigmas["pitch"]
+    perfect = JointOptions(factory_range_g=None)
+    # the quieter force sensor gives the tilt: a 10 g unit's accelerometers (0.024 m/s/sqrt(h),
+    # 0.005 mg) are quieter than the inclinometers, so a unit without them loses nothing; with
+    # accelerometers much noisier than the inclinometers, the inclinometers' tilt is the one
+    for acc, lost in (((0.024, 0.005), 1.0), ((0.5, 0.2), 2.0)):
+        figures = replace(Noise(), acc_vrw_m_s_sqrt_h=acc[0], acc_bias_instability_mg=acc[1])
+        without, with_incl = (plan("thesis", Site(45.0), f, options=perfect) for f in
+                              (replace(figures, incl_vrw_m_s_sqrt_h=None, incl_bias_instability_mg=None), figures))
+        assert without.sigmas["pitch"] == pytest.approx(with_incl.sigmas["pitch"], rel=1e-6) if lost == 1.0 else \
+            without.sigmas["pitch"] > lost * with_incl.sigmas["pitch"]
     capsys.readouterr()
     assert calibd_main(["plan", "--latitude", "45", "--protocol", "index", "--noise", str(path)]) == 0
     printed = capsys.readouterr().out

@@ -14,6 +14,7 @@ import pytest
 
 from calibd.allan import FLICKER_TAUS_S, allan_deviation, allan_edf, allan_gm, confidence_interval, flicker_sigma, \
     pooled_allan_deviation
+from calibd import spec
 from calibd.cli import load_session
 from calibd.cli import main as calibd_main
 from calibd.detect import Segment as Detected
@@ -122,6 +123,8 @@ def test_figures_of_a_simulated_static_capture(static_capture):
     covered = 0
     for name, c in channels.items():
         walk, instability, walk_per_adev = truth[name.split("_")[0]]
+        if name == "incl_z":  # along gravity: the datasheet's figures at 0 g, 35 % higher
+            walk, instability = walk * spec.INCL_NOISE_AT_1G, instability * spec.INCL_NOISE_AT_1G
         rw, bi = c.random_walk, c.bias_instability
         assert c.static_s == SIM_S and c.segments == 1 and c.taus_s[-1] == SIM_S / 4
         assert rw.tau_s == 1.0 and rw.value == pytest.approx(walk, rel=0.01), name  # measured: 0.4 %
@@ -132,9 +135,13 @@ def test_figures_of_a_simulated_static_capture(static_capture):
         floor = true_adev(c.taus_s, walk / walk_per_adev, instability).min()
         assert 0.5 < bi.value / floor < 2, (name, bi, floor)
         covered += bi.low <= floor <= bi.high
-        assert c.rate_random_walk is None, name  # the simulator has no rate random walk
-    assert covered >= 5
-    for name in ("acc_x", "incl_x"):  # their floor lies inside the hour: it is the stated figure
+    # the simulator has no rate random walk; its flicker is a sum of decade-spaced Gauss-Markov
+    # processes whose Allan deviation ripples about the flat line, and the inclinometers' (0.06 mg
+    # over a white 0.08 m/s/sqrt(h)) shows that ripple's rise clear of the noise now and then
+    assert sum(c.rate_random_walk is not None for c in channels.values()) <= 1
+    assert all(c.rate_random_walk is None for name, c in channels.items() if not name.startswith("incl"))
+    assert covered >= 4  # of 9 at 65 % each: fewer has a 6 % chance
+    for name in ("incl_x",):  # its floor lies inside the hour: the stated figure (the accelerometers' lies past it)
         walk, instability, walk_per_adev = truth[name.split("_")[0]]
         assert true_adev(channels[name].taus_s, walk / walk_per_adev, instability).min() == \
             pytest.approx(instability, rel=0.05)

@@ -263,11 +263,12 @@ def test_earth_rate_decomposition_is_the_joint_fit(made, drift):
 
 def test_allan_guides_pass_through_the_values_read(made):
     """The readings come in their own units (deg/sqrt(h), m/s/sqrt(h)): the guides must land back
-    on the curve they were read from (white noise rules at 1 s, so the -1/2 line meets the curve)."""
+    on the curve they were read from (white noise rules at 1 s, so the -1/2 line meets the curve;
+    the inclinometers' flicker, 0.06 mg and more along gravity, lifts the curve there by a few %)."""
     for noise in characterise(made["session"]).values():
         (tau_rw, at_rw), (tau_bi, at_bi), rising = guide_points(noise)
         curve_at_1s = np.exp(np.interp(0.0, np.log(noise.taus_s), np.log(noise.adev)))
-        assert tau_rw == 1.0 and at_rw == pytest.approx(curve_at_1s, rel=0.03), noise.name
+        assert tau_rw == 1.0 and at_rw == pytest.approx(curve_at_1s, rel=0.04), noise.name
         assert at_bi == noise.adev.min() and tau_bi == noise.taus_s[np.argmin(noise.adev)]
         if rising is not None:
             assert noise.adev_low.min() < rising[1] < noise.adev_high.max()

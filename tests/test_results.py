@@ -36,7 +36,7 @@ def test_a_result_round_trips_through_its_file(tmp_path):
     write_result(tmp_path / "r.json", result)
     assert load_result(tmp_path / "r.json") == result
     doc = json.loads((tmp_path / "r.json").read_text())
-    assert doc["schema"] == SCHEMA == "calibd.result/3"
+    assert doc["schema"] == SCHEMA == "calibd.result/4"
     assert list(doc) == ["schema", "method", "software", "session_id", "site", "estimates", "rotation", "covariance",
                          "segments", "warnings", "sensor", "stream",
                          "options", "checks", "bias_reference"]  # unset optional fields are not written
@@ -75,7 +75,7 @@ def test_a_version_1_file_is_read(tmp_path):
 
 
 @pytest.mark.parametrize("schema, message", [
-    ("calibd.result/4", "r.json is calibd.result/4, newer than this calibd reads (up to 3): upgrade calibd"),
+    ("calibd.result/5", "r.json is calibd.result/5, newer than this calibd reads (up to 4): upgrade calibd"),
     ("calibd.noise/1", "r.json is 'calibd.noise/1', not a calibd.result file"),
     ("calibd.result/x", "r.json is 'calibd.result/x', not a calibd.result file"),
     (None, "r.json is None, not a calibd.result file"),
@@ -97,22 +97,35 @@ def test_the_version_policy_reads_former_names():
 def test_the_truth_file_is_read_under_its_new_and_its_former_name(tmp_path):
     source = FIXTURES / "heading137_lat60_125hz.bin.truth.json"
     record = json.loads(source.read_text())
-    assert record["schema"] == "calibd.truth/1"
+    assert record["schema"] == "calibd.truth/2"
     expected = read_truth(str(source).removesuffix(".truth.json"))
-    for schema, readable in (("stim300-calib/truth/1", True), ("calibd.truth/2", False)):
+    assert expected is not None
+    for schema, readable in (("stim300-calib/truth/1", True), ("calibd.truth/1", True), ("calibd.truth/3", False)):
         capture = tmp_path / f"{schema.replace('/', '_')}.bin"
         Path(f"{capture}.truth.json").write_text(json.dumps(record | {"schema": schema}))
         assert read_truth(str(capture)) == (expected if readable else None), schema
+
+
+def test_a_version_1_truth_has_no_factory_residuals_and_reads_as_before(tmp_path):
+    """Version 1 truths came from a perfect sensor: the factory residuals they lack are zero."""
+    record = json.loads((FIXTURES / "heading137_lat60_125hz.bin.truth.json").read_text())
+    residuals = [key for key in record["truth"] if key.endswith(("_scale_ppm", "_misalignment_mrad"))]
+    assert len(residuals) == 6 and all(not any(record["truth"][key]) for key in residuals)
+    truth = {k: v for k, v in record["truth"].items() if k not in residuals}
+    old = record | {"schema": "calibd.truth/1", "truth": truth}
+    capture = tmp_path / "old.bin"
+    Path(f"{capture}.truth.json").write_text(json.dumps(old))
+    assert read_truth(str(capture)) == read_truth(str(FIXTURES / "heading137_lat60_125hz.bin"))
 
 
 def test_status_refuses_a_newer_result_in_one_line(tmp_path, capsys):
     from calibd.cli import main as calibd_main
 
     (tmp_path / "state.json").write_text(json.dumps({"state": "SOLVED", "detail": "solved", "updated": 0}))
-    (tmp_path / "result.json").write_text(json.dumps(joint_like().to_dict() | {"schema": "calibd.result/4"}))
+    (tmp_path / "result.json").write_text(json.dumps(joint_like().to_dict() | {"schema": "calibd.result/5"}))
     assert calibd_main(["status", "--state-dir", str(tmp_path)]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "calibd.result/4, newer than this calibd reads (up to 3): upgrade calibd" in err
+    assert err.count("\n") == 1 and "calibd.result/5, newer than this calibd reads (up to 4): upgrade calibd" in err
 
 
 def test_numpy_scalars_in_a_result_are_written_as_plain_json():

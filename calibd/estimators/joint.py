@@ -31,13 +31,15 @@ inclinometers has no inclinometer fit: the accelerometers give the tilt.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.linalg import block_diag
 
 from ..errors import CalibdError
 from ..frames import EARTH_RATE, STANDARD_GRAVITY, Site, euler_321, int_to_imu
 from ..allan import FLICKER_TAUS_S, allan_deviation, correlate, fit_noise_model, flicker_sigma
+from .. import spec
 from ..scenario import Noise
 from ..units import DEG
 
@@ -46,6 +48,9 @@ ESTIMATE_NAMES = ("pitch", "roll", "yaw", "alpha", "beta", "gyro_bias_x", "gyro_
                   "acc_bias_x", "acc_bias_y", "acc_bias_z", *INCL_ESTIMATES)
 MAX_ITERATIONS = 20  # chi depends on the fitted axis and Earth terms: iterate to a fixed point
 CHI_TOLERANCE = 1e-13  # rad: the largest change of chi between passes that counts as converged
+# rad: the same for the error budget's refits, whose changes of chi are 1e-4 rad and more (a
+# Z scale factor's 1-sigma over a turn): a millionth of them is exact enough
+REFIT_TOLERANCE = 1e-10
 FLICKER_BIN_S = 0.1  # flicker's fastest component (3 s) barely changes within a bin (3 % at most)
 NOISIER_FROM = 2.0  # a static whose white variance is this many times the reference static's is weighted down
 LOCAL_NOISE_S = 1.0  # outside the statics, the noise around a sample is measured over this window
@@ -83,10 +88,16 @@ class JointInput:
 
 @dataclass(frozen=True)
 class NoiseModel:
-    """One sensor's noise as the covariance sees it, the same for its three channels."""
+    """One sensor's noise as the covariance sees it, per channel (X, Y, Z): an inclinometer
+    axis along gravity is noisier than a horizontal one (`spec.incl_noise_factor`). A number
+    given for either stands for all three channels."""
 
-    white: float  # white-noise variance per sample at the session's rate, SI unit^2
-    flicker: float  # variance of each Gauss-Markov component of FLICKER_TAUS_S, SI unit^2
+    white: np.ndarray  # (3,) white-noise variance per sample at the session's rate, SI unit^2
+    flicker: np.ndarray  # (3,) variance of each Gauss-Markov component of FLICKER_TAUS_S, SI unit^2
+
+    def __post_init__(self):
+        for name in ("white", "flicker"):
+            object.__setattr__(self, name, np.broadcast_to(np.asarray(getattr(self, name), dtype=float), (3,)).copy())
 
 
 @dataclass(frozen=True)
@@ -98,18 +109,21 @@ class SensorNoise:
     incl: NoiseModel | None  # m/s^2; None: the unit has no inclinometers
 
 
-def datasheet_noise(figures: Noise, rate_hz: float) -> SensorNoise:
+def datasheet_noise(figures: Noise, rate_hz: float, incl_force_g: np.ndarray | None = None) -> SensorNoise:
     """The noise models of datasheet figures, at `rate_hz`: white variance per sample from the
     random walk, and the flicker components the simulator uses for the bias instability (Allan
-    deviation minimum = the figure)."""
-    def model(density: float, instability: float) -> NoiseModel:
+    deviation minimum = the figure). `incl_force_g`: the specific force along the inclinometer
+    axes (g), which makes an axis along gravity noisier (`spec.incl_noise_factor`); None: the
+    figures at 0 g."""
+    def model(density: float, instability: float, factor=1.0) -> NoiseModel:
         flicker = flicker_sigma(density, instability) ** 2 if instability > 0 else 0.0
-        return NoiseModel(density**2 * rate_hz, flicker)
+        return NoiseModel(density**2 * rate_hz * factor**2, flicker * factor**2)
 
     mg = STANDARD_GRAVITY / 1000
     gyro = model(figures.gyro_arw_deg_sqrt_h / 60 * DEG, figures.gyro_bias_instability_deg_h / 3600 * DEG)
     incl = None if figures.incl_vrw_m_s_sqrt_h is None else \
-        model(figures.incl_vrw_m_s_sqrt_h / 60, figures.incl_bias_instability_mg * mg)
+        model(figures.incl_vrw_m_s_sqrt_h / 60, figures.incl_bias_instability_mg * mg,
+              1.0 if incl_force_g is None else spec.incl_noise_factor(incl_force_g))
     return SensorNoise(gyro=gyro, acc=model(figures.acc_vrw_m_s_sqrt_h / 60, figures.acc_bias_instability_mg * mg),
                        incl=incl)
 
@@ -118,12 +132,19 @@ def datasheet_noise(figures: Noise, rate_hz: float) -> SensorNoise:
 class JointOptions:
     fixed_amplitude: bool = False  # horizontal Earth rate amplitude fixed to its known value
     drift: bool = False  # a linear gyro drift per channel (thermal ramps); costs precision
+    # the factory residuals' prior (spec.factory_terms) for a unit of this accelerometer range, g;
+    # None: a perfect sensor is assumed (the noise-limit checks of the fit itself)
+    factory_range_g: int | None = spec.DEFAULT_ACC_RANGE_G
+
+
+# The parts a covariance is made of, in the order results list them (`JointResult.budget`)
+BUDGET_PARTS = ("white_noise", "bias_instability", "gravity", "turn_angles", "factory_residuals")
 
 
 @dataclass
 class GyroFit:
     params: np.ndarray  # v1, v2, k (3), c (3), [drift (3)]
-    cov: np.ndarray
+    cov_parts: dict[str, np.ndarray]  # white_noise, bias_instability
     chi: np.ndarray  # platform angle at each sample's mid-interval, rad
     chi_rate: np.ndarray
     residual_rms: np.ndarray  # per channel, rad/s
@@ -131,6 +152,11 @@ class GyroFit:
     noise: NoiseModel  # the model the covariance assumes: fitted to the residuals, or given
     amplitude_check: tuple[float, float]  # fitted horizontal Earth rate and its 1-sigma, rad/s
     static_chi2: tuple[float, int]  # chi-square of the statics' mean residuals and its degrees of freedom
+    offset: np.ndarray  # (N, 3) the fitted non-rotational part, rad/s: where a refit of changed data starts
+
+    @property
+    def cov(self) -> np.ndarray:
+        return sum(self.cov_parts.values())
 
 
 # ---------------------------------------------------------------- statics' own noise
@@ -289,19 +315,33 @@ def _on_circle(gram, rhs, amplitude: float) -> tuple[np.ndarray, np.ndarray]:
     return t @ x, tangent @ np.linalg.inv(tangent.T @ gram @ tangent) @ tangent.T
 
 
-def fit_gyros(inp: JointInput, site: Site, options: JointOptions = JointOptions(),
-              noise: NoiseModel | None = None, least_flicker: float = 0.0) -> GyroFit:
-    """The gyro fit, iterated: chi needs the platform axis and the Earth terms the fit gives.
-    `noise`: the noise model of the covariance (default: fitted to the static residuals, its
-    flicker at least `least_flicker`)."""
+@dataclass
+class _GyroSolution:
+    """The gyro fit's fixed point: parameters, inverse information, the designs and the platform angle."""
+
+    params: np.ndarray
+    bread: np.ndarray
+    designs: list[ChannelDesign]
+    chi: np.ndarray
+    chi_rate: np.ndarray
+    residuals: np.ndarray
+    offset: np.ndarray
+
+
+def _iterate_gyros(inp: JointInput, site: Site, options: JointOptions, root: np.ndarray,
+                   start: GyroFit | None = None, tolerance: float = CHI_TOLERANCE) -> _GyroSolution:
+    """The gyro fit iterated to its fixed point (chi changing by less than `tolerance`, rad):
+    chi needs the platform axis and the Earth terms the fit gives. `start`: a fit of nearly the
+    same data to start from (a few passes, not many)."""
     static = np.concatenate([np.arange(a, b) for a, b in inp.statics])
-    inflation = static_inflation(inp.gyro, inp.statics)
-    root = _row_weights(inp.gyro, inp)
-    axis = np.array([0.0, 0.0, 1.0])
-    offset = inp.gyro[static].mean(axis=0)
+    if start is None:
+        axis, offset = np.array([0.0, 0.0, 1.0]), inp.gyro[static].mean(axis=0)
+        chi = np.zeros(len(inp.time_s))
+    else:
+        k = start.params[AXIS_PARAMS]
+        axis, offset, chi = k / np.linalg.norm(k), start.offset, start.chi
     tau = inp.time_s - inp.time_s.mean()
     amplitude = EARTH_RATE * np.cos(np.radians(site.latitude_deg))
-    chi = np.zeros(len(inp.time_s))
     for _ in range(MAX_ITERATIONS):
         previous = chi
         chi, chi_rate = _platform_angle(inp, axis, offset, static)
@@ -313,31 +353,48 @@ def fit_gyros(inp: JointInput, site: Site, options: JointOptions = JointOptions(
         k = params[AXIS_PARAMS]
         axis = k / np.linalg.norm(k)
         offset = inp.gyro - residuals - np.outer(chi_rate, k)  # the fitted non-rotational part
-        if np.max(np.abs(chi - previous)) < CHI_TOLERANCE:
+        if np.max(np.abs(chi - previous)) < tolerance:
             break
+    return _GyroSolution(params, bread, designs, chi, chi_rate, residuals, offset)
+
+
+def fit_gyros(inp: JointInput, site: Site, options: JointOptions = JointOptions(),
+              noise: NoiseModel | None = None, least_flicker: np.ndarray | float = 0.0) -> GyroFit:
+    """The gyro fit and its covariance. `noise`: the noise model of the covariance (default:
+    fitted to the static residuals, its flicker at least `least_flicker`)."""
+    inflation = static_inflation(inp.gyro, inp.statics)
+    root = _row_weights(inp.gyro, inp)
+    fit = _iterate_gyros(inp, site, options, root)
+    params, residuals = fit.params, fit.residuals
     ref = inp.statics[reference_static(sample_variance(inp.gyro, inp.statics), inp.statics)]
     noise = noise or _fitted_noise(residuals, inp, least_flicker, ref)
-    cov = _covariance(_scaled(designs, root), np.arange(len(inp.time_s)), inp, bread, noise, root)
+    parts = _covariance(_scaled(fit.designs, root), np.arange(len(inp.time_s)), inp, fit.bread, noise, root)
+    cov = sum(parts.values())
     scale = _noise_scale(residuals, inp, ref)
     fitted = float(np.hypot(*params[EARTH_RATE_PARAMS]))
     radial = params[EARTH_RATE_PARAMS] / fitted
     amplitude_var = radial @ cov[EARTH_RATE_PARAMS, EARTH_RATE_PARAMS] @ radial  # 0 when the amplitude is fixed
-    return GyroFit(params, cov, chi, chi_rate, residuals.std(axis=0), scale, noise,
+    return GyroFit(params, parts, fit.chi, fit.chi_rate, residuals.std(axis=0), scale, noise,
                    (fitted, float(np.sqrt(max(amplitude_var, 0.0)))),
-                   _static_chi2(residuals, inp, len(params) - 3, noise, inflation))
+                   _static_chi2(residuals, inp, len(params) - 3, noise, inflation), fit.offset)
 
 
-def _fitted_noise(residuals: np.ndarray, inp: JointInput, least_flicker: float,
+def _fitted_noise(residuals: np.ndarray, inp: JointInput, least_flicker: np.ndarray,
                   static: tuple[int, int]) -> NoiseModel:
     """White + flicker fitted to the Allan deviation of the reference `static`'s residuals (the
     longest that does not vibrate: `reference_static`), the
     flicker no lower than `least_flicker` (the datasheet's): a static of minutes resolves the
     white noise well but not flicker below it (the gyros' 0.3 deg/h under 0.7 deg/h of white
     noise at a quarter of 10 min), and a fit that finds none would make every sigma that
-    compares statics far apart, or a bias with the turn-on bias, too small."""
+    compares statics far apart, or a bias with the turn-on bias, too small. The channels differ as
+    the datasheet's floors do (an inclinometer axis along gravity is noisier than the others):
+    the model is fitted to the residuals divided by that shape, pooled (a channel's own minutes
+    would scatter its flicker widely), and the shape put back."""
+    least = np.broadcast_to(np.asarray(least_flicker, dtype=float), (3,))
+    shape = np.sqrt(least / least.min()) if least.min() > 0 else np.ones(3)
     a, b = static
-    white, flicker = fit_noise_model(residuals[a:b], inp.rate_hz, FLICKER_TAUS_S)
-    return NoiseModel(white, max(flicker, least_flicker))
+    white, flicker = fit_noise_model(residuals[a:b] / shape, inp.rate_hz, FLICKER_TAUS_S)
+    return NoiseModel(white * shape**2, np.maximum(flicker * shape**2, least))
 
 
 def _static_chi2(residuals: np.ndarray, inp: JointInput, fitted: int, noise: NoiseModel,
@@ -348,14 +405,14 @@ def _static_chi2(residuals: np.ndarray, inp: JointInput, fitted: int, noise: Noi
     total, count = 0.0, 0
     for (start, stop), factor in zip(inp.statics, inflation):
         var = mean_variance(noise, stop - start, inp.rate_hz, factor)
-        if var > 0:  # a given noise-free model (planning a protocol) leaves nothing to compare with
-            total += float(np.sum(residuals[start:stop].mean(axis=0) ** 2) / var)
+        if np.all(var > 0):  # a given noise-free model (planning a protocol) leaves nothing to compare with
+            total += float(np.sum(residuals[start:stop].mean(axis=0) ** 2 / var))
         count += 3
     return total, max(count - fitted, 1)
 
 
-def mean_variance(noise: NoiseModel, n: int, rate_hz: float, inflation: float = 1.0) -> float:
-    """Variance of one channel's mean over n consecutive samples under the noise model (its white
+def mean_variance(noise: NoiseModel, n: int, rate_hz: float, inflation: float = 1.0) -> np.ndarray:
+    """Variance of each channel's mean over n consecutive samples under the noise model (its white
     noise times `inflation`, a vibrating static's), less the slowest flicker component: it moves
     every static alike, so fitted offsets take it, not the differences between statics."""
     tau = n / rate_hz
@@ -369,7 +426,7 @@ def _gm_mean_variance(tau: float, corr: float) -> float:
 
 
 def _covariance(designs, rows: np.ndarray, inp: JointInput, bread: np.ndarray, noise: NoiseModel,
-                root: np.ndarray) -> np.ndarray:
+                root: np.ndarray) -> dict[str, np.ndarray]:
     """Parameter covariance under white noise plus flicker (a sum of Gauss-Markov processes) on
     the samples `rows`. Flicker correlates the errors over minutes; a white-noise covariance
     would be optimistic for everything that compares segments far apart. Every component counts,
@@ -378,9 +435,11 @@ def _covariance(designs, rows: np.ndarray, inp: JointInput, bread: np.ndarray, n
     is the inverse information of the (possibly constrained) fit: cov = bread . (H' Sigma H) . bread.
     The fit is weighted: `designs` are the rows times their root weights `root` (of the samples
     `rows`), which whiten the white noise (a static's inflated variance times its weight is the
-    model's), while flicker, common to quiet and vibrating samples, sees the weights themselves."""
-    meat = noise.white * _gram(designs, len(bread))
-    if noise.flicker > 0:
+    model's), while flicker, common to quiet and vibrating samples, sees the weights themselves.
+    The two parts are kept apart (white_noise, bias_instability): their sum is the covariance."""
+    white = sum(noise.white[i] * _gram([d], len(bread)) for i, d in enumerate(designs))
+    meat = np.zeros_like(white)
+    if np.any(noise.flicker > 0):
         # Flicker varies over seconds at the fastest, so its quadratic form is taken on sums over
         # FLICKER_BIN_S bins of every channel's columns, laid on a uniform bin grid.
         bins = np.floor(inp.time_s[rows] / FLICKER_BIN_S).astype(np.int64)
@@ -389,11 +448,11 @@ def _covariance(designs, rows: np.ndarray, inp: JointInput, bread: np.ndarray, n
         grid[bins[starts]] = np.hstack([np.add.reduceat(d.values * root[:, None], starts) for d in designs])
         for correlated in correlate(grid, 1.0 / FLICKER_BIN_S, FLICKER_TAUS_S):
             start = 0
-            for d in designs:
+            for i, d in enumerate(designs):
                 cols = slice(start, start + len(d.params))
-                meat[np.ix_(d.params, d.params)] += noise.flicker * grid[:, cols].T @ correlated[:, cols]
+                meat[np.ix_(d.params, d.params)] += noise.flicker[i] * grid[:, cols].T @ correlated[:, cols]
                 start += len(d.params)
-    return bread @ meat @ bread
+    return {"white_noise": bread @ white @ bread, "bias_instability": bread @ meat @ bread}
 
 
 def has_drift(gyro_params: np.ndarray) -> bool:
@@ -429,10 +488,26 @@ def _noise_scale(residuals: np.ndarray, inp: JointInput, static: tuple[int, int]
 @dataclass
 class ForceFit:
     params: np.ndarray  # u1, u2 (platform axis tilt in the interface frame), b (3), m/s^2 for b
-    cov: np.ndarray  # from this sensor's noise alone, the platform axis and g0 taken as exact
+    # from this sensor's noise alone, the platform axis and g0 taken as exact: white_noise, bias_instability
+    cov_parts: dict[str, np.ndarray]
     noise_scale: float
     noise: NoiseModel  # the model the covariance assumes: fitted to the residuals, or given
     sensitivity: np.ndarray  # d params / d (k_x, k_y, k_z, g0): how the axis and g0 errors move them
+    rows: np.ndarray  # the static samples the fit uses
+    root: np.ndarray  # their root weights
+    sums: _StaticSums  # of the data, at the fit's platform angles
+
+    @property
+    def cov(self) -> np.ndarray:
+        return sum(self.cov_parts.values())
+
+    def refit(self, through: np.ndarray, k: np.ndarray, g0: float, chi: np.ndarray | None = None) -> np.ndarray:
+        """The parameters for the data taken through the 3 x 3 map `through` (the sensor's
+        output is `through` times the data), another axis k, g0 or platform angle `chi` (all
+        samples; None: the fit's), with the same weights: how the error budget sees a change of
+        the data. The sums are linear in the data, so the map acts on them."""
+        sums = self.sums if chi is None else _static_sums(self.sums.force, chi[self.rows], self.root)
+        return _force_params(replace(sums, cross=sums.cross @ through.T), k, g0)[0]
 
 
 @dataclass(frozen=True)
@@ -445,6 +520,7 @@ class _StaticSums:
     basis: np.ndarray  # n x 3
     gram: np.ndarray  # B' W B
     cross: np.ndarray  # B' W f, one column per channel
+    force: np.ndarray  # f: n x 3
 
 
 def _channel_map(a_row: np.ndarray, g0: float) -> np.ndarray:
@@ -472,7 +548,7 @@ def _force_params(sums: _StaticSums, k: np.ndarray, g0: float):
 
 
 def fit_force(force: np.ndarray, chi: np.ndarray, inp: JointInput, k: np.ndarray, g0: float,
-              noise: NoiseModel | None = None, least_flicker: float = 0.0) -> ForceFit:
+              noise: NoiseModel | None = None, least_flicker: np.ndarray | float = 0.0) -> ForceFit:
     """The accelerometer or inclinometer fit at every static sample, for the gyro-derived
     platform axis k (IMU axes). `noise` as in fit_gyros. The fit takes k and g0 as exact; its
     sensitivity to them lets `solve` carry their uncertainty into the biases (an error d_beta
@@ -483,9 +559,8 @@ def fit_force(force: np.ndarray, chi: np.ndarray, inp: JointInput, k: np.ndarray
         raise Underdetermined("the statics cover too few platform angles to separate the tilt from the biases "
                               "(index positions about 90 deg apart are needed)")
     root = _row_weights(force, inp)[rows]
-    basis = np.column_stack([np.cos(chi[rows]), np.sin(chi[rows]), np.ones(len(rows))])
-    weighted = basis * (root**2)[:, None]
-    sums = _StaticSums(basis, weighted.T @ basis, weighted.T @ force[rows])
+    sums = _static_sums(force[rows], chi[rows], root)
+    basis = sums.basis
     params, gram, maps, offsets = _force_params(sums, k, g0)
     drivers = np.append(k, g0)
 
@@ -499,8 +574,14 @@ def fit_force(force: np.ndarray, chi: np.ndarray, inp: JointInput, k: np.ndarray
     full[rows] = force[rows] - offsets - np.column_stack([d @ params for d in designs])
     ref = inp.statics[reference_static(sample_variance(force, inp.statics), inp.statics)]
     noise = noise or _fitted_noise(full, inp, least_flicker, ref)
-    cov = _covariance(_scaled(designs, root), rows, inp, np.linalg.inv(gram), noise, root)
-    return ForceFit(params, cov, _noise_scale(full, inp, ref), noise, sensitivity)
+    parts = _covariance(_scaled(designs, root), rows, inp, np.linalg.inv(gram), noise, root)
+    return ForceFit(params, parts, _noise_scale(full, inp, ref), noise, sensitivity, rows, root, sums)
+
+
+def _static_sums(force_rows: np.ndarray, chi_rows: np.ndarray, root: np.ndarray) -> _StaticSums:
+    basis = np.column_stack([np.cos(chi_rows), np.sin(chi_rows), np.ones(len(chi_rows))])
+    weighted = basis * (root**2)[:, None]
+    return _StaticSums(basis, weighted.T @ basis, weighted.T @ force_rows, force_rows)
 
 
 # ---------------------------------------------------------------- from fits to estimates
@@ -516,16 +597,16 @@ def _triad(primary_a, secondary_a, primary_b, secondary_b) -> np.ndarray:
 
 
 def estimates_from(gyro_params: np.ndarray, incl_params: np.ndarray | None, acc_params: np.ndarray,
-                   site: Site) -> dict:
+                   site: Site, tilt_from_incl: bool = True) -> dict:
     """Every estimate (SI) from the fitted parameters: a pure function, so its Jacobian carries the
     fits' covariances to the estimates. The platform axis's tilt (so pitch and roll) is the
-    inclinometers' (the quieter sensor), or the accelerometers' on a unit without inclinometers
-    (`incl_params` None), which then has no inclinometer biases."""
+    inclinometers' when `tilt_from_incl`, else the accelerometers' (the quieter sensor gives it:
+    `solve`); a unit without inclinometers (`incl_params` None) has no inclinometer biases."""
     k = gyro_params[AXIS_PARAMS]
     alpha, beta = alpha_beta(k)
     a = int_to_imu(alpha, beta)
     omega, up = site.earth_rate_nav, np.array([0.0, 0.0, 1.0])
-    u1, u2 = (acc_params if incl_params is None else incl_params)[TILT_PARAMS]
+    u1, u2 = (incl_params if tilt_from_incl and incl_params is not None else acc_params)[TILT_PARAMS]
     u = np.array([u1, u2, np.sqrt(1 - u1**2 - u2**2)])  # Up in the interface frame
     horizontal = omega - (omega @ up) * up
     # v = R_NAV^int Omega. The fit gives v1, v2; v3 (along the interface z axis) hides in c and
@@ -557,28 +638,43 @@ def _jacobian(f, x: np.ndarray, steps: np.ndarray) -> np.ndarray:
 @dataclass
 class JointResult:
     estimates: dict[str, float]  # SI
-    covariance: np.ndarray  # of the estimates, SI, rows in the order of `estimates`
+    # the estimates' covariance (SI, rows in the order of `estimates`) by its parts (BUDGET_PARTS):
+    # each term of the error budget on its own; their sum is the covariance
+    budget: dict[str, np.ndarray]
     gyro: GyroFit
     incl: ForceFit | None  # None: the unit has no inclinometers
     acc: ForceFit
     jacobian: np.ndarray  # d estimates / d (gyro, [incl,] acc params)
+    factory: FactoryEffects | None = None  # the factory residuals the budget's prior covers; None: a perfect sensor
+    tilt_from_incl: bool = True  # pitch and roll from the inclinometers' tilt (else the accelerometers')
+
+    @property
+    def covariance(self) -> np.ndarray:
+        return sum(self.budget.values())
 
     @property
     def sigmas(self) -> dict[str, float]:
         """1-sigma of each estimate, SI: the covariance's diagonal, so the two never disagree."""
         return dict(zip(self.estimates, np.sqrt(np.diag(self.covariance)).tolist()))
 
+    def sigma_budget(self) -> dict[str, dict[str, float]]:
+        """Per estimate, each budget part's 1-sigma (SI): their squares add up to the sigma's."""
+        return {name: {part: float(np.sqrt(max(cov[i, i], 0.0))) for part, cov in self.budget.items()}
+                for i, name in enumerate(self.estimates)}
+
     @property
     def tilt(self) -> ForceFit:
-        """The force fit pitch and roll come from: the inclinometers', else the accelerometers'."""
-        return self.acc if self.incl is None else self.incl
+        """The force fit pitch and roll come from."""
+        return self.incl if self.tilt_from_incl and self.incl is not None else self.acc
 
 
 def solve(inp: JointInput, site: Site, options: JointOptions = JointOptions(),
           noise: SensorNoise | None = None) -> JointResult:
     """Every estimate and its 1-sigma; `noise` replaces the noise models fitted to the residuals
     (whose flicker is at least the STIM300 datasheet's)."""
-    least = datasheet_noise(Noise(), inp.rate_hz)
+    statics = np.concatenate([np.arange(a, b) for a, b in inp.statics])
+    along = None if inp.incl is None else inp.incl[statics].mean(axis=0) / STANDARD_GRAVITY
+    least = datasheet_noise(Noise(), inp.rate_hz, along)
     gyro = fit_gyros(inp, site, options, noise and noise.gyro, least.gyro.flicker)
     k = gyro.params[AXIS_PARAMS]
     incl = None if inp.incl is None else \
@@ -586,24 +682,84 @@ def solve(inp: JointInput, site: Site, options: JointOptions = JointOptions(),
     acc = fit_force(inp.acc, gyro.chi, inp, k, site.gravity, noise and noise.acc, least.acc.flicker)
     p, q = len(gyro.params), 0 if incl is None else len(incl.params)
     x = np.concatenate([gyro.params, *([] if incl is None else [incl.params]), acc.params])
+    tilt_from_incl = incl is not None and _tilt_variance(incl) <= _tilt_variance(acc)
 
     def chain(params):
-        return estimates_from(params[:p], params[p:p + q] if q else None, params[p + q:], site)
+        return estimates_from(params[:p], params[p:p + q] if q else None, params[p + q:], site, tilt_from_incl)
 
-    cov = parameter_covariance(gyro, incl, acc, site.gravity_sigma)
-    steps = np.sqrt(np.diag(cov)) * 1e-3 + 1e-15
+    parts = parameter_covariance(gyro, incl, acc, site.gravity_sigma)
+    steps = np.sqrt(np.diag(sum(parts.values()))) * 1e-3 + 1e-15
     jac = _jacobian(chain, x, steps)
-    return JointResult(chain(x), jac @ cov @ jac.T, gyro, incl, acc, jac)
+    budget = {part: jac @ cov @ jac.T for part, cov in parts.items()}
+    factory = None
+    if options.factory_range_g is not None:
+        sensors = ("gyro", "acc") if incl is None else ("gyro", "acc", "incl")
+        terms = spec.factory_terms(options.factory_range_g, sensors)
+        factory = factory_effects(inp, site, options, gyro, incl, acc, terms, tilt_from_incl)
+        budget["factory_residuals"] = factory.estimates @ factory.estimates.T
+    return JointResult(chain(x), budget, gyro, incl, acc, jac, factory, tilt_from_incl)
 
 
-def parameter_covariance(gyro: GyroFit, incl: ForceFit | None, acc: ForceFit, g0_sigma: float) -> np.ndarray:
-    """Covariance of (gyro, incl, acc params), or (gyro, acc params) without inclinometers. The
-    sensors' noises are independent, but the force fits use the gyro-derived platform axis and
-    g0: their parameters move with the gyro parameters and g0 through their sensitivities, which
-    couples all the blocks.
+def _tilt_variance(fit: ForceFit) -> float:
+    """How well a force fit alone (its own noise) pins the platform axis's tilt: the quieter of
+    the accelerometers (a 10 g unit's: VRW 0.024 m/s/sqrt(h)) and the inclinometers (0.08 at 0 g)
+    gives pitch and roll."""
+    return float(np.trace(fit.cov[TILT_PARAMS, TILT_PARAMS]))
+
+
+@dataclass(frozen=True)
+class FactoryEffects:
+    """What each factory residual at its 1-sigma does to the fit (`factory_effects`)."""
+
+    terms: tuple[spec.FactoryTerm, ...]
+    estimates: np.ndarray  # (estimates, terms): each term's move of every estimate, SI
+    # per gyro term (by its index in `terms`): the refitted platform axis k and the statics' mean
+    # platform angles, rad: how the static forces' model moves (the turn-angle check's prior)
+    gyro_refits: dict[int, tuple[np.ndarray, np.ndarray]]
+
+
+def factory_effects(inp: JointInput, site: Site, options: JointOptions, gyro: GyroFit, incl: ForceFit | None,
+                    acc: ForceFit, terms: tuple[spec.FactoryTerm, ...], tilt_from_incl: bool) -> FactoryEffects:
+    """How each factory residual moves every estimate at its 1-sigma (SI; a column per term):
+    the data of the term's triad taken through (I + E), E that element at 1 sigma, and the whole
+    chain refitted (the effects are linear to a part in a thousand at that size). These are
+    consider parameters: a single vertical axis cannot tell them from the tilt and the biases,
+    so their prior reaches exactly the estimates they move (a misaligned gyro triad tilts the
+    platform axis, so alpha, beta, pitch and roll; the misalignment between triads lands in the
+    horizontal biases; a Z scale factor in the Z biases), and the fits' weights and platform
+    angles see the data as the sensor gave them."""
+    root = _row_weights(inp.gyro, inp)
+    forces = {name: fit for name, fit in (("incl", incl), ("acc", acc)) if fit is not None}
+    identity = np.eye(3)
+
+    def estimates(gyro_params, chi=None, sensor: str | None = None, through: np.ndarray = identity) -> np.ndarray:
+        k = gyro_params[AXIS_PARAMS]
+        params = {name: fit.refit(through if name == sensor else identity, k, site.gravity, chi)
+                  for name, fit in forces.items()}
+        return np.array(list(estimates_from(gyro_params, params.get("incl"), params["acc"], site,
+                                            tilt_from_incl).values()))
+
+    base = estimates(gyro.params)
+    columns, refits = [], {}
+    for index, term in enumerate(terms):
+        through = identity.copy()
+        through[term.row, term.col] += term.sigma
+        if term.sensor == "gyro":
+            refit = _iterate_gyros(replace(inp, gyro=inp.gyro @ through.T), site, options, root, gyro, REFIT_TOLERANCE)
+            columns.append(estimates(refit.params, refit.chi) - base)
+            refits[index] = (refit.params[AXIS_PARAMS], np.array([refit.chi[a:b].mean() for a, b in inp.statics]))
+        else:
+            columns.append(estimates(gyro.params, None, term.sensor, through) - base)
+    return FactoryEffects(terms, np.column_stack(columns), refits)
+
+
+def parameter_covariance(gyro: GyroFit, incl: ForceFit | None, acc: ForceFit, g0_sigma: float) -> dict[str, np.ndarray]:
+    """Covariance of (gyro, incl, acc params), or (gyro, acc params) without inclinometers, by its
+    parts (white_noise, bias_instability, gravity). The sensors' noises are independent, but the
+    force fits use the gyro-derived platform axis and g0: their parameters move with the gyro
+    parameters and g0 through their sensitivities, which couples all the blocks.
     With d = (gyro params, g0): x = M d + force noise, cov = M cov(d) M' + blockdiag(0, incl, acc)."""
     p = len(gyro.params)
-    drivers = _block_diag(gyro.cov, np.array([[g0_sigma**2]]))
 
     def from_drivers(force: ForceFit) -> np.ndarray:
         m = np.zeros((len(force.params), p + 1))
@@ -613,17 +769,11 @@ def parameter_covariance(gyro: GyroFit, incl: ForceFit | None, acc: ForceFit, g0
 
     forces = [f for f in (incl, acc) if f is not None]
     m = np.vstack([np.eye(p, p + 1), *(from_drivers(f) for f in forces)])
-    return m @ drivers @ m.T + _block_diag(np.zeros((p, p)), *(f.cov for f in forces))
-
-
-def _block_diag(*blocks) -> np.ndarray:
-    n = sum(len(b) for b in blocks)
-    out = np.zeros((n, n))
-    i = 0
-    for b in blocks:
-        out[i:i + len(b), i:i + len(b)] = b
-        i += len(b)
-    return out
+    parts = {part: m @ block_diag(gyro.cov_parts[part], np.zeros((1, 1))) @ m.T
+             + block_diag(np.zeros((p, p)), *(f.cov_parts[part] for f in forces))
+             for part in ("white_noise", "bias_instability")}
+    parts["gravity"] = m @ block_diag(np.zeros((p, p)), np.array([[g0_sigma**2]])) @ m.T
+    return parts
 
 
 def white_noise_bound(inp: JointInput, result: JointResult, site: Site, gyro_arw_rad_sqrt_s: float) -> dict:

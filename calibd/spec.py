@@ -1,0 +1,137 @@
+"""The STIM300's specification: every datasheet figure calibd uses, in one place.
+
+Source: Safran Sensing Technologies, STIM300 datasheet TS1524 rev.31 (February 2024), section
+5.2 (functional specifications): Table 5-3 (gyros), Tables 5-4 to 5-7 (accelerometers of the
+5, 10, 30 and 80 g ranges), Table 5-8 (inclinometers); section 7.5.2.3 (bias trim). The noise
+defaults of a simulated or planned sensor, the floors of the fitted noise, the vibration check,
+the simulator's factory residuals and the joint estimator's error budget all read these figures;
+no other module holds a copy. Figures marked as limits (+-) are taken as about 2 sigma of a
+unit drawn from production (`Triad.scale_factor_sigma_ppm`, `misalignment_sigma_mrad`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+DATASHEET = "STIM300 datasheet TS1524 rev.31"
+SPECIFICATIONS = f"{DATASHEET}, section 5.2"  # the functional specifications' tables
+LIMIT_SIGMAS = 2.0  # a datasheet limit (+-) taken as this many sigma of the production spread
+ACC_RANGES_G = (5, 10, 30, 80)
+DEFAULT_ACC_RANGE_G = 10
+# At +-1 g the inclinometers' bias instability and velocity random walk are typically 35 % higher
+# than at 0 g (Table 5-8, notes): an axis along gravity is noisier than a horizontal one.
+INCL_NOISE_AT_1G = 1.35
+
+
+@dataclass(frozen=True)
+class Triad:
+    """One sensor triad's datasheet figures (SI-free: the units the datasheet states)."""
+
+    table: str  # where in the datasheet
+    random_walk: float  # gyro: deg/sqrt(h) (ARW); accelerometer, inclinometer: m/s/sqrt(h) (VRW)
+    bias_instability: float  # minimum of the Allan deviation: gyro deg/h, others mg
+    scale_factor_ppm: float  # scale-factor accuracy, +- limit
+    misalignment_mrad: float  # each sensing axis to the housing's reference, +- limit
+    orthogonality_mrad: float  # between the triad's own axes, +- limit
+    bias_trim_range: float  # +- range of the bias trim offset: gyro deg/s, others g (section 7.5.2.3)
+
+    @property
+    def scale_factor_sigma_ppm(self) -> float:
+        return self.scale_factor_ppm / LIMIT_SIGMAS
+
+    @property
+    def misalignment_sigma_mrad(self) -> float:
+        """1-sigma of each off-diagonal element of the triad's map from the housing axes: the
+        misalignment limit covers the orthogonality error too (an element is the sensitivity
+        of one sensing axis to another housing axis)."""
+        return self.misalignment_mrad / LIMIT_SIGMAS
+
+
+GYRO = Triad(table="Table 5-3", random_walk=0.15, bias_instability=0.3, scale_factor_ppm=500.0,
+             misalignment_mrad=1.0, orthogonality_mrad=0.2, bias_trim_range=1.0)
+ACC = {  # by the accelerometers' range, g
+    5: Triad("Table 5-4", 0.024, 0.005, 200.0, 1.0, 0.2, 0.1),
+    10: Triad("Table 5-5", 0.024, 0.005, 200.0, 1.0, 0.2, 0.1),
+    30: Triad("Table 5-6", 0.04, 0.01, 300.0, 1.0, 0.2, 0.3),
+    80: Triad("Table 5-7", 0.15, 0.03, 1000.0, 1.5, 0.6, 0.8),
+}
+INCL = Triad(table="Table 5-8", random_walk=0.08, bias_instability=0.06, scale_factor_ppm=500.0,
+             misalignment_mrad=1.0, orthogonality_mrad=0.2, bias_trim_range=0.02)
+# Linear-acceleration effect on the gyro bias with g-compensation, deg/h/g (Table 5-3)
+GYRO_G_SENSITIVITY_DEG_H_PER_G = 1.0
+
+
+def incl_noise_factor(force_g: np.ndarray) -> np.ndarray:
+    """How many times its 0 g figure an inclinometer axis's noise is, for the specific force
+    along it (g): INCL_NOISE_AT_1G at 1 g, in proportion between."""
+    return 1.0 + (INCL_NOISE_AT_1G - 1.0) * np.minimum(np.abs(force_g), 1.0)
+
+
+def triads(acc_range_g: int = DEFAULT_ACC_RANGE_G) -> dict[str, Triad]:
+    """The three triads of a unit whose accelerometers have the range `acc_range_g` (g)."""
+    if acc_range_g not in ACC:
+        raise ValueError(f"no STIM300 accelerometer range of {acc_range_g} g (known: "
+                         f"{', '.join(map(str, ACC_RANGES_G))} g)")
+    return {"gyro": GYRO, "acc": ACC[acc_range_g], "incl": INCL}
+
+
+def reference(sensor: str, acc_range_g: int = DEFAULT_ACC_RANGE_G) -> str:
+    """Where a triad's figures come from, for documents and messages."""
+    return f"{SPECIFICATIONS}, {triads(acc_range_g)[sensor].table}"
+
+
+# ---------------------------------------------------------------- factory residuals
+
+# The off-diagonal elements of a triad's map from the housing axes, in the order scenarios and
+# results list them: (i, j) is the sensitivity of sensing axis i to housing axis j.
+OFF_DIAGONAL = ((0, 1), (0, 2), (1, 0), (1, 2), (2, 0), (2, 1))
+OFF_DIAGONAL_NAMES = tuple("xyz"[i] + "xyz"[j] for i, j in OFF_DIAGONAL)
+
+
+def triad_error(scale_ppm, misalignment_mrad) -> np.ndarray:
+    """The 3 x 3 error E of a triad whose output is (I + E) times the input in housing axes:
+    scale-factor errors (ppm) on the diagonal, the OFF_DIAGONAL elements (mrad) off it."""
+    error = np.diag(np.asarray(scale_ppm, dtype=float) * 1e-6)
+    for (i, j), value in zip(OFF_DIAGONAL, misalignment_mrad):
+        error[i, j] = value * 1e-3
+    return error
+
+
+@dataclass(frozen=True)
+class FactoryTerm:
+    """One element of a triad's factory error E (`triad_error`) as a prior: its 1-sigma, dimensionless."""
+
+    sensor: str  # gyro, acc, incl
+    row: int
+    col: int
+    sigma: float
+
+    @property
+    def unit(self) -> str:
+        return "ppm" if self.row == self.col else "mrad"
+
+    @property
+    def sigma_in_unit(self) -> float:
+        return self.sigma * (1e6 if self.row == self.col else 1e3)
+
+    @property
+    def name(self) -> str:
+        """e.g. gyro_scale_z, acc_misalignment_xy."""
+        if self.row == self.col:
+            return f"{self.sensor}_scale_{'xyz'[self.row]}"
+        return f"{self.sensor}_misalignment_{'xyz'[self.row]}{'xyz'[self.col]}"
+
+
+def factory_terms(acc_range_g: int = DEFAULT_ACC_RANGE_G,
+                  sensors: tuple[str, ...] = ("gyro", "acc", "incl")) -> tuple[FactoryTerm, ...]:
+    """Every factory residual of the named triads with its datasheet prior: three scale factors
+    and the six OFF_DIAGONAL elements per triad."""
+    figures = triads(acc_range_g)
+    terms = []
+    for sensor in sensors:
+        triad = figures[sensor]
+        terms += [FactoryTerm(sensor, i, i, triad.scale_factor_sigma_ppm * 1e-6) for i in range(3)]
+        terms += [FactoryTerm(sensor, i, j, triad.misalignment_sigma_mrad * 1e-3) for i, j in OFF_DIAGONAL]
+    return tuple(terms)

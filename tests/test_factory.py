@@ -1,0 +1,179 @@
+"""The sensor as its datasheet describes it: factory residuals (each triad's misalignment to the
+housing and scale factors), the joint fit's error budget that carries them, and the datasheet's
+noise. Each residual alone moves the estimates as first-order physics says, the budget predicts
+that move, and the reported sigma covers it."""
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from calibd import spec
+from calibd.calibrate import joint_fit, joint_real_case
+from calibd.estimators import joint
+from calibd.frames import STANDARD_GRAVITY
+from calibd.results import result_json
+from calibd.scenario import Noise, ScenarioError, Truth, load_scenario, parse_scenario
+from calibd.session import Session
+from calibd.sim import simulate
+from calibd.units import DEG
+
+MG = STANDARD_GRAVITY / 1000
+THESIS = load_scenario("thesis-real")
+QUIET = replace(THESIS, noise=replace(THESIS.noise, enabled=False), warmup=replace(THESIS.warmup, power_on_s=1e7))
+
+
+def session_of(sim) -> Session:
+    s, rate = sim.samples, sim.scenario.sensor.sample_rate_hz
+    return Session(time_s=np.arange(len(s)) / rate, gyro=sim.exact["gyro"] * DEG,
+                   acc=sim.exact["acc"] * STANDARD_GRAVITY, incl=sim.exact["incl"] * STANDARD_GRAVITY,
+                   temperature_c=None, rate_hz=rate, sensor={}, stream={"capture": "simulated"})
+
+
+def fitted(truth: Truth, scenario=QUIET):
+    """The joint fit of a noise-free session (exact values, no quantisation) with this truth."""
+    sim = simulate(replace(scenario, truth=truth))
+    return joint_fit(session_of(sim), scenario.site).fit
+
+
+@pytest.fixture(scope="module")
+def perfect():
+    return fitted(THESIS.truth)
+
+
+# (truth field, index, value) of one residual, the estimate it moves and by how much (SI) at
+# first order: a gyro triad sensing housing Z on its X axis tilts the platform axis it sees, so
+# beta by -E_xz; the accelerometers' X reading g0 E_xz more is a bias; a Z scale factor reads
+# g0 s more along gravity, a bias too.
+FIRST_ORDER = [
+    ("gyro_misalignment_mrad", 1, 0.5, "beta", -0.5e-3),
+    ("gyro_misalignment_mrad", 3, 0.5, "alpha", 0.5e-3),
+    ("acc_misalignment_mrad", 1, 0.5, "acc_bias_x", 0.5e-3 * THESIS.site.gravity),
+    ("incl_misalignment_mrad", 3, -0.5, "incl_bias_y", -0.5e-3 * THESIS.site.gravity),
+    ("incl_scale_ppm", 2, 250.0, "incl_bias_z", 250e-6 * THESIS.site.gravity),
+    ("acc_scale_ppm", 2, -100.0, "acc_bias_z", -100e-6 * THESIS.site.gravity),
+]
+
+
+@pytest.mark.parametrize("field, index, value, estimate, move", FIRST_ORDER)
+def test_one_residual_moves_its_estimate_as_first_order_physics_says_and_the_budget_predicts(
+        perfect, field, index, value, estimate, move):
+    values = [0.0] * len(getattr(THESIS.truth, field))
+    values[index] = value
+    fit = fitted(replace(THESIS.truth, **{field: tuple(values)}))
+    moved = fit.estimates[estimate] - perfect.estimates[estimate]
+    assert moved == pytest.approx(move, rel=0.03)
+    # the budget's own prediction for this term at `value`, from the fit of the perfect session
+    sensor = field.split("_")[0]
+    row, col = ((index, index) if "scale" in field else spec.OFF_DIAGONAL[index])
+    k = next(i for i, t in enumerate(perfect.factory.terms) if (t.sensor, t.row, t.col) == (sensor, row, col))
+    term = perfect.factory.terms[k]
+    predicted = perfect.factory.estimates[list(perfect.estimates).index(estimate), k] * value / term.sigma_in_unit
+    assert predicted == pytest.approx(moved, rel=0.03)
+    # at 1 (misalignment 0.5 mrad) or 1.25 sigma of the prior, the sigma covers it
+    assert abs(moved) < 2 * fit.sigmas[estimate]
+
+
+def test_the_moved_estimates_are_only_those_the_physics_names(perfect):
+    """A misaligned gyro triad moves alpha, beta and (through the axis) pitch and roll and the
+    horizontal biases; yaw and the gyro biases barely (well under their noise sigma)."""
+    effects = dict(zip(perfect.estimates, perfect.factory.estimates))
+    noise_only = {name: np.sqrt(perfect.budget["white_noise"][i, i] + perfect.budget["bias_instability"][i, i])
+                  for i, name in enumerate(perfect.estimates)}
+    for name in ("yaw", "gyro_bias_x", "gyro_bias_y", "gyro_bias_z"):
+        assert np.linalg.norm(effects[name]) < 0.1 * noise_only[name], name
+    for name in ("pitch", "roll", "alpha", "beta", "acc_bias_x", "acc_bias_y", "incl_bias_x", "incl_bias_y"):
+        assert np.linalg.norm(effects[name]) > 5 * noise_only[name], name
+
+
+def test_the_budget_parts_add_up_to_the_sigma_in_the_result_document():
+    sim = simulate(THESIS)
+    s, rate = sim.samples, THESIS.sensor.sample_rate_hz
+    session = Session(time_s=np.arange(len(s)) / rate, gyro=s["gyro"].astype(float) * DEG,
+                      acc=s["acc"].astype(float) * STANDARD_GRAVITY, incl=s["incl"].astype(float) * STANDARD_GRAVITY,
+                      temperature_c=None, rate_hz=rate, sensor={}, stream={"capture": "simulated"})
+    doc = json.loads(result_json(joint_real_case(session, THESIS.site)))
+    budget = doc["error_budget"]
+    assert budget["frame"] == "housing" and doc["schema"] == "calibd.result/4"
+    for name, estimate in doc["estimates"].items():
+        parts = budget["sigma"][name]
+        assert set(parts) == set(budget["parts"]) >= {"white_noise", "bias_instability", "gravity", "factory_residuals"}
+        assert sum(v**2 for v in parts.values()) == pytest.approx(estimate["sigma"] ** 2, rel=1e-9)
+    terms = budget["factory_residuals"]["terms"]
+    assert len(terms) == 27 and all(t["source"] == "prior" for t in terms.values())
+    assert terms["gyro_scale_z"] == {"sigma": 250.0, "unit": "ppm", "source": "prior"}
+    assert terms["acc_misalignment_xz"]["sigma"] == 0.5 and terms["incl_scale_x"]["sigma"] == 250.0
+    # what a single vertical axis cannot see sets alpha's sigma: the gyro triad's 0.5 mrad
+    assert budget["sigma"]["alpha"]["factory_residuals"] == pytest.approx(np.degrees(0.5e-3), rel=0.02)
+
+
+def test_without_the_prior_the_fit_is_that_of_a_perfect_sensor(perfect):
+    session = session_of(simulate(QUIET))
+    bare = joint_fit(session, QUIET.site, joint.JointOptions(factory_range_g=None)).fit
+    assert bare.factory is None and "factory_residuals" not in bare.budget
+    assert bare.estimates == pytest.approx(perfect.estimates, abs=1e-12)
+    assert bare.sigmas["alpha"] < 0.1 * perfect.sigmas["alpha"]
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_residuals_at_the_datasheet_limits_are_flagged_or_within_three_sigma(seed):
+    """Every residual at its limit with a random sign, datasheet noise: no confident wrong answer."""
+    rng = np.random.default_rng(seed)
+    residuals = {}
+    for sensor, triad in spec.triads().items():
+        residuals[f"{sensor}_scale_ppm"] = tuple(rng.choice([-1, 1], 3) * triad.scale_factor_ppm)
+        residuals[f"{sensor}_misalignment_mrad"] = tuple(rng.choice([-1, 1], 6) * triad.misalignment_mrad)
+    scenario = replace(THESIS, seed=seed, truth=replace(THESIS.truth, **residuals))
+    sim = simulate(scenario)
+    s, rate = sim.samples, scenario.sensor.sample_rate_hz
+    session = Session(time_s=np.arange(len(s)) / rate, gyro=s["gyro"].astype(float) * DEG,
+                      acc=s["acc"].astype(float) * STANDARD_GRAVITY, incl=s["incl"].astype(float) * STANDARD_GRAVITY,
+                      temperature_c=None, rate_hz=rate, sensor={}, stream={"capture": "simulated"})
+    result = joint_real_case(session, scenario.site)
+    truth = scenario.truth.estimates()
+    for name, e in result.estimates.items():
+        if name.endswith(("_x", "_y", "_z")):
+            continue  # biases: their turn-on truth needs the warm-up; the angles carry the point
+        assert e.quality == "poor" or abs(e.value - truth[name]) < 3 * e.sigma, (name, e, truth[name])
+
+
+def test_a_clean_capture_with_the_datasheet_noise_raises_no_vibration_warning():
+    """The inclinometers' 0.08 m/s/sqrt(h) at 0 g and 35 % more along gravity, the 10 g
+    accelerometers' 0.024: the sensor as specified is not vibrating."""
+    assert (THESIS.noise.incl_vrw_m_s_sqrt_h, THESIS.noise.acc_vrw_m_s_sqrt_h) == (0.08, 0.024)
+    sim = simulate(replace(THESIS, seed=5))
+    s, rate = sim.samples, THESIS.sensor.sample_rate_hz
+    session = Session(time_s=np.arange(len(s)) / rate, gyro=s["gyro"].astype(float) * DEG,
+                      acc=s["acc"].astype(float) * STANDARD_GRAVITY, incl=s["incl"].astype(float) * STANDARD_GRAVITY,
+                      temperature_c=None, rate_hz=rate, sensor={}, stream={"capture": "simulated"})
+    result = joint_real_case(session, THESIS.site)
+    assert not [w for w in result.warnings if "per sample" in w], result.warnings
+
+
+def test_the_simulated_inclinometer_is_noisier_along_gravity():
+    sim = simulate(replace(THESIS, segments=THESIS.segments[:1]))
+    steps = np.diff(sim.exact["incl"], axis=0)
+    ratio = steps[:, 2].std() / steps[:, :2].std()
+    assert ratio == pytest.approx(spec.INCL_NOISE_AT_1G, rel=0.03)
+
+
+@pytest.mark.parametrize("range_g, vrw, scale_ppm", [(5, 0.024, 200), (30, 0.04, 300), (80, 0.15, 1000)])
+def test_the_noise_defaults_follow_the_sensors_range(range_g, vrw, scale_ppm):
+    scenario = parse_scenario({"sensor": {"acc_range_g": range_g}, "site": {"latitude_deg": 45.0},
+                               "segments": [{"type": "static", "duration_s": 10}]}, "s.toml")
+    assert scenario.noise == Noise.datasheet(range_g) and scenario.noise.acc_vrw_m_s_sqrt_h == vrw
+    assert spec.triads(range_g)["acc"].scale_factor_ppm == scale_ppm
+
+
+def test_a_scenario_takes_each_triads_residuals_and_refuses_the_wrong_shape():
+    base = {"site": {"latitude_deg": 45.0}, "segments": [{"type": "static", "duration_s": 10}]}
+    truth = {"gyro_misalignment_mrad": [0.1, 0.2, 0.3, 0.4, 0.5, 0.6], "incl_scale_ppm": [100, -200, 300]}
+    scenario = parse_scenario(base | {"truth": truth}, "s.toml")
+    error = scenario.truth.triad_error("gyro")
+    assert error[0, 1] == 0.1e-3 and error[2, 1] == 0.6e-3 and np.all(np.diag(error) == 0)
+    assert np.diag(scenario.truth.triad_error("incl")) == pytest.approx([100e-6, -200e-6, 300e-6])
+    with pytest.raises(ScenarioError, match=r"s.toml \[truth\] acc_misalignment_mrad: \[1, 2, 3\] is not a list of 6"):
+        parse_scenario(base | {"truth": {"acc_misalignment_mrad": [1, 2, 3]}}, "s.toml")
+    with pytest.raises(ScenarioError, match=r"gyro_scale_ppm: .* is not in \[-10000, 10000\] ppm"):
+        parse_scenario(base | {"truth": {"gyro_scale_ppm": [0, 0, 2e4]}}, "s.toml")
