@@ -277,6 +277,7 @@ class JointFit:
     first: int  # the session sample where the fit's input starts (the level static's first)
     inp: joint.JointInput
     fit: joint.JointResult
+    options: joint.JointOptions  # as solved: the accelerometer range the sensor's configuration gave
     turn_angles: gaps.TiltCheck | None = None  # each turn's angle against the tilt, before any correction
     final_tilt: gaps.TiltCheck | None = None  # the same check on the fit as returned
 
@@ -284,8 +285,12 @@ class JointFit:
 def joint_fit(session: Session, site: Site, options: joint.JointOptions = joint.JointOptions(),
               segments: list[detect.Segment] | None = None) -> JointFit:
     """The joint estimator's fit on every static and turning sample from the level static to the
-    last static of the same mounting. `segments`: the session's, when already found."""
+    last static of the same mounting. `segments`: the session's, when already found. The
+    datasheet figures are those of the sensor's accelerometer range, when its configuration
+    datagram gave it (else `options`')."""
     segments = session_segments(session) if segments is None else segments
+    if session.sensor.get("acc_range_g") in spec.ACC:
+        options = replace(options, acc_range_g=session.sensor["acc_range_g"])
     try:
         level = detect.level_static(segments)
     except ValueError as exc:
@@ -312,13 +317,13 @@ def joint_fit(session: Session, site: Site, options: joint.JointOptions = joint.
     check = _tilt_check(inp, fit, site)
     found = [t for t in check.turns if t.found] if check else []
     if not found:
-        return JointFit(used, first, inp, fit, check, check)
+        return JointFit(used, first, inp, fit, options, check, check)
     try:
         inp, fit = _corrected(inp, fit, site, options, found)
     except (joint.Underdetermined, np.linalg.LinAlgError) as exc:
         raise CalibrationError(f"the tilt the accelerometers and inclinometers see disagrees with the gyros' turn "
                                f"angles, and the corrected angles leave no usable fit ({exc})") from None
-    return JointFit(used, first, inp, fit, check, _tilt_check(inp, fit, site))
+    return JointFit(used, first, inp, fit, options, check, _tilt_check(inp, fit, site))
 
 
 def _tilt_check(inp: joint.JointInput, fit: joint.JointResult, site: Site) -> gaps.TiltCheck | None:
@@ -363,7 +368,7 @@ def joint_real_case(session: Session, site: Site, options: joint.JointOptions = 
                          session.sensor, fit.covariance, stream=session.stream,
                          options={"fixed_amplitude": options.fixed_amplitude, "drift": options.drift},
                          checks=_joint_checks(fit, site) | _turn_angle_checks(fitted, session),
-                         bias_reference="turn-on", error_budget=error_budget_record(fit, options))
+                         bias_reference="turn-on", error_budget=error_budget_record(fit, fitted.options))
     if fit.sigmas["yaw"] / DEG > YAW_SIGMA_POOR_DEG:
         result = result.flag_poor(("yaw",))
     if fitted.final_tilt and fitted.final_tilt.p_value < CHI2_ALARM_P:
@@ -379,7 +384,7 @@ def error_budget_record(fit: joint.JointResult, options: joint.JointOptions) -> 
     factory = None
     if fit.factory is not None:
         factory = {"reference": spec.SPECIFICATIONS,
-                   "acc_range_g": options.factory_range_g,
+                   "acc_range_g": options.acc_range_g,
                    "terms": {t.name: {"sigma": t.sigma_in_unit, "unit": t.unit, "source": "prior"}
                              for t in fit.factory.terms}}
     return {"frame": "housing", "tilt_from": "inclinometers" if fit.tilt is fit.incl else "accelerometers",
@@ -403,7 +408,7 @@ def _vibration_warnings(fitted: JointFit, session: Session) -> list[str]:
     for k, (start, stop) in enumerate(inp.statics):
         # the datasheet's inclinometer figures are at 0 g: an axis along gravity is noisier
         along = None if inp.incl is None else inp.incl[start:stop].mean(axis=0) / STANDARD_GRAVITY
-        figures = joint.datasheet_noise(Noise(), inp.rate_hz, along)
+        figures = joint.datasheet_noise(Noise.datasheet(fitted.options.acc_range_g), inp.rate_hz, along)
         loud = []
         for sensor, values in (("gyro", inp.gyro), ("acc", inp.acc), ("incl", inp.incl)):
             if values is None:

@@ -61,11 +61,14 @@ class StreamInfo:
         return f"external trigger, {rate:.1f} Hz"
 
     def sensor_record(self) -> dict:
-        """The sensor's identity as a result or status document records it (JSON-ready)."""
+        """The sensor's identity as a result or status document records it (JSON-ready);
+        `acc_range_g`: the accelerometers' range from the configuration datagram (the widest
+        axis's), None when the stream has none."""
         ident = self.datagram_id
+        ranges = None if self.configuration is None else self.configuration.acc_range_g
         return {"serial_number": self.serial_number, "part_number": self.part_number,
                 "datagram_id": None if ident is None else f"0x{ident:02X}", "sample_rate_hz": self.rate_hz,
-                "sample_rate": self.rate_words()}
+                "sample_rate": self.rate_words(), "acc_range_g": None if ranges is None else max(ranges)}
 
     def stream_record(self) -> dict:
         """The stream's statistics as a result records them (JSON-ready): what came, what was lost

@@ -11,12 +11,13 @@ import pytest
 
 from calibd import spec
 from calibd.calibrate import joint_fit, joint_real_case
+from calibd.cli import load_session
 from calibd.estimators import joint
 from calibd.frames import STANDARD_GRAVITY
 from calibd.results import result_json
 from calibd.scenario import Noise, ScenarioError, Truth, load_scenario, parse_scenario
 from calibd.session import Session
-from calibd.sim import simulate
+from calibd.sim import simulate, write_capture
 from calibd.units import DEG
 
 MG = STANDARD_GRAVITY / 1000
@@ -110,7 +111,7 @@ def test_the_budget_parts_add_up_to_the_sigma_in_the_result_document():
 
 def test_without_the_prior_the_fit_is_that_of_a_perfect_sensor(perfect):
     session = session_of(simulate(QUIET))
-    bare = joint_fit(session, QUIET.site, joint.JointOptions(factory_range_g=None)).fit
+    bare = joint_fit(session, QUIET.site, joint.JointOptions(factory_residuals=False)).fit
     assert bare.factory is None and "factory_residuals" not in bare.budget
     assert bare.estimates == pytest.approx(perfect.estimates, abs=1e-12)
     assert bare.sigmas["alpha"] < 0.1 * perfect.sigmas["alpha"]
@@ -177,3 +178,19 @@ def test_a_scenario_takes_each_triads_residuals_and_refuses_the_wrong_shape():
         parse_scenario(base | {"truth": {"acc_misalignment_mrad": [1, 2, 3]}}, "s.toml")
     with pytest.raises(ScenarioError, match=r"gyro_scale_ppm: .* is not in \[-10000, 10000\] ppm"):
         parse_scenario(base | {"truth": {"gyro_scale_ppm": [0, 0, 2e4]}}, "s.toml")
+
+
+def test_an_80_g_unit_is_held_to_its_own_datasheet_figures(tmp_path):
+    """The configuration datagram names the accelerometers' range: its noise (0.15 m/s/sqrt(h))
+    raises no vibration warning, and its 1000 ppm scale factor sets the Z bias's prior."""
+    scenario = replace(THESIS, sensor=replace(THESIS.sensor, acc_range_g=80), noise=Noise.datasheet(80))
+    path = tmp_path / "80g.bin"
+    write_capture(scenario, path)
+    result = joint_real_case(load_session(str(path)), THESIS.site)
+    assert result.sensor["acc_range_g"] == 80
+    assert not [w for w in result.warnings if "per sample" in w], result.warnings
+    budget = result.error_budget
+    assert budget["factory_residuals"]["acc_range_g"] == 80
+    assert budget["factory_residuals"]["terms"]["acc_scale_z"]["sigma"] == 500.0
+    assert budget["sigma"]["acc_bias_z"]["factory_residuals"] == pytest.approx(0.5e-3 * 1000 * THESIS.site.gravity
+                                                                               / STANDARD_GRAVITY, rel=0.02)

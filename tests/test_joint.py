@@ -184,7 +184,7 @@ def quiet_thesis():
 
 STIM300 = datasheet_noise(Noise(), THESIS.sensor.sample_rate_hz)
 NONE = NoiseModel(0.0, 0.0)
-PERFECT = JointOptions(factory_range_g=None)  # the noise terms alone: no factory residuals' prior
+PERFECT = JointOptions(factory_residuals=False)  # the noise terms alone: no factory residuals' prior
 
 
 def test_a_beta_error_moves_the_x_biases_by_g0_d_beta(quiet_thesis):

@@ -89,7 +89,7 @@ def test_noise_has_six_channels_and_plan_reads_the_file_as_a_unit_without_inclin
     assert figures.incl_vrw_m_s_sqrt_h is None and figures.acc_vrw_m_s_sqrt_h == pytest.approx(0.024, rel=0.05)
     planned = plan("thesis", Site(45.0), figures)
     assert planned.session.incl is None and not [n for n in planned.sigmas if n.startswith("incl_")]
-    perfect = JointOptions(factory_range_g=None)
+    perfect = JointOptions(factory_residuals=False)
     # the quieter force sensor gives the tilt: a 10 g unit's accelerometers (0.024 m/s/sqrt(h),
     # 0.005 mg) are quieter than the inclinometers, so a unit without them loses nothing; with
     # accelerometers much noisier than the inclinometers, the inclinometers' tilt is the one

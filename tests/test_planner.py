@@ -27,7 +27,7 @@ WHITE_GYRO_ONLY = Noise(gyro_bias_instability_deg_h=0, acc_vrw_m_s_sqrt_h=0, acc
 WHITE_ONLY = Noise(gyro_bias_instability_deg_h=0, acc_bias_instability_mg=0, incl_bias_instability_mg=0)
 
 
-PERFECT = JointOptions(factory_range_g=None)  # the noise terms alone: the scalings they follow
+PERFECT = JointOptions(factory_residuals=False)  # the noise terms alone: the scalings they follow
 
 
 @pytest.fixture(scope="module")

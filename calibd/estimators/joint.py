@@ -132,9 +132,11 @@ def datasheet_noise(figures: Noise, rate_hz: float, incl_force_g: np.ndarray | N
 class JointOptions:
     fixed_amplitude: bool = False  # horizontal Earth rate amplitude fixed to its known value
     drift: bool = False  # a linear gyro drift per channel (thermal ramps); costs precision
-    # the factory residuals' prior (spec.factory_terms) for a unit of this accelerometer range, g;
-    # None: a perfect sensor is assumed (the noise-limit checks of the fit itself)
-    factory_range_g: int | None = spec.DEFAULT_ACC_RANGE_G
+    # the unit's accelerometer range, g: whose datasheet figures (noise floors, factory residuals) apply
+    acc_range_g: int = spec.DEFAULT_ACC_RANGE_G
+    # the factory residuals' prior (spec.factory_terms) in every sigma; False: a perfect sensor is
+    # assumed (the noise-limit checks of the fit itself)
+    factory_residuals: bool = True
 
 
 # The parts a covariance is made of, in the order results list them (`JointResult.budget`)
@@ -674,7 +676,7 @@ def solve(inp: JointInput, site: Site, options: JointOptions = JointOptions(),
     (whose flicker is at least the STIM300 datasheet's)."""
     statics = np.concatenate([np.arange(a, b) for a, b in inp.statics])
     along = None if inp.incl is None else inp.incl[statics].mean(axis=0) / STANDARD_GRAVITY
-    least = datasheet_noise(Noise(), inp.rate_hz, along)
+    least = datasheet_noise(Noise.datasheet(options.acc_range_g), inp.rate_hz, along)
     gyro = fit_gyros(inp, site, options, noise and noise.gyro, least.gyro.flicker)
     k = gyro.params[AXIS_PARAMS]
     incl = None if inp.incl is None else \
@@ -692,9 +694,9 @@ def solve(inp: JointInput, site: Site, options: JointOptions = JointOptions(),
     jac = _jacobian(chain, x, steps)
     budget = {part: jac @ cov @ jac.T for part, cov in parts.items()}
     factory = None
-    if options.factory_range_g is not None:
+    if options.factory_residuals:
         sensors = ("gyro", "acc") if incl is None else ("gyro", "acc", "incl")
-        terms = spec.factory_terms(options.factory_range_g, sensors)
+        terms = spec.factory_terms(options.acc_range_g, sensors)
         factory = factory_effects(inp, site, options, gyro, incl, acc, terms, tilt_from_incl)
         budget["factory_residuals"] = factory.estimates @ factory.estimates.T
     return JointResult(chain(x), budget, gyro, incl, acc, jac, factory, tilt_from_incl)
