@@ -747,7 +747,11 @@ def factory_effects(inp: JointInput, site: Site, options: JointOptions, gyro: Gy
         through = identity.copy()
         through[term.row, term.col] += term.sigma
         if term.sensor == "gyro":
-            refit = _iterate_gyros(replace(inp, gyro=inp.gyro @ through.T), site, options, root, gyro, REFIT_TOLERANCE)
+            # started where the base fit's axis and non-rotational part go through the same map
+            params = gyro.params.copy()
+            params[AXIS_PARAMS] = through @ params[AXIS_PARAMS]
+            start = replace(gyro, params=params, offset=gyro.offset @ through.T)
+            refit = _iterate_gyros(replace(inp, gyro=inp.gyro @ through.T), site, options, root, start, REFIT_TOLERANCE)
             columns.append(estimates(refit.params, refit.chi) - base)
             refits[index] = (refit.params[AXIS_PARAMS], np.array([refit.chi[a:b].mean() for a, b in inp.statics]))
         else:
