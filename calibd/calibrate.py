@@ -317,13 +317,21 @@ def joint_fit(session: Session, site: Site, options: joint.JointOptions = joint.
     check = _tilt_check(inp, fit, site)
     found = [t for t in check.turns if t.found] if check else []
     if not found:
-        return JointFit(used, first, inp, fit, options, check, check)
+        return JointFit(used, first, inp, _seen(fit, check), options, check, check)
     try:
         inp, fit = _corrected(inp, fit, site, options, found)
     except (joint.Underdetermined, np.linalg.LinAlgError) as exc:
         raise CalibrationError(f"the tilt the accelerometers and inclinometers see disagrees with the gyros' turn "
                                f"angles, and the corrected angles leave no usable fit ({exc})") from None
-    return JointFit(used, first, inp, fit, options, check, _tilt_check(inp, fit, site))
+    final = _tilt_check(inp, fit, site)
+    return JointFit(used, first, inp, _seen(fit, final), options, check, final)
+
+
+def _seen(fit: joint.JointResult, check: gaps.TiltCheck | None) -> joint.JointResult:
+    """The fit with what the statics' forces saw of the factory residuals, where they were checked."""
+    if check is None or check.factory is None:
+        return fit
+    return fit.with_factory_posterior(check.factory)
 
 
 def _tilt_check(inp: joint.JointInput, fit: joint.JointResult, site: Site) -> gaps.TiltCheck | None:
@@ -331,7 +339,7 @@ def _tilt_check(inp: joint.JointInput, fit: joint.JointResult, site: Site) -> ga
     a = int_to_imu(fit.estimates["alpha"], fit.estimates["beta"])
     try:
         return gaps.check_turn_angles(inp, fit.gyro.chi, a, site.gravity, fit.acc.noise, fit.incl and fit.incl.noise,
-                                      fit.tilt.params[joint.TILT_PARAMS], fit.factory)
+                                      fit.tilt.params[joint.TILT_PARAMS], fit.factory, fit.gyro.noise)
     except (joint.Underdetermined, np.linalg.LinAlgError):
         return None
 
@@ -385,10 +393,21 @@ def error_budget_record(fit: joint.JointResult, options: joint.JointOptions) -> 
     if fit.factory is not None:
         factory = {"reference": spec.SPECIFICATIONS,
                    "acc_range_g": options.acc_range_g,
-                   "terms": {t.name: {"sigma": t.sigma_in_unit, "unit": t.unit, "source": "prior"}
-                             for t in fit.factory.terms}}
+                   "terms": {t.name: _term_record(t, fit.factory.posterior, k)
+                             for k, t in enumerate(fit.factory.terms)}}
     return {"frame": "housing", "tilt_from": "inclinometers" if fit.tilt is fit.incl else "accelerometers",
             "parts": list(next(iter(sigma.values()))), "sigma": sigma, "factory_residuals": factory}
+
+
+def _term_record(term, posterior: joint.FactoryPosterior | None, k: int) -> dict:
+    """One factory term: its value and sigma after the data (in ppm or mrad), the prior's sigma,
+    and whether the data set it (`estimated`) or its prior did."""
+    if posterior is None:
+        return {"value": 0.0, "sigma": term.sigma_in_unit, "prior_sigma": term.sigma_in_unit, "unit": term.unit,
+                "source": "prior"}
+    return {"value": float(posterior.z[k]) * term.sigma_in_unit,
+            "sigma": float(np.sqrt(posterior.cov[k, k])) * term.sigma_in_unit, "prior_sigma": term.sigma_in_unit,
+            "unit": term.unit, "source": "estimated" if posterior.estimated(k) else "prior"}
 
 
 VIBRATION_FACTOR = 3.0  # a static whose noise per sample exceeds the specified this many times is named

@@ -22,8 +22,8 @@ from scipy.linalg import block_diag
 from scipy.optimize import least_squares
 from scipy.special import gammaincc
 
-from .estimators.joint import (FactoryEffects, JointInput, NoiseModel, Underdetermined, alpha_beta, mean_variance,
-                               static_inflation)
+from .estimators.joint import (FactoryEffects, FactoryPosterior, JointInput, NoiseModel, Underdetermined, alpha_beta,
+                               mean_variance, static_inflation)
 from .allan import FLICKER_TAUS_S
 from .frames import int_to_imu, r3
 
@@ -70,6 +70,9 @@ class TiltCheck:
     turns: tuple[TurnAngle, ...]
     chi2: float
     dof: int
+    # what the statics' forces say of the factory residuals (`factory_posterior`): each term's
+    # value and their covariance, in units of its prior sigma; None without a factory prior
+    factory: FactoryPosterior | None = None
 
     @property
     def p_value(self) -> float:
@@ -97,14 +100,17 @@ def _model(params: np.ndarray, static_chi: np.ndarray, a: np.ndarray, g0: float,
 
 def check_turn_angles(inp: JointInput, chi: np.ndarray, a: np.ndarray, g0: float,
                       acc_noise: NoiseModel, incl_noise: NoiseModel, u0: np.ndarray,
-                      factory: FactoryEffects | None = None) -> TiltCheck:
+                      factory: FactoryEffects | None = None, gyro_noise: NoiseModel | None = None) -> TiltCheck:
     """Fit (u, b_acc[, b_incl], one angle correction per turn) to the statics' mean forces,
     weighted by the covariance the sensors' noise models give those means (`incl_noise` is
     unused for a unit without inclinometers: `inp.incl` None) and the factory residuals'
     prior (`factory`: how each moves the modelled means; a quiet accelerometer sees a gyro
     scale factor's angle error and the triads' misalignment acting on the turning tilt). `chi`:
     the joint fit's platform angle; `a`: R_int^IMU; `u0`: the joint fit's (u1, u2) to start from.
-    Raises Underdetermined when the statics do not determine the corrections."""
+    `gyro_noise`: the gyros' noise model, whose white noise integrated through the turns puts
+    the statics' angles off by a random walk (0.007 deg a 7 s turn): on a platform axis tilted by
+    degrees the quiet accelerometers see it. Raises Underdetermined when the statics do not
+    determine the corrections."""
     statics = inp.statics
     static_chi = np.array([chi[s:e].mean() for s, e in statics])
     if distinct_headings(static_chi) < MIN_HEADINGS:
@@ -114,12 +120,16 @@ def check_turn_angles(inp: JointInput, chi: np.ndarray, a: np.ndarray, g0: float
     means = np.stack([[values[s:e].mean(axis=0) for s, e in statics] for values, _ in forces])
     # covariance of the misfit (sensors, statics, channels) flattened: each channel's means as the
     # noise model gives them, and every factory residual's move of them
-    cov = block_diag(*[_by_channel(static_means_covariance(noise, inp, static_inflation(values, statics)))
-                       for values, noise in forces])
+    noise_cov = block_diag(*[_by_channel(static_means_covariance(noise, inp, static_inflation(values, statics)))
+                             for values, noise in forces])
+    u = np.array([*u0, np.sqrt(1.0 - u0[0] ** 2 - u0[1] ** 2)])
+    if gyro_noise is not None:
+        noise_cov = noise_cov + _angle_walk_covariance(inp, static_chi, a, g0, u, len(forces), gyro_noise)
+    cov, moves = noise_cov, None
     if factory is not None:
-        u = np.array([*u0, np.sqrt(1.0 - u0[0] ** 2 - u0[1] ** 2)])
         moves = factory_moves(factory, static_chi, a, g0, u, ("acc", "incl")[:len(forces)])
-        cov += moves.reshape(len(factory.terms), -1).T @ moves.reshape(len(factory.terms), -1)
+        moves = moves.reshape(len(factory.terms), -1).T  # (means, terms)
+        cov = noise_cov + moves @ moves.T
     whiten = np.linalg.inv(np.linalg.cholesky(cov))
 
     def residuals(params):
@@ -136,7 +146,50 @@ def check_turn_angles(inp: JointInput, chi: np.ndarray, a: np.ndarray, g0: float
     turns = tuple(TurnAngle(statics[k][1], statics[k + 1][0], float(static_chi[k + 1] - static_chi[k]),
                             float(free.x[first:][k]), float(sigmas[k])) for k in range(len(statics) - 1))
     dof = means.size - first
-    return TiltCheck(turns, float(2 * null.cost), dof)
+    posterior = None if moves is None else factory_posterior(
+        lambda p: _model(np.concatenate([p, start[first:]]), static_chi, a, g0, len(forces)).ravel(),
+        null.x, means.ravel(), noise_cov, moves)
+    return TiltCheck(turns, float(2 * null.cost), dof, posterior)
+
+
+def _angle_walk_covariance(inp: JointInput, static_chi: np.ndarray, a: np.ndarray, g0: float, u: np.ndarray,
+                           sensors: int, gyro_noise: NoiseModel) -> np.ndarray:
+    """Covariance of the statics' modelled mean forces (flattened as the misfit) from the random
+    walk of their platform angles: each turn adds its samples' white gyro noise about the axis,
+    integrated (chi' is 0 in a static, so only the motion between statics counts), and an angle
+    error moves the modelled tilt vector by its derivative."""
+    dt = 1.0 / inp.rate_hz
+    axis = a[:, 2]
+    per_sample = float(axis**2 @ gyro_noise.white) * dt**2  # rad^2 of chi a sample of motion adds
+    steps = [per_sample * (inp.statics[k][0] - inp.statics[k - 1][1]) for k in range(1, len(inp.statics))]
+    walk = np.cumsum([0.0, *steps])
+    angles = np.minimum.outer(walk, walk)  # cov(chi_j, chi_k): the turns they share
+    turning = g0 * (a @ r3(static_chi + np.pi / 2) @ np.diag([1.0, 1.0, 0.0]) @ u)  # d/dchi of g0 A R3(chi) u
+    derivative = np.zeros((sensors, len(static_chi), 3, len(static_chi)))
+    for k in range(len(static_chi)):
+        derivative[:, k, :, k] = turning[k]
+    flat = derivative.reshape(-1, len(static_chi))
+    return flat @ angles @ flat.T
+
+
+def factory_posterior(model, theta: np.ndarray, means: np.ndarray, noise_cov: np.ndarray,
+                      moves: np.ndarray) -> FactoryPosterior:
+    """The statics' mean forces fitted with the tilt and biases (`theta`, linearised about the
+    check's fit) and every factory term (`moves`: the means' move at 1 sigma), the terms' prior
+    N(0, I) taken as data: what the forces see of them. On a platform axis near vertical the
+    moves scale with the small tilt and the posterior stays near the prior; a tilted axis lets
+    the quiet accelerometers see the scale factors and the triads' relative misalignment."""
+    steps = 1e-7 * np.maximum(np.abs(theta), 1.0)
+    jac = np.column_stack([(model(theta + h * e) - model(theta - h * e)) / (2 * h)
+                           for h, e in zip(steps, np.eye(len(theta)))])
+    whiten = np.linalg.inv(np.linalg.cholesky(noise_cov))
+    design = whiten @ np.hstack([jac, moves])
+    info = design.T @ design
+    p = len(theta)
+    info[p:, p:] += np.eye(moves.shape[1])
+    cov = np.linalg.inv(info)
+    solution = cov @ (design.T @ (whiten @ (means - model(theta))))
+    return FactoryPosterior(solution[p:], cov[p:, p:])
 
 
 def _by_channel(per_channel: np.ndarray) -> np.ndarray:
@@ -152,14 +205,15 @@ def _by_channel(per_channel: np.ndarray) -> np.ndarray:
 def factory_moves(factory: FactoryEffects, static_chi: np.ndarray, a: np.ndarray, g0: float, u: np.ndarray,
                   sensors: tuple[str, ...]) -> np.ndarray:
     """(terms, sensors, statics, 3): how each factory residual at its 1-sigma moves the statics'
-    modelled mean forces g0 A R3(chi) u: a force triad's error acts on its own sensor's tilt
-    vector; a gyro's moves the platform axis (A) and the statics' angles of both."""
+    mean forces away from their model g0 A R3(chi) u: a force triad's error acts on its own
+    sensor's tilt vector (the data move); a gyro's moves the platform axis (A) and the statics'
+    angles the model takes (the model moves, the data stay: the opposite sign)."""
     tilt = g0 * (a @ r3(static_chi) @ u)  # (S, 3)
     moves = np.zeros((len(factory.terms), len(sensors), len(static_chi), 3))
     for index, term in enumerate(factory.terms):
         if term.sensor == "gyro":
             k, chi = factory.gyro_refits[index]
-            moves[index] = g0 * (int_to_imu(*alpha_beta(k)) @ r3(chi) @ u) - tilt
+            moves[index] = tilt - g0 * (int_to_imu(*alpha_beta(k)) @ r3(chi) @ u)
         elif term.sensor in sensors:
             error = np.zeros((3, 3))
             error[term.row, term.col] = term.sigma

@@ -659,6 +659,17 @@ class JointResult:
         """1-sigma of each estimate, SI: the covariance's diagonal, so the two never disagree."""
         return dict(zip(self.estimates, np.sqrt(np.diag(self.covariance)).tolist()))
 
+    def with_factory_posterior(self, posterior: FactoryPosterior) -> JointResult:
+        """The result with what the statics' forces saw of the factory residuals: each estimate
+        less the terms' estimated move (first order: the effects are linear at that size), their
+        share of the covariance the posterior's. The posterior's own noise, drawn from the same
+        static means as the force fits, is taken as independent of theirs."""
+        factory = replace(self.factory, posterior=posterior)
+        moved = self.factory.estimates @ posterior.z
+        estimates = {name: value - float(dv) for (name, value), dv in zip(self.estimates.items(), moved)}
+        return replace(self, estimates=estimates, factory=factory,
+                       budget=self.budget | {"factory_residuals": factory.covariance})
+
     def sigma_budget(self) -> dict[str, dict[str, float]]:
         """Per estimate, each budget part's 1-sigma (SI): their squares add up to the sigma's."""
         return {name: {part: float(np.sqrt(max(cov[i, i], 0.0))) for part, cov in self.budget.items()}
@@ -698,7 +709,7 @@ def solve(inp: JointInput, site: Site, options: JointOptions = JointOptions(),
         sensors = ("gyro", "acc") if incl is None else ("gyro", "acc", "incl")
         terms = spec.factory_terms(options.acc_range_g, sensors)
         factory = factory_effects(inp, site, options, gyro, incl, acc, terms, tilt_from_incl)
-        budget["factory_residuals"] = factory.estimates @ factory.estimates.T
+        budget["factory_residuals"] = factory.covariance
     return JointResult(chain(x), budget, gyro, incl, acc, jac, factory, tilt_from_incl)
 
 
@@ -710,14 +721,38 @@ def _tilt_variance(fit: ForceFit) -> float:
 
 
 @dataclass(frozen=True)
+class FactoryPosterior:
+    """The factory terms after the statics' forces (`gaps.factory_posterior`): z, each term's
+    value over its prior sigma, and cov, their covariance in the same units (the prior's: I)."""
+
+    z: np.ndarray
+    cov: np.ndarray
+
+    def estimated(self, k: int) -> bool:
+        """Whether the data, not the prior, set term k: its sigma at most half the prior's."""
+        return bool(self.cov[k, k] <= ESTIMATED_BELOW**2)
+
+
+ESTIMATED_BELOW = 0.5  # a factory term whose sigma the data bring to this share of the prior's is estimated
+
+
+@dataclass(frozen=True)
 class FactoryEffects:
-    """What each factory residual at its 1-sigma does to the fit (`factory_effects`)."""
+    """What each factory residual at its 1-sigma does to the fit (`factory_effects`), and what
+    the data say of the residuals (`posterior`; None: the prior alone)."""
 
     terms: tuple[spec.FactoryTerm, ...]
     estimates: np.ndarray  # (estimates, terms): each term's move of every estimate, SI
     # per gyro term (by its index in `terms`): the refitted platform axis k and the statics' mean
     # platform angles, rad: how the static forces' model moves (the turn-angle check's prior)
     gyro_refits: dict[int, tuple[np.ndarray, np.ndarray]]
+    posterior: FactoryPosterior | None = None
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """The factory residuals' share of the estimates' covariance, SI."""
+        cov = np.eye(len(self.terms)) if self.posterior is None else self.posterior.cov
+        return self.estimates @ cov @ self.estimates.T
 
 
 def factory_effects(inp: JointInput, site: Site, options: JointOptions, gyro: GyroFit, incl: ForceFit | None,
