@@ -314,27 +314,27 @@ def joint_fit(session: Session, site: Site, options: joint.JointOptions = joint.
         raise _lacking(str(exc), segments) from None
     except np.linalg.LinAlgError:
         raise _lacking("the segments do not determine every parameter (too few platform angles)", segments) from None
-    check = _tilt_check(inp, fit, site)
+    check = tilt_check(inp, fit, site)
     found = [t for t in check.turns if t.found] if check else []
     if not found:
-        return JointFit(used, first, inp, _seen(fit, check), options, check, check)
+        return JointFit(used, first, inp, seen_by_statics(fit, check), options, check, check)
     try:
         inp, fit = _corrected(inp, fit, site, options, found)
     except (joint.Underdetermined, np.linalg.LinAlgError) as exc:
         raise CalibrationError(f"the tilt the accelerometers and inclinometers see disagrees with the gyros' turn "
                                f"angles, and the corrected angles leave no usable fit ({exc})") from None
-    final = _tilt_check(inp, fit, site)
-    return JointFit(used, first, inp, _seen(fit, final), options, check, final)
+    final = tilt_check(inp, fit, site)
+    return JointFit(used, first, inp, seen_by_statics(fit, final), options, check, final)
 
 
-def _seen(fit: joint.JointResult, check: gaps.TiltCheck | None) -> joint.JointResult:
+def seen_by_statics(fit: joint.JointResult, check: gaps.TiltCheck | None) -> joint.JointResult:
     """The fit with what the statics' forces saw of the factory residuals, where they were checked."""
     if check is None or check.factory is None:
         return fit
     return fit.with_factory_posterior(check.factory)
 
 
-def _tilt_check(inp: joint.JointInput, fit: joint.JointResult, site: Site) -> gaps.TiltCheck | None:
+def tilt_check(inp: joint.JointInput, fit: joint.JointResult, site: Site) -> gaps.TiltCheck | None:
     """The turns' angles against the tilt; None when the statics cannot tell them."""
     a = int_to_imu(fit.estimates["alpha"], fit.estimates["beta"])
     try:

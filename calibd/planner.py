@@ -20,6 +20,7 @@ import numpy as np
 
 from stim300.protocol import NORMAL_LAYOUTS
 
+from .calibrate import seen_by_statics, tilt_check
 from .errors import CalibdError
 from .estimators.joint import JointInput, JointOptions, SensorNoise, Underdetermined, datasheet_noise, solve
 from .frames import STANDARD_GRAVITY, Site
@@ -176,7 +177,9 @@ def describe(segments: tuple[Segment, ...]) -> str:
 def noise_from_json(data: bytes, where: str) -> Noise:
     """Figures from a `calibd.noise/1` file (written by `calibd noise`): one per sensor, the root
     mean square of the three axes' (the estimator fits each channel's own; a plan takes a
-    sensor's axes alike, but for the inclinometer axis along gravity). A file without any inclinometer channel
+    sensor's axes alike), but the inclinometers' of X and Y alone: the plan takes their figure at
+    0 g and makes the axis along gravity noisier itself, and a capture's statics have Z along
+    gravity. A file without any inclinometer channel
     is a unit's without inclinometers: its figures have none (None)."""
     try:
         doc = json.loads(data)
@@ -199,7 +202,9 @@ def noise_from_json(data: bytes, where: str) -> Noise:
         for name, field, unit in (("random_walk", walk_field, walk_unit),
                                   ("bias_instability", instability_field, instability_unit)):
             values = [_figure(channels, f"{sensor}_{axis}", name, unit, where) for axis in "xyz"]
-            figures[field] = math.sqrt(sum(v * v for v in values) / 3)
+            if sensor == "incl":
+                values = values[:2]
+            figures[field] = math.sqrt(sum(v * v for v in values) / len(values))
     return Noise(**figures)
 
 
@@ -233,12 +238,14 @@ class Plan:
     session: JointInput  # the noise-free session the sigmas come from, at PLAN_RATE_HZ
     noise: SensorNoise
 
-    def flicker_yaw(self) -> float:
-        """The yaw 1-sigma bias instability alone leaves (white noise removed), rad: the floor
-        that more data of this layout barely lowers."""
+    def floor_yaw(self) -> float:
+        """The yaw 1-sigma bias instability and the factory residuals' prior leave (white noise
+        removed), rad: the floor that more data of this layout barely lowers (and more turns of
+        continuous rotation raise: the gyro Z scale factor turns every later angle)."""
         noise = self.noise
         flicker = SensorNoise(*(m and replace(m, white=0.0) for m in (noise.gyro, noise.acc, noise.incl)))
-        return solve(self.session, self.site, noise=flicker).sigmas["yaw"]
+        result = solve(self.session, self.site, noise=flicker)
+        return seen_by_statics(result, tilt_check(self.session, result, self.site)).sigmas["yaw"]
 
 
 def _session(protocol: Protocol, scale: float, site: Site, inclinometers: bool) -> tuple[JointInput, float]:
@@ -290,6 +297,7 @@ def plan(protocol: Protocol | str, site: Site, figures: Noise, scale: float = 1.
         result = solve(inp, site, options, noise=noise)
     except Underdetermined as exc:  # what the protocol lacks, said for the protocol
         raise PlanError(f"{protocol.name}: {exc}") from None
+    result = seen_by_statics(result, tilt_check(inp, result, site))  # as calibrate does: a tilted axis sees more
     factory = {name: parts.get("factory_residuals", 0.0) for name, parts in result.sigma_budget().items()}
     return Plan(protocol, scale, segments, seconds, result.sigmas, factory, site, inp, noise)
 
@@ -374,15 +382,17 @@ def report(reach: Reach, figures: Noise) -> str:
     lines.append(f"time to a yaw 1-sigma of {target:g} deg ({WHAT_SCALES[protocol.scales]}):")
     if reach.reached is None:
         longest = reach.short_of_it
-        floor, there, minutes = longest.flicker_yaw() / DEG, longest.sigmas["yaw"] / DEG, longest.duration_s / 60
+        floor, there, minutes = longest.floor_yaw() / DEG, longest.sigmas["yaw"] / DEG, longest.duration_s / 60
         if floor >= target:
-            lines.append(f"  not reachable: bias instability alone leaves {floor:.4g} deg at {minutes:.1f} min, the "
-                         f"floor more data barely lowers ({there:.4g} deg with the white noise too)")
+            lines.append(f"  not reachable: bias instability and the factory residuals' prior leave {floor:.4g} deg "
+                         f"at {minutes:.1f} min, the floor more data does not lower ({there:.4g} deg with the white "
+                         "noise too)")
         else:
             lines.append(f"  not reachable within {minutes:.1f} min, the longest searched: {there:.4g} deg there; "
-                         f"bias instability alone would leave {floor:.4g} deg")
+                         f"bias instability and the factory residuals' prior would leave {floor:.4g} deg")
         if protocol.scales != TURNS:
-            lines.append("  (continuous rotation averages bias instability away: --protocol continuous)")
+            lines.append("  (continuous rotation averages bias instability away, but the gyro Z scale factor's "
+                         "prior grows its yaw with every turn: --protocol continuous)")
     else:
         got = reach.reached
         lines.append(f"  {got.duration_s / 60:.1f} min of data: {describe(got.segments)}")

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from calibd import detect, planner
+from calibd.calibrate import seen_by_statics, tilt_check
 from calibd.cli import main as calibd_main
 from calibd.estimators.joint import JointInput, JointOptions, datasheet_noise, solve, white_noise_bound
 from calibd.frames import STANDARD_GRAVITY, Site
@@ -61,6 +62,7 @@ def test_plan_is_the_estimators_sigma_on_a_real_session(thesis_plan):
     inp = detected_input(simulate(replace(THESIS, seed=11)))
     along = inp.incl[slice(*inp.statics[0])].mean(axis=0) / STANDARD_GRAVITY  # the inclinometer axis along gravity
     result = solve(inp, SITE, noise=datasheet_noise(STIM300, inp.rate_hz, along))
+    result = seen_by_statics(result, tilt_check(inp, result, SITE))  # as the plan and calibrate take it
     noise_free = solve(thesis_plan.session, SITE, noise=thesis_plan.noise)
     amplitude_ratio = result.gyro.amplitude_check[0] / noise_free.gyro.amplitude_check[0]
     assert abs(amplitude_ratio - 1) > 0.02  # this seed's noise moves it: the scaling matters
@@ -102,7 +104,7 @@ def test_white_noise_sigma_falls_as_one_over_root_time():
     assert two.sigmas["acc_bias_z"] / one.sigmas["acc_bias_z"] == pytest.approx(ratio, rel=0.05)
     assert two.sigmas["alpha"] / one.sigmas["alpha"] == pytest.approx(1, abs=0.01)
     assert two.sigmas["acc_bias_x"] / one.sigmas["acc_bias_x"] == pytest.approx(1, abs=0.02)
-    flicker = [planner.plan("index", SITE, STIM300, scale).flicker_yaw() for scale in (1, 2)]
+    flicker = [planner.plan("index", SITE, STIM300, scale).floor_yaw() for scale in (1, 2)]
     assert flicker[1] / flicker[0] > 0.95  # the floor: more data barely lowers it
 
 
@@ -139,7 +141,7 @@ def test_a_target_below_the_flicker_floor_is_not_reachable():
     reach = planner.time_to_target("index", SITE, STIM300, 0.8 * DEG, max_session_s=1800)
     longest = reach.short_of_it
     assert reach.reached is None and 1750 < longest.duration_s <= 1800
-    assert 0.8 * DEG < longest.flicker_yaw() < longest.sigmas["yaw"]
+    assert 0.8 * DEG < longest.floor_yaw() < longest.sigmas["yaw"]
 
 
 def test_continuous_protocol_ends_a_quarter_turn_on():
@@ -171,6 +173,14 @@ def test_noise_file_axes_are_pooled_as_the_estimator_pools_them(tmp_path):
     assert figures.gyro_arw_deg_sqrt_h == pytest.approx(math.sqrt((0.1**2 + 0.2**2 + 0.15**2) / 3))
     others = {name: value for name, value in vars(figures).items() if name != "gyro_arw_deg_sqrt_h"}
     assert others == pytest.approx({name: vars(STIM300)[name] for name in others})
+
+
+def test_a_noise_file_gives_the_inclinometers_figure_at_0_g_from_x_and_y(tmp_path):
+    """A capture's statics have the inclinometer Z axis along gravity, 35 % noisier: the plan
+    adds that itself, so the file's figure is that of X and Y."""
+    path = noise_file(tmp_path, incl_z__random_walk__value=0.108, incl_z__bias_instability__value=0.081)
+    figures = planner.noise_from_json(path.read_bytes(), str(path))
+    assert (figures.incl_vrw_m_s_sqrt_h, figures.incl_bias_instability_mg) == pytest.approx((0.08, 0.06))
 
 
 def run(argv, capsys):
@@ -271,7 +281,8 @@ def test_plan_command_takes_a_scenario_file(tmp_path, capsys):
 
 
 def test_longer_statics_in_a_scenario_give_smaller_sigmas(tmp_path, noise_plan, thesis_plan):
-    """The noise's part falls with more data; the factory residuals' prior does not."""
+    """The noise's part falls with more data; the factory residuals' share barely (only as far as
+    the statics' forces see them better)."""
     path = scenario_file(tmp_path, level=("duration_s = 600\n", "duration_s = 1200\n"),
                          index=("duration_s = 120\n", "duration_s = 240\n"))
     protocol = planner.protocol_from_scenario(load_scenario(str(path)), "longer")
@@ -279,9 +290,9 @@ def test_longer_statics_in_a_scenario_give_smaller_sigmas(tmp_path, noise_plan, 
     assert longer.duration_s == pytest.approx(noise_plan.duration_s + 600 + 4 * 120)
     for name, sigma in noise_plan.sigmas.items():  # flicker keeps most of them far from 1 / sqrt(2)
         assert longer.sigmas[name] < (0.92 if name == "yaw" or name.startswith("gyro") else 1.0) * sigma, name
-    with_prior = planner.plan(protocol, SITE, STIM300)
-    assert with_prior.factory["alpha"] == pytest.approx(thesis_plan.factory["alpha"], rel=1e-3)
-    assert with_prior.sigmas["alpha"] == pytest.approx(thesis_plan.sigmas["alpha"], rel=0.01)
+    with_prior = planner.plan(protocol, SITE, STIM300)  # the statics see the residuals a little better
+    assert 0.9 * thesis_plan.factory["alpha"] < with_prior.factory["alpha"] <= thesis_plan.factory["alpha"]
+    assert 0.9 * thesis_plan.sigmas["alpha"] < with_prior.sigmas["alpha"] <= thesis_plan.sigmas["alpha"]
 
 
 def test_a_scenario_gives_the_plan_its_site_noise_and_sensor(tmp_path, capsys):
