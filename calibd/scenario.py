@@ -89,7 +89,7 @@ class Truth:
     incl_bias_mg: tuple[float, float, float] = (0.0, 0.0, 0.0)
     # Factory residuals of each triad (`spec.triad_error`): the sensor outputs (I + E) times the
     # input in housing axes, E from scale-factor errors (ppm, X Y Z) and the off-diagonal
-    # elements (mrad, in the order of spec.OFF_DIAGONAL_NAMES: xy xz yx yz zx zy). The angles
+    # elements (mrad, in the order of spec.OFF_DIAGONAL: xy xz yx yz zx zy). The angles
     # above describe the housing.
     gyro_scale_ppm: tuple[float, float, float] = (0.0, 0.0, 0.0)
     acc_scale_ppm: tuple[float, float, float] = (0.0, 0.0, 0.0)
