@@ -514,6 +514,10 @@ def _joint_checks(fit: joint.JointResult, site: Site) -> dict:
                                             "expected": expected * to_deg_h},
             "static_chi2": _chi2_record(fit),
             "gyro_residual_rms_deg_s": (fit.gyro.residual_rms / DEG).tolist(),
+            # the platform axis as the gyro triad sees it (unit): what taking the platform's rate out of
+            # the gyros' outputs needs, known far better than the housing's alpha and beta
+            "platform_axis_in_gyro_axes": (fit.gyro.params[joint.AXIS_PARAMS]
+                                           / np.linalg.norm(fit.gyro.params[joint.AXIS_PARAMS])).tolist(),
             "noise_excess_over_white": {"gyro": fit.gyro.noise_scale, "acc": fit.acc.noise_scale,
                                         **({} if fit.incl is None else {"incl": fit.incl.noise_scale})}}
 

@@ -91,8 +91,12 @@ def envelope(time_s: np.ndarray, values: np.ndarray, bins: int = TIMELINE_BINS):
 
 
 def platform_axis(result: CalibrationResult) -> np.ndarray | None:
-    """The platform's turning axis in IMU axes, R_int^IMU [0, 0, 1], from the result's alpha and
-    beta (None when it has none)."""
+    """The platform's turning axis in the gyros' axes: as the joint fit saw it (its checks), else
+    R_int^IMU [0, 0, 1] from the result's alpha and beta, which describe the housing and differ
+    from the gyro triad's by its factory misalignment (None when it has neither)."""
+    seen = (result.checks or {}).get("platform_axis_in_gyro_axes")
+    if seen is not None:
+        return np.asarray(seen, dtype=float)
     tilt = result.rotation_matrix("int_to_imu")
     return None if tilt is None else tilt[:, 2]
 

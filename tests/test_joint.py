@@ -128,12 +128,15 @@ def test_rate_ripple_leaves_yaw_unbiased():
 
 def test_quantised_capture_through_the_whole_path(tmp_path):
     """Through bytes: quantisation is the only error. A constant static rate is off by up to half a
-    count (0.11 deg/h), which moves yaw by up to 0.11 / 11.42 rad = 0.55 deg."""
+    count (0.11 deg/h), which moves yaw by up to 0.11 / 11.42 rad = 0.55 deg. The statics' forces,
+    asked what they see of the factory residuals, read the counts' few µg as a little of them:
+    pitch moves by a few hundredths of its sigma (0.026 deg, nearly all that prior's)."""
     scenario = quiet(THESIS)
     write_capture(scenario, tmp_path / "s.bin")
     result = joint_real_case(load_session(str(tmp_path / "s.bin")), scenario.site)
     e = {k: v.value - scenario.truth.estimates()[k] for k, v in result.estimates.items()}
-    assert abs(e["yaw"]) < 0.55 and abs(e["pitch"]) < 1e-4 and abs(e["gyro_bias_y"]) < 0.11
+    assert abs(e["yaw"]) < 0.55 and abs(e["gyro_bias_y"]) < 0.11
+    assert abs(e["pitch"]) < 0.1 * result.estimates["pitch"].sigma
     assert result.method == "joint"
     assert all(v.sigma is not None for v in result.estimates.values())
 
