@@ -539,9 +539,9 @@ def _joint_warnings(fit: joint.JointResult, site: Site) -> list[str]:
                 "d_beta moves the X biases by g0 d_beta, and their 1-sigma carries it"]
     if fit.factory is not None:
         warnings.append("every 1-sigma carries the factory residuals the STIM300 datasheet allows (each triad's "
-                        "misalignment to the housing and scale factors, as a prior: a single vertical axis cannot "
-                        "see them): they limit pitch, roll, alpha, beta and the accelerometer and inclinometer "
-                        "biases (the result's error_budget says how much)")
+                        "misalignment to the housing and scale factors, as a prior the statics narrow only where "
+                        "they see them): they limit pitch, roll, alpha, beta and the accelerometer and "
+                        "inclinometer biases (the result's error_budget says how much and what was estimated)")
     if site.g0 is None:
         warnings.append(f"Z {forces} biases rest on normal gravity: their 1-sigma includes "
                         f"{site.gravity_sigma / STANDARD_GRAVITY * 1000:.3f} mg for a typical local gravity anomaly, "
