@@ -327,6 +327,12 @@ def joint_fit(session: Session, site: Site, options: joint.JointOptions = joint.
     return JointFit(used, first, inp, seen_by_statics(fit, final), options, check, final)
 
 
+def checked_by_statics(inp: joint.JointInput, fit: joint.JointResult, site: Site) -> joint.JointResult:
+    """The fit with what the turn-angle check of its statics sees of the factory residuals (the
+    planner's view of a session; calibrate keeps the check too)."""
+    return seen_by_statics(fit, tilt_check(inp, fit, site))
+
+
 def seen_by_statics(fit: joint.JointResult, check: gaps.TiltCheck | None) -> joint.JointResult:
     """The fit with what the statics' forces saw of the factory residuals, where they were checked."""
     if check is None or check.factory is None:

@@ -20,7 +20,7 @@ import numpy as np
 
 from stim300.protocol import NORMAL_LAYOUTS
 
-from .calibrate import seen_by_statics, tilt_check
+from .calibrate import checked_by_statics
 from .errors import CalibdError
 from .estimators.joint import JointInput, JointOptions, SensorNoise, Underdetermined, datasheet_noise, solve
 from .frames import STANDARD_GRAVITY, Site
@@ -245,7 +245,7 @@ class Plan:
         noise = self.noise
         flicker = SensorNoise(*(m and replace(m, white=0.0) for m in (noise.gyro, noise.acc, noise.incl)))
         result = solve(self.session, self.site, noise=flicker)
-        return seen_by_statics(result, tilt_check(self.session, result, self.site)).sigmas["yaw"]
+        return checked_by_statics(self.session, result, self.site).sigmas["yaw"]
 
 
 def _session(protocol: Protocol, scale: float, site: Site, inclinometers: bool) -> tuple[JointInput, float]:
@@ -297,7 +297,7 @@ def plan(protocol: Protocol | str, site: Site, figures: Noise, scale: float = 1.
         result = solve(inp, site, options, noise=noise)
     except Underdetermined as exc:  # what the protocol lacks, said for the protocol
         raise PlanError(f"{protocol.name}: {exc}") from None
-    result = seen_by_statics(result, tilt_check(inp, result, site))  # as calibrate does: a tilted axis sees more
+    result = checked_by_statics(inp, result, site)  # as calibrate does: a tilted axis sees more
     factory = {name: parts.get("factory_residuals", 0.0) for name, parts in result.sigma_budget().items()}
     return Plan(protocol, scale, segments, seconds, result.sigmas, factory, site, inp, noise)
 

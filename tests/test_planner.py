@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from calibd import detect, planner
-from calibd.calibrate import seen_by_statics, tilt_check
+from calibd.calibrate import checked_by_statics
 from calibd.cli import main as calibd_main
 from calibd.estimators.joint import JointInput, JointOptions, datasheet_noise, solve, white_noise_bound
 from calibd.frames import STANDARD_GRAVITY, Site
@@ -62,7 +62,7 @@ def test_plan_is_the_estimators_sigma_on_a_real_session(thesis_plan):
     inp = detected_input(simulate(replace(THESIS, seed=11)))
     along = inp.incl[slice(*inp.statics[0])].mean(axis=0) / STANDARD_GRAVITY  # the inclinometer axis along gravity
     result = solve(inp, SITE, noise=datasheet_noise(STIM300, inp.rate_hz, along))
-    result = seen_by_statics(result, tilt_check(inp, result, SITE))  # as the plan and calibrate take it
+    result = checked_by_statics(inp, result, SITE)  # as the plan and calibrate take it
     noise_free = solve(thesis_plan.session, SITE, noise=thesis_plan.noise)
     amplitude_ratio = result.gyro.amplitude_check[0] / noise_free.gyro.amplitude_check[0]
     assert abs(amplitude_ratio - 1) > 0.02  # this seed's noise moves it: the scaling matters

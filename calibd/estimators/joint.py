@@ -671,8 +671,10 @@ class JointResult:
                        budget=self.budget | {"factory_residuals": factory.covariance})
 
     def sigma_budget(self) -> dict[str, dict[str, float]]:
-        """Per estimate, each budget part's 1-sigma (SI): their squares add up to the sigma's."""
-        return {name: {part: float(np.sqrt(max(cov[i, i], 0.0))) for part, cov in self.budget.items()}
+        """Per estimate, each budget part's 1-sigma (SI), in the order of BUDGET_PARTS: their
+        squares add up to the sigma's."""
+        parts = [part for part in BUDGET_PARTS if part in self.budget]
+        return {name: {part: float(np.sqrt(max(self.budget[part][i, i], 0.0))) for part in parts}
                 for i, name in enumerate(self.estimates)}
 
     @property
@@ -759,12 +761,12 @@ def factory_effects(inp: JointInput, site: Site, options: JointOptions, gyro: Gy
                     acc: ForceFit, terms: tuple[spec.FactoryTerm, ...], tilt_from_incl: bool) -> FactoryEffects:
     """How each factory residual moves every estimate at its 1-sigma (SI; a column per term):
     the data of the term's triad taken through (I + E), E that element at 1 sigma, and the whole
-    chain refitted (the effects are linear to a part in a thousand at that size). These are
-    consider parameters: a single vertical axis cannot tell them from the tilt and the biases,
-    so their prior reaches exactly the estimates they move (a misaligned gyro triad tilts the
-    platform axis, so alpha, beta, pitch and roll; the misalignment between triads lands in the
-    horizontal biases; a Z scale factor in the Z biases), and the fits' weights and platform
-    angles see the data as the sensor gave them."""
+    chain refitted (the effects are linear to a part in a thousand at that size). The fit itself
+    cannot tell them from the tilt and the biases (what the statics' forces see of them comes
+    after: `gaps.factory_posterior`), so their prior reaches exactly the estimates they move (a
+    misaligned gyro triad tilts the platform axis, so alpha, beta, pitch and roll; the
+    misalignment between triads lands in the horizontal biases; a Z scale factor in the Z
+    biases), and the fits' weights and platform angles see the data as the sensor gave them."""
     root = _row_weights(inp.gyro, inp)
     forces = {name: fit for name, fit in (("incl", incl), ("acc", acc)) if fit is not None}
     identity = np.eye(3)
