@@ -377,7 +377,7 @@ def report(reach: Reach, figures: Noise) -> str:
              "cannot lower):"]
     for name, sigma in nominal.sigmas.items():
         factor, unit = ESTIMATES[name]
-        lines.append(f"  {name:12s} {sigma * factor:10.3g} {unit:6s} ({nominal.factory[name] * factor:.3g})")
+        lines.append(f"  {name:12s} {sigma * factor:10.3g} {unit:6s} ({nominal.factory[name] * factor:.3g} {unit})")
     target = reach.target_yaw / DEG
     lines.append(f"time to a yaw 1-sigma of {target:g} deg ({WHAT_SCALES[protocol.scales]}):")
     if reach.reached is None:

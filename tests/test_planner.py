@@ -194,7 +194,7 @@ def test_plan_command_prints_every_sigma_and_the_time(tmp_path, capsys):
     code, out, err = run(argv, capsys)
     assert code == 0, err
     for name, unit in (("yaw", "deg"), ("gyro_bias_y", "deg/h"), ("acc_bias_z", "mg"), ("incl_bias_x", "mg")):
-        assert re.search(rf"^  {name} +[0-9.e-]+ {re.escape(unit)} +\([0-9.e-]+\)$", out, re.M), name
+        assert re.search(rf"^  {name} +[0-9.e-]+ {re.escape(unit)} +\([0-9.e-]+ {re.escape(unit)}\)$", out, re.M), name
     assert "nominal: 18.4 min of data: static 10.0 min, 4 x (turn -90 deg at 20 deg/s, static 2.0 min)" in out
     assert re.search(r"time to a yaw 1-sigma of 2.5 deg \(static durations scaled, turns kept\):\n"
                      r"  [0-9.]+ min of data: static [0-9.]+ min, 4 x", out)
@@ -306,7 +306,7 @@ def test_a_scenario_gives_the_plan_its_site_noise_and_sensor(tmp_path, capsys):
     assert code == 0, err
     assert "at latitude -33.9 deg, g0 9.79956 m/s^2" in out
     assert "noise: gyro 0.3 deg/sqrt(h), 0.3 deg/h; acc 0.024 m/s/sqrt(h), 0.005 mg; no inclinometers" in out
-    assert "incl_bias" not in out and re.search(r"^  pitch +[0-9.e-]+ deg +\([0-9.e-]+\)$", out, re.M)
+    assert "incl_bias" not in out and re.search(r"^  pitch +[0-9.e-]+ deg +\([0-9.e-]+ deg\)$", out, re.M)
     code, out, err = run(argv + ["--latitude", "10", "--arw", "0.2"], capsys)
     assert code == 0, err
     assert "at latitude 10 deg" in out and "noise: gyro 0.2 deg/sqrt(h)" in out
