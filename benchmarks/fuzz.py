@@ -12,9 +12,12 @@ a serial read would deliver them, both measured in this run (target: bulk <= 2x 
 - a clean 0xA7 capture with a bit flip every SYNC_RUN + 1 datagrams (each run just long enough to
   try the vectorised path, which then fails at once: its worst case).
 
-    python benchmarks/fuzz.py [--count 20000] [--seed 0] [--workers 1]
+    python benchmarks/fuzz.py [--count 20000] [--seed 0] [--workers 1] [--documents 0]
 
-1e6 inputs take a few CPU-hours (about 10 ms each on one core).
+1e6 inputs take a few CPU-hours (about 10 ms each on one core). `--documents N` also runs N inputs
+of benchmarks/fuzz_documents.py: the socket command parser, the client's message reader and the
+result, state, noise, configuration and scenario readers, on mutated real documents (about 2 ms
+each).
 """
 
 from __future__ import annotations
@@ -26,6 +29,8 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
+
+import fuzz_documents
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
@@ -112,9 +117,13 @@ def main() -> int:
     ap.add_argument("--count", type=int, default=20_000, help="fuzz inputs (default 20000)")
     ap.add_argument("--seed", type=int, default=0, help="seed of the fuzz inputs (default 0)")
     ap.add_argument("--workers", type=int, default=1, help="processes for the fuzz inputs (default 1)")
+    ap.add_argument("--documents", type=int, default=0,
+                    help="also fuzz the document and line readers with this many inputs (default 0)")
     args = ap.parse_args()
     fuzz(args.count, args.seed, args.workers)
     garbage_speed()
+    if args.documents:
+        return fuzz_documents.run(args.documents, args.seed, args.workers)
     return 0
 
 
