@@ -7,6 +7,8 @@ typed messages, ask for the latest result.
             if isinstance(message, Samples):
                 use(message.t, message.gyro)
 
+On TCP served with a token, `Client.connect(..., token=read_token(PATH))` sends ?AUTH first.
+
 The wire format is `calibd.serve.protocol`'s; this module only reads it. Every failure is a
 `ClientError` of one line naming the socket: a socket that is absent or refuses, a server that
 goes away or speaks another protocol major version, a malformed message of a known class. A
@@ -29,7 +31,7 @@ import numpy as np
 
 from .errors import CalibdError
 from .results import CalibrationResult, ResultError
-from .serve.protocol import MAX_MESSAGE_BYTES, PROTO_MAJOR, SAMPLE_KINDS, ProtocolError, decode
+from .serve.protocol import MAX_MESSAGE_BYTES, MAX_TOKEN_BYTES, PROTO_MAJOR, SAMPLE_KINDS, ProtocolError, decode
 
 CONNECT_TIMEOUT_S = 5.0
 _HOST_PORT = re.compile(r"(?:\[(?P<v6>[^\]]+)\]|(?P<host>[^:/\[\]]+)):(?P<port>\d{1,5})")
@@ -64,6 +66,13 @@ class Version:
     release: str
     proto_major: int
     proto_minor: int
+
+
+@dataclass(frozen=True)
+class Auth:
+    """The server took the token of ?AUTH."""
+
+    authenticated: bool
 
 
 @dataclass(frozen=True)
@@ -174,6 +183,7 @@ def _samples(doc: dict) -> Samples:
 
 _TYPES = {
     "VERSION": lambda d: Version(str(d["release"]), int(d["proto_major"]), int(d["proto_minor"])),
+    "AUTH": lambda d: Auth(bool(d["authenticated"])),
     "WATCH": lambda d: Watch(bool(d["enable"]), str(d.get("samples", "none"))),
     "STATE": _state,
     "RESULT": lambda d: Result(_result(d["result"], "RESULT")),
@@ -215,6 +225,23 @@ def _address(where: str):
     return (match["v6"] or match["host"], port)
 
 
+def read_token(path: str | None) -> str | None:
+    """The token in the file at `path` (the daemon's [serve] tcp_token_file, readable by its
+    group), without surrounding white space; None for no path."""
+    if path is None:
+        return None
+    try:
+        with open(path, "rb") as f:
+            token = f.read(MAX_TOKEN_BYTES + 1).strip().decode("utf-8")
+    except OSError as exc:
+        raise ClientError(f"{path}: cannot read the token: {(exc.strerror or str(exc)).lower()}") from None
+    except UnicodeDecodeError:
+        raise ClientError(f"{path}: the token is not UTF-8 text") from None
+    if not token or len(token) > MAX_TOKEN_BYTES:
+        raise ClientError(f"{path}: no token (an empty file, or more than {MAX_TOKEN_BYTES} bytes)")
+    return token
+
+
 def _connect_error(where: str, exc: OSError) -> ClientError:
     if isinstance(exc, FileNotFoundError):
         return ClientError(f"{where}: no such socket (is calibd serving there? see [serve] socket)")
@@ -232,13 +259,16 @@ class Client:
     messages (`read`); the answers `watch`, `poll` and `device` wait for are taken out of the
     stream and whatever arrived before them stays queued, in order, for the next read."""
 
-    def __init__(self, sock: socket.socket, where: str, timeout_s: float):
+    def __init__(self, sock: socket.socket, where: str, timeout_s: float, token: str | None = None):
         self._sock, self.where, self._timeout_s = sock, where, timeout_s
         self._buffer = bytearray()
         self._queued: deque[bytes] = deque()
         try:
             self.version_line = self._await_line(timeout_s)
             self.version = self._check_version(self.version_line)
+            if token is not None:
+                self.command("AUTH", {"token": token})
+                self._answer(Auth)
         except BaseException:
             sock.close()
             raise
@@ -258,8 +288,9 @@ class Client:
         return first
 
     @classmethod
-    def connect(cls, where: str, timeout_s: float = CONNECT_TIMEOUT_S) -> Client:
-        """Connect to a Unix socket path or "HOST:PORT" and read the server's VERSION."""
+    def connect(cls, where: str, timeout_s: float = CONNECT_TIMEOUT_S, token: str | None = None) -> Client:
+        """Connect to a Unix socket path or "HOST:PORT" and read the server's VERSION; with a
+        `token` (TCP served with tcp_token_file) authenticate with it first."""
         address = _address(where)
         family = socket.AF_UNIX if isinstance(address, str) else None
         try:
@@ -275,7 +306,7 @@ class Client:
                     raise
         except OSError as exc:
             raise _connect_error(where, exc) from None
-        return cls(sock, where, timeout_s)
+        return cls(sock, where, timeout_s, token)
 
     def __enter__(self) -> Client:
         return self

@@ -15,6 +15,7 @@ from pathlib import Path
 from stim300.protocol import DEFAULT_BIT_RATE
 
 from .methods import DAEMON_METHODS, OptionError, estimator
+from .serve.sockets import IDLE_TIMEOUT_S, MAX_CLIENTS, MAX_CLIENTS_PER_UID
 from .warmup import WarmupConfig
 from .errors import CalibdError
 from .frames import Site
@@ -76,8 +77,12 @@ class ServeConfig:
     allow_service_mode: bool = False  # SERVICEMODE, UTILITYMODE and R written into the raw pty reach the sensor
     socket: Path | None = None  # Unix stream socket speaking calibd.serve.protocol
     tcp: tuple[str, int] | None = None  # (host, port) of the same protocol on TCP
+    tcp_token_file: Path | None = None  # the shared secret a TCP client sends with ?AUTH first
+    tcp_open: bool = False  # TCP without a token: open to every local user
     group: str | None = None  # group of the socket, the ptys and the result copy
     result_copy: Path | None = None  # a group-readable copy of result.json
+    idle_timeout_s: float = IDLE_TIMEOUT_S  # a client with no command and nothing read this long is closed
+    max_clients_per_uid: int = MAX_CLIENTS_PER_UID  # connections of one user (TCP clients together)
 
     @property
     def serving(self) -> bool:
@@ -224,9 +229,22 @@ def _serve(t: _ConfigTable) -> ServeConfig:
                                       " or ".join(f'"{v}"' for v in BEFORE_RESULT)),
         allow_service_mode=t.get("allow_service_mode", False, bool),
         socket=path("socket", "the Unix socket"), tcp=None if tcp is None else parse_tcp(tcp),
+        tcp_token_file=path("tcp_token_file", "the TCP clients' token"), tcp_open=t.get("tcp_open", False, bool),
         group=t.get("group", None, str, _nonempty, "a group name such as \"stim300\""),
-        result_copy=path("result_copy", "the result's copy"))
+        result_copy=path("result_copy", "the result's copy"),
+        idle_timeout_s=t.get("idle_timeout_s", IDLE_TIMEOUT_S, float, _within(0, DAY_S, True),
+                             _range_words("a timeout", 0, DAY_S, "s", True)),
+        max_clients_per_uid=t.get("max_clients_per_uid", MAX_CLIENTS_PER_UID, int, _within(1, MAX_CLIENTS),
+                                  f"a number of connections in [1, {MAX_CLIENTS}]"))
     t.finish()
+    if serve.tcp is not None and serve.tcp_token_file is None and not serve.tcp_open:
+        t.fail("tcp", "needs tcp_token_file = PATH (clients send ?AUTH with its token first) or tcp_open = true "
+                      "(every local user may connect)")
+    if serve.tcp_token_file is not None and serve.tcp_open:
+        t.fail("tcp_open", "true with tcp_token_file: choose one (a token, or TCP open to every local user)")
+    for key in ("tcp_token_file", "tcp_open"):
+        if getattr(serve, key) and serve.tcp is None:
+            t.fail(key, "given without tcp: it applies to TCP clients only")
     seen: dict[Path, str] = {}
     for key in ("raw_pty", "corrected_pty", "socket", "result_copy"):
         value = getattr(serve, key)
@@ -274,6 +292,8 @@ def load_config(path: str | Path) -> DaemonConfig:
         raise ConfigError(f"{where}: cannot read: not UTF-8 text") from None
     try:
         data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
+    except ValueError as exc:  # TOMLDecodeError, or an integer of more digits than Python converts
         raise ConfigError(f"{where}: not valid TOML: {exc}") from None
+    except RecursionError:
+        raise ConfigError(f"{where}: not valid TOML: arrays or tables nested too deeply") from None
     return parse_config(data, where)

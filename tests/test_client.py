@@ -40,6 +40,7 @@ SAMPLES = {"class": "SAMPLES", "corrected": False, "t": [0.0, 0.0005, 0.001], "t
 DEVICE = {"class": "DEVICE", "path": "/dev/ttyUSB0", "part_number": "84137-0600-0000", "serial_number": "N25581",
           "datagram_id": "0x93", "rate_hz": 2000, "configuration": None,
           "units": {"gyro": "deg/s", "acc": "g", "incl": "g"}}
+FAKE_TOKEN = "t0ken"
 FAULT = {"class": "FAULT", "counts": {"crc_errors": 2, "lost_samples": 5}, "increase": {"crc_errors": 1}}
 
 
@@ -70,6 +71,9 @@ class FakeServer:
             enable = bool((command.args or {}).get("enable", True))
             watch = {"class": "WATCH", "enable": enable, "samples": (command.args or {}).get("samples", "none")}
             return [watch, *(self.script if enable else [])]
+        if command.name == "AUTH":
+            good = (command.args or {}).get("token") == FAKE_TOKEN
+            return [{"class": "AUTH", "authenticated": True} if good else error_message("?AUTH: wrong token")]
         if command.name == "POLL":
             return [{"class": "POLL", "state": {k: STATE[k] for k in ("state", "detail", "progress")},
                      "result": self.result}]
@@ -178,7 +182,7 @@ def test_a_refused_command_is_an_error_and_error_messages_are_typed(serve):
     path, server = serve()
     with Client.connect(path) as client:
         client.command("NOPE")
-        assert client.read(5) == Error("unknown command ?NOPE (known: ?WATCH, ?POLL, ?DEVICE, ?VERSION)")
+        assert client.read(5) == Error("unknown command ?NOPE (known: ?WATCH, ?POLL, ?DEVICE, ?VERSION, ?AUTH)")
         with pytest.raises(ClientError, match="samples must be one of none, raw, corrected"):
             client.watch("cooked")
 
@@ -248,6 +252,25 @@ def test_tcp_host_port(tmp_path):
         server.stop()
 
 
+def test_a_token_is_sent_first_and_a_refused_one_is_one_line(serve, tmp_path):
+    path, server = serve()
+    token = tmp_path / "token"
+    token.write_text(FAKE_TOKEN + "\n")
+    with Client.connect(path, token=client_module.read_token(str(token))) as client:
+        assert client.poll().state.state == "COLLECTING"
+    assert server.commands == [b'?AUTH={"token":"t0ken"};', b"?POLL;"]
+    path, server = serve()
+    with pytest.raises(ClientError, match=r"calibd1\.sock: the server refused the command: \?AUTH: wrong token"):
+        Client.connect(path, token="other")
+    for text, words in (("", "no token"), (b"\xff", "not UTF-8")):
+        token.write_bytes(text.encode() if isinstance(text, str) else text)
+        with pytest.raises(ClientError, match=words):
+            client_module.read_token(str(token))
+    with pytest.raises(ClientError, match="cannot read the token: no such file"):
+        client_module.read_token(str(tmp_path / "absent"))
+    assert client_module.read_token(None) is None
+
+
 def test_lines_are_bounded(serve, monkeypatch):
     monkeypatch.setattr(client_module, "MAX_MESSAGE_BYTES", 1000)
     path, _ = serve(script=[b"{" + b" " * 5000])
@@ -308,6 +331,19 @@ def test_pipe_exits_quietly_when_its_reader_goes_and_on_ctrl_c(serve):
     process.send_signal(signal.SIGINT)
     out, err = process.communicate(timeout=60)
     assert process.returncode == 0 and err == b""
+
+
+def test_pipe_sends_the_token_of_its_token_file_first(serve, tmp_path):
+    path, server = serve(then="close")
+    token = tmp_path / "token"
+    token.write_text(FAKE_TOKEN)
+    process = calibd("pipe", path, "--token-file", str(token))
+    out, err = process.communicate(timeout=60)
+    assert server.commands[:2] == [b'?AUTH={"token":"t0ken"};', b'?WATCH={"enable":true,"samples":"none"};']
+    assert b'"class":"AUTH"' not in out and out.count(b"\n") == 2  # VERSION, WATCH
+    process = calibd("pipe", path, "--token-file", str(tmp_path / "absent"))
+    out, err = process.communicate(timeout=60)
+    assert process.returncode == 1 and err.decode().count("\n") == 1 and "cannot read the token" in err.decode()
 
 
 def test_pipe_without_a_server_is_one_line(tmp_path):
@@ -394,7 +430,7 @@ def test_watch_prints_one_line_per_event_when_not_a_terminal(serve):
     process = calibd("watch", path)
     out, err = process.communicate(timeout=60)
     lines = out.decode().splitlines()
-    assert lines[0].startswith("calibd ") and ", protocol 1.0" in lines[0]
+    assert lines[0].startswith("calibd ") and ", protocol 1.1" in lines[0]
     assert lines[1] == "watching: on, samples none"
     assert "state COLLECTING: collecting: 3 statics; progress: warm yes, session 312.5 s" in lines[2]
     assert lines[3] == "faults: crc_errors 2 (+1), lost_samples 5"

@@ -102,8 +102,11 @@ corrected_before_result = "raw"
 allow_service_mode = true
 socket = "/run/calibd/ttyUSB0/calibd.sock"
 tcp = "0.0.0.0:2950"
+tcp_token_file = "/etc/calibd/tcp.token"
 group = "stim300"
 result_copy = "/run/calibd/ttyUSB0/result.json"
+idle_timeout_s = 60
+max_clients_per_uid = 4
 """
 
 
@@ -111,11 +114,16 @@ def test_serve_table(tmp_path):
     run = Path("/run/calibd/ttyUSB0")
     assert load_config(write(tmp_path, MINIMAL + SERVE)).serve == ServeConfig(
         raw_pty=run / "raw", corrected_pty=run / "corrected", corrected_before_result="raw", allow_service_mode=True,
-        socket=run / "calibd.sock", tcp=("0.0.0.0", 2950), group="stim300", result_copy=run / "result.json")
-    assert load_config(write(tmp_path, MINIMAL)).serve == ServeConfig() and not ServeConfig().serving
-    only_port = load_config(write(tmp_path, MINIMAL + '[serve]\ntcp = "2950"\n')).serve
+        socket=run / "calibd.sock", tcp=("0.0.0.0", 2950), tcp_token_file=Path("/etc/calibd/tcp.token"),
+        group="stim300", result_copy=run / "result.json", idle_timeout_s=60.0, max_clients_per_uid=4)
+    default = load_config(write(tmp_path, MINIMAL)).serve
+    assert default == ServeConfig() and not ServeConfig().serving
+    assert default.idle_timeout_s == 30.0 and default.max_clients_per_uid == 16 and not default.tcp_open
+    only_port = load_config(write(tmp_path, MINIMAL + '[serve]\ntcp = "2950"\ntcp_open = true\n')).serve
     assert only_port.tcp == ("127.0.0.1", 2950) and only_port.serving  # loopback unless told otherwise
-    assert load_config(write(tmp_path, MINIMAL + '[serve]\ntcp = "[::1]:2950"\n')).serve.tcp == ("::1", 2950)
+    assert only_port.tcp_open and only_port.tcp_token_file is None
+    assert load_config(write(tmp_path, MINIMAL + '[serve]\ntcp = "[::1]:2950"\ntcp_open = true\n')).serve.tcp == (
+        "::1", 2950)
 
 
 @pytest.mark.parametrize("old, new, key, words", [
@@ -131,6 +139,15 @@ def test_serve_table(tmp_path):
     ('result_copy = "/run/calibd/ttyUSB0/result.json"', 'result_copy = "/run/calibd/ttyUSB0/raw"', "result_copy",
      ["also raw_pty"]),
     ('group = "stim300"', 'owner = "stim300"', "owner", ["unknown key", "socket"]),
+    ('tcp_token_file = "/etc/calibd/tcp.token"', "", "tcp", ["needs tcp_token_file = PATH", "tcp_open = true"]),
+    ('tcp_token_file = "/etc/calibd/tcp.token"', "tcp_open = false", "tcp", ["needs tcp_token_file"]),
+    ('group = "stim300"', "tcp_open = true", "tcp_open", ["choose one"]),
+    ('tcp = "0.0.0.0:2950"', "", "tcp_token_file", ["without tcp"]),
+    ('tcp_token_file = "/etc/calibd/tcp.token"', 'tcp_open = "yes"', "tcp_open", ["true or false"]),
+    ("idle_timeout_s = 60", "idle_timeout_s = 0", "idle_timeout_s", ["a timeout in (0, 86400] s"]),
+    ("idle_timeout_s = 60", "idle_timeout_s = -5", "idle_timeout_s", ["(0, 86400] s"]),
+    ("max_clients_per_uid = 4", "max_clients_per_uid = 65", "max_clients_per_uid", ["[1, 64]"]),
+    ("max_clients_per_uid = 4", "max_clients_per_uid = 2.5", "max_clients_per_uid", ["not an integer"]),
 ])
 def test_serve_errors_name_the_key(tmp_path, old, new, key, words):
     message = error(write(tmp_path, MINIMAL + replace_line(SERVE, old, new)))
@@ -252,6 +269,14 @@ def test_unreadable(tmp_path):
 
 
 @pytest.mark.skipif(not EXAMPLE.exists(), reason="systemd/calibd.example.toml not written yet")
+@pytest.mark.parametrize("text, words", [
+    ("a = " + "[" * 5000 + "]" * 5000, "nested too deeply"),
+    ("[site]\nlatitude_deg = " + "9" * 5000, "not valid TOML"),
+])
+def test_hostile_toml_is_one_line(tmp_path, text, words):
+    assert words in error(write(tmp_path, text))
+
+
 def test_example_config_loads():
     config = load_config(EXAMPLE)
     assert config.with_port("/dev/ttyUSB9").serial.port == "/dev/ttyUSB9"
@@ -264,3 +289,5 @@ def test_example_serve_section_loads_once_uncommented():
     config = parse_config(tomllib.loads(text + "\n" + "\n".join(keys) + "\n"), "example")
     assert config.serve.socket == Path("/run/calibd/ttyUSB0/calibd.sock") and config.serve.tcp == ("127.0.0.1", 2950)
     assert config.serve.corrected_before_result == "hold" and config.serve.group == "stim300"
+    assert config.serve.tcp_token_file == Path("/etc/calibd/tcp.token") and not config.serve.tcp_open
+    assert config.serve.idle_timeout_s == 30 and config.serve.max_clients_per_uid == 16

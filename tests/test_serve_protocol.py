@@ -3,8 +3,8 @@
 import pytest
 
 from calibd.errors import CalibdError
-from calibd.serve.protocol import (PROTO_MAJOR, Command, ProtocolError, decode, encode, parse_command,
-                                   version_message)
+from calibd.serve.protocol import (COMMANDS, PROTO_MAJOR, Command, ProtocolError, auth_token, decode, encode,
+                                   parse_command, version_message)
 
 
 @pytest.mark.parametrize("line, command", [
@@ -13,6 +13,7 @@ from calibd.serve.protocol import (PROTO_MAJOR, Command, ProtocolError, decode, 
     (b"?VERSION", Command("VERSION")),
     (b'?WATCH={"enable":true,"samples":"raw"};', Command("WATCH", {"enable": True, "samples": "raw"})),
     (b'?WATCH={"enable":false}', Command("WATCH", {"enable": False})),
+    (b'?AUTH={"token":"abc"};', Command("AUTH", {"token": "abc"})),
 ])
 def test_commands_parse(line, command):
     assert parse_command(line) == command
@@ -29,6 +30,28 @@ def test_bad_commands_are_one_line_protocol_errors(line, words):
     with pytest.raises(ProtocolError, match=words) as caught:
         parse_command(line)
     assert isinstance(caught.value, CalibdError) and "\n" not in str(caught.value)
+
+
+@pytest.mark.parametrize("argument", [
+    b"[" * 1000, b"[" * 60_000, b'{"a":' * 5000 + b"1" + b"}" * 5000,  # nested beyond any use
+    b'{"a":' + b"9" * 5000 + b"}",  # an integer json.loads refuses with ValueError (Python's digit limit)
+    b'{"a":NaN}', b'{"a":1e999}', b'{"a":"\\ud800"}',  # no JSON, out of range, a lone surrogate
+])
+def test_any_argument_that_does_not_decode_is_a_protocol_error(argument):
+    """Whatever the decoder raises (RecursionError on deep nesting, ValueError on huge integers)
+    becomes one ProtocolError line: the server's handler sees nothing else."""
+    with pytest.raises(ProtocolError, match="argument is not JSON") as caught:
+        parse_command(b"?WATCH=" + argument + b";")
+    assert "\n" not in str(caught.value) and len(str(caught.value)) < 200
+    with pytest.raises(ProtocolError, match="not a JSON line"):
+        decode(argument)
+
+
+def test_auth_takes_a_token_string_and_nothing_else():
+    assert "AUTH" in COMMANDS and auth_token({"token": "x"}) == "x"
+    for args in (None, {}, {"token": 5}, {"token": "x", "user": "me"}):
+        with pytest.raises(ProtocolError, match=r'expected \?AUTH=\{"token":"\.\.\."\};'):
+            auth_token(args)
 
 
 def test_messages_are_single_json_lines_that_decode_back():

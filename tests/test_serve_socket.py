@@ -266,7 +266,7 @@ def test_a_client_that_stops_reading_neither_delays_the_others_nor_grows(served,
     # late; the latency target itself (p99 in ms) is measured by benchmarks/serve.py, not on a loaded machine
     assert np.percentile(late_s, 99) < 0.25
     queued = [c for c in hub.server._clients.values() if c.dropped or c.queue]
-    assert queued and all(c.queued_bytes <= sockets.QUEUE_BYTES for c in queued)
+    assert queued and all(c.queue.bytes <= sockets.QUEUE_BYTES for c in queued)
     assert hub.server.overflows > 0
     overflow = slow.until("OVERFLOW", timeout_s=5.0)  # told before its next message once it reads again
     assert overflow["dropped"] > 0
@@ -310,7 +310,7 @@ def test_a_stale_socket_file_is_replaced_and_anything_else_refused(tmp_path):
 
 
 def test_tcp_serves_the_same_protocol_on_loopback(tmp_path):
-    hub = Hub(ServeConfig(tcp=("127.0.0.1", _free_port())), "port")
+    hub = Hub(ServeConfig(tcp=("127.0.0.1", _free_port()), tcp_open=True), "port")
     try:
         with socket.create_connection(hub.server.tcp_address, timeout=5) as sock:
             reader = sock.makefile("rb")
@@ -415,19 +415,28 @@ def test_clients_beyond_the_limit_are_told_and_closed(served, tmp_path, monkeypa
     assert kept[0].message()["class"] == "VERSION"
 
 
-def test_a_full_queue_loses_its_oldest_samples_first(monkeypatch):
+def test_a_full_queue_loses_its_oldest_samples_first_and_keeps_the_order(monkeypatch):
     monkeypatch.setattr(sockets, "QUEUE_BYTES", 100)
     server = sockets.SocketServer(None, None, None, lambda command: {}, lambda kinds: [])
     client = sockets._Client(None, "test")
+    client.sending = memoryview(b"x")  # the socket is full: nothing is written, all is queued
     entries = [(True, b"s1" * 20), (False, b"STATE1" * 5), (True, b"s2" * 20), (True, b"s3" * 20),
                (False, b"STATE2" * 5)]
-    for entry in entries:
-        client.queue.append(entry)
-        client.queued_bytes += len(entry[1])
-    server._shed(client)
-    assert list(client.queue) == [entries[1], entries[3], entries[4]]  # s1 and s2 went, the states stayed
-    assert client.dropped == 2 and client.queued_bytes == 100 and server.overflows == 2
+    for samples, data in entries:
+        server._send(client, data, samples)
+    assert client.dropped == 2 and client.queue.bytes == 100 and server.overflows == 2  # s1 and s2 went
+    assert [client.queue.pop() for _ in range(3)] == [entries[1][1], entries[3][1], entries[4][1]]
+    assert not client.queue and client.queue.bytes == 0
     server._close_sockets()
+
+
+def test_only_other_messages_left_lose_the_oldest_but_never_the_newest():
+    queue = sockets._Queue()
+    for k in range(5):
+        queue.push(b"%d" % k * 40, samples=False)
+    assert queue.shed(100) == 3 and queue.pop() == b"3" * 40
+    queue.push(b"big" * 100, samples=False)
+    assert queue.shed(10) == 1 and queue.pop() == b"big" * 100  # the newest stays, whatever its size
 
 
 def test_a_fault_answering_a_command_is_an_error_line_and_the_server_runs_on(served, tmp_path, monkeypatch):

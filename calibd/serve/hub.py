@@ -13,13 +13,14 @@ from __future__ import annotations
 
 import grp
 import os
+import secrets
 import stat
 import threading
+from pathlib import Path
 
 import numpy as np
 import structlog
 
-from stim300.atomic import atomic_file
 from stim300.capture import StreamInfo
 from stim300.clock import CounterClock
 
@@ -29,8 +30,8 @@ from ..daemon import Calibrator, Listener, State
 from ..methods import estimator
 from ..results import CalibrationResult, result_json
 from ..session import PowerUpCuts
-from .protocol import (SAMPLES_MAX_S, Command, ProtocolError, device_message, fault_message, poll_message,
-                       result_message, samples_line, state_message)
+from .protocol import (MAX_TOKEN_BYTES, SAMPLES_MAX_S, Command, ProtocolError, device_message, fault_message,
+                       poll_message, result_message, samples_line, state_message)
 from .correct import result_biases, sample_units, samples_correctable
 from .ptys import CorrectedPty, PtyError, RawPty
 from .sockets import ServeError, SocketServer
@@ -65,14 +66,21 @@ class Hub(Listener):
         self._episode_dropped = 0  # of them, since the server thread last took the queue
         self._lock = threading.Lock()
         self._clock = CounterClock()  # the server thread's: SAMPLES "t"
+        self._copy_failing = False  # the result copy's last write failed (logged once until one succeeds)
         self.raw_pty = self.corrected_pty = self.server = None
         try:
             if config.result_copy is not None:
                 if not config.result_copy.parent.is_dir():
                     raise ServeError(f"result_copy {config.result_copy}: no such directory "
                                      f"{config.result_copy.parent}")
+                _check_copy_path(config.result_copy)
                 if self._result is not None:
                     self._write_copy(self._result, at_start=True)
+            token = None
+            if config.tcp is not None and not config.tcp_open:
+                if config.tcp_token_file is None:
+                    raise ServeError("tcp: needs tcp_token_file or tcp_open = true in [serve]")
+                token = _read_token(config.tcp_token_file)
             if config.raw_pty is not None:
                 self.raw_pty = _pty("raw_pty", lambda: RawPty(
                     config.raw_pty, self._forward, config.allow_service_mode, self.gid))
@@ -80,8 +88,8 @@ class Hub(Listener):
                 self.corrected_pty = _pty("corrected_pty", lambda: CorrectedPty(
                     config.corrected_pty, config.corrected_before_result, self.gid))
             if config.socket is not None or config.tcp is not None:
-                self.server = SocketServer(config.socket, config.tcp, self.gid, self._answer,
-                                           self._cut_samples).start()
+                self.server = SocketServer(config.socket, config.tcp, self.gid, self._answer, self._cut_samples,
+                                           token, config.idle_timeout_s, config.max_clients_per_uid).start()
         except BaseException:
             self.close()
             raise
@@ -156,20 +164,37 @@ class Hub(Listener):
             self.server.publish(message)
 
     def _write_copy(self, result: CalibrationResult, at_start: bool = False) -> None:
-        """result_copy, replaced atomically, mode 0640 and the group; a failure while running is
-        logged (the daemon calibrates on), at start it is the start's failure."""
+        """result_copy, replaced atomically by a new file of mode 0640 and the group, never written
+        through a symbolic link nor onto anything but a regular file; a failure while running is
+        logged once until a write succeeds (the daemon calibrates on), at start it is the
+        start's failure."""
         path = self.config.result_copy
+        tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.part")
         try:
-            with atomic_file(path, durable=False) as f:
-                f.write(result_json(result))
-                if stat.S_ISREG(os.fstat(f.fileno()).st_mode):  # never the mode of a device written in place
+            _check_copy_path(path)
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, RESULT_COPY_MODE)
+            try:
+                with os.fdopen(fd, "wb") as f:
+                    f.write(result_json(result))
                     os.fchmod(f.fileno(), RESULT_COPY_MODE)
                     if self.gid is not None:
                         os.fchown(f.fileno(), -1, self.gid)
-        except OSError as exc:
+                os.replace(tmp, path)  # replaces the name: never follows a link put there meanwhile
+            finally:
+                if os.path.lexists(tmp):
+                    os.unlink(tmp)
+        except (OSError, ServeError) as exc:
+            error = str(exc) if isinstance(exc, ServeError) else \
+                f"result_copy {path}: {(exc.strerror or str(exc)).lower()}"
             if at_start:
-                raise ServeError(f"result_copy {path}: {(exc.strerror or str(exc)).lower()}") from None
-            log.error("result_copy_failed", path=str(path), error=exc.strerror or str(exc))
+                raise ServeError(error) from None
+            if not self._copy_failing:
+                log.error("result_copy_failed", error=error, detail="logged once until a write succeeds")
+            self._copy_failing = True
+            return
+        if self._copy_failing:
+            log.info("result_copy_recovered", path=str(path))
+        self._copy_failing = False
 
     # ------------------------------------------------------------------ the parser's tap (reader thread)
     def tap(self, settled) -> None:
@@ -264,6 +289,53 @@ def _group_id(name: str | None) -> int | None:
         return grp.getgrnam(name).gr_gid
     except KeyError:
         raise ServeError(f"group {name!r}: no such group (create it, or drop group from [serve])") from None
+
+
+def _check_copy_path(path: Path) -> None:
+    """ServeError unless result_copy is absent or a regular file: a symbolic link would have the
+    daemon write where the link points."""
+    try:
+        mode = os.lstat(path).st_mode
+    except FileNotFoundError:
+        return
+    except OSError as exc:
+        raise ServeError(f"result_copy {path}: {(exc.strerror or str(exc)).lower()}") from None
+    if stat.S_ISLNK(mode):
+        raise ServeError(f"result_copy {path}: is a symbolic link; never written through (remove it)")
+    if not stat.S_ISREG(mode):
+        raise ServeError(f"result_copy {path}: is not a regular file; not replaced")
+
+
+def _read_token(path: Path) -> bytes:
+    """tcp_token_file's token (its text without surrounding white space), read once at start;
+    refused unless a regular file itself (no symbolic link), not readable or writable by other
+    users, not empty."""
+    where = f"tcp_token_file {path}"
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_NOCTTY)
+    except OSError as exc:
+        if os.path.islink(path):
+            raise ServeError(f"{where}: is a symbolic link; give the file itself") from None
+        raise ServeError(f"{where}: {(exc.strerror or str(exc)).lower()}") from None
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise ServeError(f"{where}: is not a regular file")
+        if st.st_mode & (stat.S_IROTH | stat.S_IWOTH):
+            raise ServeError(f"{where}: other users may read or write it (mode {stat.S_IMODE(st.st_mode):04o}); "
+                             "make it 0640 for the group")
+        token = os.read(fd, MAX_TOKEN_BYTES + 1).strip()
+    finally:
+        os.close(fd)
+    if len(token) > MAX_TOKEN_BYTES:
+        raise ServeError(f"{where}: longer than {MAX_TOKEN_BYTES} bytes: not a token")
+    if not token:
+        raise ServeError(f"{where}: is empty")
+    try:
+        token.decode("utf-8")
+    except UnicodeDecodeError:
+        raise ServeError(f"{where}: not UTF-8 text") from None
+    return token
 
 
 def _pty(key: str, make):

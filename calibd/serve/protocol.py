@@ -12,6 +12,7 @@ import re
 from dataclasses import dataclass
 from functools import lru_cache
 
+import msgspec
 import numpy as np
 
 from stim300.cliutil import package_version
@@ -19,14 +20,16 @@ from stim300.cliutil import package_version
 from ..errors import CalibdError
 
 PROTO_MAJOR = 1
-PROTO_MINOR = 0
+PROTO_MINOR = 1  # 1.1: ?AUTH and AUTH
 MAX_LINE_BYTES = 64 * 1024  # a longer command line is refused and skipped to its newline
 # A server message longer than this is not calibd's: SAMPLES of 0.1 s at 2000 Hz and result
 # documents stay well below (a client's bound on what it buffers).
 MAX_MESSAGE_BYTES = 4 * 1024 * 1024
 SAMPLE_KINDS = ("none", "raw", "corrected")  # what ?WATCH "samples" may ask for
 SAMPLES_MAX_S = 0.1  # a SAMPLES message holds at most this much of the stream
-COMMANDS = ("WATCH", "POLL", "DEVICE", "VERSION")
+COMMANDS = ("WATCH", "POLL", "DEVICE", "VERSION", "AUTH")
+MAX_TOKEN_BYTES = 4096  # the longest token of ?AUTH ([serve] tcp_token_file)
+AUTH_TRIES = 3  # refused lines before ?AUTH succeeds that close a connection which needs a token
 
 _COMMAND = re.compile(r"\?([A-Z]+)(?:=(.*?))?;?")
 
@@ -58,12 +61,30 @@ def parse_command(line: bytes) -> Command:
     if argument is None:
         return Command(name)
     try:
-        args = json.loads(argument)
+        args = _json(argument)
     except ValueError:
         raise ProtocolError(f"?{name}: argument is not JSON: {_excerpt(argument)}") from None
     if not isinstance(args, dict):
         raise ProtocolError(f"?{name}: argument must be a JSON object, not {_excerpt(argument)}")
     return Command(name, args)
+
+
+def _json(text: bytes | str):
+    """JSON text -> its value; ValueError for anything else. msgspec refuses, in microseconds,
+    NaN, integers of thousands of digits (its DecodeError, a ValueError) and nesting too deep
+    (RecursionError, which is none: turned into one here)."""
+    try:
+        return msgspec.json.decode(text)
+    except RecursionError:
+        raise ValueError("nested too deeply") from None
+
+
+def auth_token(args: dict | None) -> str:
+    """The token of an ?AUTH command's argument; ProtocolError when it has none."""
+    token = (args or {}).get("token")
+    if not isinstance(token, str) or set(args) != {"token"}:
+        raise ProtocolError('?AUTH: expected ?AUTH={"token":"..."};')
+    return token
 
 
 def _excerpt(text: str, limit: int = 60) -> str:
@@ -78,7 +99,7 @@ def encode(message: dict) -> bytes:
 def decode(line: bytes | str) -> dict:
     """One line from the server -> its message (a dict with "class"); ProtocolError otherwise."""
     try:
-        message = json.loads(line)
+        message = _json(line)
     except ValueError:
         raise ProtocolError(f"not a JSON line: {_excerpt(str(line))}") from None
     if not isinstance(message, dict) or not isinstance(message.get("class"), str):
@@ -86,12 +107,24 @@ def decode(line: bytes | str) -> dict:
     return message
 
 
+@lru_cache(maxsize=1)
+def _release() -> str:
+    """calibd's version, looked up once: the lookup takes about 0.4 ms, and every connection and
+    ?VERSION is answered with it."""
+    return package_version()
+
+
 def version_message() -> dict:
-    return {"class": "VERSION", "release": package_version(), "proto_major": PROTO_MAJOR, "proto_minor": PROTO_MINOR}
+    return {"class": "VERSION", "release": _release(), "proto_major": PROTO_MAJOR, "proto_minor": PROTO_MINOR}
 
 
 def error_message(text: str) -> dict:
     return {"class": "ERROR", "message": text}
+
+
+def auth_message() -> dict:
+    """The answer to an accepted ?AUTH."""
+    return {"class": "AUTH", "authenticated": True}
 
 
 def watch_message(enable: bool, samples: str) -> dict:
