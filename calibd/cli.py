@@ -11,17 +11,23 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import errno
 import json
 import logging
 import mmap
 import os
+import select
 import sys
 import time
 from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 
-from stim300.cliutil import CommandParser, RunError, input_file, not_an_input, read_input, run_command, write_error
+import structlog
+
+from stim300.cliutil import (DOCUMENT_LIMIT_BYTES, CommandParser, RunError, input_file, not_an_input, open_regular,
+                             path_arg, read_input, run_command, write_error)
+from stim300.bulk import decode_blocks
 from stim300.errors import UsageError
 from stim300.progress import Progress
 from stim300.reads import load_reads
@@ -31,12 +37,15 @@ from .calibrate import calibrate_capture
 from .config import (METHODS, WARMUP_WINDOW_S, ConfigError, DetectionConfig, MethodConfig, ServeConfig, WarmupConfig,
                      load_config)
 from .daemon import Calibrator, Callbacks, StateLog
-from .errors import CalibrationError, SiteError
+from .errors import CalibdError, CalibrationError, SiteError
 from .methods import estimator
 from .estimators.thesis import sensitivity
 from .frames import STANDARD_GRAVITY, Site, site_value_error
 from .live import configure_logging, replay, run
-from .results import CalibrationResult, ResultError, ResultStore, StateDirError, load_result, parse_result, write_result
+from .serve.protocol import MAX_TOKEN_BYTES, ProtocolError, token_of
+from . import spec
+from .documents import DocumentError, StateDoc, decode_json, validate
+from .results import CalibrationResult, ResultError, ResultStore, StateDirError, parse_result, write_result
 from .scenario import READY_MADE, Noise, ScenarioError, load_scenario
 from .serve.hub import Hub
 from .serve.protocol import SAMPLE_KINDS
@@ -50,12 +59,7 @@ def mapped_input(path: str):
     """The input file at `path` mapped rather than read (b"" when empty), with a function that
     lets go of the pages before an offset once they are decoded: a long capture's pages never
     pile up in memory."""
-    input_file(path)
-    try:
-        f = open(path, "rb")
-    except OSError as exc:
-        raise UsageError(f"{path}: cannot read: {(exc.strerror or str(exc)).lower()}") from None
-    with f:
+    with open_regular(path) as f:
         if not os.fstat(f.fileno()).st_size:
             yield b"", lambda offset: None
             return
@@ -87,8 +91,10 @@ def load_session(path: str, start_s: float | None = 0.0, data: bytes | None = No
 
 
 def cmd_simulate(args) -> int:
-    not_an_input(args.output, args.scenario)
-    not_an_input(f"{args.output}.truth.json", args.scenario)
+    for output in (args.output, f"{args.output}.truth.json"):  # refused before anything is written
+        not_an_input(output, args.scenario)
+        if os.path.isdir(output):
+            raise UsageError(f"{output}: cannot write: is a directory")
     try:
         scenario = load_scenario(args.scenario)
     except ScenarioError as exc:
@@ -120,6 +126,19 @@ def _number(low: float, high: float, unit: str):
         value = _float(text)
         if not (low <= value <= high):
             raise argparse.ArgumentTypeError(f"{text} is outside [{low:g}, {high:g}] {unit}")
+        return value
+    return parse
+
+
+PLATFORM_RATE_DEG_S = (0.1, spec.GYRO_RANGE_DEG_S)  # |rate|: a full turn within an hour, within the gyros' range
+
+
+def _magnitude(low: float, high: float, unit: str):
+    """A signed option whose magnitude is in [low, high] (a rate of 0 turns nothing)."""
+    def parse(text: str) -> float:
+        value = _float(text)
+        if not (low <= abs(value) <= high):
+            raise argparse.ArgumentTypeError(f"{text} is outside +-[{low:g}, {high:g}] {unit}")
         return value
     return parse
 
@@ -156,7 +175,8 @@ def _site(args) -> Site:
 
 
 def _summary(result: CalibrationResult) -> str:
-    lines = [f"{result.method}: {result.stream['capture']}", f"  site: {_site_line(result.site)}"]
+    source = result.stream.get("capture")  # a result of an older version, or a foreign one, may not say
+    lines = [f"{result.method}: {source}" if source else result.method, f"  site: {_site_line(result.site)}"]
     session = _session_line(result)
     if session:
         lines.append(f"  session: {session}")
@@ -169,8 +189,8 @@ def _site_line(site: dict) -> str:
     """The site a result used: a wrong-sign latitude moves the gyro Z bias by 2 Omega_E sin|lat|."""
     given = site.get("g0_given")
     source = "" if given is None else " (given)" if given else " (normal gravity)"
-    return (f"latitude {site['latitude_deg']:+.5f} deg, height {site['height_m']:g} m, "
-            f"g0 {site['g0_m_s2']:.5f} m/s^2{source}")
+    return (f"latitude {site['latitude_deg']:+.5f} deg, height {site.get('height_m', 0.0):g} m, "
+            f"g0 {site.get('g0_m_s2', STANDARD_GRAVITY):.5f} m/s^2{source}")
 
 
 def _session_line(result: CalibrationResult) -> str | None:
@@ -178,7 +198,7 @@ def _session_line(result: CalibrationResult) -> str | None:
     stream = result.stream
     power_up = stream.get("power_up")
     if power_up:
-        span = f"{stream['start_s']:.1f} s to {power_up['duration_s']:.1f} s of it"
+        span = f"{stream.get('start_s') or 0.0:.1f} s to {power_up['duration_s']:.1f} s of it"
         return (f"power-up {power_up['number']} of {power_up['count']}, {span}, "
                 f"from {stream.get('start_by', 'given')}")
     session = result.session
@@ -251,6 +271,7 @@ def _config(path: str, port: str | None):
 def cmd_run(args) -> int:
     config = _config(args.config, args.port)
     configure_logging()
+    _drop_log_event("start_failed")  # run says why in its one stderr line (the journal keeps it too)
     return run(config, lambda: _load_config(args.config, args.port))  # a bad reload keeps the old one
 
 
@@ -280,6 +301,7 @@ def cmd_replay(args) -> int:
     if args.warmup_window is not None:
         warmup = replace(warmup, window_s=args.warmup_window)
     data = read_input(args.capture)
+    _refuse_without_datagrams(data, args.capture)
     bar = Progress("replay", len(data), "B")
     out = bar.above(sys.stdout)  # a state line printed while the bar is drawn goes above it
     last = [None]
@@ -293,20 +315,23 @@ def cmd_replay(args) -> int:
         print(f"[{result.stale['power_up']} power-up] {result.stale['reason']}", file=out, flush=True)
 
     listeners = [StateLog(), Callbacks(state=print_state, stale=print_stale)]
+    store = None
     if args.state_dir:  # a capture is a world of its own: an earlier result there is not shown
         try:
-            listeners.append(ResultStore(args.state_dir, {"capture": args.capture}))
+            store = ResultStore(args.state_dir, {"capture": args.capture})
         except StateDirError as exc:
             raise UsageError(str(exc)) from None
+        listeners.append(store)
     configure_logging(logging.WARNING)
+    _drop_log_event("state_dir_error")  # a state directory that fails is the run's one error line, at its end
     speed_text = args.speed or ("1" if serve else "max")  # served: as a sensor sends, unless told
     speed = None if speed_text == "max" else float(speed_text)
     hub = None
     if serve:
         try:
             hub = Hub(serve, args.capture)
-        except ServeError as exc:
-            raise UsageError(str(exc)) from None
+        except ServeError as exc:  # as for the daemon: serving that cannot start fails the run
+            raise RunError(str(exc)) from None
         listeners.append(hub)
     calibrator = Calibrator(site, warmup, method, listeners, source=args.capture, detection=detection)
     try:
@@ -317,11 +342,43 @@ def cmd_replay(args) -> int:
         raise
     with bar, contextlib.redirect_stderr(bar.above(sys.stderr)):  # and so does a log line
         replay(source, calibrator, progress=lambda done, total: bar.update(done), hub=hub)
+    if store is not None:
+        store.retry()
+        if store.degraded:
+            raise RunError(f"state directory {args.state_dir}: {store.degraded}")
     if calibrator.result is None or calibrator.result.stale is not None:
         stale = " (the last result is the previous power-up's, marked stale)" if calibrator.result else ""
         raise RunError(f"{args.capture}: no result for the last power-up{stale}: {calibrator.detail}")
     print(_summary(calibrator.result))
     return 0
+
+
+class _Found(CalibdError):
+    """A datagram was decoded: the scan for one can stop (never leaves `_refuse_without_datagrams`)."""
+
+
+def _refuse_without_datagrams(data, path: str) -> None:
+    """Refuse (exit 2), as calibrate and `stim300 info` do, a capture in which no STIM300 datagram
+    is found: scanned at numpy speed (300 MB in about a second) up to the first one, where the
+    daemon's pipeline would take minutes to find nothing."""
+    def found(samples, scanner, offset):
+        raise _Found
+
+    try:
+        decode_blocks(data, found)
+    except _Found:
+        return
+    raise UsageError(f"{path}: no STIM300 datagram found (not a STIM300 capture)")
+
+
+def _drop_log_event(event: str) -> None:
+    """Keep the log lines named `event` off stderr: what the command says itself, in its one line."""
+    def drop(logger, method, fields):
+        if fields.get("event") == event:
+            raise structlog.DropEvent
+        return fields
+
+    structlog.configure(processors=[drop, *structlog.get_config()["processors"]])
 
 
 def _load_state(state_file: Path) -> dict:
@@ -330,17 +387,19 @@ def _load_state(state_file: Path) -> dict:
     def refuse(why: str):
         return UsageError(f"{state_file}: not a calibd state file: {why}")
     try:
-        state = json.loads(state_file.read_text())
+        text = read_input(state_file, "state file", DOCUMENT_LIMIT_BYTES, follow=False).decode()
+    except UsageError as exc:  # a directory, FIFO, device, symbolic link or a huge file
+        raise refuse(f"cannot read it ({str(exc).removeprefix(f'{state_file}: ')})") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise refuse(f"cannot read it ({getattr(exc, 'strerror', None) or exc})") from None
-    except json.JSONDecodeError as exc:
-        raise refuse(f"not JSON ({exc})") from None
-    if not isinstance(state, dict):
-        raise refuse(f"a JSON {type(state).__name__}, not an object")
-    wrong = [key for key, kind in (("state", str), ("detail", str), ("updated", (int, float)))
-             if not isinstance(state.get(key), kind) or isinstance(state.get(key), bool)]
-    if wrong:
-        raise refuse(f"no valid {', '.join(wrong)}")
+    where = f"{state_file}: not a calibd state file"
+    try:  # its schema: calibd.documents.StateDoc
+        state = decode_json(text, where, StateDoc)
+        if not isinstance(state, dict):
+            raise refuse(f"a JSON {type(state).__name__}, not an object")
+        validate(state, StateDoc, where)
+    except DocumentError as exc:
+        raise UsageError(str(exc)) from None
     return state
 
 
@@ -353,8 +412,9 @@ def _status(directory: Path, as_json: bool, one_line: bool = False) -> str:
     if not os.path.lexists(state_file):  # Path.exists raises where the directory cannot be read
         raise UsageError(f"{directory}: no state.json (is calibd running with this state directory?)")
     state = _load_state(state_file)
-    try:
-        result = load_result(result_file) if result_file.exists() else None
+    try:  # a state directory's files are the daemon's: a symbolic link there is refused, not followed
+        result = parse_result(read_input(result_file, "result file", DOCUMENT_LIMIT_BYTES, follow=False),
+                              result_file) if os.path.lexists(result_file) else None
     except ResultError as exc:
         raise UsageError(str(exc)) from None  # a newer calibd's result, or not a result: say which
     if as_json:
@@ -385,7 +445,7 @@ def _file_stamp(path: Path) -> tuple[int, int, int] | None:
     """What changes when a file is replaced (atomically: a new inode) or rewritten: its inode,
     size and modification time (ns); None while it is absent or cannot be looked at."""
     try:
-        stat = os.stat(path)
+        stat = os.lstat(path)
     except OSError:
         return None
     return stat.st_ino, stat.st_size, stat.st_mtime_ns
@@ -413,7 +473,18 @@ def _follow_status(directory: Path, as_json: bool) -> int:
                 print(text if as_json or seen is None else f"\n{text}", flush=True)
                 said = None
             seen = stamps
-        time.sleep(STATUS_POLL_S)
+        _wait_unless_stdout_closed(STATUS_POLL_S)
+
+
+def _wait_unless_stdout_closed(seconds: float) -> None:
+    """Wait `seconds`, or end at once (BrokenPipeError, as a write would) when the reader of
+    stdout has gone: with nothing new to print, `status --follow | head -n 1` would otherwise
+    never end. poll() says POLLERR or POLLHUP for a pipe or socket whose reader closed, nothing
+    for a file or a terminal."""
+    poller = select.poll()
+    poller.register(sys.stdout.fileno(), 0)  # no events asked for: errors and hang-ups come anyway
+    if poller.poll(seconds * 1000):
+        raise BrokenPipeError(errno.EPIPE, "the reader of stdout has gone")
 
 
 def cmd_report(args) -> int:
@@ -425,7 +496,11 @@ def cmd_report(args) -> int:
         written = write_report(args.result, open_capture(args.capture), args.output)
     except (ResultError, ReportError, CalibrationError) as exc:
         raise UsageError(str(exc)) from None
-    print(f"report: {written[0]}; figures: {', '.join(p.name for p in written[1:])} in {figures_dir(written[0])}/")
+    except OSError as exc:
+        raise write_error(args.output, exc) from None
+    figures = (f"figures: {', '.join(p.name for p in written[1:])} in {figures_dir(written[0])}/" if written[1:]
+               else "figures in the page only (no directory beside a device or FIFO)")
+    print(f"report: {written[0]}; {figures}")
     return 0
 
 
@@ -457,8 +532,8 @@ def cmd_plan(args) -> int:
         else:
             protocol = builtin_protocol(args.protocol)
         site = protocol.scenario.site if args.latitude is None else _site(args)
-        figures = noise_from_json(read_input(args.noise, "noise file"), args.noise) if args.noise \
-            else replace(protocol.figures, **given)
+        figures = (noise_from_json(read_input(args.noise, "noise file", DOCUMENT_LIMIT_BYTES), args.noise)
+                   if args.noise else replace(protocol.figures, **given))
         reach = time_to_target(protocol, site, figures, args.target_yaw_deg * DEG)
     except (PlanError, ScenarioError) as exc:
         raise UsageError(str(exc)) from None
@@ -522,7 +597,7 @@ def cmd_apply(args) -> int:
         raise UsageError(f"apply: {args.output}: unknown output type {kind or '(no extension)'!r}: "
                          f"name it .npz or .csv")
     not_an_input(args.output, args.result, args.capture)
-    result_bytes = read_input(args.result, "result file")
+    result_bytes = read_input(args.result, "result file", DOCUMENT_LIMIT_BYTES)
     try:
         result = parse_result(result_bytes, args.result)  # the bytes hashed into the output's meta
         fix = correction(result, args.frame, args.force)
@@ -569,13 +644,23 @@ def _client_program(body) -> int:
         return 0
 
 
+def _token(path: str | None) -> str | None:
+    """The token in a --token-file (the daemon's [serve] tcp_token_file); None without one."""
+    if path is None:
+        return None
+    try:
+        return token_of(read_input(path, "token file", MAX_TOKEN_BYTES + 64))
+    except ProtocolError as exc:
+        raise UsageError(f"{path}: {exc}") from None
+
+
 def cmd_pipe(args) -> int:
     """Every message of the daemon's socket on stdout as it was sent, one a line (gpspipe -w)."""
     from .client import Client
 
     def pipe() -> int:
         out = sys.stdout.buffer
-        with Client.connect(args.socket) as client:
+        with Client.connect(args.socket, token=_token(args.token_file)) as client:
             client.command("WATCH", {"enable": True, "samples": args.samples})
             line, written = client.version_line, 0
             while True:
@@ -605,7 +690,7 @@ def cmd_watch(args) -> int:
             print(line, flush=True)
 
     def watch() -> int:
-        with Client.connect(args.socket) as client:
+        with Client.connect(args.socket, token=_token(args.token_file)) as client:
             take(client.version)
             take(client.watch(args.samples))
             client.command("DEVICE")  # answers (or a refusal) come with the stream
@@ -626,18 +711,21 @@ def cmd_watch(args) -> int:
 def _add_client_commands(sub) -> None:
     """`calibd pipe` and `calibd watch`: programs reading the daemon's socket ([serve] socket)."""
     where = "the daemon's socket: a path ([serve] socket, e.g. /run/calibd/ttyUSB0/calibd.sock) or HOST:PORT"
+    token = "TCP served with a token: the file holding it ([serve] tcp_token_file), sent first"
     p = sub.add_parser("pipe", help="the daemon's socket messages as JSON lines on stdout (like gpspipe -w)")
     p.add_argument("socket", help=where)
     p.add_argument("--samples", choices=SAMPLE_KINDS, default="none",
                    help="also SAMPLES messages of the raw or bias-corrected stream (default none)")
     p.add_argument("-n", "--count", type=_positive_int, metavar="COUNT",
                    help="stop after COUNT messages (the VERSION and WATCH answers count)")
+    p.add_argument("--token-file", metavar="PATH", help=token)
     p.set_defaults(func=cmd_pipe)
     p = sub.add_parser("watch", help="the daemon live: state, protocol progress, estimates with sigma, stream "
                                      "health (like gpsmon)")
     p.add_argument("socket", help=where)
     p.add_argument("--samples", choices=SAMPLE_KINDS, default="none",
                    help="also watch samples, to measure the rate the daemon serves (default none)")
+    p.add_argument("--token-file", metavar="PATH", help=token)
     p.set_defaults(func=cmd_watch)
 
 
@@ -661,14 +749,15 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, parser_class=CommandParser)
     p = sub.add_parser("calibrate", help="capture -> biases and alignment (result JSON)")
     p.add_argument("capture")
-    p.add_argument("-o", "--output", required=True, help="RESULT.json (replaced atomically)")
+    p.add_argument("-o", "--output", type=path_arg, required=True, help="RESULT.json (replaced atomically)")
     p.add_argument("--method", choices=METHODS, default="joint",
                    help="joint: every segment in one fit, with 1-sigma (default); thesis: the thesis's chain")
     _add_site_options(p, required=True)
     p.add_argument("--alpha", type=_number(-10, 10, "deg"), help="a-priori interface tilt alpha, deg (nominal run)")
     p.add_argument("--beta", type=_number(-10, 10, "deg"), help="a-priori interface tilt beta, deg (nominal run)")
-    p.add_argument("--platform-rate", type=_number(-1000, 1000, "deg/s"),
-                   help="platform rate of the full turn from telemetry, deg/s, signed (default: from the gyros)")
+    p.add_argument("--platform-rate", type=_magnitude(*PLATFORM_RATE_DEG_S, "deg/s"),
+                   help="platform rate of the full turn from telemetry, deg/s, signed, magnitude "
+                        f"{PLATFORM_RATE_DEG_S[0]:g} to {PLATFORM_RATE_DEG_S[1]:g} (default: from the gyros)")
     p.add_argument("--bench", action="store_true", help="a bench session: six-position biases and alpha/beta")
     p.add_argument("--start", type=_number(0, 1e9, "s"),
                    help="start S seconds into the power-up (default: where the warm-up rule says the temperature "
@@ -683,13 +772,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="joint: fit a linear gyro drift per channel (thermal ramps); costs precision")
     p.set_defaults(func=cmd_calibrate)
     p = sub.add_parser("run", help="the daemon: read the port, calibrate after every power-up")
-    p.add_argument("--config", required=True, help="TOML configuration: [serial], [site], [output], [warmup], "
-                   "[detection], [method], [serve] (README, calibd run)")
+    p.add_argument("--config", type=path_arg, required=True,
+                   help="TOML configuration: [serial], [site], [output], [warmup], [detection], [method], [serve] "
+                        "(README, calibd run)")
     p.add_argument("--port", help="serial port overriding the configuration's (the systemd unit passes /dev/%%i)")
     p.set_defaults(func=cmd_run)
     p = sub.add_parser("replay", help="the daemon's pipeline on a capture, printing states and results")
     p.add_argument("capture")
-    p.add_argument("--config", help="TOML configuration (site, warm-up, method)")
+    p.add_argument("--config", type=path_arg, help="TOML configuration (site, warm-up, method)")
     _add_site_options(p, required=False)
     p.add_argument("--speed", type=_speed,
                    help="N times real time, or max (default; with --serve: 1, as the sensor sends)")
@@ -698,15 +788,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--serve", action="store_true",
                    help="serve the replayed sensor as calibd run does, by the [serve] table of --config (through "
                         "a pseudo-terminal, paced; docs/serving.md)")
-    p.add_argument("--socket", help="serve the socket protocol at this path (implies --serve)")
-    p.add_argument("--raw-pty", help="serve the raw bytes on a pty linked at this path (implies --serve)")
-    p.add_argument("--corrected-pty", help="serve corrected datagrams on a pty linked at this path (implies --serve)")
+    p.add_argument("--socket", type=path_arg, help="serve the socket protocol at this path (implies --serve)")
+    p.add_argument("--raw-pty", type=path_arg,
+                   help="serve the raw bytes on a pty linked at this path (implies --serve)")
+    p.add_argument("--corrected-pty", type=path_arg,
+                   help="serve corrected datagrams on a pty linked at this path (implies --serve)")
     p.add_argument("--warmup-window", type=_number(*WARMUP_WINDOW_S, "s"),
                    help="seconds of settled temperature that end the warm-up (default 600)")
-    p.add_argument("--state-dir", help="also write result.json, history/ and state.json there")
+    p.add_argument("--state-dir", type=path_arg, help="also write result.json, history/ and state.json there")
     p.set_defaults(func=cmd_replay)
     p = sub.add_parser("status", help="the daemon's state and last result")
-    p.add_argument("--state-dir", required=True)
+    p.add_argument("--state-dir", type=path_arg, required=True)
     p.add_argument("--json", action="store_true", help="one JSON object: the state and the result document")
     p.add_argument("-f", "--follow", action="store_true",
                    help="keep printing: again each time state.json or result.json changes (with --json: one JSON "
@@ -722,7 +814,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("report", help="result + its capture -> HTML report with figures (needs matplotlib)")
     p.add_argument("result", help="RESULT.json written by calibd calibrate")
     p.add_argument("capture", help="the capture the result was made from")
-    p.add_argument("-o", "--output", required=True,
+    p.add_argument("-o", "--output", type=path_arg, required=True,
                    help="report.html (self-contained); the figures also go to report_files/*.png and *.svg beside it")
     p.set_defaults(func=cmd_report)
     p = sub.add_parser("plan", help="protocol + site + noise -> expected 1-sigma of every estimate, time to a "
@@ -735,7 +827,8 @@ def build_parser() -> argparse.ArgumentParser:
                             "its [site] unless --latitude is given, its [noise] unless noise options are given)")
     p.add_argument("--target-yaw-deg", type=_number(0.001, 90, "deg"), default=1.0,
                    help="yaw 1-sigma to reach, deg (default 1)")
-    p.add_argument("--noise", help="NOISE.json (calibd.noise/1, from calibd noise) instead of the figures below")
+    p.add_argument("--noise", type=path_arg,
+                   help="NOISE.json (calibd.noise/1, from calibd noise) instead of the figures below")
     for option, (field, unit, what) in PLAN_NOISE_OPTIONS.items():
         stim300 = getattr(Noise(), field)
         p.add_argument(option, dest=field, type=_number(0, 1000, unit), metavar=unit.upper(),
@@ -743,9 +836,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_plan)
     p = sub.add_parser("noise", help="capture -> Allan deviation of every channel from its statics, noise figures")
     p.add_argument("capture")
-    p.add_argument("-o", "--output", help="NOISE.json (calibd.noise/1, replaced atomically)")
-    p.add_argument("--kalibr", metavar="IMU.yaml", help="Kalibr's imu.yaml: noise densities and random walks in "
-                   "SI units, update_rate (replaced atomically; docs/noise.md)")
+    p.add_argument("-o", "--output", type=path_arg, help="NOISE.json (calibd.noise/1, replaced atomically)")
+    p.add_argument("--kalibr", type=path_arg, metavar="IMU.yaml",
+                   help="Kalibr's imu.yaml: noise densities and random walks in SI units, update_rate (replaced "
+                        "atomically; docs/noise.md)")
     p.add_argument("--rostopic", type=_ros_topic, default="/imu0",
                    help="rostopic written to the Kalibr file (default /imu0)")
     p.add_argument("--start", type=_number(0, 1e9, "s"), default=0.0, help="skip the first S seconds (warm-up)")
@@ -753,7 +847,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("apply", help="result + capture -> bias-corrected samples in SI units (NPZ or CSV)")
     p.add_argument("result", help="RESULT.json written by calibd calibrate or the daemon")
     p.add_argument("capture", help="a capture of the same sensor (and power-up) to correct")
-    p.add_argument("-o", "--output", required=True, help="OUT.npz or OUT.csv (replaced atomically)")
+    p.add_argument("-o", "--output", type=path_arg, required=True, help="OUT.npz or OUT.csv (replaced atomically)")
     p.add_argument("--frame", action="store_true",
                    help="turn the vectors into the home frame: NWU when the platform is at its home position, "
                         "turning with the platform (needs yaw, pitch and roll)")
@@ -762,7 +856,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_apply)
     p = sub.add_parser("simulate", help="scenario -> capture file and CAPTURE.truth.json")
     p.add_argument("scenario", help=f"scenario TOML file, or one of: {', '.join(READY_MADE)}")
-    p.add_argument("-o", "--output", required=True, help="capture file to write")
+    p.add_argument("-o", "--output", type=path_arg, required=True, help="capture file to write")
     p.set_defaults(func=cmd_simulate)
     _add_client_commands(sub)
     return parser

@@ -7,7 +7,7 @@ typed messages, ask for the latest result.
             if isinstance(message, Samples):
                 use(message.t, message.gyro)
 
-On TCP served with a token, `Client.connect(..., token=read_token(PATH))` sends ?AUTH first.
+On TCP served with a token, `Client.connect(..., token=TOKEN)` sends ?AUTH first.
 
 The wire format is `calibd.serve.protocol`'s; this module only reads it. Every failure is a
 `ClientError` of one line naming the socket: a socket that is absent or refuses, a server that
@@ -31,7 +31,7 @@ import numpy as np
 
 from .errors import CalibdError
 from .results import CalibrationResult, ResultError
-from .serve.protocol import MAX_MESSAGE_BYTES, MAX_TOKEN_BYTES, PROTO_MAJOR, SAMPLE_KINDS, ProtocolError, decode
+from .serve.protocol import MAX_MESSAGE_BYTES, PROTO_MAJOR, SAMPLE_KINDS, ProtocolError, decode
 
 CONNECT_TIMEOUT_S = 5.0
 _HOST_PORT = re.compile(r"(?:\[(?P<v6>[^\]]+)\]|(?P<host>[^:/\[\]]+)):(?P<port>\d{1,5})")
@@ -223,23 +223,6 @@ def _address(where: str):
     if not 0 < port < 65536:
         raise ClientError(f"{where}: port {port} is outside 1..65535")
     return (match["v6"] or match["host"], port)
-
-
-def read_token(path: str | None) -> str | None:
-    """The token in the file at `path` (the daemon's [serve] tcp_token_file, readable by its
-    group), without surrounding white space; None for no path."""
-    if path is None:
-        return None
-    try:
-        with open(path, "rb") as f:
-            token = f.read(MAX_TOKEN_BYTES + 1).strip().decode("utf-8")
-    except OSError as exc:
-        raise ClientError(f"{path}: cannot read the token: {(exc.strerror or str(exc)).lower()}") from None
-    except UnicodeDecodeError:
-        raise ClientError(f"{path}: the token is not UTF-8 text") from None
-    if not token or len(token) > MAX_TOKEN_BYTES:
-        raise ClientError(f"{path}: no token (an empty file, or more than {MAX_TOKEN_BYTES} bytes)")
-    return token
 
 
 def _connect_error(where: str, exc: OSError) -> ClientError:

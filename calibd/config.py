@@ -8,14 +8,16 @@ was expected.
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
+from stim300.cliutil import TEXT_LIMIT_BYTES, read_text
+from stim300.errors import UsageError
 from stim300.protocol import DEFAULT_BIT_RATE
 
 from .methods import DAEMON_METHODS, OptionError, estimator
 from .serve.sockets import IDLE_TIMEOUT_S, MAX_CLIENTS, MAX_CLIENTS_PER_UID
+from .documents import parse_toml
 from .warmup import WarmupConfig
 from .errors import CalibdError
 from .frames import Site
@@ -278,22 +280,10 @@ def parse_config(data: dict, where: str) -> DaemonConfig:
 def load_config(path: str | Path) -> DaemonConfig:
     """Read and validate the configuration file at `path`; any problem is a one-line ConfigError."""
     where = str(path)
-    if Path(path).exists() and not (Path(path).is_file() or Path(path).is_dir()):
-        raise ConfigError(f"{where}: not a regular file (a device or FIFO), expected a TOML configuration file")
     try:
-        text = Path(path).read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError(f"{where}: no such configuration file") from None
-    except IsADirectoryError:
-        raise ConfigError(f"{where}: is a directory, expected a TOML configuration file") from None
-    except OSError as exc:
-        raise ConfigError(f"{where}: cannot read: {(exc.strerror or str(exc)).lower()}") from None
-    except UnicodeDecodeError:
-        raise ConfigError(f"{where}: cannot read: not UTF-8 text") from None
-    try:
-        data = tomllib.loads(text)
-    except ValueError as exc:  # TOMLDecodeError, or an integer of more digits than Python converts
-        raise ConfigError(f"{where}: not valid TOML: {exc}") from None
-    except RecursionError:
-        raise ConfigError(f"{where}: not valid TOML: arrays or tables nested too deeply") from None
+        text = read_text(path, "TOML configuration file", TEXT_LIMIT_BYTES)
+    except UsageError as exc:
+        words = str(exc).replace(": no such file", ": no such configuration file")
+        raise ConfigError(words) from None
+    data = parse_toml(text, where, ConfigError)
     return parse_config(data, where)

@@ -12,7 +12,6 @@ is binned at 0.1 s), so planning at 5 Hz gives the 125 Hz sigmas to 1e-4 at a te
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, replace
 
@@ -21,12 +20,13 @@ import numpy as np
 from stim300.protocol import NORMAL_LAYOUTS
 
 from .calibrate import checked_by_statics
+from .documents import NoiseDoc, SchemaError, decode_json, schema_version, validate
 from .errors import CalibdError
 from .estimators.joint import JointInput, JointOptions, SensorNoise, Underdetermined, datasheet_noise, solve
 from .frames import STANDARD_GRAVITY, Site
 from .noise import NOISE_SCHEMA, NOISE_VERSION
-from .results import ESTIMATES, SchemaError, schema_version
-from .scenario import Faults, Noise, Scenario, Segment, Sensor, load_scenario
+from .results import ESTIMATES
+from .scenario import Faults, Noise, Scenario, ScenarioError, Segment, Sensor, load_scenario
 from .sim import schedule, simulate
 from .units import DEG
 
@@ -175,53 +175,41 @@ def describe(segments: tuple[Segment, ...]) -> str:
 # ---------------------------------------------------------------- noise
 
 def noise_from_json(data: bytes, where: str) -> Noise:
-    """Figures from a `calibd.noise/1` file (written by `calibd noise`): one per sensor, the root
-    mean square of the three axes' (the estimator fits each channel's own; a plan takes a
-    sensor's axes alike), but the inclinometers' of X and Y alone: the plan takes their figure at
-    0 g and makes the axis along gravity noisier itself, and a capture's statics have Z along
-    gravity. A file without any inclinometer channel
-    is a unit's without inclinometers: its figures have none (None)."""
-    try:
-        doc = json.loads(data)
-    except ValueError as exc:
-        raise PlanError(f"{where}: not a JSON noise file: {exc}") from None
+    """Figures from a `calibd.noise/1` file (written by `calibd noise`; its schema is
+    calibd.documents.NoiseDoc): one per sensor, the root mean square of the three axes' (the
+    estimator fits each channel's own; a plan takes a sensor's axes alike), but the inclinometers'
+    of X and Y alone: the plan takes their figure at 0 g and makes the axis along gravity noisier
+    itself, and a capture's statics have Z along gravity. A file without inclinometer channels is
+    a unit's without inclinometers: its figures have none (None)."""
+    doc = decode_json(data, where, NoiseDoc, PlanError, noun="a JSON noise file")
     if not isinstance(doc, dict):
         raise PlanError(f"{where}: not a JSON object, expected a {NOISE_SCHEMA} file")
     try:  # the version policy of result and truth files
         schema_version(doc.get("schema"), NOISE_SCHEMA, NOISE_VERSION, f"{where}: schema")
     except SchemaError as exc:
         raise PlanError(str(exc)) from None
-    channels = doc.get("channels")
-    if not isinstance(channels, dict):
-        raise PlanError(f"{where}: channels: missing or not an object")
+    channels = validate(doc, NoiseDoc, where, PlanError).channels
     figures = {}
     for sensor, (walk_field, walk_unit, instability_field, instability_unit) in NOISE_FILE_FIGURES.items():
-        if sensor == "incl" and not any(name.startswith("incl_") for name in channels):
+        axes = {axis: getattr(channels, f"{sensor}_{axis}") for axis in "xyz"}
+        if sensor == "incl" and not any(axes.values()):
             figures[walk_field] = figures[instability_field] = None
             continue
         for name, field, unit in (("random_walk", walk_field, walk_unit),
                                   ("bias_instability", instability_field, instability_unit)):
-            values = [_figure(channels, f"{sensor}_{axis}", name, unit, where) for axis in "xyz"]
-            if sensor == "incl":
-                values = values[:2]
+            values = [_figure(axes, sensor, axis, name, unit, where) for axis in ("xy" if sensor == "incl" else "xyz")]
             figures[field] = math.sqrt(sum(v * v for v in values) / len(values))
     return Noise(**figures)
 
 
-def _figure(channels: dict, channel: str, name: str, unit: str, where: str) -> float:
-    entry = channels.get(channel)
-    if not isinstance(entry, dict):
-        raise PlanError(f"{where}: channels.{channel}: missing")
-    figure = entry.get(name)
-    key = f"channels.{channel}.{name}"
-    if not isinstance(figure, dict):
-        raise PlanError(f"{where}: {key}: missing")
-    if figure.get("unit") != unit:
-        raise PlanError(f"{where}: {key}.unit: {figure.get('unit')!r} where {unit!r} is expected")
-    value = figure.get("value")
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
-        raise PlanError(f"{where}: {key}.value: {value!r} is not a non-negative number")
-    return float(value)
+def _figure(axes: dict, sensor: str, axis: str, name: str, unit: str, where: str) -> float:
+    """One axis's figure, in the unit the plan takes it in (its range the schema's)."""
+    if axes[axis] is None:
+        raise PlanError(f"{where}: channels.{sensor}_{axis} is missing (a unit with inclinometers has all three)")
+    figure = getattr(axes[axis], name)
+    if figure.unit != unit:
+        raise PlanError(f"{where}: channels.{sensor}_{axis}.{name}.unit is {figure.unit!r}, expected {unit!r}")
+    return float(figure.value)
 
 
 # ---------------------------------------------------------------- the plan
@@ -289,7 +277,10 @@ def plan(protocol: Protocol | str, site: Site, figures: Noise, scale: float = 1.
     protocol = _protocol(protocol)
     segments = protocol_segments(protocol, scale)
     inclinometers = protocol.inclinometers and figures.incl_vrw_m_s_sqrt_h is not None
-    inp, seconds = _session(protocol, scale, site, inclinometers)
+    try:
+        inp, seconds = _session(protocol, scale, site, inclinometers)
+    except ScenarioError as exc:  # what only the simulation finds: a session too long to hold
+        raise PlanError(f"{protocol.name}: {exc}") from None
     along = None if inp.incl is None else inp.incl[slice(*inp.statics[0])].mean(axis=0) / STANDARD_GRAVITY
     noise = datasheet_noise(figures if inclinometers else replace(
         figures, incl_vrw_m_s_sqrt_h=None, incl_bias_instability_mg=None), inp.rate_hz, along)

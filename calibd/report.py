@@ -17,13 +17,15 @@ from __future__ import annotations
 
 import base64
 import html
-import json
 import math
 import os
-from dataclasses import fields
+import secrets
+import shutil
 from pathlib import Path
 
-from stim300.atomic import write_atomic
+from stim300.atomic import atomic_file, in_place, write_atomic
+from stim300.cliutil import DOCUMENT_LIMIT_BYTES, read_input
+from stim300.errors import UsageError
 from stim300.progress import Progress
 
 from . import detect
@@ -32,8 +34,8 @@ from .errors import CalibdError, CalibrationError, SiteError
 from .methods import estimator
 from .figures import DPI, FIGURE_WIDTH_IN, Figure, allan_figure, earth_rate_figure, platform_axis, timeline_figure
 from .frames import Site
-from .results import CalibrationResult, SchemaError, is_finite_number, load_result, schema_version
-from .scenario import TRUTH_FORMER_NAMES, TRUTH_SCHEMA, TRUTH_VERSION, Truth
+from .results import CalibrationResult, parse_result
+from .scenario import ScenarioError, truth_from_json
 from .segments import segment_record, session_segments
 from .session import CaptureSessions, Session, power_up_session
 from .units import fixed, value_sigma_texts
@@ -55,10 +57,11 @@ def figures_dir(output) -> Path:
 def write_report(result_path, capture: CaptureSessions, output, stream=None) -> list[Path]:
     """Render the report of the result at `result_path` on the decoded `capture` to `output` and
     its figures directory; returns the files written, the HTML first. A progress bar goes to
-    `stream` (stderr) when it is a terminal."""
+    `stream` (stderr) when it is a terminal. ReportError (or UsageError, for a result file that
+    is not a regular file) for inputs it cannot use, OSError when the files cannot be written."""
     _need_matplotlib()
-    result = load_result(result_path)  # it checks the schema, the estimates and the site
-    _check_fields(result, result_path)
+    # a regular file of bounded size; parse_result checks the schema, the estimates and the site
+    result = parse_result(read_input(result_path, "result file", DOCUMENT_LIMIT_BYTES), result_path)
     site = _site(result, result_path)
     output = Path(output)
     _check_writable(output)
@@ -116,73 +119,20 @@ def _site(result: CalibrationResult, path) -> Site:
         raise ReportError(f"{path}: no usable site in the result ({exc})") from None
 
 
-def _whole(value) -> bool:
-    return is_finite_number(value) and value == int(value)
-
-
-def _optional(check):
-    return lambda value: value is None or check(value)
-
-
-def _text(value) -> bool:
-    return isinstance(value, str)
-
-
-def _record(value) -> bool:
-    return isinstance(value, dict)
-
-
-def _power_up(value) -> bool:
-    number = value.get("number") if isinstance(value, dict) else None
-    return isinstance(value, dict) and isinstance(number, int) and not isinstance(number, bool) and number >= 1
-
-
-def _check_fields(result: CalibrationResult, path) -> None:
-    """The fields the report reads, of the kinds it reads them as: a hand-edited or foreign
-    result.json is refused in one line naming the field, not a traceback halfway through."""
-    number, maybe_number = (is_finite_number, "a number"), (_optional(is_finite_number), "a number or null")
-    stream = result.stream if isinstance(result.stream, dict) else {}
-    fields_ = [("stream", result.stream, _optional(_record), "an object"),
-               ("sensor", result.sensor, _optional(_record), "an object"),
-               ("checks", result.checks, _optional(_record), "an object"),
-               ("options", result.options, _optional(_record), "an object"),
-               ("capture", result.capture, _optional(_record), "an object"),
-               ("site.latitude_deg", result.site.get("latitude_deg"), *number),
-               ("site.height_m", result.site.get("height_m", 0.0), *number),
-               ("site.g0_m_s2", result.site.get("g0_m_s2", 0.0), *number),
-               ("stream.start_s", stream.get("start_s"), *maybe_number),
-               ("stream.datagrams", stream.get("datagrams"), _optional(_whole), "a whole number or null"),
-               ("stream.power_up", stream.get("power_up"), _optional(_power_up),
-                "null or an object whose number is a whole number >= 1")]
-    if isinstance(result.capture, dict):
-        fields_ += [("capture.size_bytes", result.capture.get("size_bytes"), _whole, "a whole number"),
-                    ("capture.sha256", result.capture.get("sha256"), _text, "a string")]
-    fields_ += [(f"warnings[{k}]", w, _text, "a string") for k, w in enumerate(result.warnings)]
-    for k, segment in enumerate(result.segments):
-        fields_.append((f"segments[{k}]", segment, _record, "an object"))
-        if isinstance(segment, dict):
-            fields_ += [(f"segments[{k}].{key}", segment.get(key, 0.0), *number) for key in ("start_s", "end_s")]
-    checks = result.checks if isinstance(result.checks, dict) else {}
-    for check, keys in (("earth_rate_horizontal_deg_h", ("fitted", "sigma", "expected")),
-                        ("static_chi2", ("chi2", "dof", "p_value"))):
-        if checks.get(check):
-            fields_.append((f"checks.{check}", checks[check], _record, "an object"))
-            if isinstance(checks[check], dict):
-                fields_ += [(f"checks.{check}.{key}", checks[check].get(key), *number) for key in keys]
-    for where, value, check, expect in fields_:
-        if not check(value):
-            raise ReportError(f"{path}: {where} is {json.dumps(value)[:40]}, expected {expect}")
-
-
 def _check_writable(output: Path) -> None:
     """Refuse before the work rather than after it."""
-    parent = output.parent
+    parent, figures = output.parent, figures_dir(output)
     if output.is_dir():
         raise ReportError(f"{output}: is a directory, expected an HTML file name")
+    if in_place(output):  # a device or FIFO: nothing goes beside it
+        return
     if not parent.is_dir():
         raise ReportError(f"{output}: cannot write: no such directory {parent}")
     if not os.access(parent, os.W_OK):
         raise ReportError(f"{output}: cannot write: permission denied")
+    if os.path.lexists(figures) and (figures.is_symlink() or not figures.is_dir()):
+        raise ReportError(f"{figures}: not a directory (a symbolic link is not followed): the report's figures "
+                          "go there; move it away")
 
 
 def analysis_start_s(result: CalibrationResult) -> float:
@@ -236,15 +186,10 @@ def read_truth(capture: str) -> tuple[dict[str, float], dict[str, float]] | None
     temperature and by the session mean of the bias wander, which no calibration of this capture
     can tell from the bias: that is what an estimate is to be compared with (docs/accuracy.md)."""
     path = Path(f"{capture}.truth.json")
-    try:
-        record = json.loads(path.read_text())
-        schema_version(record["schema"], TRUTH_SCHEMA, TRUTH_VERSION, str(path), TRUTH_FORMER_NAMES)
-        # a version 1 truth has no factory residuals: they were none
-        truth = Truth(**{f.name: record["truth"].get(f.name, f.default) for f in fields(Truth)})
-        carried = Truth(**{f.name: getattr(truth, f.name) if f.name not in record.get("bias_during_capture", {})
-                           else record["bias_during_capture"][f.name]["session"] for f in fields(Truth)})
+    try:  # the truth file's schema: calibd.documents.TruthDoc
+        truth, carried = truth_from_json(read_input(path, "truth file", DOCUMENT_LIMIT_BYTES), path)
         return truth.estimates(), carried.estimates()
-    except (OSError, ValueError, KeyError, TypeError, SchemaError):
+    except (UsageError, ScenarioError):  # a FIFO or device of that name too
         return None
 
 
@@ -397,18 +342,48 @@ def render_html(result: CalibrationResult, result_name: str, capture: str, whole
 
 
 def _write(output: Path, figures: list[Figure], page: str) -> list[Path]:
-    """The PNGs, then the page: each file appears whole or not at all."""
-    directory = figures_dir(output)
-    written = [output]
-    try:
-        directory.mkdir(exist_ok=True)
-        for f in figures:
-            for suffix, data in (("png", f.png), ("svg", f.svg)):
-                if data is not None:
-                    path = directory / f"{f.name}.{suffix}"
-                    write_atomic(path, data, durable=False)  # figures can be made again: no sync
-                    written.append(path)
+    """The page and its figures directory, each whole or not at all; OSError (a full disk) leaves
+    nothing of this run behind. The figures go into a new directory beside the output, which
+    replaces `report_files/` only once the page is written too; the page is renamed into place
+    last. Nothing is written through a symbolic link: the directory is made by this run and its
+    files are new. A page that is a device or FIFO (`-o /dev/stdout`) has no beside: the page
+    only, which embeds the figures."""
+    if in_place(output):
         write_atomic(output, page.encode(), durable=False)
-    except OSError as exc:
-        raise ReportError(f"{output}: cannot write: {(exc.strerror or str(exc)).lower()}") from None
+        return [output]
+    directory = figures_dir(output)
+    fresh = directory.with_name(f".{directory.name}.{secrets.token_hex(4)}.part")
+    written = [output]
+    os.mkdir(fresh)
+    try:
+        with atomic_file(output, durable=False) as f:
+            for figure in figures:
+                for suffix, data in (("png", figure.png), ("svg", figure.svg)):
+                    if data is not None:
+                        name = f"{figure.name}.{suffix}"
+                        write_atomic(fresh / name, data, durable=False, follow=False)  # can be made again: no sync
+                        written.append(directory / name)
+            f.write(page.encode())
+            f.flush()  # a full disk fails here, before the old figures go
+            _replace_directory(fresh, directory)
+    finally:
+        shutil.rmtree(fresh, ignore_errors=True)  # gone already when it took the figures' place
     return written
+
+
+def _replace_directory(fresh: Path, directory: Path) -> None:
+    """`fresh` renamed to `directory`; an old one there (a real directory, `_check_writable`) is
+    moved aside first and removed after, or put back when the rename fails."""
+    old = fresh.with_suffix(".old")
+    try:
+        os.rename(directory, old)
+    except FileNotFoundError:
+        old = None
+    try:
+        os.rename(fresh, directory)
+    except OSError:
+        if old is not None:
+            os.rename(old, directory)
+        raise
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import errno
 import json
-import math
 import os
 import time
 from dataclasses import dataclass, field, replace
@@ -30,8 +29,10 @@ import structlog
 from scipy.spatial.transform import Rotation
 
 from stim300.atomic import write_atomic
-from stim300.cliutil import package_version
+from stim300.cliutil import DOCUMENT_LIMIT_BYTES, package_version, read_input
+from stim300.errors import UsageError
 
+from .documents import ESTIMATE_BOUNDS, ResultDoc, SchemaError, decode_json, schema_version, validate
 from .errors import CalibdError
 from .frames import EARTH_RATE, Site, int_to_imu, nav_to_imu
 from .units import DEG, M_S2_TO_MG, RAD_S_TO_DEG_H
@@ -46,11 +47,8 @@ SCHEMA = f"{RESULT_SCHEMA}/{RESULT_VERSION}"
 log = structlog.get_logger("calibd")
 # display unit -> (display units per SI unit, SI unit): the one conversion of estimates
 DISPLAY_UNITS = {"deg": (1 / DEG, "rad"), "deg/h": (RAD_S_TO_DEG_H, "rad/s"), "mg": (M_S2_TO_MG, "m/s^2")}
-# estimate name -> (factor from SI, display unit)
-ESTIMATES = {name: (DISPLAY_UNITS[unit][0], unit) for name, unit in (
-    *((angle, "deg") for angle in ("pitch", "roll", "yaw", "alpha", "beta")),
-    *((f"gyro_bias_{a}", "deg/h") for a in "xyz"),
-    *((f"{sensor}_bias_{a}", "mg") for sensor in ("acc", "incl") for a in "xyz"))}
+# estimate name -> (factor from SI, display unit); the names, units and ranges are the schema's
+ESTIMATES = {name: (DISPLAY_UNITS[unit][0], unit) for name, (unit, _) in ESTIMATE_BOUNDS.items()}
 ROTATION_CONVENTION = ("passive: M takes a vector's components in the frame it is from (NAV: North-West-Up; int: "
                        "the mounting interface) to its IMU components, v_IMU = M v; matrix row-major; quaternion "
                        "[w, x, y, z], Hamilton, unit, w >= 0, v_IMU = q v q* (the same map as the matrix)")
@@ -61,22 +59,6 @@ SOFTWARE = "stim300-calib"
 
 class ResultError(CalibdError):
     """A result file that is missing, unreadable or not of this schema."""
-
-
-class SchemaError(CalibdError):
-    """A document of another schema, or of a newer version than this calibd reads; one line."""
-
-
-def schema_version(schema, name: str, newest: int, what: str, aliases: tuple[str, ...] = ()) -> int:
-    """The version N of a document whose schema is "NAME/N" (or "ALIAS/N": a former name), by
-    the version policy: newer than `newest` or another schema is a SchemaError naming `what`."""
-    base, _, number = str(schema).rpartition("/")
-    if base not in (name, *aliases) or not number.isdigit() or int(number) < 1:
-        raise SchemaError(f"{what} is {schema!r}, not a {name} file")
-    if int(number) > newest:
-        raise SchemaError(f"{what} is {name}/{number}, newer than this calibd reads (up to {newest}): "
-                          "upgrade calibd")
-    return int(number)
 
 
 @dataclass(frozen=True)
@@ -197,47 +179,27 @@ class CalibrationResult:
 
     @classmethod
     def from_dict(cls, doc, where: str = "result") -> CalibrationResult:
-        """A result document of this or an older version; ResultError (one line) otherwise. What
-        follows from the estimates (SI values, the rotation record) is made again, not read."""
+        """A result document of this or an older version, checked against its schema
+        (calibd.documents.ResultDoc); ResultError (one line naming the field) otherwise. What
+        follows from the estimates (SI values, the rotation record) is made again, not read, and
+        keys the schema does not know are left out."""
         if not isinstance(doc, dict):
-            raise ResultError(f"{where}: not a {RESULT_SCHEMA} result")
+            raise ResultError(f"{where}: a JSON {type(doc).__name__}, not an object: not a {RESULT_SCHEMA} file")
         try:
             schema_version(doc.get("schema"), RESULT_SCHEMA, RESULT_VERSION, where)
         except SchemaError as exc:
             raise ResultError(str(exc)) from None
         estimates = doc.get("estimates")
-        if not (isinstance(estimates, dict) and estimates
-                and all(isinstance(e, dict) and {"value", "unit"} <= set(e) for e in estimates.values())):
+        if not isinstance(estimates, dict) or not estimates.keys() & ESTIMATES.keys():
             raise ResultError(f"{where}: the result has no estimates (value and unit each)")
-        strange = next((f"{name} in {e['unit']!r}" for name, e in estimates.items()
-                        if e["unit"] not in DISPLAY_UNITS), None)
-        if strange:
-            raise ResultError(f"{where}: estimate {strange}, not one of {', '.join(DISPLAY_UNITS)}")
-        wrong = next(((f"estimates.{name}.{key}", e.get(key), expect) for name, e in estimates.items()
-                      for key, fits, expect in _ESTIMATE_KINDS if not fits(e.get(key))), None)
-        if wrong:  # every reader (status, report, apply, the daemon) may compute with them
-            raise ResultError(f"{where}: {wrong[0]} is {json.dumps(wrong[1])[:40]}, expected {wrong[2]}")
-        if not isinstance(doc.get("site"), dict) or not isinstance(doc.get("method"), str):
-            raise ResultError(f"{where}: the result has no site or no method")
-        for key in ("segments", "warnings"):
-            if not isinstance(doc.get(key, []), list):
-                raise ResultError(f"{where}: {key} is {json.dumps(doc[key])[:40]}, expected a list")
+        validate(doc, ResultDoc, where, ResultError)
         known = {"method", "site", "sensor", "stream", "covariance", "software", "session_id", *_OPTIONAL}
         return cls(**{key: value for key, value in doc.items() if key in known},
                    estimates={name: Estimate(e["value"], e.get("sigma"), e["unit"], e.get("quality"))
-                              for name, e in estimates.items()},
+                              for name, e in estimates.items() if name in ESTIMATES},
                    segments=tuple(doc.get("segments", ())), warnings=tuple(doc.get("warnings", ())),
                    schema=doc["schema"])
 
-
-def is_finite_number(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-
-
-# an estimate's fields a reader computes with: (key, the kind it must be, the kind in words)
-_ESTIMATE_KINDS = (("value", is_finite_number, "a number"),
-                   ("sigma", lambda v: v is None or is_finite_number(v) and v >= 0, "a number >= 0 or null"),
-                   ("quality", lambda v: v is None or isinstance(v, str), "a string or null"))
 
 
 def quaternion(matrix: np.ndarray) -> list[float]:
@@ -296,21 +258,17 @@ def write_result(path, result: CalibrationResult) -> None:
 
 def load_result(path) -> CalibrationResult:
     try:
-        text = Path(path).read_text()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ResultError(f"{path}: cannot read: {exc}") from None
-    return parse_result(text, path)
+        data = read_input(path, "result file", DOCUMENT_LIMIT_BYTES)
+    except UsageError as exc:
+        raise ResultError(str(exc)) from None
+    return parse_result(data, path)
 
 
 def parse_result(data: str | bytes, where) -> CalibrationResult:
-    """A result file's text or bytes (read once, e.g. to hash them too) as a result; `where` names it."""
-    try:
-        doc = json.loads(data)
-    except UnicodeDecodeError as exc:
-        raise ResultError(f"{where}: cannot read: {exc}") from None
-    except json.JSONDecodeError as exc:
-        raise ResultError(f"{where}: not JSON: {exc}") from None
-    return CalibrationResult.from_dict(doc, str(where))
+    """A result file's text or bytes (read once, e.g. to hash them too) as a result; `where` names
+    it. Decoded by msgspec (calibd.documents): deep nesting, NaN and numbers out of range are
+    refused in one line like every other fault of the document."""
+    return CalibrationResult.from_dict(decode_json(data, where, ResultDoc, ResultError), str(where))
 
 
 class StateDirError(CalibdError):
@@ -426,7 +384,7 @@ class ResultStore:
             for path, (data, durable) in list(self._pending.items()):
                 try:
                     self._writable(path)
-                    write_atomic(path, data, durable)
+                    write_atomic(path, data, durable, follow=False)  # a link made since: replaced
                     del self._pending[path]
                 except OSError as exc:
                     problem = problem or self._why(exc, path)

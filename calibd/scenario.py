@@ -3,23 +3,24 @@
 A scenario says what the sensor is and sends (datagram, rate, units), where it is (site), the
 truth the estimators must find (biases at thermal equilibrium, attitude at the home position,
 interface tilt), the noise and warm-up models, the motion (segments) and optional faults.
-Errors name the file, the table and the key, and say what was expected.
+Errors name the file, the table and the key, and say what was expected: this parser is the
+scenario's schema (its keys, kinds and RANGES); the text is decoded by `calibd.documents.parse_toml`.
+The truth file written beside a simulated capture is read back by `truth_from_json`.
 """
 
 from __future__ import annotations
 
-import math
-import tomllib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
 
-from stim300.cliutil import input_file
+from stim300.cliutil import TEXT_LIMIT_BYTES, read_text
 from stim300.errors import FormatError, UsageError
 from stim300.protocol import ACC_RANGE_LSB_EXP, NORMAL_LAYOUTS, SAMPLE_RATES_HZ
 from stim300.special import PartNumber, SerialNumber
 
 from . import spec
+from .documents import NOISE_MAX, SchemaError, TruthDoc, decode_json, finite, parse_toml, schema_version, validate
 from .errors import CalibdError, SiteError
 from .frames import Site
 
@@ -27,9 +28,12 @@ READY_MADE = ("thesis-real", "thesis-bench", "continuous")
 GYRO_UNITS = ("rate", "average", "incremental")
 ACC_UNITS = ("acceleration", "average", "incremental")
 UP_AXES = ("+Z", "-Z", "+Y", "-Y", "+X", "-X")
-MAX_RATE_DEG_S = 400.0  # the STIM300 gyros' range
+MAX_RATE_DEG_S = spec.GYRO_RANGE_DEG_S
 MAX_ACCEL_DEG_S2 = 10_000.0
-NOISE_MAX = 1000.0  # each noise figure, in its unit (as `calibd plan`'s options)
+# A segment's duration and a turn's angle are bounded so that the schedule's arithmetic stays
+# finite and exact to a sample; how long a session may be is the simulator's rule (sim.MAX_SAMPLES)
+MAX_SEGMENT_S = 1e9
+MAX_TURN_DEG = 1e10
 RANGES = {  # table: {key: (low, high, unit)} for every number of the truth, noise and warm-up; beyond,
     # the model means nothing, or exp() and the sensor's counts overflow
     "truth": {"yaw_deg": (-360.0, 360.0, "deg"), "pitch_deg": (-90.0, 90.0, "deg"), "roll_deg": (-180.0, 180.0, "deg"),
@@ -212,23 +216,21 @@ class _Table:
         value = self.data[key]
         try:
             if kind is float:
-                if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                if not finite(value):
                     raise TypeError
                 value = float(value)
             elif kind is tuple:
-                if not isinstance(value, list) or len(value) != length:
+                if not isinstance(value, list) or len(value) != length or not all(map(finite, value)):
                     raise TypeError
-                value = tuple(float(v) for v in value if not isinstance(v, bool) and isinstance(v, (int, float)))
-                if len(value) != length or not all(map(math.isfinite, value)):
-                    raise TypeError
+                value = tuple(map(float, value))
             elif not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
                 raise TypeError
         except TypeError:
             names = {float: "a number", int: "an integer", bool: "true or false", str: "a string",
                      tuple: f"a list of {length} numbers", dict: "a table", list: "a list"}
-            self.fail(key, f"{value!r} is not {names[kind]}")
+            self.fail(key, f"{_shown(value)} is not {names[kind]}")
         if check is not None and not check(value):
-            self.fail(key, f"{value!r} is not {expect}")
+            self.fail(key, f"{_shown(value)} is not {expect}")
         return value
 
     def finish(self) -> None:
@@ -237,16 +239,18 @@ class _Table:
             self.fail(unknown[0], f"unknown key (known: {', '.join(sorted(self.used))})")
 
 
+def _shown(value) -> str:
+    """A value as the message shows it: at most 60 characters (a list nested deep, a long string)."""
+    text = repr(value) if not isinstance(value, int) or value.bit_length() < 200 else "an integer too large"
+    return text if len(text) <= 60 else f"{text[:57]}..."
+
+
 def _datagram(text: str) -> int:
     try:
         value = int(text, 16)
     except ValueError:
         return -1
     return value
-
-
-def _positive(x) -> bool:
-    return x > 0
 
 
 def _sensor(t: _Table) -> Sensor:
@@ -310,7 +314,8 @@ def _segment(t: _Table) -> Segment:
     if kind is None:
         t.fail("type", "missing (static, turn or position)")
     if kind == "turn":
-        seg = Segment(kind, angle_deg=t.get("angle_deg", None, float, lambda a: a != 0, "a non-zero angle"),
+        seg = Segment(kind, angle_deg=t.get("angle_deg", None, float, lambda a: 0 < abs(a) <= MAX_TURN_DEG,
+                                            f"a non-zero angle within +-{MAX_TURN_DEG:g} deg"),
                       peak_rate_deg_s=t.get("peak_rate_deg_s", None, float, lambda r: 0 < r <= MAX_RATE_DEG_S,
                                             f"a rate in (0, {MAX_RATE_DEG_S:g}] deg/s (the gyros' range)"),
                       accel_deg_s2=t.get("accel_deg_s2", None, float, lambda a: 0 < a <= MAX_ACCEL_DEG_S2,
@@ -320,7 +325,8 @@ def _segment(t: _Table) -> Segment:
             if getattr(seg, key) is None:
                 t.fail(key, "missing for a turn")
     else:
-        duration = t.get("duration_s", None, float, _positive, "a positive duration in s")
+        duration = t.get("duration_s", None, float, lambda d: 0 < d <= MAX_SEGMENT_S,
+                         f"a duration in (0, {MAX_SEGMENT_S:g}] s")
         if duration is None:
             t.fail("duration_s", f"missing for a {kind} segment")
         up = t.get("up", "+Z", str, lambda u: u in UP_AXES, f"one of {', '.join(UP_AXES)}") if kind == "position" \
@@ -353,7 +359,8 @@ def parse_scenario(data: dict, where: str) -> Scenario:
                     garbage_max_bytes=faults_t.get("garbage_max_bytes", 100, int, lambda v: 0 < v <= MAX_GARBAGE_BYTES,
                                                    f"a size in [1, {MAX_GARBAGE_BYTES}] B"),
                     bit_flips=faults_t.get("bit_flips", 0, int, lambda v: v >= 0, "a count >= 0"),
-                    restart_at_s=faults_t.get("restart_at_s", None, float, _positive, "a positive time in s"))
+                    restart_at_s=faults_t.get("restart_at_s", None, float, lambda t: 0 < t <= MAX_SEGMENT_S,
+                                              f"a time in (0, {MAX_SEGMENT_S:g}] s"))
     faults_t.finish()
     sensor = _sensor(table("sensor"))
     scenario = Scenario(name=name, seed=seed, sensor=sensor, site=site_from_table(table("site")),
@@ -380,16 +387,26 @@ def load_scenario(source: str) -> Scenario:
         if not Path(source).exists():
             raise ScenarioError(f"{source}: no such scenario file ({ready_made})")
         try:  # a directory or a device (/dev/zero) is not a scenario either, and said so
-            input_file(source, "scenario file")
+            text = read_text(source, "scenario file", TEXT_LIMIT_BYTES)
         except UsageError as exc:
             raise ScenarioError(f"{exc} ({ready_made})") from None
-        try:
-            text = Path(source).read_text()
-        except (OSError, UnicodeDecodeError) as exc:
-            raise ScenarioError(f"{source}: cannot read: {exc}") from None
         where = source
+    return parse_scenario(parse_toml(text, where, ScenarioError), where)
+
+
+def truth_from_json(data: str | bytes, where) -> tuple[Truth, Truth]:
+    """A truth file's truth (calibd.truth/1 or /2, or its former name), and the truth the data
+    carry: the biases moved by temperature and by the session mean of their wander. A version 1
+    truth has no factory residuals: they were none. ScenarioError (one line) for anything else."""
+    doc = decode_json(data, where, TruthDoc, ScenarioError)
     try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ScenarioError(f"{where}: not valid TOML: {exc}") from None
-    return parse_scenario(data, where)
+        schema_version(doc.get("schema") if isinstance(doc, dict) else None, TRUTH_SCHEMA, TRUTH_VERSION, str(where),
+                       TRUTH_FORMER_NAMES)
+    except SchemaError as exc:
+        raise ScenarioError(str(exc)) from None
+    record = validate(doc, TruthDoc, where, ScenarioError)
+    truth = Truth(**{name: getattr(record.truth, name) if name.endswith("_deg") else tuple(getattr(record.truth, name))
+                     for name in vars(Truth())})
+    carried = replace(truth, **{name: tuple(during.session) for name, during in record.bias_during_capture.items()
+                                if name in vars(truth)})
+    return truth, carried

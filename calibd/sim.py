@@ -21,7 +21,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy.signal import lfilter
 
-from stim300.atomic import write_atomic
+from stim300.atomic import atomic_file
 from stim300.codec import SAMPLE_DTYPE, encode_samples
 from stim300.protocol import (COUNTER_MODULUS, INTERNAL_RATE_HZ, NORMAL_LAYOUTS, SAMPLE_RATES_HZ, AccUnit, Format,
                               GyroUnit, Status)
@@ -412,6 +412,9 @@ def write_capture(scenario: Scenario, path) -> dict:
     except ValueError:
         raise ScenarioError("the truth is not finite (a value out of range): "
                             "nothing written") from None
-    write_atomic(path, data)
-    write_atomic(f"{path}.truth.json", truth.encode())
+    # the truth is written first and renamed last, once the capture (the write that can fill a
+    # disk) is in place: a failed write leaves neither file
+    with atomic_file(f"{path}.truth.json") as truth_file, atomic_file(path) as capture_file:
+        truth_file.write(truth.encode())
+        capture_file.write(data)
     return record

@@ -19,6 +19,8 @@ DATASHEET = "STIM300 datasheet TS1524 rev.31"
 SPECIFICATIONS = f"{DATASHEET}, section 5.2"  # the functional specifications' tables
 LIMIT_SIGMAS = 2.0  # a datasheet limit (+-) taken as this many sigma of the production spread
 ACC_RANGES_G = (5, 10, 30, 80)
+GYRO_RANGE_DEG_S = 400.0  # the gyros' input range, +- (Table 5-3)
+INCL_RANGE_G = 1.7  # the inclinometers' input range, +- (Table 5-8)
 DEFAULT_ACC_RANGE_G = 10
 # At +-1 g the inclinometers' bias instability and velocity random walk are typically 35 % higher
 # than at 0 g (Table 5-8, notes): an axis along gravity is noisier than a horizontal one.

@@ -2,8 +2,13 @@
 
 A target that exists and is not a regular file (a device such as /dev/null, a FIFO, a
 terminal) is written in place instead: renaming onto it would replace the device node itself,
-so `-o /dev/null` run as root would destroy /dev/null. A symbolic link is followed, so the link
-stays and its target is replaced. A directory is refused.
+so `-o /dev/null` run as root would destroy /dev/null. A directory is refused.
+
+Symbolic links: an output named on the command line may be a link the user made on purpose
+(`-o latest.json` pointing at today's file, `-o /dev/stdout`), so by default a link is followed:
+the link stays and what it points at is written. A file inside a directory the program owns (a
+state directory) is written with `follow=False`: a link there is replaced like any file, never
+followed, so it can never aim the write at a device or at a file elsewhere.
 """
 
 from __future__ import annotations
@@ -16,27 +21,28 @@ from pathlib import Path
 
 
 @contextmanager
-def atomic_file(path, durable: bool = True):
+def atomic_file(path, durable: bool = True, follow: bool = True):
     """A binary file object whose content replaces `path` only when the block completes.
 
     `durable` also syncs the data to disk before the rename, so a power cut leaves the old
     file or the new one; bulk outputs that can be made again skip it (syncing hundreds of MB
-    costs seconds). Raises OSError (e.g. missing directory, no permission, a full device); the
-    temporary file never outlives a failure.
+    costs seconds). `follow` (see the module): whether a symbolic link at `path` is followed.
+    Raises OSError (e.g. missing directory, no permission, a full device); the temporary file
+    never outlives a failure.
     """
-    try:
-        mode = os.stat(path).st_mode  # through links: /dev/stdout -> /proc/self/fd/1 -> a pipe
+    try:  # followed: /dev/stdout -> /proc/self/fd/1 -> a pipe
+        mode = (os.stat if follow else os.lstat)(path).st_mode
     except FileNotFoundError:
         mode = None
     if mode is not None and stat.S_ISDIR(mode):
         raise IsADirectoryError(21, "is a directory", str(path))
-    if mode is not None and not stat.S_ISREG(mode):
+    if mode is not None and not (stat.S_ISREG(mode) or stat.S_ISLNK(mode)):
         with _in_place(path) as f:  # opened by its own name: a pipe behind /dev/stdout has no path
             yield f
         return
-    target = Path(os.path.realpath(path))  # a link stays a link; its target is replaced
+    target = Path(os.path.realpath(path)) if follow else Path(path)
     tmp = target.with_name(f".{target.name}.{secrets.token_hex(4)}.part")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)  # the umask applies, as for open()
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)  # a new file (never a link); the umask applies
     try:
         with os.fdopen(fd, "wb") as f:
             yield f
@@ -45,7 +51,7 @@ def atomic_file(path, durable: bool = True):
                 os.fsync(f.fileno())
         os.replace(tmp, target)
     finally:
-        if os.path.exists(tmp):
+        if os.path.lexists(tmp):
             os.unlink(tmp)
 
 
@@ -60,6 +66,16 @@ def _in_place(target):
         yield f
 
 
-def write_atomic(path, data: bytes, durable: bool = True) -> None:
-    with atomic_file(path, durable) as f:
+def in_place(path) -> bool:
+    """Whether `atomic_file(path)` writes in place: `path` (followed) is a device or FIFO, so
+    nothing can be written beside it."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return False
+    return not (stat.S_ISREG(mode) or stat.S_ISDIR(mode))
+
+
+def write_atomic(path, data: bytes, durable: bool = True, follow: bool = True) -> None:
+    with atomic_file(path, durable, follow) as f:
         f.write(data)

@@ -21,7 +21,7 @@ import numpy as np
 from .atomic import atomic_file
 from .bulk import decode_columns
 from .capture import StreamInfo
-from .cliutil import CommandParser, input_file, not_an_input, run_command, write_error
+from .cliutil import CommandParser, not_an_input, open_regular, path_arg, run_command, write_error
 from .clock import counter_times
 from .errors import UsageError
 from .progress import Progress
@@ -84,15 +84,15 @@ def _format(args) -> Format:
 @contextmanager
 def _mapped(path: str):
     """The capture's bytes, memory-mapped (no copy of a large file)."""
-    input_file(path)
-    try:
-        with open(path, "rb") as f:
-            if os.fstat(f.fileno()).st_size == 0:
-                raise UsageError(f"{path}: empty file, no STIM300 data")
-            with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as m:
-                yield m
-    except OSError as exc:
-        raise UsageError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    with open_regular(path) as f:
+        if os.fstat(f.fileno()).st_size == 0:
+            raise UsageError(f"{path}: empty file, no STIM300 data")
+        try:
+            m = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+        except OSError as exc:
+            raise UsageError(f"{path}: cannot read: {exc.strerror or exc}") from None
+        with m:
+            yield m
 
 
 def _decode(path: str, fmt: Format) -> tuple[dict[str, np.ndarray], StreamInfo]:
@@ -495,7 +495,7 @@ def build_parser() -> argparse.ArgumentParser:
                                       "from the datagram counter, s) and t_host_s (host read time, s; with a "
                                       "read log)")
     p.add_argument("capture")
-    p.add_argument("-o", "--output", required=True, help="OUT.npz or OUT.csv")
+    p.add_argument("-o", "--output", type=path_arg, required=True, help="OUT.npz or OUT.csv")
     _add_format_options(p)
     p.set_defaults(func=cmd_decode)
     p = sub.add_parser("info", help="datagrams, errors, losses, rate, duration, identity, configuration")
@@ -505,7 +505,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_info)
     p = sub.add_parser("record", help="raw bytes from a serial port to a capture file")
     p.add_argument("port", help="device path (/dev/ttyUSB0) or pyserial URL")
-    p.add_argument("-o", "--output", required=True)
+    p.add_argument("-o", "--output", type=path_arg, required=True)
     p.add_argument("--baud", type=_positive(int), default=DEFAULT_BIT_RATE, help=f"bit/s (default {DEFAULT_BIT_RATE})")
     p.add_argument("--duration", type=_positive(float), help="seconds to record (default: until Ctrl-C)")
     p.add_argument("--max-bytes", type=_positive(int), help="stop after this many bytes")

@@ -36,29 +36,90 @@ class RunError(Stim300Error):
     """The input was fine but the work failed (an output that cannot be written): one line, exit 1."""
 
 
-def input_file(path: str, what: str = "capture file") -> None:
-    """Refuse, with a one-line UsageError, a path that is not a regular file: a directory, or a
-    device or FIFO (/dev/zero would be read until memory runs out)."""
-    try:
-        mode = os.stat(path).st_mode
-    except FileNotFoundError:
-        raise UsageError(f"{path}: no such file") from None
-    except OSError as exc:
-        raise UsageError(f"{path}: cannot read: {(exc.strerror or str(exc)).lower()}") from None
+DOCUMENT_LIMIT_BYTES = 16 << 20  # a result, state, noise or truth file is some kB: far more is not one
+TEXT_LIMIT_BYTES = 1 << 20  # a configuration or a scenario is some hundred bytes (and is parsed on SIGHUP)
+
+
+def path_arg(text: str) -> str:
+    """argparse type of a file name: an empty one names no file (`-o ""` is not "no output")."""
+    if not text:
+        raise argparse.ArgumentTypeError("an empty path names no file")
+    return text
+
+
+def _refuse(path, mode: int, what: str) -> None:
+    """A one-line UsageError unless `mode` is a regular file's."""
+    if stat.S_ISLNK(mode):
+        raise UsageError(f"{path}: a symbolic link (not followed), expected a {what}")
     if stat.S_ISDIR(mode):
         raise UsageError(f"{path}: is a directory, expected a {what}")
     if not stat.S_ISREG(mode):
         raise UsageError(f"{path}: not a regular file (a device or FIFO), expected a {what}")
 
 
-def read_input(path: str, what: str = "capture file") -> bytes:
-    """The bytes of an input file, or a UsageError saying in one line why not."""
-    input_file(path, what)
+def _cannot_read(path, exc: OSError) -> UsageError:
+    if isinstance(exc, FileNotFoundError):
+        return UsageError(f"{path}: no such file")
+    return UsageError(f"{path}: cannot read: {(exc.strerror or str(exc)).lower()}")
+
+
+def input_file(path, what: str = "capture file", follow: bool = True) -> None:
+    """Refuse, with a one-line UsageError, a path that is not a regular file: a directory, a
+    device or FIFO (/dev/zero would be read until memory runs out, a FIFO block), and with
+    `follow=False` a symbolic link. Looked at without opening it (opening a device can act)."""
     try:
-        with open(path, "rb") as f:
-            return f.read()
+        mode = (os.stat if follow else os.lstat)(path).st_mode
     except OSError as exc:
-        raise UsageError(f"{path}: cannot read: {(exc.strerror or str(exc)).lower()}") from None
+        raise _cannot_read(path, exc) from None
+    _refuse(path, mode, what)
+
+
+def open_regular(path, limit_bytes: int | None = None, what: str = "capture file", follow: bool = True):
+    """`path` opened for reading (a binary file object), or a one-line UsageError: the one way
+    every command opens an input. It must be a regular file, of at most `limit_bytes` when
+    given; `follow=False` (a file in a directory the program owns, such as the daemon's state
+    directory) refuses a symbolic link. Checked again on the open file, so nothing swapped in
+    after the first look is read; opened without blocking, so a FIFO never hangs the open."""
+    input_file(path, what, follow)
+    flags = os.O_RDONLY | os.O_NONBLOCK | os.O_NOCTTY | (0 if follow else os.O_NOFOLLOW)
+    try:
+        fd = os.open(path, flags)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP and not follow:
+            _refuse(path, stat.S_IFLNK, what)
+        raise _cannot_read(path, exc) from None
+    f = os.fdopen(fd, "rb")
+    try:
+        status = os.fstat(fd)
+        _refuse(path, status.st_mode, what)
+        if limit_bytes is not None and status.st_size > limit_bytes:
+            raise UsageError(f"{path}: {status.st_size} bytes, too large for a {what} ({limit_bytes} at most)")
+        os.set_blocking(fd, True)
+    except BaseException:
+        f.close()
+        raise
+    return f
+
+
+def read_input(path, what: str = "capture file", limit_bytes: int | None = None, follow: bool = True) -> bytes:
+    """The bytes of an input file (`open_regular`: at most `limit_bytes`, also when the file
+    grows while it is read), or a UsageError saying in one line why not."""
+    with open_regular(path, limit_bytes, what, follow) as f:
+        try:
+            data = f.read(-1 if limit_bytes is None else limit_bytes + 1)
+        except OSError as exc:
+            raise _cannot_read(path, exc) from None
+    if limit_bytes is not None and len(data) > limit_bytes:
+        raise UsageError(f"{path}: more than {limit_bytes} bytes, too large for a {what}")
+    return data
+
+
+def read_text(path, what: str, limit_bytes: int, follow: bool = True) -> str:
+    """The UTF-8 text of a document file (`read_input`'s rules), or a one-line UsageError."""
+    try:
+        return read_input(path, what, limit_bytes, follow).decode("utf-8")
+    except UnicodeDecodeError:
+        raise UsageError(f"{path}: cannot read: not UTF-8 text") from None
 
 
 def not_an_input(output, *inputs) -> None:

@@ -18,7 +18,7 @@ import signal
 import sys
 import threading
 import time
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 
 import numpy as np
@@ -239,16 +239,21 @@ def record(url: str, output_path, baudrate: int = DEFAULT_BIT_RATE, duration_s: 
 
     Bytes go to OUT.part, renamed to OUT at the end whatever stopped the recording (a port
     error included), so a file named OUT is always complete. The host time of every read goes
-    to OUT.reads.npy (`stim300.reads`), put in place just before OUT. Progress goes to stderr
-    about once a second. Returns the exit status: 0, 1 after a port or file error, 2 for an OUT
-    that is a directory, device or FIFO (renaming onto it would replace it); errors are one
-    line on stderr.
+    to OUT.reads.npy (`stim300.reads`), put in place just before OUT. An OUT that is a symbolic
+    link is followed, as every output named on the command line: the recording (and its read
+    log) go where it points. OUT.part is the program's own: a file or link of that name is
+    removed, never written through. Progress goes to stderr about once a second. Returns the
+    exit status: 0, 1 after a port or file error (a full disk: no OUT.part is left), 2 for an OUT
+    that is a directory, device or FIFO (renaming onto it would replace it); errors are one line
+    on stderr.
     """
     out = Path(output_path)
+    if out.is_symlink():
+        out = Path(os.path.realpath(out))
     part = out.with_name(out.name + ".part")
     if out.exists() and not out.is_file():  # renaming OUT.part onto a device would replace the node
         kind = "a directory" if out.is_dir() else "not a regular file (a device or FIFO)"
-        print(f"stim300 record: {out}: {kind}: a recording goes to a new or regular file", file=sys.stderr)
+        print(f"stim300 record: {output_path}: {kind}: a recording goes to a new or regular file", file=sys.stderr)
         return 2
     try:
         ser = open_serial(url, baudrate)
@@ -257,6 +262,14 @@ def record(url: str, output_path, baudrate: int = DEFAULT_BIT_RATE, duration_s: 
         return 1
     with sigterm_as_ctrl_c():
         return _record(ser, url, out, part, duration_s, max_bytes)
+
+
+def _create(part: Path):
+    """OUT.part as a new file: one a killed recording left (or a link of that name) is removed
+    first, and O_EXCL creates a file, never opening a link, FIFO or device."""
+    with suppress(FileNotFoundError):
+        part.unlink()
+    return os.fdopen(os.open(part, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666), "wb")
 
 
 @contextmanager
@@ -286,7 +299,7 @@ def _record(ser: serial.Serial, url: str, out: Path, part: Path, duration_s: flo
     start = time.monotonic()
     next_report = start + 1.0
     try:
-        with ser, open(part, "wb") as f:
+        with ser, _create(part) as f:
             try:
                 while max_bytes is None or total < max_bytes:
                     now = time.monotonic()
@@ -312,7 +325,9 @@ def _record(ser: serial.Serial, url: str, out: Path, part: Path, duration_s: flo
             np.save(f, reads.table())
         part.replace(out)
     except OSError as exc:
-        print(f"stim300 record: {part}: {(exc.strerror or str(exc)).lower()}", file=sys.stderr)
+        with suppress(OSError):  # a directory of that name is not ours to remove
+            part.unlink()
+        print(f"stim300 record: {out}: cannot write: {(exc.strerror or str(exc)).lower()}", file=sys.stderr)
         return 1
     print(f"recorded {total} B in {time.monotonic() - start:.1f} s to {out}", file=sys.stderr)
     return status

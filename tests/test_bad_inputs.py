@@ -1,5 +1,6 @@
 """Every command, on every bad input: exit 2 (input) or 1 (run), one line on stderr naming the
-thing, no traceback, no file left behind, no device or FIFO replaced."""
+thing, no traceback, no file left behind, no device or FIFO replaced, never a hang on a FIFO or
+a read of /dev/zero through a link."""
 
 from __future__ import annotations
 
@@ -62,14 +63,54 @@ def _inputs(d: Path) -> dict[str, Path]:
         "serial.toml": _scenario('[sensor]\nserial_number = "X1"\n[[segments]]\ntype = "static"\n'
                                  'duration_s = 1\n'),
         "drop.toml": _scenario('[faults]\ndrop = 125\n[[segments]]\ntype = "static"\nduration_s = 1\n'),
+        "tiny.toml": _scenario('[[segments]]\ntype = "static"\nduration_s = 1\n'),
+        "random.bin": np.random.default_rng(5).bytes(100_000),
+        "run.toml": f'[serial]\nport = "{d}/no_tty"\n[site]\nlatitude_deg = 60\n[output]\n'
+                    f'state_dir = "{d}/run_state"\n'.encode(),
     }
     for name, content in files.items():
         (d / name).write_bytes(content)
     os.mkfifo(d / "fifo")
     os.mkfifo(d / "fifo.csv")
     (d / "dir").mkdir()
-    return {name.split(".")[0]: d / name for name in files} | {
-        "fifo": d / "fifo", "fifo_csv": d / "fifo.csv", "dir": d / "dir"}
+    (d / "sim.bin.truth.json").mkdir()  # where `simulate -o sim.bin` would put the truth
+    for name, size in (("zeros.bin", 20 << 20), ("huge.json", 17 << 20)):  # sparse: no disk used
+        with open(d / name, "wb") as f:
+            f.truncate(size)
+    links = {"zero_link": "/dev/zero", "fifo_link": d / "fifo", "sock_link": d / "nowhere"}
+    for name, target in links.items():
+        (d / name).symlink_to(target)
+    return ({name.split(".")[0]: d / name for name in files} | {name: d / name for name in links} | {
+        "fifo": d / "fifo", "fifo_csv": d / "fifo.csv", "dir": d / "dir", "zeros": d / "zeros.bin",
+        "huge_json": d / "huge.json", "sim": d / "sim.bin", "state_new": d / "state"} | _state_dirs(d))
+
+
+def _state_dirs(d: Path) -> dict[str, Path]:
+    """Daemon state directories with a FIFO, a device link, a link, a directory or a huge file
+    where state.json or result.json belongs: `calibd status` must refuse each, never hang or
+    read /dev/zero."""
+    good_state = json.dumps({"state": "SOLVED", "detail": "solved", "updated": 0.0})
+    (d / "good_state.json").write_text(good_state)
+    dirs = {}
+    for name, file in (("state", "state.json"), ("result", "result.json")):
+        for kind in ("fifo", "zero", "link", "big", "directory"):
+            state_dir = dirs[f"{name}_{kind}"] = d / f"{name}_{kind}"
+            state_dir.mkdir()
+            if name == "result":
+                (state_dir / "state.json").write_text(good_state)
+            path = state_dir / file
+            if kind == "fifo":
+                os.mkfifo(path)
+            elif kind == "zero":
+                path.symlink_to("/dev/zero")
+            elif kind == "link":
+                path.symlink_to(d / "good_state.json")
+            elif kind == "directory":
+                path.mkdir()
+            else:
+                with open(path, "wb") as f:
+                    f.truncate(17 << 20)
+    return dirs
 
 
 def _run(main, argv, capsys):
@@ -120,7 +161,7 @@ CASES = {  # name: (program, argv with {placeholders}, exit status, text in the 
                                    "sample rate unknown: its configuration datagram says the sensor is externally "
                                    "triggered"),
     "noise external trigger": ("calibd", ["noise", "{external}"], 2, "sample rate unknown"),
-    "replay not STIM300": ("calibd", ["replay", "{text}", "--latitude", "60"], 1, "no result for the last power-up"),
+    "replay not STIM300": ("calibd", ["replay", "{text}", "--latitude", "60"], 2, "no STIM300 datagram found"),
     # a result.json of the wrong kinds of values
     "report estimate value a string": ("calibd", ["report", "{result_value_text}", GOOD, "-o", "{out}/r.html"], 2,
                                        'estimates.pitch.value is "x", expected a number'),
@@ -166,7 +207,124 @@ CASES = {  # name: (program, argv with {placeholders}, exit status, text in the 
                                "cannot write: is a directory"),
     "noise -o /dev/full": ("calibd", ["noise", GOOD, "-o", "/dev/full"], 1, "no space left on device"),
     "decode -o fifo": ("stim300", ["decode", GOOD, "-o", "{fifo_csv}"], 1, "a FIFO that no process reads"),
+    # the daemon's state directory: a FIFO, a device, a link, a directory or a huge file where its
+    # files belong is refused at once (it hung, or read /dev/zero until the OOM killer came)
+    "status state.json fifo": ("calibd", ["status", "--state-dir", "{state_fifo}"], 2,
+                               "state.json: not a calibd state file: cannot read it (not a regular file"),
+    "status --json state.json fifo": ("calibd", ["status", "--state-dir", "{state_fifo}", "--json"], 2,
+                                      "not a regular file"),
+    "status --follow state.json fifo": ("calibd", ["status", "--state-dir", "{state_fifo}", "--follow"], 2,
+                                        "not a regular file"),
+    "status state.json link to /dev/zero": ("calibd", ["status", "--state-dir", "{state_zero}"], 2,
+                                            "state.json: not a calibd state file: cannot read it (a symbolic link"),
+    "status --follow --json state.json link to /dev/zero": (
+        "calibd", ["status", "--state-dir", "{state_zero}", "--follow", "--json"], 2, "a symbolic link"),
+    "status state.json link to a regular file": ("calibd", ["status", "--state-dir", "{state_link}"], 2,
+                                                 "a symbolic link (not followed)"),
+    "status state.json 17 MiB": ("calibd", ["status", "--state-dir", "{state_big}"], 2,
+                                 "cannot read it (17825792 bytes, too large for a state file"),
+    "status state.json a directory": ("calibd", ["status", "--state-dir", "{state_directory}"], 2,
+                                      "state.json: not a calibd state file: cannot read it (is a directory"),
+    "status result.json fifo": ("calibd", ["status", "--state-dir", "{result_fifo}"], 2,
+                                "result.json: not a regular file (a device or FIFO), expected a result file"),
+    "status --follow result.json fifo": ("calibd", ["status", "--state-dir", "{result_fifo}", "--follow"], 2,
+                                         "result.json: not a regular file"),
+    "status --json result.json link to /dev/zero": ("calibd", ["status", "--state-dir", "{result_zero}", "--json"],
+                                                    2, "result.json: a symbolic link (not followed)"),
+    "status result.json link to a regular file": ("calibd", ["status", "--state-dir", "{result_link}"], 2,
+                                                  "result.json: a symbolic link"),
+    "status result.json 17 MiB": ("calibd", ["status", "--state-dir", "{result_big}"], 2, "too large"),
+    "status --state-dir ''": ("calibd", ["status", "--state-dir", ""], 2, "an empty path names no file"),
+    # calibd report: the figures directory and the page, whole or not at all
+    "report -o /dev/full": ("calibd", ["report", "{result}", GOOD, "-o", "/dev/full"], 1,
+                            "/dev/full: cannot write: no space left on device"),
+    "report on a full disk": ("calibd", ["report", "{result}", GOOD, "-o", "{out}/r.html"], 1,
+                              "r.html: cannot write: no space left on device"),
+    "report -o fifo": ("calibd", ["report", "{result}", GOOD, "-o", "{fifo}"], 1, "a FIFO that no process reads"),
+    "report figures directory a link": ("calibd", ["report", "{result}", GOOD, "-o", "{in}/dir_link.html"], 2,
+                                        "dir_link_files: not a directory (a symbolic link is not followed)"),
+    "report result fifo": ("calibd", ["report", "{fifo}", GOOD, "-o", "{out}/r.html"], 2, "not a regular file"),
+    "report result link to /dev/zero": ("calibd", ["report", "{zero_link}", GOOD, "-o", "{out}/r.html"], 2,
+                                        "zero_link: not a regular file"),
+    "report result 17 MiB": ("calibd", ["report", "{huge_json}", GOOD, "-o", "{out}/r.html"], 2,
+                             "too large for a result file"),
+    "report capture link to a fifo": ("calibd", ["report", "{result}", "{fifo_link}", "-o", "{out}/r.html"], 2,
+                                      "fifo_link: not a regular file"),
+    # stim300 record: a failed write leaves no OUT.part
+    "record on a full disk": ("stim300", ["record", "loop://", "-o", "{out}/c.bin", "--duration", "0.2"], 1,
+                              "c.bin: cannot write: no space left on device"),
+    "record -o directory": ("stim300", ["record", "loop://", "-o", "{dir}"], 2, "a directory"),
+    "record -o ''": ("stim300", ["record", "loop://", "-o", ""], 2, "an empty path names no file"),
+    "record -o link to /dev/null": ("stim300", ["record", "loop://", "-o", "{in}/null_link"], 2,
+                                    "not a regular file"),
+    # calibd simulate: both outputs checked before anything is written
+    "simulate truth path a directory": ("calibd", ["simulate", "{tiny}", "-o", "{sim}"], 2,
+                                        "sim.bin.truth.json: cannot write: is a directory"),
+    "simulate on a full disk": ("calibd", ["simulate", "{tiny}", "-o", "{out}/c.bin"], 1, "no space left on device"),
+    "simulate -o /dev/full": ("calibd", ["simulate", "{tiny}", "-o", "/dev/full"], 1, "no space left on device"),
+    "simulate -o directory": ("calibd", ["simulate", "{tiny}", "-o", "{dir}"], 2, "is a directory"),
+    # calibd replay: no STIM300 data is bad input, found fast; a failed state directory fails the run
+    "replay empty": ("calibd", ["replay", "{empty}", "--latitude", "60"], 2, "empty.bin: no STIM300 datagram found"),
+    "replay random bytes": ("calibd", ["replay", "{random}", "--latitude", "60"], 2, "no STIM300 datagram found"),
+    "replay 20 MB of zeros": ("calibd", ["replay", "{zeros}", "--latitude", "60"], 2, "no STIM300 datagram found"),
+    "replay fifo": ("calibd", ["replay", "{fifo}", "--latitude", "60"], 2, "not a regular file"),
+    "replay link to /dev/zero": ("calibd", ["replay", "{zero_link}", "--latitude", "60"], 2, "not a regular file"),
+    "replay --config fifo": ("calibd", ["replay", GOOD, "--config", "{fifo}"], 2, "not a regular file"),
+    "replay --state-dir on a full disk": ("calibd", ["replay", GOOD, "--latitude", "60", "--state-dir", "{state_new}"],
+                                          1, "cannot write results"),
+    "replay --state-dir ''": ("calibd", ["replay", GOOD, "--latitude", "60", "--state-dir", ""], 2,
+                              "an empty path names no file"),
+    "replay --socket taken by a link": ("calibd", ["replay", GOOD, "--latitude", "60", "--socket", "{sock_link}"],
+                                        1, "the path is taken by something else than a socket"),
+    # calibd noise, calibrate, apply, plan; stim300 decode and info
+    "noise -o ''": ("calibd", ["noise", GOOD, "-o", ""], 2, "an empty path names no file"),
+    "noise --kalibr ''": ("calibd", ["noise", GOOD, "--kalibr", ""], 2, "an empty path names no file"),
+    "noise --kalibr /dev/full": ("calibd", ["noise", GOOD, "--kalibr", "/dev/full"], 1, "no space left on device"),
+    "noise on a full disk": ("calibd", ["noise", GOOD, "-o", "{out}/n.json"], 1, "no space left on device"),
+    "calibrate on a full disk": ("calibd", ["calibrate", GOOD, "-o", "{out}/r.json", "--latitude", "60"], 1,
+                                 "r.json: cannot write: no space left on device"),
+    "calibrate capture link to a fifo": ("calibd", [*CALIBRATE[:1], "{fifo_link}", *CALIBRATE[2:]], 2,
+                                         "not a regular file"),
+    "apply result fifo": ("calibd", ["apply", "{fifo}", GOOD, "-o", "{out}/a.npz"], 2, "not a regular file"),
+    "apply result 17 MiB": ("calibd", ["apply", "{huge_json}", GOOD, "-o", "{out}/a.npz"], 2, "too large"),
+    "apply -o fifo": ("calibd", ["apply", "{result}", GOOD, "-o", "{fifo_csv}"], 1, "a FIFO that no process reads"),
+    "apply on a full disk": ("calibd", ["apply", "{result}", GOOD, "-o", "{out}/a.npz"], 1,
+                             "no space left on device"),
+    "plan --noise fifo": ("calibd", ["plan", "--latitude", "60", "--protocol", "thesis", "--noise", "{fifo}"], 2,
+                          "not a regular file"),
+    "plan --noise ''": ("calibd", ["plan", "--latitude", "60", "--protocol", "thesis", "--noise", ""], 2,
+                        "an empty path names no file"),
+    "run --config ''": ("calibd", ["run", "--config", ""], 2, "an empty path names no file"),
+    "run without its port": ("calibd", ["run", "--config", "{run}"], 1, "no_tty: no such device"),  # no log line too
+    "decode on a full disk": ("stim300", ["decode", GOOD, "-o", "{out}/t.npz"], 1, "no space left on device"),
+    "decode capture link to /dev/zero": ("stim300", ["decode", "{zero_link}", "-o", "{out}/t.npz"], 2,
+                                         "zero_link: not a regular file"),
+    "info fifo": ("stim300", ["info", "{fifo}"], 2, "not a regular file"),
+    "info link to a fifo": ("stim300", ["info", "{fifo_link}"], 2, "not a regular file"),
 }
+FULL_DISK = {name for name in CASES if name.endswith("on a full disk")}
+
+
+@pytest.fixture
+def full_disk(monkeypatch):
+    """Every file opened for writing through os.fdopen (stim300.atomic, the recorder) is a full
+    disk: its descriptor is made /dev/full's, so the file exists and each write fails with ENOSPC
+    as on a full device."""
+    real = os.fdopen
+
+    def fdopen(fd, mode="r", *args, **kwargs):
+        if "w" in mode or "a" in mode:
+            full = os.open("/dev/full", os.O_WRONLY)
+            os.dup2(full, fd)
+            os.close(full)
+        return real(fd, mode, *args, **kwargs)
+
+    monkeypatch.setattr(os, "fdopen", fdopen)
+
+
+def _files(root: Path) -> set[str]:
+    """Every path under `root` that is not a directory (links not followed)."""
+    return {os.path.join(where, name) for where, dirs, files in os.walk(root) for name in files}
 
 
 def _results(good: Path, d: Path) -> dict[str, str]:
@@ -206,18 +364,23 @@ def test_bad_input_is_one_line_and_leaves_nothing(name, tmp_path, capsys, reques
     places = {k: str(v) for k, v in _inputs(ins).items()}
     out = tmp_path / "out"
     out.mkdir()
-    places |= {"out": str(out), "capture": places["one"]}
+    places |= {"out": str(out), "in": str(ins), "capture": places["one"]}
     if any("{result" in str(a) or "{state_dir" in str(a) for a in argv):
         places |= _results(request.getfixturevalue("result_file"), ins)
-    kinds = {p: stat.S_IFMT(os.lstat(p).st_mode) for p in ("/dev/null", "/dev/full", places["fifo"])}
+    (ins / "dir_link_files").symlink_to(ins / "dir")  # a report's figures directory that is a link
+    (ins / "null_link").symlink_to("/dev/null")
+    if name in FULL_DISK:
+        request.getfixturevalue("full_disk")
+    before = _files(tmp_path)
+    kinds = {p: stat.S_IFMT(os.lstat(p).st_mode) for p in ("/dev/null", "/dev/full", "/dev/zero", places["fifo"])}
     main = calibd_main if program == "calibd" else stim300_main
     code, stdout, err = _run(main, [str(a).format(**places) for a in argv], capsys)
     lines = err.strip().splitlines()
     assert code == status, err
     assert len(lines) == 1, err
     assert text in lines[0] and "Traceback" not in err and "internal error" not in err
-    assert list(out.iterdir()) == []  # no partial output, no .part
-    assert not [p for p in ins.iterdir() if p.name.endswith(".part") or p.name.startswith(".")]
+    assert _files(tmp_path) == before  # no partial output, no .part, no half of a pair of outputs
+    assert not list(Path("/dev").glob("*_files"))  # no figures directory beside a device
     assert {p: stat.S_IFMT(os.lstat(p).st_mode) for p in kinds} == kinds  # devices and FIFOs stay what they were
 
 
@@ -296,3 +459,32 @@ def test_output_to_dev_stdout_and_through_a_link(tmp_path):
     write_atomic(link, b"new")
     assert link.is_symlink() and target.read_text() == "new"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["link.json", "target.json"]
+
+
+def test_a_file_the_program_owns_is_never_written_through_a_link(tmp_path):
+    """`follow=False` (a state directory's files): a link at the name is replaced by the file, and
+    what it pointed at, a device included, is untouched; a device itself is still written in place."""
+    from stim300.atomic import write_atomic
+
+    target, link, device_link = tmp_path / "target.json", tmp_path / "state.json", tmp_path / "result.json"
+    target.write_text("old")
+    link.symlink_to(target)
+    device_link.symlink_to("/dev/full")
+    write_atomic(link, b"new", follow=False)
+    write_atomic(device_link, b"new", follow=False)  # through the link this would fail: ENOSPC
+    assert not link.is_symlink() and link.read_text() == "new" and target.read_text() == "old"
+    assert not device_link.is_symlink() and device_link.read_text() == "new"
+    assert stat.S_ISCHR(os.lstat("/dev/full").st_mode)
+    write_atomic("/dev/null", b"x", follow=False)
+    assert stat.S_ISCHR(os.lstat("/dev/null").st_mode)
+
+
+def test_record_never_writes_through_a_left_part_file(tmp_path):
+    """OUT.part is the recorder's own: a link of that name (or a file a killed recording left) is
+    removed, never written through."""
+    elsewhere, out = tmp_path / "elsewhere.bin", tmp_path / "c.bin"
+    elsewhere.write_bytes(b"keep")
+    (tmp_path / "c.bin.part").symlink_to(elsewhere)
+    assert stim300_main(["record", "loop://", "-o", str(out), "--duration", "0.1"]) == 0
+    assert elsewhere.read_bytes() == b"keep" and out.read_bytes() == b""
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.bin", "c.bin.reads.npy", "elsewhere.bin"]

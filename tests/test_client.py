@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 import calibd.client as client_module
+from calibd.cli import main as calibd_main
 from calibd.client import (Client, ClientError, Device, Error, Fault, Message, Overflow, Poll, Result, Samples,
                            ServerGone, State, VersionError, Watch)
 from calibd.frames import Site
@@ -252,23 +253,23 @@ def test_tcp_host_port(tmp_path):
         server.stop()
 
 
-def test_a_token_is_sent_first_and_a_refused_one_is_one_line(serve, tmp_path):
+def test_a_token_is_sent_first_and_a_refused_one_is_one_line(serve):
     path, server = serve()
-    token = tmp_path / "token"
-    token.write_text(FAKE_TOKEN + "\n")
-    with Client.connect(path, token=client_module.read_token(str(token))) as client:
+    with Client.connect(path, token=FAKE_TOKEN) as client:
         assert client.poll().state.state == "COLLECTING"
     assert server.commands == [b'?AUTH={"token":"t0ken"};', b"?POLL;"]
     path, server = serve()
     with pytest.raises(ClientError, match=r"calibd1\.sock: the server refused the command: \?AUTH: wrong token"):
         Client.connect(path, token="other")
-    for text, words in (("", "no token"), (b"\xff", "not UTF-8")):
-        token.write_bytes(text.encode() if isinstance(text, str) else text)
-        with pytest.raises(ClientError, match=words):
-            client_module.read_token(str(token))
-    with pytest.raises(ClientError, match="cannot read the token: no such file"):
-        client_module.read_token(str(tmp_path / "absent"))
-    assert client_module.read_token(None) is None
+
+
+@pytest.mark.parametrize("content, words", [(b"", "is empty"), (b" \n", "is empty"), (b"\xff", "not UTF-8 text"),
+                                            (b"x" * 4097, "longer than 4096 bytes: not a token")])
+def test_a_token_file_without_a_token_is_one_line(content, words, tmp_path, capsys):
+    token = tmp_path / "token"
+    token.write_bytes(content)
+    assert calibd_main(["pipe", str(tmp_path / "calibd.sock"), "--token-file", str(token)]) == 2
+    assert capsys.readouterr().err == f"calibd: {token}: {words}\n"
 
 
 def test_lines_are_bounded(serve, monkeypatch):
@@ -343,7 +344,7 @@ def test_pipe_sends_the_token_of_its_token_file_first(serve, tmp_path):
     assert b'"class":"AUTH"' not in out and out.count(b"\n") == 2  # VERSION, WATCH
     process = calibd("pipe", path, "--token-file", str(tmp_path / "absent"))
     out, err = process.communicate(timeout=60)
-    assert process.returncode == 1 and err.decode().count("\n") == 1 and "cannot read the token" in err.decode()
+    assert process.returncode == 2 and err.decode().count("\n") == 1 and "absent: no such file" in err.decode()
 
 
 def test_pipe_without_a_server_is_one_line(tmp_path):

@@ -220,10 +220,14 @@ def test_plan_command_errors_are_one_line(argv, message, tmp_path, capsys, monke
     ({"schema": "calibd.result/1"}, "noise.json: schema is 'calibd.result/1', not a calibd.noise file"),
     ({"schema": "calibd.noise/2"}, "noise.json: schema is calibd.noise/2, newer than this calibd reads (up to 1)"),
     ([1, 2], "noise.json: not a JSON object, expected a calibd.noise file"),
-    ({"schema": "calibd.noise/1"}, "noise.json: channels: missing"),
-    ("drop:gyro_y", "noise.json: channels.gyro_y: missing"),
-    ("acc_z__bias_instability__unit=ug", "noise.json: channels.acc_z.bias_instability.unit: 'ug' where 'mg'"),
-    ("incl_x__random_walk__value=None", "noise.json: channels.incl_x.random_walk.value: None is not a non-negative"),
+    ({"schema": "calibd.noise/1"}, "noise.json: channels is missing"),
+    ("drop:gyro_y", "noise.json: channels.gyro_y is missing"),
+    ("drop:incl_y", "noise.json: channels.incl_y is missing (a unit with inclinometers has all three)"),
+    ("acc_z__bias_instability__unit=ug", "noise.json: channels.acc_z.bias_instability.unit is 'ug', expected 'mg'"),
+    ("incl_x__random_walk__value=None",
+     "noise.json: channels.incl_x.random_walk.value is null, expected a number in [0, 1000]"),
+    ("gyro_x__random_walk__value=1e308",
+     "noise.json: channels.gyro_x.random_walk.value is 1e+308, expected a number in [0, 1000]"),
 ])
 def test_bad_noise_files_are_one_line(content, message, tmp_path, capsys):
     if isinstance(content, (dict, list)) or content == "not json":
@@ -233,7 +237,8 @@ def test_bad_noise_files_are_one_line(content, message, tmp_path, capsys):
         path = noise_file(tmp_path, drop=content[5:])
     else:
         key, value = content.split("=")
-        path = noise_file(tmp_path, **{key: None if value == "None" else value})
+        value = None if value == "None" else float(value) if value[0].isdigit() else value
+        path = noise_file(tmp_path, **{key: value})
     code, _, err = run(["plan", "--latitude", "40", "--protocol", "thesis", "--noise", path], capsys)
     assert code == 2 and message in err and len(err.strip().splitlines()) == 1, err
 
@@ -320,7 +325,11 @@ def test_a_scenario_gives_the_plan_its_site_noise_and_sensor(tmp_path, capsys):
      'peak_rate_deg_s = 20\naccel_deg_s2 = 20\n[[segments]]\ntype = "static"\nduration_s = 60\n',
      "the statics cover too few platform angles"),
     ('[[segments]]\ntype = "position"\nup = "-Z"\nduration_s = 60\n', "#1: a position segment re-mounts the IMU"),
-    ('[[segments]]\ntype = "static"\nduration_s = -1\n', "[[segments]] #1 duration_s: -1.0 is not a positive"),
+    ('[[segments]]\ntype = "static"\nduration_s = -1\n', "[[segments]] #1 duration_s: -1.0 is not a duration in (0, "),
+    ('[[segments]]\ntype = "static"\nduration_s = 300\n[[segments]]\ntype = "turn"\nangle_deg = 1e308\n'
+     'peak_rate_deg_s = 20\naccel_deg_s2 = 20\n', "[[segments]] #2 angle_deg: 1e+308 is not a non-zero angle within"),
+    ('[[segments]]\ntype = "static"\nduration_s = 300\n[[segments]]\ntype = "turn"\nangle_deg = 1e9\n'
+     'peak_rate_deg_s = 20\naccel_deg_s2 = 20\n', "s at 125 Hz is more than the simulator's 10,000,000 samples"),
     ("[[segments]\n", "not valid TOML"),
 ])
 def test_bad_scenario_files_are_one_line(segments, message, tmp_path, capsys):

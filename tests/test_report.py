@@ -4,6 +4,7 @@ thesis method's and the truth; the figures' decomposition is the joint fit's; on
 import base64
 import io
 import json
+import os
 import re
 import shutil
 import sys
@@ -372,3 +373,40 @@ def test_bad_input_is_one_line(made, tmp_path, capsys, case, message):
     assert code == 2 and out == ""
     assert err.count("\n") == 1 and message in err, err
     assert "Traceback" not in err
+
+
+def test_a_truth_file_that_is_no_regular_file_is_no_truth(tmp_path):
+    """CAPTURE.truth.json is read only as a regular file: a FIFO of that name would hang the
+    report, a link to /dev/zero read until memory runs out."""
+    capture = tmp_path / "c.bin"
+    capture.write_bytes(b"")
+    truth = tmp_path / "c.bin.truth.json"
+    os.mkfifo(truth)
+    assert read_truth(str(capture)) is None
+    truth.unlink()
+    truth.symlink_to("/dev/zero")
+    assert read_truth(str(capture)) is None
+
+
+def test_a_failed_report_leaves_the_previous_one(rendered, tmp_path, monkeypatch):
+    """The page and its figures are replaced together or not at all: on a full disk the earlier
+    report stays as it was, and nothing of the failed run is left."""
+    output = tmp_path / "report.html"
+    shutil.copy(rendered["dir"] / "report.html", output)
+    shutil.copytree(rendered["dir"] / "report_files", tmp_path / "report_files")
+    before = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    real = os.fdopen
+
+    def full(fd, mode="r", *args, **kwargs):  # every file written is on a full disk
+        if "w" in mode:
+            device = os.open("/dev/full", os.O_WRONLY)
+            os.dup2(device, fd)
+            os.close(device)
+        return real(fd, mode, *args, **kwargs)
+
+    monkeypatch.setattr(os, "fdopen", full)
+    with pytest.raises(OSError, match="No space left on device"):
+        write_report(rendered["path"], open_capture(CAPTURE), output)
+    assert {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["report.html", "report_files"]
+

@@ -204,7 +204,7 @@ def test_a_version_2_document_still_loads(tmp_path, cw_result):
     ({"schema": "calibd.result/5"},
      "r.json is calibd.result/5, newer than this calibd reads (up to 4): upgrade calibd"),
     ({"estimates": {"yaw": {"value": 1.0, "unit": "grad"}}},
-     "r.json: estimate yaw in 'grad', not one of deg, deg/h, mg"),
+     'r.json: estimates.yaw.unit is "grad", expected "deg"'),
 ])
 def test_a_newer_version_or_an_unknown_unit_is_refused_in_one_line(tmp_path, change, message):
     path = tmp_path / "r.json"

@@ -21,7 +21,7 @@ import pytest
 from structlog.testing import capture_logs
 
 from calibd.client import Client as CalibdClient
-from calibd.client import ClientError, read_token
+from calibd.client import ClientError
 from calibd.config import ServeConfig
 from calibd.daemon import State
 from calibd.serve import sockets
@@ -351,7 +351,7 @@ def test_tcp_with_a_wrong_token_is_closed_after_three(tcp_hub, tmp_path):
 def test_tcp_with_the_token_is_served_and_one_that_never_authenticates_is_closed(tcp_hub, tmp_path):
     where = "%s:%d" % tcp_hub.server.tcp_address
     silent = connected(tcp_hub.server.tcp_address, socket.AF_INET)
-    with CalibdClient.connect(where, token=read_token(str(tmp_path / "tcp.token"))) as client:
+    with CalibdClient.connect(where, token=(tmp_path / "tcp.token").read_text().strip()) as client:
         assert client.poll().state.state == "STARTING"
         assert client.watch("none").enable
         time.sleep(0.7)  # beyond idle_timeout_s: a watcher that reads stays

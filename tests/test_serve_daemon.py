@@ -165,7 +165,8 @@ def test_run_shows_the_previous_result_and_marks_it_once_the_sensor_restarts(tmp
         assert poll["result"]["stale"]["power_up"] == "previous"
         assert json.loads(copy.read_text())["stale"]["power_up"] == "previous"
         assert json.loads((tmp_path / "state" / "result.json").read_text())["stale"]["power_up"] == "previous"
-        config.write_text(config.read_text() + 'tcp = "127.0.0.1:1"\ntcp_open = true\n')  # a new [serve] table: not taken up
+        # a new [serve] table: not taken up
+        config.write_text(config.read_text() + 'tcp = "127.0.0.1:1"\ntcp_open = true\n')
         daemon.send_signal(signal.SIGHUP)
         time.sleep(1.0)
         assert ask(sock, b"?VERSION;\n", "VERSION")["proto_major"] == 1  # still served, on the same socket

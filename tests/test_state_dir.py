@@ -87,7 +87,7 @@ def test_the_store_rides_out_a_broken_state_dir_and_recovers(tmp_path, monkeypat
     breakage(state_dir)
     real_write = calibd.results.write_atomic
     if breakage is break_disk_full:
-        def full(path, data, durable=True):
+        def full(path, data, durable=True, follow=True):
             raise OSError(28, "No space left on device", str(path))
         monkeypatch.setattr(calibd.results, "write_atomic", full)
     with capture_logs() as logs:
@@ -240,8 +240,8 @@ def test_an_earlier_daemons_result_of_another_sensor_is_marked_stale_once(tmp_pa
 
 
 @pytest.mark.parametrize("content, why", [
-    ("{not json", "not JSON"), ("[1, 2]", "a JSON list, not an object"), ('{"state": "SOLVED"}', "no valid detail"),
-    ('{"state": "SOLVED", "detail": "x", "updated": "yesterday"}', "no valid updated"),
+    ("{not json", "not JSON"), ("[1, 2]", "a JSON list, not an object"), ('{"state": "SOLVED"}', "detail is missing"),
+    ('{"state": "SOLVED", "detail": "x", "updated": "yesterday"}', 'updated is "yesterday", expected a number >= 0'),
     (b"\xff\xfe", "cannot read it"), (None, "cannot read it")])
 def test_status_refuses_a_bad_state_file_in_one_line(tmp_path, capsys, content, why):
     state_file = tmp_path / "state.json"
@@ -436,3 +436,14 @@ def test_a_long_outage_holds_only_the_newest_history_entries(tmp_path, monkeypat
     repair(state_dir)
     store.retry()
     assert kept_sigma(state_dir) == 1.0 and len(list((state_dir / "history").iterdir())) == 3
+
+
+def test_status_shows_a_result_of_the_first_version_without_the_fields_it_lacked(tmp_path, capsys):
+    """A version 1 result has no g0, height or capture: status shows it with their defaults."""
+    doc = result().to_dict() | {"schema": "calibd.result/1", "stream": {}}
+    doc["site"] = {"latitude_deg": 60.0}
+    (tmp_path / "result.json").write_text(json.dumps(doc))
+    (tmp_path / "state.json").write_text(json.dumps({"state": "SOLVED", "detail": "solved", "updated": time.time()}))
+    assert calibd_main(["status", "--state-dir", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "\njoint\n  site: latitude +60.00000 deg, height 0 m, g0 9.80665 m/s^2\n" in out

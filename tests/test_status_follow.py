@@ -120,3 +120,34 @@ def test_the_first_look_still_refuses_a_directory_without_state(tmp_path):
                           capture_output=True, text=True, env=ENV, timeout=30)
     assert done.returncode == 2 and done.stdout == ""
     assert done.stderr == f"calibd: {tmp_path}: no state.json (is calibd running with this state directory?)\n"
+
+
+def test_a_reader_that_goes_away_ends_it_on_an_unchanging_directory(tmp_path):
+    """`| head -n 1` with nothing new to print: the follower sees its reader gone while it waits
+    (it once waited forever, writing nothing that could fail)."""
+    store = ResultStore(tmp_path)
+    store.on_state(State.COLLECTING, "collecting")
+    command = f"{sys.executable} -m calibd status --state-dir {tmp_path} --follow --json | head -n 1"
+    started = time.monotonic()
+    done = subprocess.run(["bash", "-c", command + '; exit "${PIPESTATUS[0]}"'], capture_output=True, env=ENV,
+                          timeout=20)
+    assert done.returncode == 0 and done.stderr == b""
+    assert json.loads(done.stdout)["state"]["state"] == "COLLECTING"
+    assert time.monotonic() - started < 10
+
+
+def test_special_files_in_the_state_directory_are_refused_at_once(tmp_path):
+    """A FIFO as state.json hung `status --follow`; a link to /dev/zero read it until memory ran out."""
+    os.mkfifo(tmp_path / "state.json")
+    done = subprocess.run([sys.executable, "-m", "calibd", "status", "--state-dir", str(tmp_path), "--follow"],
+                          capture_output=True, text=True, env=ENV, timeout=30)
+    assert done.returncode == 2 and done.stdout == ""
+    assert done.stderr == (f"calibd: {tmp_path / 'state.json'}: not a calibd state file: cannot read it (not a "
+                           "regular file (a device or FIFO), expected a state file)\n")
+    (tmp_path / "state.json").unlink()
+    (tmp_path / "state.json").symlink_to("/dev/zero")
+    done = subprocess.run([sys.executable, "-m", "calibd", "status", "--state-dir", str(tmp_path)],
+                          capture_output=True, text=True, env=ENV, timeout=30)
+    assert done.returncode == 2
+    assert done.stderr.endswith("state.json: not a calibd state file: cannot read it (a symbolic link (not "
+                                "followed), expected a state file)\n")

@@ -30,7 +30,7 @@ from ..daemon import Calibrator, Listener, State
 from ..methods import estimator
 from ..results import CalibrationResult, result_json
 from ..session import PowerUpCuts
-from .protocol import (MAX_TOKEN_BYTES, SAMPLES_MAX_S, Command, ProtocolError, device_message, fault_message,
+from .protocol import (MAX_TOKEN_BYTES, token_of, SAMPLES_MAX_S, Command, ProtocolError, device_message, fault_message,
                        poll_message, result_message, samples_line, state_message)
 from .correct import result_biases, sample_units, samples_correctable
 from .ptys import CorrectedPty, PtyError, RawPty
@@ -324,18 +324,13 @@ def _read_token(path: Path) -> bytes:
         if st.st_mode & (stat.S_IROTH | stat.S_IWOTH):
             raise ServeError(f"{where}: other users may read or write it (mode {stat.S_IMODE(st.st_mode):04o}); "
                              "make it 0640 for the group")
-        token = os.read(fd, MAX_TOKEN_BYTES + 1).strip()
+        data = os.read(fd, MAX_TOKEN_BYTES + 1)
     finally:
         os.close(fd)
-    if len(token) > MAX_TOKEN_BYTES:
-        raise ServeError(f"{where}: longer than {MAX_TOKEN_BYTES} bytes: not a token")
-    if not token:
-        raise ServeError(f"{where}: is empty")
     try:
-        token.decode("utf-8")
-    except UnicodeDecodeError:
-        raise ServeError(f"{where}: not UTF-8 text") from None
-    return token
+        return token_of(data).encode()
+    except ProtocolError as exc:
+        raise ServeError(f"{where}: {exc}") from None
 
 
 def _pty(key: str, make):

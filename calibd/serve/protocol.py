@@ -87,6 +87,21 @@ def auth_token(args: dict | None) -> str:
     return token
 
 
+def token_of(data: bytes) -> str:
+    """The token a token file's bytes hold (its text without surrounding white space);
+    ProtocolError saying why in a few words when they hold none: the daemon and the command line
+    read the file alike."""
+    token = data.strip()
+    if len(token) > MAX_TOKEN_BYTES:
+        raise ProtocolError(f"longer than {MAX_TOKEN_BYTES} bytes: not a token")
+    if not token:
+        raise ProtocolError("is empty")
+    try:
+        return token.decode("utf-8")
+    except UnicodeDecodeError:
+        raise ProtocolError("not UTF-8 text") from None
+
+
 def _excerpt(text: str, limit: int = 60) -> str:
     return repr(text if len(text) <= limit else text[:limit] + "...")
 
