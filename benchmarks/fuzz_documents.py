@@ -19,12 +19,13 @@ integer, a value of another type, a long string), a key removed or added, bytes 
 or cut. Prints, per reader, the inputs, how many were read and refused, the exceptions that were
 not calibd's own (target: 0) and the slowest input.
 
-    python benchmarks/fuzz_documents.py [--count 100000] [--seed 0] [--workers 2]
+    python benchmarks/fuzz_documents.py [--count 100000 | --minutes 60] [--seed 0] [--workers 2]
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import subprocess
@@ -187,36 +188,51 @@ def fuzz_range(seed: int, start: int, stop: int, seeds: dict[str, list[bytes]]) 
     return tally
 
 
+CHUNK = 5000  # inputs a worker takes at a time (progress is printed per chunk)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--count", type=int, default=100_000, help="inputs over all readers (default 100000)")
+    ap.add_argument("--minutes", type=float, help="run this long instead, whatever the count")
     ap.add_argument("--seed", type=int, default=0, help="seed of the mutations (default 0)")
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="processes (default: one per core)")
     args = ap.parse_args()
-    return run(args.count, args.seed, args.workers)
+    return run(args.count, args.seed, args.workers, args.minutes)
 
 
-def run(count: int, seed: int, workers: int) -> int:
-    """Fuzz `count` inputs over the readers in `workers` processes, print the tally; 1 when any
-    reader raised something else than calibd's own errors."""
+def run(count: int, seed: int, workers: int, minutes: float | None = None) -> int:
+    """Fuzz `count` inputs (or as many as `minutes` allow) over the readers in `workers`
+    processes, print the tally; 1 when any reader raised something else than calibd's own errors."""
     t = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         seeds = make_seeds(Path(tmp))
     print(f"seeds made in {time.perf_counter() - t:.1f} s: "
           + ", ".join(f"{name} {len(docs)}" for name, docs in seeds.items()), flush=True)
     t = time.perf_counter()
-    edges = np.linspace(0, count, 16 * workers + 1).astype(int).tolist()
+    deadline = None if minutes is None else t + 60 * minutes
     total: dict[str, list] = {}
+    done = 0
     with ProcessPoolExecutor(workers) as pool:
-        futures = [pool.submit(fuzz_range, seed, a, b, seeds) for a, b in zip(edges[:-1], edges[1:])]
-        for done, future in enumerate(futures, 1):
-            for name, row in future.result().items():
+        starts = iter(range(0, 1 << 62 if deadline else count, CHUNK))
+        running = [pool.submit(fuzz_range, seed, a, a + CHUNK if deadline else min(a + CHUNK, count), seeds)
+                   for a in itertools.islice(starts, 2 * workers)]
+        while running:
+            tally = running.pop(0).result()
+            for name, row in tally.items():
                 into = total.setdefault(name, [0, 0, 0, 0, 0.0, None])
                 into[:4] = [a + b for a, b in zip(into[:4], row[:4])]
                 into[4] = max(into[4], row[4])
                 into[5] = into[5] or row[5]
-            print(f"  {edges[done]} of {count} inputs, {time.perf_counter() - t:.0f} s", flush=True)
-    print(f"documents: {count} inputs in {time.perf_counter() - t:.0f} s")
+            done += sum(row[0] for row in tally.values())
+            print(f"  {done} inputs, {time.perf_counter() - t:.0f} s, "
+                  f"{sum(row[3] for row in total.values())} other exceptions", flush=True)
+            a = next(starts, None)
+            if a is not None and (deadline is None or time.perf_counter() < deadline):
+                running.append(pool.submit(fuzz_range, seed, a, a + CHUNK if deadline else min(a + CHUNK, count),
+                                           seeds))
+    elapsed = time.perf_counter() - t
+    print(f"documents: {done} inputs in {elapsed:.0f} s ({done / elapsed:.0f} a second)")
     for name, (n, accepted, refused, foreign, slowest, first) in sorted(total.items()):
         print(f"  {name:9s} {n:8d} inputs: {accepted:7d} read, {refused:7d} refused, {foreign} other exceptions, "
               f"slowest {slowest * 1e3:.1f} ms")

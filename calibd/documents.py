@@ -390,7 +390,9 @@ def decode_json(data: str | bytes, where, schema: type, error: type[CalibdError]
             msgspec.json.decode(data, type=schema)
         except msgspec.ValidationError as located:
             raise error(f"{where}: {_message(located, schema)}") from None
-        except RecursionError:
+        except msgspec.DecodeError as broken:  # the number was in a field the schema skips; broken beyond it
+            raise error(f"{where}: not {noun} ({str(broken).removeprefix('JSON is malformed: ')})") from None
+        except (RecursionError, UnicodeDecodeError):
             pass
         raise error(f"{where}: {str(exc).partition(' - at')[0].lower()} in a field calibd does not read") from None
     except msgspec.DecodeError as exc:
@@ -405,6 +407,8 @@ def decode_json(data: str | bytes, where, schema: type, error: type[CalibdError]
     except RecursionError:
         path = _json_path(data.encode() if isinstance(data, str) else bytes(data))
         raise error(f"{where}: {path} is nested too deep to read") from None
+    except UnicodeDecodeError as exc:  # a string of bytes that are not UTF-8
+        raise error(f"{where}: not UTF-8 text (byte {exc.start})") from None
 
 
 def validate(doc, schema: type, where, error: type[CalibdError] = DocumentError):

@@ -190,13 +190,13 @@ class CalibrationResult:
         except SchemaError as exc:
             raise ResultError(str(exc)) from None
         estimates = doc.get("estimates")
-        if not isinstance(estimates, dict) or not estimates.keys() & ESTIMATES.keys():
+        if not isinstance(estimates, dict) or not any(estimates.get(name) is not None for name in ESTIMATES):
             raise ResultError(f"{where}: the result has no estimates (value and unit each)")
         validate(doc, ResultDoc, where, ResultError)
         known = {"method", "site", "sensor", "stream", "covariance", "software", "session_id", *_OPTIONAL}
         return cls(**{key: value for key, value in doc.items() if key in known},
                    estimates={name: Estimate(e["value"], e.get("sigma"), e["unit"], e.get("quality"))
-                              for name, e in estimates.items() if name in ESTIMATES},
+                              for name, e in estimates.items() if name in ESTIMATES and e is not None},
                    segments=tuple(doc.get("segments", ())), warnings=tuple(doc.get("warnings", ())),
                    schema=doc["schema"])
 

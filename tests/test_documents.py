@@ -309,3 +309,18 @@ def test_a_fresh_process_refuses_a_deep_document_in_one_line(command, made, tmp_
     run = subprocess.run([sys.executable, "-m", "calibd", *map(str, argv)], capture_output=True, text=True)
     assert run.returncode == 2 and run.stderr.count("\n") == 1 and names in run.stderr, run.stderr
     assert run.stderr.startswith(f"calibd: {bad}") and run.stdout == "" and sorted(tmp_path.iterdir()) == [bad]
+
+
+@pytest.mark.parametrize("data", [b'{"schema": "calibd.result/4", "method": "j\xa6"}', b'{"\xff": 1}'])
+def test_bytes_that_are_not_utf8_inside_a_string_are_one_line(data):
+    with pytest.raises(documents.CalibdError, match=r"^r\.json: not UTF-8 text \(byte \d+\)$"):
+        parse_result(data, "r.json")
+
+
+def test_a_null_estimate_is_no_estimate(made):
+    doc = json.loads(made["result"].read_text())
+    doc["estimates"]["yaw"] = None
+    assert "yaw" not in parse_result(json.dumps(doc), "r.json").estimates
+    doc["estimates"] = {name: None for name in doc["estimates"]}
+    with pytest.raises(documents.CalibdError, match="r.json: the result has no estimates"):
+        parse_result(json.dumps(doc), "r.json")
