@@ -16,6 +16,7 @@ from captures import exact_samples
 from calibd.config import ServeConfig
 from calibd.frames import STANDARD_GRAVITY
 from calibd.results import CalibrationResult, Estimate
+from calibd.serve import ptys
 from calibd.serve.hub import Hub
 from calibd.serve.ptys import CorrectedPty, PtyError, RawPty
 from calibd.serve.sockets import ServeError
@@ -112,6 +113,19 @@ def collect():
     return sent, sent.append
 
 
+def wait_until(condition, timeout: float = DEADLINE_S) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition() and time.monotonic() < deadline:
+        time.sleep(0.005)
+    assert condition()
+
+
+@pytest.fixture
+def quick_episodes(monkeypatch):
+    """Episodes end after 0.3 s of quiet instead of QUIET_S, so a test sees their ends."""
+    monkeypatch.setattr(ptys, "QUIET_S", 0.3)
+
+
 # ---------------------------------------------------------------- raw pty
 
 def test_the_raw_link_carries_every_byte_unchanged_and_in_order(link):
@@ -146,7 +160,7 @@ def test_a_reader_that_never_reads_does_not_hold_the_tap_up(link):
         raw.close()
 
 
-def test_allowed_requests_reach_forward_and_refused_ones_do_not(link):
+def test_allowed_requests_reach_forward_and_refused_ones_do_not(link, quick_episodes):
     sent, forward = collect()
     raw = RawPty(link, forward=forward)
     client = LinkReader(link, read=False)
@@ -155,19 +169,92 @@ def test_allowed_requests_reach_forward_and_refused_ones_do_not(link):
             os.write(client.fd, b"C\rN\r\nSERVICEMODE\rR\rc\rUTILITYMODE\r\nXYZ\r" + b"C" * 80 + b"\rI")
             time.sleep(0.05)
             os.write(client.fd, b"\rT\rE\r")
-            deadline = time.monotonic() + DEADLINE_S
-            while len(sent) < 5 and time.monotonic() < deadline:
-                time.sleep(0.005)
-            time.sleep(0.05)
+            wait_until(lambda: len(sent) == 5)
+            wait_until(lambda: any(e["event"] == "pty_refusals_ended" for e in logs))
         assert sent == [b"C\r", b"N\r", b"I\r", b"T\r", b"E\r"]
-        refused = [e["request"] for e in logs if e["event"] == "pty_request_refused"]
-        assert refused == ["SERVICEMODE", "R", "c", "UTILITYMODE", "XYZ"]
-        assert all(e["log_level"] == "warning" for e in logs if e["event"] == "pty_request_refused")
+        refused = [(e["event"], e["log_level"], e.get("request"), e.get("refused")) for e in logs
+                   if e["event"].startswith("pty_refus") or e["event"] == "pty_request_refused"]
+        assert refused == [("pty_request_refused", "warning", "SERVICEMODE", None),  # once, with the first
+                           ("pty_refusals_ended", "info", None, 5)]  # and the count
         assert [e["event"] for e in logs].count("pty_request_too_long") == 1
-        assert (raw.requests_forwarded, raw.requests_refused) == (5, 5)
+        assert (raw.requests_forwarded, raw.requests_refused, raw.requests_throttled) == (5, 5, 0)
     finally:
         client.close()
         raw.close()
+
+
+def test_a_flood_of_one_request_is_forwarded_once_a_second_and_logged_per_episode(link, quick_episodes):
+    """10,000 `N` over about 2 s: each answer would replace a normal datagram, so at most one a
+    second reaches the sensor; the rest are counted, and said in two lines."""
+    sent, forward = collect()
+    raw = RawPty(link, forward=forward)
+    client = LinkReader(link, read=False)
+    try:
+        with capture_logs() as logs:
+            started = time.monotonic()
+            for _ in range(10):
+                os.write(client.fd, b"N\r" * 1000)
+                time.sleep(0.22)
+            wait_until(lambda: raw.requests_forwarded + raw.requests_throttled == 10_000)
+            elapsed_s = time.monotonic() - started
+            wait_until(lambda: any(e["event"] == "pty_throttling_ended" for e in logs))
+        assert 2 <= len(sent) <= elapsed_s + 1 and set(sent) == {b"N\r"}
+        assert raw.requests_throttled == 10_000 - len(sent)
+        events = [e["event"] for e in logs]
+        assert events.count("pty_request") == len(sent)  # one line per request that went
+        assert [e for e in events if e != "pty_request"] == ["pty_request_throttled", "pty_throttling_ended"]
+        ended = next(e for e in logs if e["event"] == "pty_throttling_ended")
+        assert ended["throttled"] == raw.requests_throttled
+    finally:
+        client.close()
+        raw.close()
+
+
+def test_each_kind_of_request_has_its_own_second(link):
+    sent, forward = collect()
+    raw = RawPty(link, forward=forward, allow_service_mode=True)
+    client = LinkReader(link, read=False)
+    try:
+        os.write(client.fd, b"C\rN\rC\rSERVICEMODE\rR\rSERVICEMODE\rR\rN\r")
+        wait_until(lambda: raw.requests_forwarded + raw.requests_throttled == 8)
+        assert sent == [b"C\r", b"N\r", b"SERVICEMODE\r", b"R\r"]
+        assert raw.requests_throttled == 4
+        time.sleep(1.05)
+        os.write(client.fd, b"C\r")
+        wait_until(lambda: len(sent) == 5)
+        assert sent[-1] == b"C\r"
+    finally:
+        client.close()
+        raw.close()
+
+
+def test_a_flood_of_refused_requests_and_long_lines_is_two_lines_each(tmp_path, quick_episodes):
+    """50,000 unknown requests into the raw pty, 50,000 requests into the corrected one, 1000 lines
+    too long: each flood is counted, and said when it begins and, with its count, when it ends."""
+    raw = RawPty(tmp_path / "raw", forward=lambda request: None)
+    corrected = CorrectedPty(tmp_path / "corrected")
+    to_raw, to_corrected = LinkReader(tmp_path / "raw", read=False), LinkReader(tmp_path / "corrected", read=False)
+    try:
+        with capture_logs() as logs:
+            os.write(to_raw.fd, b"X\r" * 50_000)
+            os.write(to_raw.fd, (b"L" * 100 + b"\r") * 1000)
+            os.write(to_corrected.fd, b"C\r" * 50_000)
+            wait_until(lambda: (raw.requests_refused, corrected.requests_refused) == (50_000, 50_000))
+            wait_until(lambda: [e["event"] for e in logs].count("pty_refusals_ended") == 2
+                       and any(e["event"] == "pty_long_lines_ended" for e in logs))
+        by_link = {}
+        for e in logs:
+            by_link.setdefault(e["link"], []).append((e["event"], e.get("refused", e.get("lines"))))
+        assert sorted(by_link[str(tmp_path / "raw")]) == [  # the two floods' episodes overlap
+            ("pty_long_lines_ended", 1000), ("pty_refusals_ended", 50_000), ("pty_request_refused", None),
+            ("pty_request_too_long", None)]
+        assert by_link[str(tmp_path / "corrected")] == [("pty_request_refused", None), ("pty_refusals_ended", 50_000)]
+        assert raw.requests_forwarded == 0 and raw.long_lines == 1000
+    finally:
+        to_raw.close()
+        to_corrected.close()
+        raw.close()
+        corrected.close()
 
 
 def test_service_mode_requests_go_when_allowed_and_long_lines_are_bounded(link):

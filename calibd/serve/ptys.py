@@ -5,7 +5,8 @@ opens that path as it would the sensor's port. The daemon writes into the master
 reader thread (the parser's tap): a reader that is slow or absent never holds the daemon up,
 the bytes the pty does not take are dropped and counted. Request lines a client writes into the
 raw pty (`N<CR>`, `C<CR>`, ...) are read by a small thread and forwarded to the sensor when the
-request rule allows them; the answers then reach every reader through the stream.
+request rule allows them, at most one of each kind a second; the answers then reach every reader
+through the stream. Refusals, drops and over-long lines are logged once per episode with a count.
 """
 
 from __future__ import annotations
@@ -32,7 +33,8 @@ log = structlog.get_logger("calibd")
 
 SLAVE_MODE = 0o660
 MAX_REQUEST_BYTES = 32  # a longer line is no request of the sensor's (the longest is UTILITYMODE)
-DROPS_QUIET_S = 5.0  # a drop episode ends once writes have all gone through for this long
+QUIET_S = 5.0  # an episode (of drops, refusals, ...) ends after this long without one
+REQUEST_INTERVAL_S = 1.0  # at most one request of each kind a second: each answer replaces a datagram
 READ_BYTES = 256
 QUERIES = frozenset({b"N", b"I", b"C", b"T", b"E"})  # each asks for one special datagram (protocol §9)
 MODE_CHANGES = frozenset({b"SERVICEMODE", b"UTILITYMODE", b"R"})  # each stops the stream for every reader
@@ -55,18 +57,56 @@ def request_refusal(line: bytes, allow_mode_changes: bool) -> str | None:
     return "not a request the sensor answers in Normal mode (N, I, C, T, E)"
 
 
+class Episode:
+    """Events of one kind on one link, logged when an episode of them begins (`begins`, with what
+    the first was) and when it ends, QUIET_S after the last, with its count (`ends`): a flood is
+    two lines, not one an event. `count` is every event's, over all episodes."""
+
+    def __init__(self, link: Path, begins: str, ends: str, counted: str):
+        self.link, self.begins, self.ends, self.counted = str(link), begins, ends, counted
+        self.count = 0
+        self._in_episode = 0
+        self._last_s: float | None = None  # the last event's time; None: no episode under way
+
+    def add(self, n: int = 1, **first) -> None:
+        self.count += n
+        self._in_episode += n
+        if self._last_s is None:
+            log.warning(self.begins, link=self.link, **first)
+        self._last_s = time.monotonic()
+
+    def end_if_quiet(self) -> float | None:
+        """End the episode once QUIET_S has passed without an event; else the seconds left (None: none under way)."""
+        if self._last_s is None:
+            return None
+        left = self._last_s + QUIET_S - time.monotonic()
+        if left > 0:
+            return left
+        self.end()
+        return None
+
+    def end(self) -> None:
+        """End the episode under way, saying its count (nothing when none is)."""
+        if self._last_s is not None:
+            log.info(self.ends, link=self.link, **{self.counted: self._in_episode})
+        self._last_s, self._in_episode = None, 0
+
+
 class LinkedPty:
     """A pty whose slave is linked at `link`: `write` never blocks (what the pty does not take is
     dropped and counted in `dropped_bytes`), and each line a client writes (CR or CR LF ended)
-    goes to `on_line` from a reader thread; a line longer than MAX_REQUEST_BYTES is discarded.
-    The slave node gets group `gid` (None: the daemon's).
+    goes to `on_line` from a reader thread; a line longer than MAX_REQUEST_BYTES is discarded
+    (counted in `long_lines`). The reader thread also ends the `episodes` of its owner once they
+    are quiet. The slave node gets group `gid` (None: the daemon's).
 
     The daemon keeps the slave open, so writes do not fail while no client has it open."""
 
-    def __init__(self, link: Path, gid: int | None, on_line: Callable[[bytes], None]):
+    def __init__(self, link: Path, gid: int | None, on_line: Callable[[bytes], None], episodes=()):
         self.link = Path(link)
-        self.dropped_bytes = 0
         self._on_line = on_line
+        self._drops = Episode(link, "pty_dropping", "pty_drops_ended", "dropped_bytes")
+        self._long = Episode(link, "pty_request_too_long", "pty_long_lines_ended", "lines")
+        self._episodes = (self._long, *episodes)
         _check_link(self.link)
         self._write_lock = threading.Lock()  # the master fd is not closed under a write
         self._master = self._slave = self._wake_r = self._wake_w = None
@@ -85,8 +125,6 @@ class LinkedPty:
         except BaseException:
             self._close_fds()
             raise
-        self._last_drop_s: float | None = None
-        self._episode_bytes = 0
         self._thread = threading.Thread(target=self._read_lines, name=f"pty requests {self.link}", daemon=True)
         self._thread.start()
 
@@ -101,17 +139,17 @@ class LinkedPty:
                 taken = 0
         lost = len(data) - taken
         if lost:
-            self._dropped(lost)
-        elif self._last_drop_s is not None and time.monotonic() - self._last_drop_s > DROPS_QUIET_S:
-            log.info("pty_drops_ended", link=str(self.link), dropped_bytes=self._episode_bytes)
-            self._last_drop_s, self._episode_bytes = None, 0
+            self._drops.add(lost, why="its reader is slow or absent")
+        else:  # the writer thread owns the drops' episode: it ends once writes have gone through
+            self._drops.end_if_quiet()
 
-    def _dropped(self, lost: int) -> None:
-        self.dropped_bytes += lost
-        self._episode_bytes += lost
-        if self._last_drop_s is None:
-            log.warning("pty_dropping", link=str(self.link), why="its reader is slow or absent")
-        self._last_drop_s = time.monotonic()
+    @property
+    def dropped_bytes(self) -> int:
+        return self._drops.count
+
+    @property
+    def long_lines(self) -> int:
+        return self._long.count
 
     def _read_lines(self) -> None:
         pending, discarding = b"", False
@@ -119,9 +157,12 @@ class LinkedPty:
             selector.register(self._master, selectors.EVENT_READ)
             selector.register(self._wake_r, selectors.EVENT_READ)
             while True:
-                ready = {key.fd for key, _ in selector.select()}
+                waits = [left for left in (e.end_if_quiet() for e in self._episodes) if left is not None]
+                ready = {key.fd for key, _ in selector.select(min(waits, default=None))}
                 if self._wake_r in ready:
                     return
+                if not ready:  # an episode's quiet has passed
+                    continue
                 try:
                     pending += os.read(self._master, READ_BYTES)
                 except BlockingIOError:  # woken for nothing
@@ -136,13 +177,12 @@ class LinkedPty:
                         continue
                     line = line.removeprefix(b"\n")  # the LF of the previous line's CR LF
                     if len(line) > MAX_REQUEST_BYTES:
-                        log.warning("pty_request_too_long", link=str(self.link), start=_text(line[:MAX_REQUEST_BYTES]))
+                        self._long.add(start=_text(line[:MAX_REQUEST_BYTES]))
                     elif line:
                         self._line(line)
                 if len(pending) > MAX_REQUEST_BYTES:
                     if not discarding:
-                        log.warning("pty_request_too_long", link=str(self.link),
-                                    start=_text(pending[:MAX_REQUEST_BYTES]))
+                        self._long.add(start=_text(pending[:MAX_REQUEST_BYTES]))
                     pending, discarding = b"", True
 
     def _line(self, line: bytes) -> None:
@@ -156,6 +196,8 @@ class LinkedPty:
         if self._thread.is_alive():
             os.write(self._wake_w, b"x")
             self._thread.join()
+            for episode in self._episodes:  # the reader thread's, which has ended: no race
+                episode.end()
         try:
             if os.readlink(self.link) == self.path:
                 self.link.unlink()
@@ -210,15 +252,32 @@ def _replace_link(link: Path, target: str) -> None:
 class RawPty:
     """A pty whose slave is linked at `link`: every settled byte of the sensor's stream, unchanged
     and in order; the requests `request_refusal` allows, written by a client, go to `forward`
-    (e.g. `PortReader.write`), with a CR."""
+    (e.g. `PortReader.write`), with a CR, at most one of each kind every REQUEST_INTERVAL_S: each
+    answer replaces a normal datagram, so a flood of requests would eat the stream. Counted:
+    `requests_forwarded`, `requests_refused`, `requests_throttled` (allowed, but too soon), and
+    `long_lines` (no request)."""
 
     def __init__(self, link: Path, forward: Callable[[bytes], object], allow_service_mode: bool = False,
                  gid: int | None = None):
         self.forward = forward
         self.allow_service_mode = allow_service_mode
         self.requests_forwarded = 0
-        self.requests_refused = 0
-        self._pty = LinkedPty(link, gid, self._request)
+        self._last_sent_s: dict[bytes, float] = {}  # each kind's last forward
+        self._refused = Episode(link, "pty_request_refused", "pty_refusals_ended", "refused")
+        self._throttled = Episode(link, "pty_request_throttled", "pty_throttling_ended", "throttled")
+        self._pty = LinkedPty(link, gid, self._request, episodes=(self._refused, self._throttled))
+
+    @property
+    def requests_refused(self) -> int:
+        return self._refused.count
+
+    @property
+    def requests_throttled(self) -> int:
+        return self._throttled.count
+
+    @property
+    def long_lines(self) -> int:
+        return self._pty.long_lines
 
     @property
     def dropped_bytes(self) -> int:
@@ -231,9 +290,13 @@ class RawPty:
     def _request(self, line: bytes) -> None:
         why = request_refusal(line, self.allow_service_mode)
         if why is not None:
-            self.requests_refused += 1
-            log.warning("pty_request_refused", link=str(self._pty.link), request=_text(line), why=why)
+            self._refused.add(request=_text(line), why=why)
             return
+        now_s = time.monotonic()
+        if now_s - self._last_sent_s.get(line, -REQUEST_INTERVAL_S) < REQUEST_INTERVAL_S:
+            self._throttled.add(request=_text(line), why=f"at most one {_text(line)} every {REQUEST_INTERVAL_S:g} s")
+            return
+        self._last_sent_s[line] = now_s
         self.requests_forwarded += 1
         log.info("pty_request", link=str(self._pty.link), request=_text(line))
         self.forward(line + b"\r")
@@ -249,7 +312,7 @@ class CorrectedPty:
     Before a result of this power-up (`before_result`): "hold" carries nothing, "raw" the bytes
     unchanged. The hub ends the result (`set_result(None)`) in the same tap that brings a sensor
     restart, before the new power-up's first datagram is written. Requests written into it are
-    read and refused (they belong to the raw pty)."""
+    read and refused (they belong to the raw pty), counted in `requests_refused`."""
 
     def __init__(self, link: Path, before_result: str = "hold", gid: int | None = None):
         if before_result not in BEFORE_RESULT:
@@ -257,7 +320,12 @@ class CorrectedPty:
         self.before_result = before_result
         self._corrector: Corrector | None = None
         self._failing = False
-        self._pty = LinkedPty(link, gid, self._request)
+        self._refused = Episode(link, "pty_request_refused", "pty_refusals_ended", "refused")
+        self._pty = LinkedPty(link, gid, self._request, episodes=(self._refused,))
+
+    @property
+    def requests_refused(self) -> int:
+        return self._refused.count
 
     @property
     def dropped_bytes(self) -> int:
@@ -282,8 +350,7 @@ class CorrectedPty:
             self._pty.write(data)
 
     def _request(self, line: bytes) -> None:
-        log.warning("pty_request_refused", link=str(self._pty.link), request=_text(line),
-                    why="requests go to the raw pty")
+        self._refused.add(request=_text(line), why="requests go to the raw pty")
 
     def close(self) -> None:
         self._pty.close()
