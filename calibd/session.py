@@ -137,6 +137,18 @@ class SessionBuilder:
             self._values.pop(0)
         self._flagged = [(t[t >= before_s], b[t >= before_s]) for t, b in self._flagged if t[-1] >= before_s]
 
+    def shift(self, from_s: float, seconds: float) -> None:
+        """Move the samples stored from `from_s` on `seconds` later: datagrams lost before them,
+        found only after they were stored (`stim300.clock.CounterClock`)."""
+        def moved(t: np.ndarray) -> np.ndarray:
+            return np.where(t >= from_s, t + seconds, t)
+        for k in range(len(self._time) - 1, -1, -1):  # newest first: a gap is found within seconds
+            if self._time[k][-1] < from_s:
+                break
+            self._time[k] = moved(self._time[k])
+        self._pending[:, 0] = moved(self._pending[:, 0])
+        self._flagged = [(moved(t), b) for t, b in self._flagged]
+
     def retime(self, time_s: np.ndarray) -> None:
         """Replace times fed as sample numbers by those samples' times `time_s` (s)."""
         self._time = [time_s[t.astype(np.int64)] for t in self._time]

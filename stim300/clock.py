@@ -10,13 +10,24 @@ platform angle of a turn) comes out wrong.
 
 The host clock sees them. Each datagram carries `t_host`, when the read that completed it
 returned: its true time plus a latency that is never negative and, for the newest datagram of
-each read, small (a read returns soon after bytes arrive; several datagrams may share one read).
-So the host time minus the counter time, taken at its lower envelope (the minimum over a short
-window), is flat apart from the host clock's ppm-level drift, and steps up by a whole number of
-cycles where cycles were lost. A step is counted where the envelope after a datagram stands at
-least half a cycle above the envelope before it, rounded to whole cycles. Host times that do
-not keep pace with the counter (a capture replayed faster than real time) are no evidence: a
-step is trusted only where the host clock ran at least as fast as the counter on both sides.
+each read, small while the reader keeps up (a read returns soon after bytes arrive; several
+datagrams may share one read). So the host time minus the counter time, taken at its lower
+envelope (the minimum over a short window), is flat apart from the host clock's ppm-level drift,
+and steps up by a whole number of cycles where cycles were lost. A step is counted where the
+envelope after a datagram stands at least half a cycle above the envelope before it, rounded to
+whole cycles, and only where it looks like a loss, not like a host stall:
+
+- the host waited for that datagram: its host time follows the datagram before's by at least
+  half a cycle more than its counter time does (datagrams read from a backlog come together);
+- the host clock ran at least as fast as the counter before it (a capture replayed faster than
+  real time is no evidence);
+- the offsets over SETTLE_S of data after it do not fall back by STEADY_S. A stalled reader (a
+  loaded host, a stopped process) finds the sensor's bytes waiting in the port's buffer and
+  reads them late, in bursts faster than real time: the offsets jump, then fall back as it
+  catches up, at many times the sensor's pace with CPU to spare, barely faster on a starved
+  host. After a loss the datagrams come at the sensor's pace, a cycle or more short, for good.
+
+So a gap is found SETTLE_S after it, and one in the last SETTLE_S of a stream stays unseen.
 """
 
 from __future__ import annotations
@@ -29,6 +40,8 @@ from .protocol import COUNTER_MODULUS, INTERNAL_RATE_HZ
 
 CYCLE_S = COUNTER_MODULUS / INTERNAL_RATE_HZ  # 0.128 s: what the counter cannot see
 HOST_WINDOW_S = 0.5  # the envelope's window: many reads, yet far shorter than any drift matters
+SETTLE_S = 2.0  # how long the offsets after a step must stay up: a stalled reader catches up sooner
+STEADY_S = CYCLE_S / 4  # how far they may fall back meanwhile (read jitter): more is a backlog being read
 
 
 @dataclass(frozen=True)
@@ -36,36 +49,37 @@ class CounterTimes:
     """Seconds from the first sample, and the hidden gaps the host clock proved (`gap_index`:
     the first sample after each; `gap_s`: the time added there, whole counter cycles).
     `checked`: host times were there to look for them and kept pace with the counter (else none
-    could be seen)."""
+    could be seen). `moved` (CounterClock): gaps found only now before this batch, each as
+    (time, seconds): the samples already timed from that time on are `seconds` later, in order."""
 
     time_s: np.ndarray
     gap_index: np.ndarray
     gap_s: np.ndarray
     checked: bool
+    moved: tuple[tuple[float, float], ...] = ()
 
     @property
     def hidden_gaps(self) -> int:
-        return len(self.gap_index)
+        return len(self.gap_index) + len(self.moved)
 
     @property
     def hidden_s(self) -> float:
-        return float(self.gap_s.sum())
+        return float(self.gap_s.sum()) + sum(seconds for _, seconds in self.moved)
 
 
 def counter_times(counter: np.ndarray, rate_hz: float, t_host: np.ndarray | None = None) -> CounterTimes:
     """Times of samples: the counter's steps (lost datagrams leave gaps, modulo a counter cycle),
     plus the whole cycles the host times prove were lost when they are given (all finite). A step
     of 0 counts is a whole cycle. A sensor restart (counter back to 0) looks like a loss.
-    `rate_hz` (samples per second, measured when triggered) sizes the host window: a step is
-    judged only with a whole window of data after it, so a gap in the last HOST_WINDOW_S stays
-    unseen."""
+    `rate_hz` (samples per second, measured when triggered) sizes the host windows: a step is
+    judged only with SETTLE_S of data after it, so a gap in the last SETTLE_S stays unseen."""
     counter = np.asarray(counter)
     if counter.size == 0:
         return CounterTimes(np.zeros(0), np.zeros(0, np.int64), np.zeros(0), False)
     time_s = np.concatenate(([0.0], np.cumsum(counter_ticks(counter)))) / INTERNAL_RATE_HZ
     if not _evidence(time_s, t_host):
         return CounterTimes(time_s, np.zeros(0, np.int64), np.zeros(0), False)
-    cycles = _hidden_cycles(np.asarray(t_host, np.float64) - time_s, host_window(rate_hz))
+    cycles = _hidden_cycles(np.asarray(t_host, np.float64) - time_s, host_window(rate_hz), settle_window(rate_hz))
     gap_index = np.flatnonzero(cycles)
     time_s += np.cumsum(cycles) * CYCLE_S
     return CounterTimes(time_s, gap_index, cycles[gap_index] * CYCLE_S, True)
@@ -83,14 +97,19 @@ def host_window(rate_hz: float) -> int:
     return max(2, int(round(HOST_WINDOW_S * rate_hz)))
 
 
+def settle_window(rate_hz: float) -> int:
+    """Samples in SETTLE_S."""
+    return max(host_window(rate_hz), int(round(SETTLE_S * rate_hz)))
+
+
 def _evidence(time_s: np.ndarray, t_host: np.ndarray | None) -> bool:
     """Host times can show lost cycles: all there, and not arriving faster than real time."""
     return t_host is not None and len(t_host) == len(time_s) and bool(np.isfinite(t_host).all()) \
         and t_host[-1] - t_host[0] >= 0.9 * (time_s[-1] - time_s[0]) - CYCLE_S / 2
 
 
-def _hidden_cycles(offset_s: np.ndarray, window: int) -> np.ndarray:
-    """Whole cycles lost before each sample that has a whole window after it, from
+def _hidden_cycles(offset_s: np.ndarray, window: int, settle: int) -> np.ndarray:
+    """Whole cycles lost before each sample that has `settle` samples after it, from
     host-minus-counter offsets (modified in place).
 
     Gaps are taken in order, each removed from the offsets before the next is judged, so two
@@ -98,7 +117,7 @@ def _hidden_cycles(offset_s: np.ndarray, window: int) -> np.ndarray:
     from scipy.ndimage import minimum_filter1d  # here, not at the top: `import stim300` stays free of scipy
 
     n = len(offset_s)
-    judged = n - window + 1
+    judged = n - settle + 1
     cycles = np.zeros(n, np.int64)
     if judged < 2 or np.ptp(offset_s) < CYCLE_S / 2:  # no step can reach half a cycle: nothing to filter
         return cycles
@@ -111,7 +130,7 @@ def _hidden_cycles(offset_s: np.ndarray, window: int) -> np.ndarray:
         steps = np.rint((after[1:] - before[:-1]) / CYCLE_S)  # steps[m]: before sample lo + m + 1
         found = None
         for m in np.flatnonzero(steps[start - lo - 1:judged - lo - 1] >= 1) + start - lo - 1:
-            if _paced(offset_s, lo + m + 1, window):
+            if _lost(offset_s, lo + m + 1, window, settle):
                 found = lo + m + 1
                 break
         if found is None:
@@ -122,27 +141,35 @@ def _hidden_cycles(offset_s: np.ndarray, window: int) -> np.ndarray:
     return cycles
 
 
-def _paced(offset_s: np.ndarray, j: int, window: int) -> bool:
-    """The host clock kept up with the counter over a window on each side of sample j: the
-    offsets' envelope does not fall from one half of the window to the next by half a cycle (as
-    it does when data come faster than real time; minima, so one late read does not count)."""
+def _lost(offset_s: np.ndarray, j: int, window: int, settle: int) -> bool:
+    """A step of the envelope before sample j is a loss, not a host stall: the host waited for j
+    (its offset at least half a cycle above j-1's), kept up with the counter over a whole window
+    before it (the envelope does not fall by half a cycle from one half to the next, as it does
+    when data come faster than real time), and the offsets over the `settle` samples after it
+    never fall STEADY_S below those of its first half window (a backlog read after a stall
+    does). Minima, so one late read does not count."""
     half = max(1, window // 2)
-    past, future = offset_s[max(j - 2 * half, 0):j], offset_s[j:j + 2 * half]
+    if j < 2 * half or offset_s[j] - offset_s[j - 1] < CYCLE_S / 2:
+        return False
+    past, future = offset_s[j - 2 * half:j], offset_s[j:j + settle]
     return past[-half:].min() - past[:half].min() > -CYCLE_S / 2 \
-        and future[-half:].min() - future[:half].min() > -CYCLE_S / 2
+        and future[half:].min() - future[:half].min() > -STEADY_S
 
 
 class CounterClock:
     """`counter_times` for a stream arriving in batches: each batch continues the times of the
-    last, judged together with the samples before it. A step is judged once a whole window
-    follows it, so a gap in a batch's last window is added at the start of the next batch:
-    the samples between keep the counter's times, at most HOST_WINDOW_S of them. The counter
+    last, judged together with the samples before it. A step is judged once SETTLE_S follows
+    it, so most gaps are found after their samples were timed: `moved` says from which time
+    those are late, and by how much, for the caller to move what it keeps. The host clock is
+    evidence when it kept pace with the counter since the stream's first sample, as offline over
+    the whole stream, so the burst that ends a stall does not leave a batch unchecked. The counter
     counts the same internal samples at every rate, so a new rate (or a triggered stream's
-    measured rate moving) continues the times; only the window's size follows the rate."""
+    measured rate moving) continues the times; only the windows' sizes follow the rate."""
 
     def __init__(self) -> None:
         self._counter: int | None = None  # the last sample's counter (None: no sample yet)
         self._last_s = 0.0  # the last sample's time
+        self._first = (np.nan, np.nan)  # the first sample with a host time: its time and host time
         self._time = np.zeros(0)  # the last samples' times, with every gap found so far,
         self._host = np.zeros(0)  # and their host times
 
@@ -156,17 +183,22 @@ class CounterClock:
             time_s = np.concatenate([[0.0], np.cumsum(counter_ticks(counter))]) / INTERNAL_RATE_HZ
         else:
             time_s = self._last_s + np.cumsum(counter_ticks(np.r_[self._counter, counter])) / INTERNAL_RATE_HZ
+        if np.isnan(self._first[1]) and np.isfinite(t_host[0]):
+            self._first = (float(time_s[0]), float(t_host[0]))
         known = len(self._time)
         time_all, host_all = np.concatenate([self._time, time_s]), np.concatenate([self._host, t_host])
-        checked = _evidence(time_all, host_all)
-        cycles = _hidden_cycles(host_all - time_all, host_window(rate_hz)) if checked \
+        checked = _evidence(np.r_[self._first[0], time_all], np.r_[self._first[1], host_all])
+        cycles = _hidden_cycles(host_all - time_all, host_window(rate_hz), settle_window(rate_hz)) if checked \
             else np.zeros(len(time_all), np.int64)
-        earlier = int(cycles[:known].sum())  # judged only now, before this batch: added at its start
-        time_s += (earlier + np.cumsum(cycles[known:])) * CYCLE_S
+        added = np.cumsum(cycles) * CYCLE_S
         found = np.flatnonzero(cycles)
-        gap_index, gap_s = np.maximum(found - known, 0), cycles[found] * CYCLE_S
-        keep = 2 * host_window(rate_hz)  # a window before a step and one after it
-        history = self._time + np.cumsum(cycles[:known]) * CYCLE_S  # its steps found: not found again
+        before = found[found < known]  # in samples timed already: each from its time once those before moved
+        moved = tuple(zip((self._time + added[:known] - cycles[:known] * CYCLE_S)[before].tolist(),
+                          (cycles[before] * CYCLE_S).tolist()))
+        time_s += added[known:]
+        here = found[found >= known]
+        keep = host_window(rate_hz) + settle_window(rate_hz)  # a window before a step and SETTLE_S after it
+        history = self._time + added[:known]  # its steps found: not found again
         self._time, self._host = np.concatenate([history, time_s])[-keep:], host_all[-keep:]
         self._counter, self._last_s = int(counter[-1]), float(time_s[-1])
-        return CounterTimes(time_s, gap_index, gap_s, checked)
+        return CounterTimes(time_s, here - known, cycles[here] * CYCLE_S, checked, moved)

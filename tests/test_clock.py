@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from stim300.clock import CYCLE_S, CounterClock, counter_times, host_window
+from stim300.clock import CYCLE_S, CounterClock, counter_times
 from stim300.protocol import COUNTER_MODULUS, INTERNAL_RATE_HZ
 
 RATE_HZ = 125
@@ -23,6 +23,35 @@ def host_read_times(true_s: np.ndarray, rng, read_every_s: float = 0.004, stall_
     arrived = true_s + 0.0002  # the datagram's bytes are on the wire a little after its sample
     t_read = reads[np.searchsorted(reads, arrived)]
     return 1000.0 + t_read * (1 + drift_ppm * 1e-6)
+
+
+def stalled_read_times(true_s: np.ndarray, stalls: list[tuple[float, float]], catch_up: float,
+                       read_every_s: float = 0.004) -> np.ndarray:
+    """When a reader that stops for each (start, seconds) of `stalls` sees each datagram: the
+    bytes wait in the port's buffer, and a read takes at most `catch_up` times the sensor's pace
+    of them (a reader with CPU to spare catches up fast, a starved one slowly)."""
+    t_read, t, read_to = np.empty(len(true_s)), 0.0, 0.0  # read_to: how far into the data it has read
+    i = 0
+    while i < len(true_s):
+        t = next((start + seconds for start, seconds in stalls if start <= t < start + seconds), t)
+        read_to = min(t - 0.0002, read_to + catch_up * read_every_s)  # bytes come 0.2 ms after their sample
+        ready = int(np.searchsorted(true_s, read_to, side="right"))
+        t_read[i:ready] = t
+        i = max(i, ready)
+        t += read_every_s
+    return 1000.0 + t_read
+
+
+def live_times(counter: np.ndarray, t_host: np.ndarray, batch: int = 25) -> tuple[np.ndarray, int]:
+    """The live clock's times in batches as the daemon keeps them (what it kept moves when a gap
+    is found after it), and the gaps found."""
+    clock, kept, gaps = CounterClock(), np.zeros(0), 0
+    for a in range(0, len(counter), batch):
+        times = clock.times(counter[a:a + batch], RATE_HZ, t_host[a:a + batch])
+        for at, seconds in times.moved:
+            kept[kept >= at] += seconds
+        kept, gaps = np.r_[kept, times.time_s], gaps + times.hidden_gaps
+    return kept, gaps
 
 
 def stream(n: int, lost: dict[int, int], rate_hz: int = RATE_HZ):
@@ -87,17 +116,19 @@ def test_without_host_times_the_counter_rules_as_before():
     assert len(counter_times(np.zeros(0, np.uint8), RATE_HZ).time_s) == 0
 
 
-def test_the_live_clock_in_batches_adds_each_gap_within_a_window():
+def test_the_live_clock_in_batches_finds_each_gap_and_moves_what_was_timed_before():
     counter, true_s = stream(4000, {1000: 16, 1003: 64, 2600: 188})
     t_host = host_read_times(true_s, np.random.default_rng(9))
-    clock = CounterClock()
+    clock, kept, gaps = CounterClock(), np.zeros(0), []
     edges = [0, 17, 990, 1000, 1001, 1030, 2600, 2625, 3333, 4000]  # gaps at, just after and before edges
-    parts = [clock.times(counter[a:b], RATE_HZ, t_host[a:b]) for a, b in zip(edges, edges[1:])]
-    late = np.abs(np.concatenate([p.time_s for p in parts]) - true_s) > 1e-9
-    window = host_window(RATE_HZ)
-    assert not late[:1000].any() and not late[1003 + window:2600].any() and not late[2600 + window:].any()
-    assert sum(p.hidden_gaps for p in parts) == 3
-    assert sum(p.hidden_s for p in parts) == pytest.approx((1 + 4 + 11) * CYCLE_S)
+    for a, b in zip(edges, edges[1:]):
+        times = clock.times(counter[a:b], RATE_HZ, t_host[a:b])
+        for at, seconds in times.moved:  # found SETTLE_S on, after those samples were timed
+            kept[kept >= at] += seconds
+        kept = np.r_[kept, times.time_s]
+        gaps.append(times.hidden_s)
+    np.testing.assert_allclose(kept, true_s, atol=1e-9)
+    assert sum(gaps) == pytest.approx((1 + 4 + 11) * CYCLE_S)
 
 
 @pytest.mark.parametrize("seed", range(3))
@@ -135,3 +166,34 @@ def test_the_live_clock_goes_on_through_a_moving_rate():
                             for k, a in enumerate(range(0, len(counter), 250))])
     np.testing.assert_allclose(times, ticks / INTERNAL_RATE_HZ, atol=1e-12)
     np.testing.assert_allclose(counter_times(counter, 400.0).time_s, ticks / INTERNAL_RATE_HZ, atol=1e-12)
+
+
+STALLS = [(4.1, 0.3), (9.7, 2.0), (15.2, 0.8), (21.0, 1.4), (27.5, 0.5)]
+
+
+@pytest.mark.parametrize("catch_up", [10.0, 1.1])
+def test_a_stalled_reader_is_no_hidden_gap(catch_up):
+    """Stalls of 0.3 to 2 s: the bytes wait and are read late, in bursts; the offsets jump by the
+    stall, then fall back as the reader catches up, at 10 or 1.1 times the sensor's pace (the
+    slow one takes 20 s after the 2 s stall). Offline and live alike find nothing."""
+    counter, true_s = stream(5000, {})
+    t_host = stalled_read_times(true_s, STALLS, catch_up)
+    assert np.ptp(t_host - true_s) > 1.5  # the offsets did jump
+    result = counter_times(counter, RATE_HZ, t_host)
+    assert result.checked and result.hidden_gaps == 0
+    kept, gaps = live_times(counter, t_host)
+    assert gaps == 0
+    np.testing.assert_allclose(kept, true_s, atol=1e-9)
+
+
+def test_losses_among_stalls_are_still_found():
+    """Whole cycles lost while the reader keeps up, between stalls it catches up from at 1.5 times
+    the sensor's pace: found offline and live, exactly."""
+    counter, true_s = stream(5000, {875: 16, 2360: 188})  # at 7.0 s and 19.0 s
+    t_host = stalled_read_times(true_s, STALLS, catch_up=1.5)
+    result = counter_times(counter, RATE_HZ, t_host)
+    assert result.gap_index.tolist() == [875, 2360]
+    np.testing.assert_allclose(result.time_s, true_s, atol=1e-9)
+    kept, gaps = live_times(counter, t_host)
+    assert gaps == 2
+    np.testing.assert_allclose(kept, true_s, atol=1e-9)

@@ -49,17 +49,23 @@ class Collector:
     def times(self, samples: np.ndarray, rate_hz: int) -> np.ndarray:
         """Seconds since the first sample after power-up, from the counter and the host read
         times: lost datagrams, within a batch or between batches, leave gaps, whole counter
-        cycles included."""
+        cycles included. The clock proves whole cycles lost only SETTLE_S after them (a host
+        stall looks alike until the reader has caught up), so the samples stored since move."""
         self.rate_hz = rate_hz
         times = self._clock.times(samples["counter"], rate_hz, samples["t_host"])
         if not times.checked:
             self._unchecked_until_s = float(times.time_s[-1])
+        for at, seconds in times.moved:  # found after the samples from `at` on were stored: they move
+            self.data.shift(at, seconds)
+            self._hidden_gap(at + seconds, seconds)
         for index, seconds in zip(times.gap_index, times.gap_s):
-            at = float(times.time_s[index])
-            self._hidden.append((at, float(seconds)))
-            log.warning("hidden_gap", at_s=round(at, 3), added_s=round(float(seconds), 3),
-                        detail="datagrams lost for whole counter cycles: the host clock's time added")
+            self._hidden_gap(float(times.time_s[index]), float(seconds))
         return times.time_s
+
+    def _hidden_gap(self, at: float, seconds: float) -> None:
+        self._hidden.append((at, seconds))
+        log.warning("hidden_gap", at_s=round(at, 3), added_s=round(seconds, 3),
+                    detail="datagrams lost for whole counter cycles: the host clock's time added")
 
     def store(self, samples: np.ndarray, time_s: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
         """Keep a batch timed by `times`; returns the times (s) and gyro samples (deg/s) stored,
