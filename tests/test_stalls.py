@@ -21,6 +21,7 @@ ROOT = Path(__file__).resolve().parents[1]
 ENV = {**{k: v for k, v in os.environ.items() if k not in ("NOTIFY_SOCKET", "WATCHDOG_USEC", "JOURNAL_STREAM")},
        "PYTHONPATH": str(ROOT)}
 SITE = ["--latitude", "40.59129", "--g0", "9.79956", "--warmup-window", "2"]
+pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
