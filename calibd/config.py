@@ -9,7 +9,7 @@ was expected.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, replace
-from pathlib import Path
+from pathlib import Path, PurePath
 
 from stim300.cliutil import TEXT_LIMIT_BYTES, read_text
 from stim300.errors import UsageError
@@ -73,10 +73,10 @@ class ServeConfig:
     """What the daemon serves to the other programs of the host (docs/serving.md); nothing when
     every path is None."""
 
-    raw_pty: Path | None = None  # a symlink to a pty carrying the sensor's bytes unchanged
+    raw_pty: Path | tuple[Path, ...] | None = None  # symlink(s) to ptys carrying the sensor's bytes unchanged
     corrected_pty: Path | None = None  # a symlink to a pty carrying bias-corrected datagrams
     corrected_before_result: str = "hold"  # "hold": nothing corrected before a result; "raw": raw data
-    allow_service_mode: bool = False  # SERVICEMODE, UTILITYMODE and R written into the raw pty reach the sensor
+    allow_service_mode: bool = False  # SERVICEMODE, UTILITYMODE and R written into a raw pty reach the sensor
     socket: Path | None = None  # Unix stream socket speaking calibd.serve.protocol
     tcp: tuple[str, int] | None = None  # (host, port) of the same protocol on TCP
     tcp_token_file: Path | None = None  # the shared secret a TCP client sends with ?AUTH first
@@ -85,6 +85,15 @@ class ServeConfig:
     result_copy: Path | None = None  # a group-readable copy of result.json
     idle_timeout_s: float = IDLE_TIMEOUT_S  # a client with no command and nothing read this long is closed
     max_clients_per_uid: int = MAX_CLIENTS_PER_UID  # connections of one user (TCP clients together)
+
+    @property
+    def raw_ptys(self) -> tuple[Path, ...]:
+        """The raw ptys' links: raw_pty as one path or several (one pty serves one reader)."""
+        if self.raw_pty is None:
+            return ()
+        if isinstance(self.raw_pty, (str, PurePath)):
+            return (Path(self.raw_pty),)
+        return tuple(map(Path, self.raw_pty))
 
     @property
     def serving(self) -> bool:
@@ -219,14 +228,25 @@ def _method(t: _ConfigTable) -> MethodConfig:
     return MethodConfig(name, resolve_every_s=resolve_every_s, **own)
 
 
+def _path_text(value) -> bool:
+    return isinstance(value, str) and _nonempty(value) and "\0" not in value
+
+
+def _paths(value) -> bool:
+    """A path, or a non-empty list of paths."""
+    return _path_text(value) or (isinstance(value, list) and value != [] and all(map(_path_text, value)))
+
+
 def _serve(t: _ConfigTable) -> ServeConfig:
     def path(key: str, what: str) -> Path | None:
-        value = t.get(key, None, str, lambda v: _nonempty(v) and "\0" not in v, f"a path for {what}")
+        value = t.get(key, None, str, _path_text, f"a path for {what}")
         return None if value is None else Path(value)
     tcp = t.get("tcp", None, str, lambda v: parse_tcp(v) is not None,
                 'an address "HOST:PORT" (e.g. "127.0.0.1:2950"; PORT in [1, 65535])')
+    raw = t.get("raw_pty", None, object, _paths, "a path, or a list of paths, for the raw ptys' links")
     serve = ServeConfig(
-        raw_pty=path("raw_pty", "the raw pty's link"), corrected_pty=path("corrected_pty", "the corrected pty's link"),
+        raw_pty=None if raw is None else Path(raw) if isinstance(raw, str) else tuple(map(Path, raw)),
+        corrected_pty=path("corrected_pty", "the corrected pty's link"),
         corrected_before_result=t.get("corrected_before_result", "hold", str, lambda v: v in BEFORE_RESULT,
                                       " or ".join(f'"{v}"' for v in BEFORE_RESULT)),
         allow_service_mode=t.get("allow_service_mode", False, bool),
@@ -248,8 +268,9 @@ def _serve(t: _ConfigTable) -> ServeConfig:
         if getattr(serve, key) and serve.tcp is None:
             t.fail(key, "given without tcp: it applies to TCP clients only")
     seen: dict[Path, str] = {}
-    for key in ("raw_pty", "corrected_pty", "socket", "result_copy"):
-        value = getattr(serve, key)
+    paths = [("raw_pty", link) for link in serve.raw_ptys]
+    paths += [(key, getattr(serve, key)) for key in ("corrected_pty", "socket", "result_copy")]
+    for key, value in paths:
         if value in seen:
             t.fail(key, f"{str(value)!r} is also {seen[value]}: each served path must be its own")
         if value is not None:

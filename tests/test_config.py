@@ -126,6 +126,33 @@ def test_serve_table(tmp_path):
         "::1", 2950)
 
 
+def test_raw_pty_is_one_path_or_a_list_of_them(tmp_path):
+    """One pty serves one reader (a second reader of a pty splits its bytes), so several readers
+    get several raw ptys."""
+    one = load_config(write(tmp_path, MINIMAL + '[serve]\nraw_pty = "/run/a"\n')).serve
+    assert one.raw_ptys == (Path("/run/a"),) and one.serving
+    two = load_config(write(tmp_path, MINIMAL + '[serve]\nraw_pty = ["/run/a", "/run/b"]\n')).serve
+    assert two.raw_ptys == (Path("/run/a"), Path("/run/b")) and two.serving
+    assert ServeConfig().raw_ptys == ()
+
+
+@pytest.mark.parametrize("value, words", [
+    ("[]", ["[] is not a path, or a list of paths"]),
+    ('["/run/a", 3]', ["['/run/a', 3] is not a path, or a list of paths"]),
+    ('["/run/a", ""]', ["is not a path, or a list of paths"]),
+    ("5", ["5 is not a path, or a list of paths"]),
+    ('["/run/a", "/run/a"]', ["'/run/a' is also raw_pty"]),
+    ('["/run/a", "/run/calibd/ttyUSB0/corrected"]', ["is also raw_pty"]),
+])
+def test_a_bad_raw_pty_is_one_line_naming_it(tmp_path, value, words):
+    message = error(write(tmp_path, MINIMAL + replace_line(SERVE, 'raw_pty = "/run/calibd/ttyUSB0/raw"',
+                                                            f"raw_pty = {value}")))
+    assert "[serve] raw_pty" in message or "[serve] corrected_pty" in message
+    assert "\n" not in message
+    for word in words:
+        assert word in message
+
+
 @pytest.mark.parametrize("old, new, key, words", [
     ('tcp = "0.0.0.0:2950"', 'tcp = "localhost"', "tcp", ["'localhost'", "HOST:PORT"]),
     ('tcp = "0.0.0.0:2950"', 'tcp = "127.0.0.1:70000"', "tcp", ["70000", "[1, 65535]"]),

@@ -160,6 +160,26 @@ def test_a_reader_that_never_reads_does_not_hold_the_tap_up(link):
         raw.close()
 
 
+def test_nothing_waits_in_the_pty_for_a_reader_that_opens_it_later(link):
+    """Nobody has the link open: nothing is written. A reader that leaves bytes unread and closes:
+    they are flushed, the next reader starts with what comes after it opened."""
+    first, second = sensor_bytes(n=200, seed=1)[0], sensor_bytes(n=200, seed=2)[0]
+    raw = RawPty(link, forward=lambda request: None)
+    try:
+        feed(raw.tap, first)  # nobody there
+        leaving = LinkReader(link, read=False)
+        feed(raw.tap, first)
+        leaving.close()  # without reading
+        feed(raw.tap, first[:100])  # the tap sees it gone
+        reader = LinkReader(link)
+        feed(raw.tap, second)
+        assert reader.wait_for(len(second)) == second
+        reader.close()
+        assert raw.dropped_bytes == 0
+    finally:
+        raw.close()
+
+
 def test_allowed_requests_reach_forward_and_refused_ones_do_not(link, quick_episodes):
     sent, forward = collect()
     raw = RawPty(link, forward=forward)
@@ -395,22 +415,22 @@ def test_integrated_units_pass_unchanged_and_say_why(link):
                     ("incl", "integrated_velocity_ms sums the bias since power-up")]
 
 
-def test_before_a_result_hold_carries_nothing_and_raw_the_raw_bytes(tmp_path):
-    data, _, _ = sensor_bytes(n=300)
+def test_before_a_result_hold_carries_only_special_datagrams_and_raw_the_raw_bytes(tmp_path):
+    data, head_len, _ = sensor_bytes(n=300)
     hold = CorrectedPty(tmp_path / "hold", before_result="hold")
     raw = CorrectedPty(tmp_path / "raw", before_result="raw")
     held, passed = LinkReader(tmp_path / "hold"), LinkReader(tmp_path / "raw")
     try:
         feed(lambda settled: (hold.tap(settled), raw.tap(settled)), data)
         assert passed.wait_for(len(data)) == data
-        assert held.wait_for(1, timeout=0.2) == b""
+        assert held.wait_for(head_len + 1, timeout=0.2) == data[:head_len]  # the configuration, no data
         hold.set_result(result())
         feed(hold.tap, data)
-        corrected = held.wait_for(len(data))
+        corrected = held.wait_for(head_len + len(data))[head_len:]
         assert len(corrected) == len(data) and corrected != data
         hold.set_result(None)  # the sensor restarted: its biases are no longer these
         feed(hold.tap, data)
-        assert held.wait_for(len(data) + 1, timeout=0.2) == corrected
+        assert held.wait_for(2 * head_len + len(data) + 1, timeout=0.2)[head_len:] == corrected + data[:head_len]
     finally:
         held.close()
         passed.close()

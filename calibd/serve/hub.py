@@ -33,7 +33,7 @@ from ..session import PowerUpCuts
 from .protocol import (MAX_TOKEN_BYTES, token_of, SAMPLES_MAX_S, Command, ProtocolError, device_message, fault_message,
                        poll_message, result_message, samples_line, state_message)
 from .correct import result_biases, sample_units, samples_correctable
-from .ptys import CorrectedPty, PtyError, RawPty
+from .ptys import CorrectedPty, PtyError, RawPty, Throttle
 from .sockets import ServeError, SocketServer
 
 log = structlog.get_logger("calibd")
@@ -67,7 +67,8 @@ class Hub(Listener):
         self._lock = threading.Lock()
         self._clock = CounterClock()  # the server thread's: SAMPLES "t"
         self._copy_failing = False  # the result copy's last write failed (logged once until one succeeds)
-        self.raw_pty = self.corrected_pty = self.server = None
+        self.raw_ptys: list[RawPty] = []
+        self.corrected_pty = self.server = None
         try:
             if config.result_copy is not None:
                 if not config.result_copy.parent.is_dir():
@@ -81,9 +82,10 @@ class Hub(Listener):
                 if config.tcp_token_file is None:
                     raise ServeError("tcp: needs tcp_token_file or tcp_open = true in [serve]")
                 token = _read_token(config.tcp_token_file)
-            if config.raw_pty is not None:
-                self.raw_pty = _pty("raw_pty", lambda: RawPty(
-                    config.raw_pty, self._forward, config.allow_service_mode, self.gid))
+            throttle = Throttle()  # the raw ptys share the sensor, so one rate of requests
+            for link in config.raw_ptys:
+                self.raw_ptys.append(_pty("raw_pty", lambda: RawPty(
+                    link, self._forward, config.allow_service_mode, self.gid, throttle)))
             if config.corrected_pty is not None:
                 self.corrected_pty = _pty("corrected_pty", lambda: CorrectedPty(
                     config.corrected_pty, config.corrected_before_result, self.gid))
@@ -99,7 +101,7 @@ class Hub(Listener):
         self._calibrator = calibrator
 
     def close(self) -> None:
-        for part in (self.server, self.raw_pty, self.corrected_pty):
+        for part in (self.server, *self.raw_ptys, self.corrected_pty):
             if part is not None:
                 part.close()
 
@@ -208,8 +210,8 @@ class Hub(Listener):
                 self._bias, self._restart_unheard = None, True
                 if self.corrected_pty is not None:
                     self.corrected_pty.set_result(None)
-        if self.raw_pty is not None:
-            self.raw_pty.tap(settled)
+        for raw_pty in self.raw_ptys:
+            raw_pty.tap(settled)
         if self.corrected_pty is not None:
             self.corrected_pty.tap(settled)
         if self.server is not None and len(settled.samples):
