@@ -35,18 +35,21 @@ NOT_WARMED_UP = ("every estimate is flagged poor: the data were taken while the 
 class Settling:
     """The rule's verdict on a record. `settled`: a window passed, and `start_s` is the first such
     window's start; otherwise `start_s` is the start of the calmest window (the best part of a
-    record that never settles). `trend_c_per_h` is that window's trend (None without temperatures)."""
+    record that never settles). `trend_c_per_h` is that window's trend (None without temperatures).
+    `window_s`: the seconds that trend was fitted over (0 without one), the rule's window or, when
+    the record is shorter, the whole record, so the words never name more data than there are."""
 
     settled: bool
     start_s: float
     trend_c_per_h: float | None
+    window_s: float
 
 
 def settling(time_s: np.ndarray, temperature_c: np.ndarray | None, rule: WarmupConfig = WarmupConfig()) -> Settling:
     """The warm-up rule on a record (time since power-up, s; temperatures, degC, or None when the
     datagram has none: then time since power-up alone decides)."""
     if len(time_s) < 2:
-        return Settling(False, float(time_s[0]) if len(time_s) else 0.0, None)
+        return Settling(False, float(time_s[0]) if len(time_s) else 0.0, None, 0.0)
     seconds = np.floor(time_s - time_s[0]).astype(np.int64)  # 1-s means: the trend needs no more
     count = np.bincount(seconds)
     have = np.flatnonzero(count)
@@ -69,7 +72,13 @@ def settling(time_s: np.ndarray, temperature_c: np.ndarray | None, rule: WarmupC
         pool = np.flatnonzero(eligible) if eligible.any() else np.arange(len(end_s))
         k = int(pool[np.argmin(np.abs(trend[pool]))]) if trend is not None else int(pool[-1])
         settled = False
-    return Settling(settled, float(time_s[first_sample[k]]), None if trend is None else float(trend[k]))
+    if trend is None:
+        window_s = 0.0
+    elif width < len(t):  # windows slide: each is the rule's
+        window_s = rule.window_s
+    else:  # one window: the whole record
+        window_s = min(rule.window_s, float(time_s[-1] - time_s[0]))
+    return Settling(settled, float(time_s[first_sample[k]]), None if trend is None else float(trend[k]), window_s)
 
 
 def _window_slopes_c_per_h(t: np.ndarray, temp: np.ndarray, width: int) -> np.ndarray:
@@ -82,8 +91,15 @@ def _window_slopes_c_per_h(t: np.ndarray, temp: np.ndarray, width: int) -> np.nd
     return (width * sty - st * sy) / (width * stt - st * st) * 3600
 
 
-def rule_words(rule: WarmupConfig = WARM_UP_RULE) -> str:
-    return f"{rule.max_slope_c_per_h:g} degC/h over {rule.window_s:g} s"
+def rule_words(rule: WarmupConfig = WARM_UP_RULE, verdict: Settling | None = None) -> str:
+    """The rule as applied: over the verdict's window, the whole record when it is the shorter."""
+    return f"{rule.max_slope_c_per_h:g} degC/h {_over(verdict, rule)}"
+
+
+def _over(verdict: Settling | None, rule: WarmupConfig) -> str:
+    if verdict is not None and verdict.window_s < rule.window_s:
+        return f"over the whole {verdict.window_s:.0f} s of data"
+    return f"over {rule.window_s:g} s"
 
 
 def record_settling(time_s: np.ndarray, temperature_c: np.ndarray | None,
@@ -102,10 +118,9 @@ def start_words(verdict: Settling | None, rule: WarmupConfig = WARM_UP_RULE) -> 
     if verdict.trend_c_per_h is None:  # under 2 s of data: no trend to judge, time alone decided
         return "warm-up rule: too little data for a temperature trend (under 2 s), from the first sample"
     if verdict.settled:
-        return (f"warm-up rule: the temperature settled ({verdict.trend_c_per_h:+.2f} degC/h over "
-                f"{rule.window_s:g} s)")
+        return f"warm-up rule: the temperature settled ({verdict.trend_c_per_h:+.2f} degC/h {_over(verdict, rule)})"
     return (f"warm-up rule: the temperature never settles, the calmest window ({verdict.trend_c_per_h:+.2f} "
-            f"degC/h over {rule.window_s:g} s)")
+            f"degC/h {_over(verdict, rule)})")
 
 
 def warm_up_warnings(time_s: np.ndarray, temperature_c: np.ndarray | None,
@@ -120,13 +135,13 @@ def warm_up_warnings(time_s: np.ndarray, temperature_c: np.ndarray | None,
         return ["no temperatures in the datagram: warm-up cannot be checked"]
     if not verdict.settled:
         return [f"the temperature never settles in this power-up (calmest trend {verdict.trend_c_per_h:+.1f} degC/h "
-                f"from {verdict.start_s:.0f} s; warmed up means within {rule_words(rule)}): the IMU is not warmed "
-                "up, biases drift with temperature"]
+                f"from {verdict.start_s:.0f} s; warmed up means within {rule_words(rule, verdict)}): the IMU is not "
+                "warmed up, biases drift with temperature"]
     early_s = verdict.start_s - time_s[0]
     if early_s > 1.0:
         hint = f" (calibrate with --start {math.ceil(verdict.start_s)} to leave it out)" if start_hint else ""
         return [f"the first {early_s:.0f} s of the data are warm-up (the temperature settles within "
-                f"{rule_words(rule)} only from {verdict.start_s:.0f} s of the power-up): biases drift{hint}"]
+                f"{rule_words(rule, verdict)} only from {verdict.start_s:.0f} s of the power-up): biases drift{hint}"]
     return []
 
 

@@ -95,12 +95,12 @@ def _mapped(path: str):
             yield m
 
 
-def _decode(path: str, fmt: Format) -> tuple[dict[str, np.ndarray], StreamInfo]:
-    """Samples (columns) and stream info; with the capture's read log, samples carry host times.
-    A given format option the data overrode is said on stderr; a given rate the counter
-    contradicts is refused."""
+def _decode(path: str, fmt: Format, reads: np.ndarray | None) -> tuple[dict[str, np.ndarray], StreamInfo]:
+    """Samples (columns) and stream info; with the capture's read log (`reads`), samples carry
+    host times. A given format option the data overrode is said on stderr; a given rate the
+    counter contradicts is refused."""
     with _mapped(path) as data:
-        samples, info = decode_columns(data, fmt, reads=load_reads(path))
+        samples, info = decode_columns(data, fmt, reads=reads)
     if info.stats.datagrams == 0:
         raise UsageError(f"{path}: no STIM300 datagram found in {info.stats.bytes_in} bytes "
                          "(not a STIM300 capture, or a format the options do not describe)")
@@ -204,7 +204,7 @@ def cmd_decode(args) -> int:
         raise UsageError(f"{out}: output must end in .npz or .csv")
     not_an_input(out, args.capture)
     started = time.perf_counter()
-    samples, info = _decode(args.capture, _format(args))
+    samples, info = _decode(args.capture, _format(args), load_reads(args.capture))
     cols = columns(samples, sample_times(samples, info).time_s)
     units = column_units(cols, info.format)
     with _output(out) as f:
@@ -225,7 +225,9 @@ def sample_times(samples, stream: StreamInfo):
     return counter_times(samples["counter"], stream.rate_hz or INTERNAL_RATE_HZ, samples["t_host"])
 
 
-def capture_info(samples, stream: StreamInfo) -> dict:
+def capture_info(samples, stream: StreamInfo, reads: np.ndarray | None = None) -> dict:
+    """`reads`: the capture's read log, counted in `read_log_reads` (None: none), so a log
+    whose reads cannot show gaps is told apart from no log."""
     s = stream.stats
     fmt = stream.format
     rate = stream.rate_hz
@@ -246,8 +248,9 @@ def capture_info(samples, stream: StreamInfo) -> dict:
         "external_trigger": stream.external_trigger,
         "inferred_missing": s.inferred_missing,
         "duration_s": (s.datagrams + s.lost_samples + s.inferred_missing) / rate + times.hidden_s if rate else None,
-        "hidden_gaps": times.hidden_gaps if checked else None,  # None: no read log to find them with
+        "hidden_gaps": times.hidden_gaps if checked else None,  # None: no host times that can show them
         "hidden_gap_s": round(times.hidden_s, 3) if checked else None,
+        "read_log_reads": None if reads is None else len(reads),
         "units": {k: v for k, v in fmt.units().items()},
         "acc_range_g": fmt.acc_range_g,  # one per axis (X, Y, Z) when they differ
         "part_number": stream.part_number,
@@ -270,6 +273,20 @@ def status_counts(samples) -> dict[str, dict[str, int]]:
     return counts
 
 
+def _hidden_gaps(info: dict) -> str:
+    """Gaps found, or why none could be: no read log, or one whose reads came faster than the
+    data's own time (a capture fed faster than real time), which proves nothing lost."""
+    reads = info["read_log_reads"]
+    if info["hidden_gaps"] is not None:
+        return f"{info['hidden_gaps']} ({info['hidden_gap_s']:.3f} s, found from the read log of {reads} reads)"
+    if reads is None:
+        return "- (no read log: gaps of whole counter cycles cannot be seen)"
+    if info["sample_rate_hz"] is None:
+        return f"- (read log of {reads} reads, but no sample rate to time the datagrams by)"
+    return (f"- (read log of {reads} reads, which came faster than real time, as when a capture is replayed: "
+            "they cannot show gaps of whole counter cycles)")
+
+
 def _describe(info: dict, configuration: Configuration | None = None) -> str:
     def value(v, unit=""):
         return "-" if v is None else f"{v}{unit}"
@@ -283,9 +300,7 @@ def _describe(info: dict, configuration: Configuration | None = None) -> str:
         f"lost_samples     {info['lost_samples']}"
         + (f" (externally triggered: {info['inferred_missing']} missing by the usual step, inferred)"
            if info["external_trigger"] else ""),
-        "hidden_gaps      " + (f"{info['hidden_gaps']} ({info['hidden_gap_s']:.3f} s, found from the read log)"
-                               if info["hidden_gaps"] is not None
-                               else "- (no read log: gaps of whole counter cycles cannot be seen)"),
+        "hidden_gaps      " + _hidden_gaps(info),
         f"skipped_bytes    {info['skipped_bytes']} B",
         f"restarts         {info['restarts']}",
         f"config_changes   {info['config_changes']}",
@@ -372,8 +387,9 @@ def _configuration_lines(c: Configuration) -> list[str]:
 
 
 def cmd_info(args) -> int:
-    samples, stream = _decode(args.capture, _format(args))
-    info = capture_info(samples, stream)
+    reads = load_reads(args.capture)
+    samples, stream = _decode(args.capture, _format(args), reads)
+    info = capture_info(samples, stream, reads)
     print(json.dumps(info, indent=1) if args.json else _describe(info, stream.configuration))
     return 0
 

@@ -1,6 +1,7 @@
 """Serial side on a real pty: the reader thread, reopen after unplug, custom bit-rates, raw
 recording and Service Mode, all through `open_serial` as on a real port."""
 
+import json
 import os
 import re
 import select
@@ -17,10 +18,12 @@ import pytest
 import stim300.port as port
 from captures import exact_samples, same_samples
 from stim300.bulk import decode_capture
+from stim300.cli import main as stim300_main
 from stim300.codec import SAMPLE_DTYPE, encode_samples
 from stim300.errors import FormatError, PortError, ServiceError, ServiceTimeout
 from stim300.port import PortReader, open_serial, record
 from stim300.protocol import Format
+from stim300.reads import load_reads
 from stim300.ringbuffer import RingBuffer
 from stim300.service import enter_service_mode, exit_service_mode, service_command
 from stim300.special import Configuration, encode_special
@@ -259,6 +262,45 @@ def test_record_keeps_the_bytes_on_ctrl_c(pty, monkeypatch, tmp_path):
     out = tmp_path / "imu.bin"
     assert record(pty.path, out) == 0
     assert out.read_bytes() == data and not (tmp_path / "imu.bin.part").exists()
+
+
+def record_fed(pty: Pty, opened: threading.Event, out: Path, n: int, paced: bool) -> int:
+    """Record what a sensor writes, on its sample clock or all at once (a capture fed to a
+    pty as fast as it goes); the number of reads the read log keeps."""
+    head, frames, _ = sensor_stream(n)
+
+    def feed():
+        assert opened.wait(DEADLINE_S)
+        write_paced(pty, head, frames, 2000) if paced else pty.write(head + frames.tobytes())
+
+    with ThreadPoolExecutor(1) as pool:
+        writer = pool.submit(feed)
+        assert record(pty.path, out, max_bytes=len(head) + frames.nbytes) == 0
+        writer.result(timeout=DEADLINE_S)
+    reads = load_reads(out)
+    assert reads is not None and reads["end"][-1] == out.stat().st_size
+    return len(reads)
+
+
+def test_info_uses_the_read_log_of_a_recording(pty, opened, tmp_path, capsys):
+    out = tmp_path / "imu.bin"
+    reads = record_fed(pty, opened, out, 600, paced=True)
+    capsys.readouterr()
+    assert stim300_main(["info", str(out)]) == 0
+    assert f"hidden_gaps      0 (0.000 s, found from the read log of {reads} reads)" in capsys.readouterr().out
+
+
+def test_info_tells_a_read_log_too_fast_to_show_gaps_from_none(pty, opened, tmp_path, capsys):
+    """A capture fed faster than real time is read so: its read log is there, and cannot show
+    gaps (the host clock outran the data), which is not having none."""
+    out = tmp_path / "imu.bin"
+    reads = record_fed(pty, opened, out, 4000, paced=False)  # 2 s of data
+    capsys.readouterr()
+    assert stim300_main(["info", str(out)]) == 0
+    assert f"hidden_gaps      - (read log of {reads} reads, which came faster than real time" in capsys.readouterr().out
+    assert stim300_main(["info", str(out), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["read_log_reads"] == reads and info["hidden_gaps"] is None
 
 
 def test_record_reports_a_missing_port_in_one_line(tmp_path, capsys):

@@ -125,3 +125,18 @@ def test_calibrate_from_power_on_names_the_start_and_the_daemons_session_does_no
     assert any("--start" in w for w in _session_warnings(session))
     assert not any("--start" in w for w in _session_warnings(daemons)) and any("warm-up" in w for w in
                                                                                 _session_warnings(daemons))
+
+
+def test_the_words_never_name_a_window_longer_than_the_data(warming, tmp_path):
+    """A record shorter than the rule's 600 s window is judged as a whole, and said so."""
+    t, temp = warming
+    flat = t >= t[-1] - 445  # settled: the last 445 s
+    assert start_words(record_settling(t[flat], temp[flat])).endswith("degC/h over the whole 445 s of data)")
+    never = t < 400  # still warming
+    words = start_words(record_settling(t[never], temp[never])) + warm_up_warnings(t[never], temp[never])[0]
+    assert words.count("over the whole 400 s of data") == 2 and "600" not in words
+    assert "over 600 s" in start_words(record_settling(t, temp))  # a longer record: the rule's window
+    data = (FIXTURES / "warmup_then_protocol_125hz.bin").read_bytes()
+    path = tmp_path / "c.bin"
+    path.write_bytes(data[:66] + data[-445 * 125 * 45:])  # its configuration datagram and the last 445 s
+    assert load_session(str(path), None).stream["start_by"].endswith("over the whole 445 s of data)")
