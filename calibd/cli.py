@@ -277,10 +277,15 @@ def cmd_run(args) -> int:
 
 def _replay_serve(args, config) -> ServeConfig | None:
     """What `replay --serve` serves: the [serve] table of --config, with --socket, --raw-pty and
-    --corrected-pty (which imply --serve) in place of its keys; None without serving."""
+    --corrected-pty (which imply --serve) in place of its keys; None without serving. A replay
+    serves only when told (a run's configuration may name the real daemon's socket), and says
+    so when --config has a [serve] table, so that nothing being served is no surprise."""
     given = {key: Path(value) for key, value in (("socket", args.socket), ("raw_pty", args.raw_pty),
                                                  ("corrected_pty", args.corrected_pty)) if value is not None}
     if not (args.serve or given):
+        if config and config.serve.serving:
+            print(f"calibd replay: {args.config} has a [serve] table: a replay serves it only with --serve",
+                  file=sys.stderr)
         return None
     serve = replace(config.serve if config else ServeConfig(), **given)
     if not serve.serving:
@@ -677,7 +682,10 @@ WATCH_REDRAW_S = 0.2  # a terminal is redrawn at most this often
 
 
 def cmd_watch(args) -> int:
-    """The daemon seen live: redrawn in place on a terminal, one line per event otherwise."""
+    """The daemon seen live: redrawn in place on a terminal, fitted to its width (looked up at each
+    redraw: it may be resized), one line per event otherwise."""
+    import shutil
+
     from .client import Client
     from .watchview import WatchView, render
 
@@ -703,7 +711,8 @@ def cmd_watch(args) -> int:
                     take(message)
                 if terminal and time.monotonic() - drawn_s >= WATCH_REDRAW_S:
                     drawn_s = time.monotonic()
-                    sys.stdout.write("\x1b[H\x1b[2J" + "\n".join(render(view, drawn_s)) + "\n")
+                    width = shutil.get_terminal_size().columns
+                    sys.stdout.write("\x1b[H\x1b[2J" + "\n".join(render(view, drawn_s, width)) + "\n")
                     sys.stdout.flush()
     return _client_program(watch)
 
@@ -724,7 +733,7 @@ def _add_client_commands(sub) -> None:
                                      "health (like gpsmon)")
     p.add_argument("socket", help=where)
     p.add_argument("--samples", choices=SAMPLE_KINDS, default="none",
-                   help="also watch samples, to measure the rate the daemon serves (default none)")
+                   help="also watch samples: the rate served, the last sample and 1-s means (default none)")
     p.add_argument("--token-file", metavar="PATH", help=token)
     p.set_defaults(func=cmd_watch)
 

@@ -338,25 +338,42 @@ def level_static(segments: list[Segment]) -> Segment:
     raise ValueError("no static segment: the session needs a level static first")
 
 
+def heading_deg(platform_angle_deg: float) -> float:
+    """The platform's heading: its angle modulo 360 deg, in [0, 360) deg to 0.1 deg (so -0.02 deg
+    is 0, not 360). The one place headings are compared or printed: 990 deg after turns is the
+    270 deg heading."""
+    return round(platform_angle_deg % 360.0, 1) % 360.0
+
+
+def index_heading(platform_angle_deg: float, tolerance_deg: float = 5.0) -> int | None:
+    """The index heading (0..3: quarter turns, 0 deg, 90 deg, ...) within `tolerance_deg` of the
+    platform's heading (`heading_deg`), or None between them."""
+    heading = heading_deg(platform_angle_deg)
+    quarter = round(heading / 90.0)
+    return quarter % 4 if abs(heading - 90.0 * quarter) <= tolerance_deg else None
+
+
 def index_positions(segments: list[Segment], tolerance_deg: float = 5.0) -> list[Segment]:
     """The four index positions (thesis eqs. 6.8-6.11): after the level static, the first static
-    at each of the four platform orientations 90 deg apart (chi a multiple of 90 within
-    `tolerance_deg`, modulo 360), in time order. Averaging over the four cancels the tilt terms."""
+    at each of the four index headings (`index_heading`), in time order. Averaging over the four
+    cancels the tilt terms."""
     level = level_static(segments)
     chosen: dict[int, Segment] = {}
     for s in segments:
         if s.kind != "static" or s.start <= level.start:
             continue
-        quarter = round(s.platform_angle_deg / 90.0)
-        if abs(s.platform_angle_deg - 90.0 * quarter) <= tolerance_deg:
-            chosen.setdefault(quarter % 4, s)
+        quarter = index_heading(s.platform_angle_deg, tolerance_deg)
+        if quarter is not None:
+            chosen.setdefault(quarter, s)
         if len(chosen) == 4:
             break
     if len(chosen) < 4:
         missing = [f"{90 * q}" for q in range(4) if q not in chosen]
-        seen = ", ".join(f"{s.platform_angle_deg:.1f}" for s in segments if s.kind == "static" and s is not level)
-        raise ValueError(f"need statics at four platform orientations 90 deg apart after the level static; "
-                         f"none at {', '.join(missing)} deg (mod 360); statics seen at [{seen}] deg")
+        seen = ", ".join(f"{heading_deg(s.platform_angle_deg):g}" for s in segments
+                         if s.kind == "static" and s.start > level.start)
+        raise ValueError(f"need statics at four platform headings 90 deg apart after the level static; "
+                         f"none at {', '.join(missing)} deg (mod 360); statics after it seen at headings "
+                         f"[{seen}] deg")
     return sorted(chosen.values(), key=lambda s: s.start)
 
 
@@ -396,39 +413,100 @@ def segment_roles(segments: list[Segment]) -> list[str]:
 
 
 def index_headings(segments: list[Segment]) -> set[int]:
-    """The index headings (0..3, quarter turns of the platform) the statics cover."""
-    return {round((s.platform_angle_deg % 360) / 90) % 4 for s in segments if s.kind == "static"
-            and abs(s.platform_angle_deg / 90 - round(s.platform_angle_deg / 90)) * 90 <= INDEX_TOLERANCE_DEG}
+    """The index headings (0..3, quarter turns of the platform) the statics after the level static
+    cover: the headings `index_positions` finds statics at."""
+    statics = [s for s in segments if s.kind == "static"]
+    return {q for s in statics[1:] if (q := index_heading(s.platform_angle_deg, INDEX_TOLERANCE_DEG)) is not None}
+
+
+def _through_last_static(segments: list[Segment]) -> list[Segment]:
+    """The segments up to the last static: a turn still under way counts once the platform stops."""
+    last = max((k for k, s in enumerate(segments) if s.kind == "static"), default=-1)
+    return segments[:last + 1]
+
+
+def _lacking(segments: list[Segment], method: str) -> str:
+    """What `method` ("joint" or "thesis") lacks in segments that may end on a turn under way; ""
+    when nothing."""
+    statics = [s for s in segments if s.kind == "static"]
+    if method == "joint":
+        if not statics:
+            return "a level static, then a turn and a static after it on the same mounting"
+        level = statics[0]
+        after = segments[segments.index(level) + 1:]
+        mounted = after[:next((k for k, s in enumerate(after) if s.kind == "static" and s.up != level.up), len(after))]
+        kinds = [s.kind for s in mounted]
+        if "turn" not in kinds:
+            return f"a turn and a static after it on the level static's mounting ({level.up} up)"
+        return "" if "static" in kinds[kinds.index("turn"):] else "a static after the turn"
+    full = f"a full turn (at least {FULL_TURN_MIN_DEG:.0f} deg)"
+    if not statics:
+        return f"a level static, statics at four platform headings 90 deg apart and {full} after it, then a static"
+    absent = [str(90 * q) for q in range(4) if q not in index_headings(segments)]
+    turned = any(t.start >= statics[0].stop for t in full_turns(segments))
+    parts = ([f"{'a static at heading' if len(absent) == 1 else 'statics at headings'} {', '.join(absent)} deg"]
+             if absent else []) + ([] if turned else [full])
+    if parts:
+        return " and ".join(parts) + " after the level static" + ("" if turned else ", then a static")
+    return "" if segments[-1].kind == "static" else "a static after the last turn"
+
+
+def protocol_lacking(segments: list[Segment], method: str) -> str | None:
+    """What a session's segments lack for `method` ("joint": a level static, then a turn and a
+    static of the same mounting; "thesis": the level static, four index positions and a full turn
+    after it, then a static), in words; None once complete. Complete is judged on the segments up
+    to the last static (a turn under way after a complete protocol leaves it complete); what is
+    lacking on all of them, so a turn under way is the turn the protocol waits for."""
+    if not _lacking(_through_last_static(segments), method):
+        return None
+    return _lacking(segments, method) or None
+
+
+@dataclass(frozen=True)
+class Progress:
+    """How far a session is through a method's protocol, counted once from one list of segments.
+    The daemon's STATE `progress` and its status detail, `calibd watch`, `calibd status`, and the
+    refusals of `calibd calibrate` and `calibd report` all show this record, so its counts, its
+    headings and what it says is missing cannot disagree."""
+
+    statics: int
+    index_headings: int  # of the four index headings, how many the statics after the level static cover
+    index_turns: int  # turns of about 90 deg
+    full_turns: int  # turns of at least FULL_TURN_MIN_DEG, ramps included
+    other_turns: int
+    missing: str | None  # what the method still lacks; None: its protocol is complete
+
+    @classmethod
+    def of(cls, segments: list[Segment], missing: str | None) -> Progress:
+        """The record of `segments`, with what the method says it lacks in them."""
+        roles = segment_roles(segments)
+        return cls(roles.count("static"), len(index_headings(segments)), roles.count("index turn"),
+                   roles.count("full turn"), roles.count("other turn"), missing)
+
+    @property
+    def complete(self) -> bool:
+        return self.missing is None
+
+    def found(self) -> str:
+        """The segments in the protocol's words: "3 statics at 2/4 index headings, 2 index turns, ..."."""
+        def count(n: int, role: str) -> str:
+            return f"{n} {role}" + ("" if n == 1 else "s")
+        return (f"{count(self.statics, 'static')} at {self.index_headings}/4 index headings, "
+                f"{count(self.index_turns, 'index turn')}, {count(self.full_turns, 'full turn')}, "
+                f"{count(self.other_turns, 'other turn')}")
+
+    def words(self) -> str:
+        """What was found and what the protocol waits for, or that it is complete."""
+        return f"{self.found()}; " + ("protocol complete" if self.complete else f"waiting for: {self.missing}")
+
+    def fields(self) -> dict:
+        """The flat fields of STATE's `progress` (docs/protocol.md): the counts and `missing`
+        (null once complete)."""
+        return {"statics": self.statics, "index_headings": self.index_headings, "index_turns": self.index_turns,
+                "full_turns": self.full_turns, "other_turns": self.other_turns, "missing": self.missing}
 
 
 def protocol_progress(segments: list[Segment]) -> str:
-    """What a session has so far, in the protocol's words: statics and the platform headings
-    they cover, turns by role (index ~90 deg, full >= 350 deg in total, other)."""
-    headings = index_headings(segments)
-    roles = segment_roles(segments)
-
-    def count(role: str) -> str:
-        n = roles.count(role)
-        return f"{n} {role}" + ("" if n == 1 else "s")
-    return (f"{count('static')} at {len(headings)}/4 index headings, {count('index turn')}, "
-            f"{count('full turn')}, {count('other turn')}")
-
-
-def protocol_complete(segments: list[Segment], method: str) -> bool:
-    """Whether a session's segments end on a static and hold what `method` ("joint" or "thesis")
-    needs: joint, a level static, then a turn and a static of the same mounting; thesis, the
-    level static, four index positions and a full turn after it, then a static. A cheap test on
-    the segments that says a solve is worth running now rather than at the next re-solve."""
-    if not segments or segments[-1].kind != "static":
-        return False
-    level = level_static(segments)
-    after = segments[segments.index(level):]
-    if method == "joint":
-        mounted = [s.kind for s in after[:next((k for k, s in enumerate(after)
-                                                 if s.kind == "static" and s.up != level.up), len(after))]]
-        return "turn" in mounted and "static" in mounted[mounted.index("turn"):]
-    try:
-        index_positions(segments)
-    except ValueError:
-        return False
-    return any(t.start >= level.stop for t in full_turns(segments))
+    """What a session has so far, in the protocol's words (`Progress.found`), for a refusal that
+    says itself what is lacking."""
+    return Progress.of(segments, None).found()

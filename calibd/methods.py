@@ -52,12 +52,6 @@ class Estimator(Protocol):
         CalibrationError when the data cannot give it."""
 
 
-def _through_last_static(segments: list[detect.Segment]) -> list[detect.Segment]:
-    """The segments up to the last static: a turn still under way counts once the platform stops."""
-    last = max((k for k, s in enumerate(segments) if s.kind == "static"), default=-1)
-    return segments[:last + 1]
-
-
 @dataclass(frozen=True)
 class ThesisOptions:
     """The thesis real case: nominal with the interface tilt given, else linear."""
@@ -67,21 +61,19 @@ class ThesisOptions:
 
 
 class _SingleAxis:
-    """A method of a session on one mounting that the segment detector knows complete
-    (`detect.protocol_complete`): what it lacks is its `needs`."""
+    """A method of a session on one mounting whose protocol the segment detector knows
+    (`detect.protocol_lacking`)."""
 
     name: str
-    needs: str
 
     def missing(self, segments):
-        return None if detect.protocol_complete(_through_last_static(segments), self.name) else self.needs
+        return detect.protocol_lacking(segments, self.name)
 
 
 class Joint(_SingleAxis):
     """Every static and turning sample in one fit, with 1-sigma (the default method)."""
 
     name = "joint"
-    needs = "a level static, then a turn and a static after it on the same mounting"
     settings = {"fixed_amplitude": Setting(bool), "drift": Setting(bool)}
 
     def options(self, settings: Mapping[str, Any]) -> JointOptions:
@@ -96,8 +88,6 @@ class Thesis(_SingleAxis):
     """The thesis's real-case chain: level static, four index positions, a full turn."""
 
     name = "thesis"
-    needs = (f"a level static, statics at four platform headings 90 deg apart and a full turn (at least "
-             f"{detect.FULL_TURN_MIN_DEG:.0f} deg) after it, then a static")
     settings = {key: Setting(float, lambda a: -10 <= a <= 10, "an interface tilt in [-10, 10] deg")
                 for key in ("alpha_deg", "beta_deg")}
 
@@ -141,3 +131,9 @@ def estimator(name: str) -> Estimator:
         return ESTIMATORS[name]
     except KeyError:
         raise KeyError(f"no method {name!r} (known: {', '.join(ESTIMATORS)})") from None
+
+
+def progress(method: str, segments: list[detect.Segment]) -> detect.Progress:
+    """The one progress record of a session's segments through method `method`'s protocol: what
+    the daemon's state and `calibd watch` show, and what `calibd report` says of the thesis method."""
+    return detect.Progress.of(segments, estimator(method).missing(segments))

@@ -31,7 +31,7 @@ from stim300.progress import Progress
 from . import detect
 from .warmup import warm_up_end_s, warm_up_label
 from .errors import CalibdError, CalibrationError, SiteError
-from .methods import estimator
+from .methods import estimator, progress
 from .figures import DPI, FIGURE_WIDTH_IN, Figure, allan_figure, earth_rate_figure, platform_axis, timeline_figure
 from .frames import Site
 from .results import CalibrationResult, parse_result
@@ -86,17 +86,27 @@ def write_report(result_path, capture: CaptureSessions, output, stream=None) -> 
         bar.update(4, STEPS[4])
         figures.append(allan_figure(session, segments))
         bar.update(5, STEPS[5])
-        method = estimator("thesis")
-        try:
-            thesis = method.solve(session, site, segments, method.options({}))
-        except CalibrationError as exc:
-            thesis = str(exc)
+        thesis = thesis_comparison(session, site, segments)
         bar.update(6, STEPS[6])
         page = render_html(result, str(result_path), capture.path, whole, segments, roles, warm_up, figures, thesis,
                            read_truth(capture.path), figures_dir(output).name)
         written = _write(output, figures, page)
         bar.update(len(STEPS))
     return written
+
+
+def thesis_comparison(session: Session, site: Site, segments: list[detect.Segment]) -> CalibrationResult | str:
+    """The thesis method's result on the same segments, or why there is none: what its protocol
+    lacks, in the words of the session's progress record (the daemon's, so the two never
+    disagree), else what the data cannot give."""
+    record = progress("thesis", segments)
+    if not record.complete:
+        return f"its protocol lacks {record.missing}; found {record.found()}"
+    method = estimator("thesis")
+    try:
+        return method.solve(session, site, segments, method.options({}))
+    except CalibrationError as exc:
+        return str(exc)
 
 
 # ---------------------------------------------------------------- inputs
@@ -292,12 +302,13 @@ def _stream(result: CalibrationResult, whole: Session) -> str:
 
 def _segments_table(segments, roles) -> str:
     head = "<tr><th>#</th><th>role</th><th>start [s]</th><th>end [s]</th><th>platform angle chi [deg]</th>" \
-           "<th>turn angle [deg]</th><th>rate [deg/s]</th><th>up</th></tr>"
+           "<th>heading [deg]</th><th>turn angle [deg]</th><th>rate [deg/s]</th><th>up</th></tr>"
     rows = [head]
     for k, (s, role) in enumerate(zip(segments, roles), 1):
         r = segment_record(s, role)
         turn = r["kind"] == "turn"
         cells = [f"{r['start_s']:.3f}", f"{r['end_s']:.3f}", f"{r['platform_angle_deg']:.3f}",
+                 f"{detect.heading_deg(s.platform_angle_deg):.1f}",
                  f"{r['angle_deg']:.3f}" if turn else "", f"{r['rate_deg_s']:.4f}" if turn else ""]
         rows.append(f"<tr><td>{k}</td><td>{_e(role)}</td>" + "".join(f"<td class='num'>{c}</td>" for c in cells)
                     + f"<td>{_e(r.get('up', ''))}</td></tr>")

@@ -1,27 +1,37 @@
 """What `calibd watch` shows (as gpsmon/cgps show a receiver): the daemon's state and protocol
-progress, every estimate with its sigma and unit, the result's staleness, stream health and the
-device. `WatchView` gathers the messages; `render` (view -> lines) and `WatchView.update`'s event
+progress, every estimate with its sigma and unit, the result's staleness, stream health, the
+device and, when samples are watched, their rate and live values. `WatchView` gathers the
+messages; `render` (view -> lines, fitted to a terminal's width) and `WatchView.update`'s event
 line are the text, kept free of the terminal so tests read them directly.
 """
 
 from __future__ import annotations
 
+import re
+import textwrap
 from collections import deque
 from dataclasses import dataclass, field
+
+import numpy as np
 
 from .client import Device, Error, Fault, Message, Overflow, Poll, Result, Samples, State, Version, Watch
 from .results import CalibrationResult
 from .units import estimate_rows, value_sigma
 
 RATE_WINDOW_S = 2.0  # stream time the measured sample rate is averaged over
-SAMPLES_LINE_EVERY_S = 10.0  # plain lines: the sample rate is said this often (stream time)
+MEAN_WINDOW_S = 1.0  # stream time each axis's live mean is taken over
+BLOCKS = (("gyro", "deg/s"), ("acc", "g"), ("incl", "g"))  # blocks and their usual units (DEVICE may say others)
+LABEL_WIDTH = 9  # "progress " : a wrapped line goes on under the text after its label
+_NUMBER_UNIT = re.compile(r"(\d) (?=(deg/s|deg/h|deg|Hz|mg|g|s)\b)")  # kept on one line when wrapping
+SAMPLES_LINE_EVERY_S = 10.0  # plain lines: the sample rate and live values are said this often (stream time)
 # progress keys end in their unit; longest first, so "_deg_s" is not read as "_s"
 _SUFFIX_UNITS = (("_deg_s", "deg/s"), ("_deg_h", "deg/h"), ("_deg", "deg"), ("_hz", "Hz"), ("_mg", "mg"),
                  ("_s", "s"))
 
 
 def progress_text(progress: dict) -> str:
-    """A flat progress object in words: whatever keys it has, units taken from their names."""
+    """A flat progress object in words: whatever keys it has, units taken from their names;
+    `missing` last, and "protocol complete" where it is null."""
     parts = []
     for key, value in progress.items():
         if key == "missing":
@@ -38,8 +48,8 @@ def progress_text(progress: dict) -> str:
         else:
             text = f"{value}{unit}"
         parts.append(f"{name.replace('_', ' ')} {text}")
-    if progress.get("missing"):
-        parts.append(f"missing: {progress['missing']}")
+    if "missing" in progress:
+        parts.append(f"missing: {progress['missing']}" if progress["missing"] else "protocol complete")
     return ", ".join(parts) if parts else "-"
 
 
@@ -83,17 +93,34 @@ class WatchView:
     faults: Fault | None = None
     overflow_dropped: int = 0
     samples_kind: str = "none"
-    batches: deque = field(default_factory=deque)  # (t first, t last, count) of recent SAMPLES
+    recent: deque = field(default_factory=deque)  # the SAMPLES of the last RATE_WINDOW_S of stream time
     samples_said_t: float | None = None
     last_error: str | None = None
 
     def sample_rate_hz(self) -> float | None:
         """Samples per second of stream time over the last RATE_WINDOW_S."""
-        count = sum(n for _, _, n in self.batches)
+        count = sum(len(s.t) for s in self.recent)
         if count < 2:
             return None
-        span = self.batches[-1][1] - self.batches[0][0]
+        span = float(self.recent[-1].t[-1] - self.recent[0].t[0])
         return (count - 1) / span if span > 0 else None
+
+    def sample_values(self) -> list[tuple[str, str, np.ndarray, np.ndarray]]:
+        """(block, unit, last sample, mean of the last MEAN_WINDOW_S of stream time) of each block
+        the samples carry, per axis x, y, z, in the units DEVICE gives (else the sensor's usual)."""
+        if not self.recent:
+            return []
+        since_s = float(self.recent[-1].t[-1]) - MEAN_WINDOW_S
+        units = self.device.units if self.device else {}
+        values = []
+        for block, unit in BLOCKS:
+            last = getattr(self.recent[-1], block)
+            if last is None or not len(last):
+                continue
+            window = np.concatenate([getattr(s, block)[s.t > since_s] for s in self.recent
+                                     if getattr(s, block) is not None])
+            values.append((block, units.get(block) or unit, np.asarray(last[-1], float), window.mean(axis=0)))
+        return values
 
     def update(self, message, now_s: float) -> str | None:
         """Take one message; the line it is worth on its own (None: nothing worth a line)."""
@@ -137,16 +164,18 @@ class WatchView:
     def _take_samples(self, samples: Samples) -> str | None:
         if not len(samples.t):
             return None
-        self.batches.append((float(samples.t[0]), float(samples.t[-1]), len(samples.t)))
-        while self.batches and self.batches[-1][1] - self.batches[0][0] > RATE_WINDOW_S and len(self.batches) > 1:
-            self.batches.popleft()
+        self.recent.append(samples)
+        while len(self.recent) > 1 and samples.t[-1] - self.recent[0].t[0] > RATE_WINDOW_S:
+            self.recent.popleft()
         t = float(samples.t[-1])
         if self.samples_said_t is not None and t - self.samples_said_t < SAMPLES_LINE_EVERY_S:
             return None
         self.samples_said_t = t
         rate = self.sample_rate_hz()
+        values = "".join(f"; {block} last {_axes(last)}, {MEAN_WINDOW_S:g}-s mean {_axes(mean)} {unit}"
+                         for block, unit, last, mean in self.sample_values())
         return f"samples: {'corrected' if samples.corrected else 'raw'}, " + \
-            ("rate not yet measured" if rate is None else f"{rate:.1f} Hz")
+            ("rate not yet measured" if rate is None else f"{rate:.1f} Hz") + values
 
     def result_line(self) -> str:
         result = self.result
@@ -156,8 +185,30 @@ class WatchView:
         return f"result {_result_head(result)}: {estimates}" + (f"; {stale}" if stale else "")
 
 
-def render(view: WatchView, now_s: float) -> list[str]:
-    """The whole screen for `view` at host time `now_s` (s, monotonic): one string per line."""
+def _axes(values: np.ndarray) -> str:
+    """x, y, z of one block, signed, aligned in columns."""
+    return " ".join(f"{v:+11.6f}" for v in values)
+
+
+def fit(lines: list[str], width: int | None) -> list[str]:
+    """`lines` within `width` columns (None: as they are): a longer line wraps at spaces (never
+    between a number and its unit) and goes on under the text after its label; a single word wider
+    than that is cut with an ellipsis, so the terminal never breaks a word."""
+    if width is None:
+        return lines
+    indent = " " * min(LABEL_WIDTH, width // 2)
+    out = []
+    for line in lines:
+        parts = [line] if len(line) <= width else [part.replace("\xa0", " ") for part in textwrap.wrap(
+            _NUMBER_UNIT.sub("\\1\xa0", line), width, subsequent_indent=indent, break_long_words=False,
+            break_on_hyphens=False)]
+        out += [part if len(part) <= width else part[:width - 1] + "\u2026" for part in parts]
+    return out
+
+
+def render(view: WatchView, now_s: float, width: int | None = None) -> list[str]:
+    """The whole screen for `view` at host time `now_s` (s, monotonic), one string per line,
+    within `width` columns (a terminal's; None: lines as long as they are)."""
     release = "" if view.version is None else \
         f" (calibd {view.version.release}, protocol {view.version.proto_major}.{view.version.proto_minor})"
     lines = [f"calibd watch {view.where}{release}"]
@@ -181,10 +232,15 @@ def render(view: WatchView, now_s: float) -> list[str]:
     lines.append(f"faults   {faults}")
     if view.samples_kind != "none":
         rate = view.sample_rate_hz()
+        values = view.sample_values()
         lines.append(f"samples  {view.samples_kind}, " + ("rate not yet measured" if rate is None else
-                                                           f"{rate:.1f} Hz measured"))
+                                                           f"{rate:.1f} Hz measured")
+                     + (f"; x, y, z: the last sample and the mean of the last {MEAN_WINDOW_S:g} s" if values else ""))
+        for block, unit, last, mean in values:
+            lines.append(f"  {block:<5}last {_axes(last)} {unit}")
+            lines.append(f"  {'':<5}mean {_axes(mean)} {unit}")
     if view.overflow_dropped:
         lines.append(f"overflow {view.overflow_dropped} messages lost by this client (reading too slowly)")
     if view.last_error:
         lines.append(f"error    {view.last_error}")
-    return lines
+    return fit(lines, width)

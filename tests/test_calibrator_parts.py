@@ -199,13 +199,17 @@ def test_a_solve_says_what_the_protocol_lacks_or_gives_the_result_with_its_sessi
     session = load_session(str(HEADING137))
     segments = session_segments(session)
     lacking = solve(session, segments[:1], Site(60.0), MethodConfig(), 4)
-    assert lacking.result is None and not lacking.failed and "waiting for: a level static, then a turn" in \
-        lacking.detail
+    assert lacking.result is None and not lacking.failed
+    assert lacking.detail.endswith(", 1 static at 0/4 index headings, 0 index turns, 0 full turns, 0 other turns; "
+                                   "waiting for: a turn and a static after it on the level static's mounting (+Z up)")
+    assert lacking.progress.fields()["missing"] == lacking.detail.split("waiting for: ")[1]
     solved = solve(session, segments, Site(60.0), MethodConfig(), 4)
     assert solved.result.session["number"] == 4
     assert solved.result.session["duration_s"] == pytest.approx(float(session.time_s[-1]))
     yaw = solved.result.estimates["yaw"]
-    assert solved.detail == f"solved on {session.time_s[-1]:.0f} s: yaw {value_sigma(yaw.value, yaw.sigma, 'deg')}"
+    assert solved.detail == (f"solved on {session.time_s[-1]:.0f} s: yaw {value_sigma(yaw.value, yaw.sigma, 'deg')}; "
+                             f"{solved.progress.found()}; protocol complete")
+    assert solved.progress.complete and solved.progress.fields()["missing"] is None
     stale = stale_result(solved.result, "why")
     assert stale.stale["reason"] == "why" and stale.warnings[0] == "stale: why"
     assert solved.result.stale is None  # a copy: the result itself is unchanged
@@ -242,6 +246,10 @@ def test_listeners_hear_the_state_sequence_of_a_fixture_replay_in_their_order(tm
     assert recorder.results[-1] is calibrator.result
     state = json.loads((tmp_path / "state.json").read_text())
     assert state["state"] == "SOLVED" and state["capture"] == "heading137" and state["detail"] == calibrator.detail
+    from calibd.cli import _status  # what `calibd status` prints: the progress record's words, complete once solved
+    record = calibrator.progress
+    assert record.complete and f"; {record.found()}; protocol complete), updated " in _status(tmp_path, False)
+    assert calibrator.progress_fields() | record.fields() == calibrator.progress_fields()  # STATE's progress
     written = json.loads((tmp_path / "result.json").read_text())
     assert written["estimates"]["yaw"]["value"] == calibrator.result.estimates["yaw"].value
     assert len(list((tmp_path / "history").iterdir())) == len(recorder.results)

@@ -246,3 +246,20 @@ def test_a_refusal_of_what_is_not_the_bench_campaign_has_no_bench_hint():
     with pytest.raises(ProtocolIncomplete) as refused:  # the level static alone: no turn after it
         joint_real_case(replace(session, **first_10_s), Site(40.59129))
     assert "no turn after the level static" in str(refused.value) and "bench" not in str(refused.value)
+
+
+def test_replay_with_a_config_that_serves_says_it_serves_only_with_serve(capture_file, tmp_path, capsys):
+    """A run's configuration given to replay: its [serve] table is not served without --serve,
+    and one stderr line says so; the exit status is the replay's own."""
+    path, _ = capture_file
+    site = (f'[serial]\nport = "{tmp_path / "tty"}"\n[site]\nlatitude_deg = 40\n'
+            f'[output]\nstate_dir = "{tmp_path / "state"}"\n')
+    plain, served = tmp_path / "plain.toml", tmp_path / "served.toml"
+    plain.write_text(site)
+    served.write_text(site + f'[serve]\nsocket = "{tmp_path / "calibd.sock"}"\n')
+    code = calibd_main(["replay", str(path), "--config", str(plain)])
+    assert code == 1 and "[serve]" not in capsys.readouterr().err  # too short to solve: replayed, no result
+    assert calibd_main(["replay", str(path), "--config", str(served)]) == code
+    notes = [line for line in capsys.readouterr().err.splitlines() if "[serve]" in line]
+    assert notes == [f"calibd replay: {served} has a [serve] table: a replay serves it only with --serve"]
+    assert not (tmp_path / "calibd.sock").exists()

@@ -371,6 +371,13 @@ def test_progress_says_every_key_with_its_unit():
     assert progress_text({}) == "-"
 
 
+def test_progress_says_complete_once_nothing_is_missing():
+    """After SOLVED the daemon's record has `missing` null: the words say the protocol is complete."""
+    solved = {"warm": True, "statics": 6, "index_headings": 4, "missing": None}
+    assert progress_text(solved) == "warm yes, statics 6, index headings 4, protocol complete"
+    assert "missing" not in progress_text(solved) and "complete" not in progress_text({"warm": False})
+
+
 def watched(now_s: float = 100.0, result=RESULT_DOC) -> WatchView:
     view = WatchView("/run/calibd/ttyUSB0/calibd.sock")
     for t, doc in ((0.0, version_message()), (1.0, DEVICE), (2.0, STATE), (40.0, {"class": "RESULT", "result": result}),
@@ -414,8 +421,48 @@ def test_render_measures_the_sample_rate_and_says_overflows():
         view.update(Samples(False, t, t, np.arange(200) % 256, np.zeros((200, 3)), None, None), 60.0 + k / 10)
     view.update(Overflow(7), 64.0)
     screen = render(view, 64.0)
-    assert "samples  raw, 2000.0 Hz measured" in screen
+    assert "samples  raw, 2000.0 Hz measured; x, y, z: the last sample and the mean of the last 1 s" in screen
     assert "overflow 7 messages lost by this client (reading too slowly)" in screen
+
+
+def test_render_shows_the_last_sample_and_the_1_s_mean_of_each_axis_with_units():
+    view = watched()
+    view.update(Watch(True, "corrected"), 60.0)
+    for k in range(30):  # 0.1 s batches at 2000 Hz: gyro X steps from 0 to 0.03 deg/s at 1.5 s
+        t = (k * 200 + np.arange(200)) / 2000.0
+        gyro = np.tile([0.03 * (k >= 15), -0.5, 0.25], (200, 1))
+        gyro[-1, 2] = 0.3 if k == 29 else 0.25  # the last sample stands out on Z
+        acc = np.tile([0.0, 0.0, -1.0], (200, 1))
+        view.update(Samples(True, t, t, np.arange(200) % 256, gyro, acc, acc * 1.0001), 60.0 + k / 10)
+    screen = render(view, 64.0)
+    start = screen.index(next(line for line in screen if line.startswith("samples  corrected")))
+    # the mean of the last 1 s of stream time (2000 samples): X after its step, Z with 0.05 / 2000 deg/s more
+    assert screen[start + 1:start + 7] == [
+        "  gyro last   +0.030000   -0.500000   +0.300000 deg/s",
+        "       mean   +0.030000   -0.500000   +0.250025 deg/s",
+        "  acc  last   +0.000000   +0.000000   -1.000000 g",
+        "       mean   +0.000000   +0.000000   -1.000000 g",
+        "  incl last   +0.000000   +0.000000   -1.000100 g",
+        "       mean   +0.000000   +0.000000   -1.000100 g"]
+    line = view.update(Samples(True, t + 10.0, t + 10.0, np.arange(200) % 256, gyro, acc, None), 70.0)
+    assert line.startswith("samples: corrected, ") and "; gyro last   +0.030000" in line and " deg/s; acc " in line
+    assert "incl" not in line  # a block the datagrams lack is not shown
+
+
+def test_render_fits_the_terminal_width_without_breaking_words():
+    view = watched()
+    view.update(client_module.message_of(dict(STATE, progress=dict(PROGRESS, missing=(
+        "statics at headings 0, 270 deg after the level static and a full turn (at least 350 deg) after the level "
+        "static")))), 60.0)
+    whole = render(view, 100.0)
+    for width in (40, 60, 80):
+        screen = render(view, 100.0, width)
+        assert all(len(line) <= width for line in screen), width
+        words = {word for line in whole for word in line.split()}
+        cut = [word for line in screen for word in line.split() if word not in words]
+        assert all(word.endswith("\u2026") for word in cut), cut  # only a word wider than the screen is cut
+        assert any(line.startswith("         ") for line in screen)  # wrapped under the text after its label
+    assert render(view, 100.0, 200) == whole
 
 
 def test_stale_result_wording_matches_the_daemon():

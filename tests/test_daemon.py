@@ -55,6 +55,24 @@ def test_warm_up_then_protocol_gives_a_result_near_the_truth():
     assert last["yaw"].sigma == min(r.estimates["yaw"].sigma for r in results)
 
 
+def test_the_state_progress_and_detail_are_one_record_complete_once_solved():
+    """What STATE carries (`progress`) and what `calibd status` prints (the detail) come from one
+    record: the same statics and the same missing step at every state, and "complete" once solved."""
+    said = []
+    calibrator = Calibrator(SITE, WarmupConfig(window_s=100.0), listeners=[Callbacks(
+        state=lambda state, detail: said.append((state, detail, calibrator.progress_fields())))])
+    replay(CaptureSource((FIXTURES / "warmup_then_protocol_125hz.bin").read_bytes()), calibrator)
+    collecting = [(detail, fields) for state, detail, fields in said if "waiting for: " in detail]
+    assert collecting
+    for detail, fields in collecting:
+        statics = int(re.search(r"(\d+) statics? at (\d)/4 index headings", detail).group(1))
+        assert (statics, detail.split("waiting for: ")[1]) == (fields["statics"], fields["missing"]), detail
+    solved = [(detail, fields) for state, detail, fields in said if state == State.SOLVED]
+    assert solved and all(fields["missing"] is None and detail.endswith("; protocol complete")
+                          for detail, fields in solved)
+    assert f"{solved[-1][1]['statics']} statics at {solved[-1][1]['index_headings']}/4 index headings" in solved[-1][0]
+
+
 @pytest.mark.parametrize("window_s", [100.0, 600.0])
 def test_no_session_starts_during_the_steep_part_of_the_warm_up(window_s):
     """The fixture's temperature rises with a 100 s time constant from power-up: whatever the

@@ -26,7 +26,8 @@ from calibd import detect
 from calibd.figures import (YAW_MARKER, earth_rate_figure, earth_rate_seen, earth_term, guide_points, north_chi_deg,
                             platform_axis, timeline_figure)
 from calibd.noise import characterise
-from calibd.report import FAR_SIGMAS, MATPLOTLIB_MISSING, _estimates_table, analysis_start_s, read_truth, write_report
+from calibd.report import (FAR_SIGMAS, MATPLOTLIB_MISSING, _estimates_table, _segments_table, analysis_start_s,
+                           read_truth, thesis_comparison, write_report)
 from calibd.segments import session_segments
 from calibd.results import write_result
 from calibd.session import power_up_session
@@ -242,6 +243,31 @@ def test_earth_rate_figure_marks_the_yaw():
 def test_segments_are_the_protocols(rendered):
     roles = re.findall(r"<tr><td>\d+</td><td>([a-z ]+)</td>", rendered["page"].split('id="segments"')[1])
     assert roles == ["static", "index turn"] * 4 + ["static", "full turn", "static"]
+
+
+def _statics_at(*chis: float) -> list[detect.Segment]:
+    """Statics at these platform angles (deg) with the turns between them."""
+    out = []
+    for k, chi in enumerate(chis):
+        if k:
+            angle = chi - chis[k - 1]
+            out.append(detect.Segment("turn", 100 * k - 50, 100 * k, k - 0.5, k, chis[k - 1], angle_deg=angle,
+                                      rate_deg_s=angle * 2, cruise_start=100 * k - 40, cruise_stop=100 * k - 10,
+                                      cruise_angle_deg=angle * 0.8))
+        out.append(detect.Segment("static", 100 * k, 100 * k + 50, k, k + 0.5, chi, up="+Z"))
+    return out
+
+
+def test_the_thesis_column_says_what_the_protocol_lacks_with_headings_modulo_360():
+    """A daemon's session whose statics after the level one lie at 90, 180, 270 and 990 deg: the
+    thesis method lacks the 0 deg heading, and the count of headings says 3/4, not 4/4."""
+    segments = _statics_at(0.0, 90.0, 180.0, 270.0, 990.0)
+    note = thesis_comparison(None, SITE, segments)  # the session is not needed to say what is lacking
+    assert note == ("its protocol lacks a static at heading 0 deg after the level static; found 5 statics at 3/4 "
+                    "index headings, 3 index turns, 1 full turn, 0 other turns")
+    table = _segments_table(segments, detect.segment_roles(segments))
+    assert "<th>heading [deg]</th>" in table
+    assert "<td class='num'>990.000</td><td class='num'>270.0</td>" in table  # chi, and its heading
 
 
 def test_progress_bar_on_a_terminal_only(rendered):

@@ -23,7 +23,7 @@ import numpy as np
 from .. import detect
 from ..config import DetectionConfig, MethodConfig
 from ..frames import Site
-from ..methods import estimator
+from ..methods import estimator, progress
 from ..results import CalibrationResult
 from ..session import PowerUpCuts, Session, missing_sensors
 from ..warmup import WarmupConfig
@@ -52,6 +52,7 @@ class Calibrator:
         self._inherited = previous  # checked against the stream's sensor while it is the result held
         self.sessions = 0
         self.session_id: str | None = None
+        self.progress = progress(self.method.name, [])  # the session's progress record (detect.Progress)
         self.sensor: dict = {}
         self.stream_stats: dict = {}
         self._cuts = PowerUpCuts()
@@ -130,6 +131,15 @@ class Calibrator:
         self._start_session(warmth.start_s, warmth.detail)
         self._solve()
 
+    def progress_fields(self) -> dict:
+        """STATE's `progress` (docs/protocol.md): whether warmed up, the sessions so far, the
+        session's length (s) and the fields of its progress record, the one the detail words."""
+        start_s = self.collector.session_start_s
+        if start_s is None:
+            return {"warm": False, "sessions": self.sessions}
+        return {"warm": True, "sessions": self.sessions, "session_s": round(self.collector.end_s - start_s, 1),
+                **self.progress.fields()}
+
     def _new_power_up(self) -> None:
         self.collector = Collector()  # this power-up's data
         self._warm = WarmWatch()
@@ -169,6 +179,7 @@ class Calibrator:
 
     def _start_session(self, start_s: float, detail: str) -> None:
         self.collector.start_session(start_s, self.detection)
+        self.progress = progress(self.method.name, [])  # the session's record, until its first look
         self._trigger.session_started(self.collector.end_s, self.method.resolve_every_s)
         self.sessions += 1
         self.session_id = str(uuid.uuid4())  # unique to this session, in every result of it
@@ -185,6 +196,7 @@ class Calibrator:
         session, segments = looked or self._look()
         self._trigger.solved(self.collector.end_s, self.method.resolve_every_s)
         attempt = solve(session, segments, self.site, self.method, self.sessions, self.session_id)
+        self.progress = attempt.progress
         if attempt.result is not None:
             self.result = attempt.result
             self._set(State.SOLVED, attempt.detail)

@@ -13,7 +13,7 @@ from .. import detect
 from ..config import MethodConfig
 from ..errors import CalibrationError
 from ..frames import Site
-from ..methods import estimator
+from ..methods import estimator, progress
 from ..results import CalibrationResult
 from ..session import Session
 from ..units import value_sigma
@@ -24,10 +24,12 @@ log = structlog.get_logger("calibd")
 @dataclass(frozen=True)
 class Attempt:
     """What a solve gave: a result, or none and why (what the protocol lacks, what the data
-    cannot give, or a fault of calibd: `failed`); `detail` is what the status says."""
+    cannot give, or a fault of calibd: `failed`); `detail` is what the status says, in the words
+    of `progress`, the session's progress record (STATE's `progress`)."""
 
     result: CalibrationResult | None
     detail: str
+    progress: detect.Progress
     failed: bool = False
 
 
@@ -37,23 +39,23 @@ def solve(session: Session, segments: list[detect.Segment], site: Site, method: 
     the daemon session's id, written in every result of it."""
     duration_s = float(session.time_s[-1])
     chosen = estimator(method.name)
-    lacking = chosen.missing(segments)
-    if lacking is not None:
-        return Attempt(None, f"collecting: {duration_s:.0f} s of data, {detect.protocol_progress(segments)}; "
-                             f"waiting for: {lacking}")
+    record = progress(method.name, segments)
+    if not record.complete:
+        return Attempt(None, f"collecting: {duration_s:.0f} s of data, {record.words()}", record)
     try:
         result = chosen.solve(session, site, segments, chosen.options(asdict(method)))
     except CalibrationError as exc:
-        return Attempt(None, f"collecting: {duration_s:.0f} s of data; {exc}")
+        return Attempt(None, f"collecting: {duration_s:.0f} s of data; {exc}", record)
     except Exception as exc:  # a fault of calibd, not of the data: said as such, and the daemon runs on
         log.exception("solve_failed")
         return Attempt(None, f"solve failed: {type(exc).__name__}: {exc} (a fault in calibd; the log has its "
-                             "traceback)", failed=True)
+                             "traceback)", record, failed=True)
     result = replace(result, session_id=session_id,
                      session={"number": number, "duration_s": duration_s,
                               "solved_at": datetime.now(timezone.utc).isoformat(timespec="seconds")})
     yaw = result.estimates["yaw"]
-    return Attempt(result, f"solved on {duration_s:.0f} s: yaw {value_sigma(yaw.value, yaw.sigma, yaw.unit)}")
+    return Attempt(result, f"solved on {duration_s:.0f} s: yaw {value_sigma(yaw.value, yaw.sigma, yaw.unit)}; "
+                           f"{record.words()}", record)
 
 
 def stale_result(result: CalibrationResult, reason: str) -> CalibrationResult:

@@ -24,14 +24,12 @@ import structlog
 from stim300.capture import StreamInfo
 from stim300.clock import CounterClock
 
-from .. import detect
 from ..config import ServeConfig
 from ..daemon import Calibrator, Listener, State
-from ..methods import estimator
 from ..results import CalibrationResult, result_json
 from ..session import PowerUpCuts
-from .protocol import (MAX_TOKEN_BYTES, token_of, SAMPLES_MAX_S, Command, ProtocolError, device_message, fault_message,
-                       poll_message, result_message, samples_line, state_message)
+from .protocol import (MAX_TOKEN_BYTES, SAMPLES_MAX_S, Command, ProtocolError, device_message, fault_message,
+                       poll_message, result_message, samples_line, state_message, token_of)
 from .correct import result_biases, sample_units, samples_correctable
 from .ptys import CorrectedPty, PtyError, RawPty, Throttle
 from .sockets import ServeError, SocketServer
@@ -137,21 +135,8 @@ class Hub(Listener):
         self._publish(result_message(result.to_dict()))
 
     def _progress(self) -> dict:
-        """The protocol's progress, from what the calibrator shows of its session."""
-        calibrator = self._calibrator
-        if calibrator is None:
-            return {}
-        collector = calibrator.collector
-        start_s = collector.session_start_s
-        if start_s is None:
-            return {"warm": False, "sessions": calibrator.sessions}
-        final = list(collector.tracker.final)
-        roles = detect.segment_roles(final)
-        return {"warm": True, "sessions": calibrator.sessions, "session_s": round(collector.end_s - start_s, 1),
-                "statics": roles.count("static"), "index_headings": len(detect.index_headings(final)),
-                "index_turns": roles.count("index turn"),
-                "full_turns": roles.count("full turn"), "other_turns": roles.count("other turn"),
-                "missing": estimator(calibrator.method.name).missing(final)}
+        """The protocol's progress: the calibrator's record of its session, the one its detail words."""
+        return {} if self._calibrator is None else self._calibrator.progress_fields()
 
     def stream_seen(self, info: StreamInfo, counts: dict, increases: dict) -> None:
         """The daemon's loop after each batch: the stream as it is (DEVICE) and the faults that
