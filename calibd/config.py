@@ -136,7 +136,7 @@ class _ConfigTable(_Table):
     def require(self, key: str, kind, check, expect: str):
         value = self.get(key, None, kind, check, expect)
         if value is None:  # TOML has no null: None means the key is absent
-            self.fail(key, f"missing: expected {expect}")
+            self.missing(key, f"expected {expect}")
         return value
 
 

@@ -10,6 +10,7 @@ The truth file written beside a simulated capture is read back by `truth_from_js
 
 from __future__ import annotations
 
+import difflib
 from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
@@ -233,6 +234,11 @@ class _Table:
             self.fail(key, f"{_shown(value)} is not {expect}")
         return value
 
+    def missing(self, key: str, words: str):
+        """Fail: `key` is missing; an unknown key of the table close to it is named (a typo)."""
+        typo = difflib.get_close_matches(key, [k for k in self.data if k not in self.used], 1, 0.75)
+        self.fail(key, f"missing: {words}" + (f" (the table has {typo[0]!r}, an unknown key: a typo?)" if typo else ""))
+
     def finish(self) -> None:
         unknown = sorted(set(self.data) - self.used)
         if unknown:
@@ -290,7 +296,7 @@ def site_from_table(t: _Table) -> Site:
     table says where."""
     lat = t.get("latitude_deg", None, float)
     if lat is None:
-        t.fail("latitude_deg", "missing: the site's latitude is needed for the Earth rate")
+        t.missing("latitude_deg", "the site's latitude is needed for the Earth rate")
     try:
         site = Site(lat, t.get("height_m", 0.0, float), t.get("g0", None, float))
     except SiteError as exc:

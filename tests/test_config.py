@@ -318,3 +318,18 @@ def test_example_serve_section_loads_once_uncommented():
     assert config.serve.corrected_before_result == "hold" and config.serve.group == "stim300"
     assert config.serve.tcp_token_file == Path("/etc/calibd/tcp.token") and not config.serve.tcp_open
     assert config.serve.idle_timeout_s == 30 and config.serve.max_clients_per_uid == 16
+
+
+@pytest.mark.parametrize("text, says", [
+    ('[serial]\nport = "/dev/x"\n[site]\nlatitud_deg = 60\n[output]\nstate_dir = "s"\n',
+     "[site] latitude_deg: missing: the site's latitude is needed for the Earth rate (the table has 'latitud_deg', "
+     "an unknown key: a typo?)"),
+    ('[serial]\nprot = "/dev/x"\n[site]\nlatitude_deg = 60\n[output]\nstate_dir = "s"\n',
+     "[serial] port: missing: expected a device path such as \"/dev/ttyUSB0\" or a pyserial URL (the table has "
+     "'prot', an unknown key: a typo?)"),
+    ('[serial]\nport = "/dev/x"\n[site]\nheight_m = 3\n[output]\nstate_dir = "s"\n',
+     "[site] latitude_deg: missing: the site's latitude is needed for the Earth rate"),
+])
+def test_a_missing_key_names_the_unknown_key_it_was_probably_typed_as(tmp_path, text, says):
+    message = error(write(tmp_path, text))
+    assert message.endswith(says), message
