@@ -121,6 +121,20 @@ class Samples:
 
 
 @dataclass(frozen=True)
+class Correction:
+    """The biases the corrected outputs subtract changed (the [serve] `correction` policy chose
+    the result of `session_id`): `old` (None: the power-up's first) and `new` map bias names to
+    (value, unit) as results give them (deg/h, mg); the corrected samples carry `new` from stream
+    time `from_t` (s, as Samples `t`; None when the daemon timed no samples) on."""
+
+    policy: str
+    session_id: str | None
+    from_t: float | None
+    old: dict[str, tuple[float, str]] | None
+    new: dict[str, tuple[float, str]]
+
+
+@dataclass(frozen=True)
 class Overflow:
     """`dropped` messages (oldest SAMPLES first) this client lost since the last OVERFLOW."""
 
@@ -181,6 +195,16 @@ def _samples(doc: dict) -> Samples:
                    _rows(doc.get("acc"), n, "acc"), _rows(doc.get("incl"), n, "incl"))
 
 
+def _biases(doc: dict | None) -> dict[str, tuple[float, str]] | None:
+    return None if doc is None else {str(name): (float(b["value"]), str(b["unit"])) for name, b in doc.items()}
+
+
+def _correction(doc: dict) -> Correction:
+    from_t = doc.get("from_t")
+    return Correction(str(doc["policy"]), doc.get("session_id"), None if from_t is None else float(from_t),
+                      _biases(doc.get("old")), _biases(doc["new"]))
+
+
 _TYPES = {
     "VERSION": lambda d: Version(str(d["release"]), int(d["proto_major"]), int(d["proto_minor"])),
     "AUTH": lambda d: Auth(bool(d["authenticated"])),
@@ -190,6 +214,7 @@ _TYPES = {
     "FAULT": lambda d: Fault(dict(d["counts"]), dict(d.get("increase") or {})),
     "SAMPLES": _samples,
     "OVERFLOW": lambda d: Overflow(int(d["dropped"])),
+    "CORRECTION": _correction,
     "POLL": lambda d: Poll(_state(d["state"]), _result(d["result"], "POLL")),
     "DEVICE": lambda d: Device(str(d["path"]), d.get("part_number"), d.get("serial_number"),
                                d.get("datagram_id"), None if d.get("rate_hz") is None else float(d["rate_hz"]),

@@ -66,6 +66,7 @@ class MethodConfig:
 
 
 BEFORE_RESULT = ("hold", "raw")  # what the corrected outputs carry before the power-up's first result
+CORRECTIONS = ("latest", "first", "best")  # which of the power-up's results the corrected outputs subtract
 
 
 @dataclass(frozen=True)
@@ -76,6 +77,7 @@ class ServeConfig:
     raw_pty: Path | tuple[Path, ...] | None = None  # symlink(s) to ptys carrying the sensor's bytes unchanged
     corrected_pty: Path | None = None  # a symlink to a pty carrying bias-corrected datagrams
     corrected_before_result: str = "hold"  # "hold": nothing corrected before a result; "raw": raw data
+    correction: str = "latest"  # which result of the power-up is subtracted (calibd.serve.correct.replaces)
     allow_service_mode: bool = False  # SERVICEMODE, UTILITYMODE and R written into a raw pty reach the sensor
     socket: Path | None = None  # Unix stream socket speaking calibd.serve.protocol
     tcp: tuple[str, int] | None = None  # (host, port) of the same protocol on TCP
@@ -249,6 +251,8 @@ def _serve(t: _ConfigTable) -> ServeConfig:
         corrected_pty=path("corrected_pty", "the corrected pty's link"),
         corrected_before_result=t.get("corrected_before_result", "hold", str, lambda v: v in BEFORE_RESULT,
                                       " or ".join(f'"{v}"' for v in BEFORE_RESULT)),
+        correction=t.get("correction", "latest", str, lambda v: v in CORRECTIONS,
+                         " or ".join(f'"{v}"' for v in CORRECTIONS)),
         allow_service_mode=t.get("allow_service_mode", False, bool),
         socket=path("socket", "the Unix socket"), tcp=None if tcp is None else parse_tcp(tcp),
         tcp_token_file=path("tcp_token_file", "the TCP clients' token"), tcp_open=t.get("tcp_open", False, bool),

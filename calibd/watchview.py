@@ -14,7 +14,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .client import Device, Error, Fault, Message, Overflow, Poll, Result, Samples, State, Version, Watch
+from .client import (Correction, Device, Error, Fault, Message, Overflow, Poll, Result, Samples, State, Version,
+                     Watch)
 from .results import CalibrationResult
 from .units import estimate_rows, value_sigma
 
@@ -72,6 +73,13 @@ def _counts(counts: dict, increase: dict) -> str:
                      for name, count in counts.items()) or "none"
 
 
+def correction_text(correction: Correction) -> str:
+    """The biases the corrected outputs now subtract, and since when."""
+    since = "" if correction.from_t is None else f" from t = {correction.from_t:.6f} s"
+    biases = ", ".join(f"{name} {value:+.4g} {unit}" for name, (value, unit) in correction.new.items())
+    return f"{correction.policy} result {correction.session_id}{since}: {biases}"
+
+
 def _device_text(device: Device) -> str:
     rate = "" if device.rate_hz is None else f", {device.rate_hz:g} Hz"
     units = ", ".join(f"{block} {unit}" for block, unit in device.units.items())
@@ -91,6 +99,7 @@ class WatchView:
     result: CalibrationResult | None = None
     result_at_s: float | None = None
     faults: Fault | None = None
+    correction: Correction | None = None
     overflow_dropped: int = 0
     samples_kind: str = "none"
     recent: deque = field(default_factory=deque)  # the SAMPLES of the last RATE_WINDOW_S of stream time
@@ -146,6 +155,9 @@ class WatchView:
         if isinstance(message, Fault):
             self.faults = message
             return f"faults: {_counts(message.counts, message.increase)}"
+        if isinstance(message, Correction):
+            self.correction = message
+            return f"correction: {correction_text(message)}"
         if isinstance(message, Overflow):
             self.overflow_dropped += message.dropped
             return f"overflow: this client lost {message.dropped} messages (reading too slowly)"
@@ -230,6 +242,8 @@ def render(view: WatchView, now_s: float, width: int | None = None) -> list[str]
         lines += [f"  warning: {w}" for w in view.result.warnings]
     faults = "none reported" if view.faults is None else _counts(view.faults.counts, view.faults.increase)
     lines.append(f"faults   {faults}")
+    if view.correction is not None:
+        lines.append(f"correction {correction_text(view.correction)}")
     if view.samples_kind != "none":
         rate = view.sample_rate_hz()
         values = view.sample_values()

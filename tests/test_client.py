@@ -24,7 +24,8 @@ from calibd.client import (Client, ClientError, Device, Error, Fault, Message, O
                            ServerGone, State, VersionError, Watch)
 from calibd.frames import Site
 from calibd.results import make_result
-from calibd.serve.protocol import ProtocolError, encode, error_message, parse_command, version_message
+from calibd.serve.protocol import (ProtocolError, correction_message, decode, encode, error_message, parse_command,
+                                   version_message)
 from calibd.units import DEG
 from calibd.watchview import WatchView, progress_text, render, value_sigma
 
@@ -241,6 +242,15 @@ def test_permission_denied_is_said_even_where_root_would_pass(monkeypatch, tmp_p
 def test_an_empty_samples_batch_has_empty_arrays():
     samples = client_module.message_of(dict(SAMPLES, t=[], t_host=[], counter=[], gyro=[], acc=[]))
     assert samples.t.shape == (0,) and samples.gyro.shape == (0, 3) and samples.incl is None
+
+
+def test_a_correction_is_typed_with_its_units_and_watch_says_it():
+    new = {"gyro_bias_x": (2.2, "deg/h"), "incl_bias_y": (-0.15, "mg")}
+    doc = decode(encode(correction_message("best", "s1", 12.0005, None, new)))
+    correction = client_module.message_of(doc)
+    assert correction == client_module.Correction("best", "s1", 12.0005, None, new)
+    line = WatchView("x").update(correction, 0.0)
+    assert line == "correction: best result s1 from t = 12.000500 s: gyro_bias_x +2.2 deg/h, incl_bias_y -0.15 mg"
 
 
 def test_tcp_host_port(tmp_path):
@@ -478,7 +488,7 @@ def test_watch_prints_one_line_per_event_when_not_a_terminal(serve):
     process = calibd("watch", path)
     out, err = process.communicate(timeout=60)
     lines = out.decode().splitlines()
-    assert lines[0].startswith("calibd ") and ", protocol 1.1" in lines[0]
+    assert lines[0].startswith("calibd ") and ", protocol 1.2" in lines[0]
     assert lines[1] == "watching: on, samples none"
     assert "state COLLECTING: collecting: 3 statics; progress: warm yes, session 312.5 s" in lines[2]
     assert lines[3] == "faults: crc_errors 2 (+1), lost_samples 5"

@@ -333,3 +333,10 @@ def test_example_serve_section_loads_once_uncommented():
 def test_a_missing_key_names_the_unknown_key_it_was_probably_typed_as(tmp_path, text, says):
     message = error(write(tmp_path, text))
     assert message.endswith(says), message
+
+
+def test_a_correction_policy_outside_the_choices_is_one_line(tmp_path):
+    text = '[serial]\nport = "/dev/x"\n[site]\nlatitude_deg = 60\n[output]\nstate_dir = "s"\n[serve]\n' \
+           'corrected_pty = "/tmp/c"\ncorrection = "median"\n'
+    says = """[serve] correction: 'median' is not "latest" or "first" or "best\""""
+    assert error(write(tmp_path, text)).endswith(says)

@@ -7,6 +7,11 @@ parser's tap (`tap`, reader thread). The tap only queues the decoded samples; th
 server's thread cuts them into SAMPLES batches, times them with the counter clock (the rule
 the daemon's Collector times by), encodes each batch once per kind and shares the bytes among
 the clients watching that kind.
+
+Which result's biases the corrected outputs subtract ([serve] `correction`) is decided when a
+result comes (`correct.replaces`), taken from the next read on by the corrected pty and the
+corrected SAMPLES alike, and told by the server thread (CORRECTION, with the stream time of that
+read's first sample) before the first SAMPLES carrying it.
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ import os
 import secrets
 import stat
 import threading
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -28,9 +34,9 @@ from ..config import ServeConfig
 from ..daemon import Calibrator, Listener, State
 from ..results import CalibrationResult, result_json
 from ..session import PowerUpCuts
-from .protocol import (MAX_TOKEN_BYTES, SAMPLES_MAX_S, Command, ProtocolError, device_message, fault_message,
-                       poll_message, result_message, samples_line, state_message, token_of)
-from .correct import result_biases, sample_units, samples_correctable
+from .protocol import (MAX_TOKEN_BYTES, SAMPLES_MAX_S, Command, ProtocolError, correction_message, device_message,
+                       fault_message, poll_message, result_message, samples_line, state_message, token_of)
+from .correct import bias_estimates, replaces, result_biases, sample_units, samples_correctable
 from .ptys import CorrectedPty, PtyError, RawPty, Throttle
 from .sockets import ServeError, SocketServer
 
@@ -38,6 +44,20 @@ log = structlog.get_logger("calibd")
 
 RESULT_COPY_MODE = 0o640
 PENDING_SAMPLES = 8000  # samples the tap keeps for the server thread at most (4 s at 2000 Hz)
+
+
+@dataclass(frozen=True, eq=False)
+class Correction:
+    """The result of this power-up whose biases the corrected outputs subtract, and those biases
+    in the sensor's base units (deg/s, g; float32 as the samples). Compared by identity: each
+    change of the biases is a new one."""
+
+    result: CalibrationResult
+    bias: dict[str, np.ndarray]
+
+    def biases(self) -> dict[str, tuple[float, str]]:
+        """(value, unit) of each bias subtracted, as the result gives them (deg/h, mg)."""
+        return {name: (e.value, e.unit) for name, e in bias_estimates(self.result).items()}
 
 
 class Hub(Listener):
@@ -53,12 +73,15 @@ class Hub(Listener):
         self._calibrator: Calibrator | None = None
         self._state = {"state": State.STARTING.value, "detail": "waiting for data", "progress": {}}
         self._result = previous
-        self._bias: dict[str, np.ndarray] | None = None  # this power-up's, in the sensor's base units
+        self._kept: Correction | None = None  # what this power-up's corrected outputs subtract ([serve] correction)
+        self._pty_kept: Correction | None = None  # the reader thread's: what the corrected pty was given
+        self._announced: Correction | None = None  # the server thread's: what the last CORRECTION said
+        self._held: list[tuple[np.ndarray, np.ndarray, Correction | None]] = []  # timed, after a change
         self._cuts = PowerUpCuts()  # the tap's: where the sensor restarted
         self._restart_unheard = False  # the tap saw a restart the calibrator has not yet said (RESTARTED)
         self._info: StreamInfo | None = None
         self._overrun = 0
-        self._pending: list[np.ndarray] = []
+        self._pending: list[tuple[np.ndarray, Correction | None]] = []  # each read's samples, what they take
         self._pending_count = 0
         self.dropped_samples = 0  # samples the tap let go because the server thread lagged
         self._episode_dropped = 0  # of them, since the server thread last took the queue
@@ -98,6 +121,12 @@ class Hub(Listener):
         """The calibrator whose protocol progress STATE and POLL report (it has this hub among its listeners)."""
         self._calibrator = calibrator
 
+    @property
+    def _bias(self) -> dict[str, np.ndarray] | None:
+        """The biases subtracted now (deg/s, g), None when none."""
+        kept = self._kept
+        return None if kept is None else kept.bias
+
     def close(self) -> None:
         for part in (self.server, *self.raw_ptys, self.corrected_pty):
             if part is not None:
@@ -107,16 +136,15 @@ class Hub(Listener):
     def on_state(self, state: State, detail: str) -> None:
         if state == State.RESTARTED:
             with self._lock:
-                self._bias, self._restart_unheard = None, False
-                if self.corrected_pty is not None:
-                    self.corrected_pty.set_result(None)
+                self._kept, self._restart_unheard = None, False
         self._state = {"state": state.value, "detail": detail, "progress": self._progress()}
         self._publish(state_message(**self._state))
 
     def on_result(self, result: CalibrationResult) -> None:
         """Always published; its biases are subtracted only when the tap has seen no restart the
         calibrator has not yet said (the calibrator solves the old power-up to its end after the
-        tap has seen the new one: that result's biases are the old power-up's)."""
+        tap has seen the new one: that result's biases are the old power-up's), and when [serve]
+        `correction` prefers it to the power-up's kept one (`replaces`)."""
         bias = {block: bias.astype(np.float32) for block, bias in result_biases(result).items()} or None
         self._new_result(result, bias)
 
@@ -124,12 +152,19 @@ class Hub(Listener):
         self._new_result(result, None)
 
     def _new_result(self, result: CalibrationResult, bias: dict[str, np.ndarray] | None) -> None:
+        """The corrected outputs take the new biases at the next read (the tap); the socket
+        announces them (CORRECTION) as its SAMPLES reach them."""
         self._result = result
+        changed = None
         with self._lock:  # not between the tap's restart check and its own dropping of the biases
-            armed = not (self._restart_unheard or result.stale)
-            self._bias = bias if armed else None
-            if self.corrected_pty is not None:
-                self.corrected_pty.set_result(result if armed else None)
+            kept = self._kept
+            if self._restart_unheard or result.stale:
+                self._kept = None
+            elif bias is not None and replaces(self.config.correction, None if kept is None else kept.result, result):
+                if kept is None or not _same(kept.bias, bias):
+                    self._kept = changed = Correction(result, bias)
+        if changed is not None and self.server is None:  # nothing times the stream: said without from_t
+            self._say_correction(kept, changed, None)
         if self.config.result_copy is not None:
             self._write_copy(result)
         self._publish(result_message(result.to_dict()))
@@ -190,11 +225,13 @@ class Hub(Listener):
         A sensor restart (`PowerUpCuts`, the calibrator's rule) ends the corrections here, before
         the calibrator hears of it: the new power-up's turn-on biases are not the last result's."""
         pieces = self._cuts.pieces(settled.samples, settled.first, settled.restart_datagrams)
-        if any(restarted for restarted, _ in pieces):
-            with self._lock:
-                self._bias, self._restart_unheard = None, True
-                if self.corrected_pty is not None:
-                    self.corrected_pty.set_result(None)
+        with self._lock:
+            if any(restarted for restarted, _ in pieces):
+                self._kept, self._restart_unheard = None, True
+            kept = self._kept  # what this read's corrected outputs take, pty and SAMPLES alike
+        if self.corrected_pty is not None and kept is not self._pty_kept:
+            self._pty_kept = kept
+            self.corrected_pty.set_result(None if kept is None else kept.result)
         for raw_pty in self.raw_ptys:
             raw_pty.tap(settled)
         if self.corrected_pty is not None:
@@ -202,10 +239,10 @@ class Hub(Listener):
         if self.server is not None and len(settled.samples):
             dropped = 0
             with self._lock:
-                self._pending.append(settled.samples)
+                self._pending.append((settled.samples, kept))
                 self._pending_count += len(settled.samples)
                 while self._pending_count > PENDING_SAMPLES and len(self._pending) > 1:
-                    dropped += len(self._pending.pop(0))
+                    dropped += len(self._pending.pop(0)[0])
                 self._pending_count -= dropped
                 begins = dropped and not self._episode_dropped
                 self._episode_dropped += dropped
@@ -223,7 +260,9 @@ class Hub(Listener):
     # ------------------------------------------------------------------ the socket server's thread
     def _cut_samples(self, kinds: set) -> list[tuple[str, bytes]]:
         """The samples queued since the last cut, timed, as SAMPLES batches of at most
-        SAMPLES_MAX_S, each encoded once per kind in `kinds`."""
+        SAMPLES_MAX_S, each encoded once per kind in `kinds`. At a change of the biases the cut
+        ends: CORRECTION is published, and the samples from the change wait for the next cut, so
+        a client has it before the first SAMPLES carrying the new biases."""
         info = self._info
         if info is None or not info.rate_hz:
             return []  # until the rate is known nothing can be timed: the samples wait (bounded)
@@ -232,11 +271,36 @@ class Hub(Listener):
             ended, self._episode_dropped = self._episode_dropped, 0
         if ended:
             log.info("samples_drops_ended", dropped_samples=ended)
-        if not pending:
-            return []
-        samples = np.concatenate(pending)
-        time_s = self._clock.times(samples["counter"], info.rate_hz, samples["t_host"]).time_s
-        bias, hold = self._bias, self.config.corrected_before_result == "hold"
+        timed, self._held = self._held, []
+        if pending:
+            samples = np.concatenate([piece for piece, _ in pending])
+            time_s = self._clock.times(samples["counter"], info.rate_hz, samples["t_host"]).time_s
+            lo = 0
+            for piece, kept in pending:
+                timed.append((samples[lo:lo + len(piece)], time_s[lo:lo + len(piece)], kept))
+                lo += len(piece)
+        batches = []
+        i = 0
+        while i < len(timed):
+            kept = timed[i][2]
+            if kept is not None and kept is not self._announced:
+                self._say_correction(self._announced, kept, float(timed[i][1][0]))
+                self._announced, self._held = kept, timed[i:]
+                break
+            self._announced = kept  # None: the power-up ended, its next CORRECTION has no "old"
+            j = i + 1
+            while j < len(timed) and timed[j][2] is kept:
+                j += 1
+            run = timed[i:j]
+            batches += self._batches(kinds, info, np.concatenate([p[0] for p in run]),
+                                     np.concatenate([p[1] for p in run]), kept)
+            i = j
+        return batches
+
+    def _batches(self, kinds: set, info: StreamInfo, samples: np.ndarray, time_s: np.ndarray,
+                 kept: Correction | None) -> list[tuple[str, bytes]]:
+        """Timed samples that take the same biases (`kept`) as SAMPLES batches of each kind."""
+        bias, hold = None if kept is None else kept.bias, self.config.corrected_before_result == "hold"
         if not samples_correctable(info.format):
             bias = None  # incremental or integrated units: not corrected (docs/serving.md)
         batches = []
@@ -257,6 +321,14 @@ class Hub(Listener):
                 batches.append(("corrected", raw))
         return batches
 
+    def _say_correction(self, old: Correction | None, new: Correction, from_t_s: float | None) -> None:
+        """CORRECTION to every watcher and `correction_changed` in the log: the subtracted biases
+        changed from `old` (None: the power-up's first) to `new` at stream time `from_t_s` (s)."""
+        message = correction_message(self.config.correction, new.result.session_id, from_t_s,
+                                     None if old is None else old.biases(), new.biases())
+        log.info("correction_changed", **{k: v for k, v in message.items() if k != "class"})
+        self._publish(message)
+
     def _answer(self, command: Command) -> dict:
         if command.name == "POLL":
             return poll_message(self._state, None if self._result is None else self._result.to_dict())
@@ -267,6 +339,11 @@ class Hub(Listener):
             configuration = None if info.configuration is None else info.configuration.as_dict()
             return device_message(self.port, info.sensor_record(), sample_units(info.format), configuration)
         raise ProtocolError(f"?{command.name} takes no part in this server")
+
+
+def _same(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> bool:
+    """Whether two sets of biases subtract the same."""
+    return a.keys() == b.keys() and all(np.array_equal(a[block], b[block]) for block in a)
 
 
 def _group_id(name: str | None) -> int | None:

@@ -20,7 +20,7 @@ from stim300.cliutil import package_version
 from ..errors import CalibdError
 
 PROTO_MAJOR = 1
-PROTO_MINOR = 1  # 1.1: ?AUTH and AUTH
+PROTO_MINOR = 2  # 1.1: ?AUTH and AUTH; 1.2: CORRECTION
 MAX_LINE_BYTES = 64 * 1024  # a longer command line is refused and skipped to its newline
 # A server message longer than this is not calibd's: SAMPLES of 0.1 s at 2000 Hz and result
 # documents stay well below (a client's bound on what it buffers).
@@ -161,6 +161,17 @@ def result_message(result: dict) -> dict:
 
 def fault_message(counts: dict, increase: dict) -> dict:
     return {"class": "FAULT", "counts": counts, "increase": increase}
+
+
+def correction_message(policy: str, session_id: str | None, from_t_s: float | None,
+                       old: dict[str, tuple[float, str]] | None, new: dict[str, tuple[float, str]]) -> dict:
+    """The biases the corrected outputs subtract changed: `old` (None: the power-up's first) and
+    `new` map bias names to (value, unit) as the result gives them (deg/h, mg); `from_t_s` is the
+    stream time (s, SAMPLES "t") of the first sample carrying `new` (None: not timed, no socket)."""
+    def values(biases):
+        return None if biases is None else {name: {"value": v, "unit": unit} for name, (v, unit) in biases.items()}
+    return {"class": "CORRECTION", "policy": policy, "session_id": session_id,
+            "from_t": None if from_t_s is None else round(from_t_s, 6), "old": values(old), "new": values(new)}
 
 
 def overflow_message(dropped: int) -> dict:
