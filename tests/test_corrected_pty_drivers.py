@@ -81,8 +81,10 @@ class Sensor:
 
 
 def open_link(link) -> int:
+    """The pty opened as a reader that waits: raw modes set at once, never flushing what the
+    daemon may already have written (setraw's default, TCSAFLUSH, would drop the greeting)."""
     fd = os.open(link, os.O_RDWR | os.O_NOCTTY)
-    tty.setraw(fd)
+    tty.setraw(fd, termios.TCSANOW)
     return fd
 
 
