@@ -146,10 +146,11 @@ class Scanner:
 
     `step(buf, i, final)` decides what starts at offset i and returns the next offset (or WAIT).
     Accepted normal datagrams are reported to `on_normal(offset, layout_id)`; special datagrams
-    are decoded and kept. `final` means no more bytes will come, so a short tail is skipped.
+    are decoded and kept, and their bytes given to `on_special(frame)` when set. `final` means
+    no more bytes will come, so a short tail is skipped.
     """
 
-    def __init__(self, fmt: Format | None, on_normal):
+    def __init__(self, fmt: Format | None, on_normal, on_special=None):
         self.format = fmt or Format()
         self.stats = Stats(configured_step=self.format.counter_step)
         self.specials: collections.deque = collections.deque(maxlen=SPECIAL_HISTORY)
@@ -158,7 +159,7 @@ class Scanner:
         self.serial_number = None
         self.last_counter: int | None = None
         self.warnings: list[str] = []  # what was refused or kept as read, and why (distinct, oldest first)
-        self._on_normal = on_normal
+        self._on_normal, self._on_special = on_normal, on_special
         self._power_up = 0  # how far a power-up sequence has come: 1 part number, 2 then serial number
         self._quiet_until = 0  # no further CRC error is counted inside a failed candidate's span
         self._consumed = 0  # absolute offset of buf[0], to keep _quiet_until valid across buffers
@@ -246,6 +247,8 @@ class Scanner:
         number and a serial number requested while data flow are followed by data without the
         start-up status bit, and are no restart."""
         self.stats.special_datagrams += 1
+        if self._on_special is not None:
+            self._on_special(frame)
         kind = SPECIAL_IDS[frame[0]][0]
         sequence = {PART_NUMBER: 1 if self.stats.datagrams else 0, SERIAL_NUMBER: 2 if self._power_up == 1 else 0}
         if kind is CONFIGURATION and self._power_up == 2:
@@ -316,13 +319,15 @@ class Settled:
     samples[start:stop] decoded from the datagrams at those offsets (`format_runs`). `first` is
     the stream number of samples[0], `restart_datagrams` the parser's restarts from `first` on
     (each restarted sensor's first stream number, `Stats.restart_datagrams`): what a tap needs to
-    cut at power-ups by the same rule as the daemon (`calibd.session.PowerUpCuts`)."""
+    cut at power-ups by the same rule as the daemon (`calibd.session.PowerUpCuts`). `specials`:
+    the special datagrams among `data`, as sent, in stream order."""
 
     data: bytes
     samples: np.ndarray
     runs: tuple
     first: int = 0
     restart_datagrams: tuple[int, ...] = ()
+    specials: tuple[bytes, ...] = ()
 
 
 class StreamParser:
@@ -337,7 +342,8 @@ class StreamParser:
     def __init__(self, fmt: Format | None = None, tap=None):
         self._buf = bytearray()
         self._found: list[tuple[int, int, Format]] = []
-        self.scanner = Scanner(fmt, self._found_normal)
+        self._specials: list[bytes] = []  # the special datagrams of the feed being settled, for the tap
+        self.scanner = Scanner(fmt, self._found_normal, self._specials.append if tap is not None else None)
         self.tap = tap
 
     def _found_normal(self, offset: int, ident: int) -> None:
@@ -372,7 +378,8 @@ class StreamParser:
         if self.tap is not None and i:
             first = self.stats.datagrams - len(samples)
             restarts = tuple(k for k in self.stats.restart_datagrams if k >= first)
-            self.tap(Settled(bytes(buf[:i]), samples, runs, first, restarts))
+            self.tap(Settled(bytes(buf[:i]), samples, runs, first, restarts, tuple(self._specials)))
+            self._specials.clear()
         del buf[:i]
         scanner.advance(i)
         return samples

@@ -355,3 +355,21 @@ def test_tap_sees_every_byte_once_in_order_with_each_datagrams_offset(cuts, seed
             assert np.all(np.frombuffer(s.data, np.uint8)[offsets] == layout.datagram_id)
             redecoded = decode_capture(b"".join(s.data[o:o + layout.wire_length(fmt.crlf)] for o in offsets), fmt)
             assert same_samples(redecoded.samples, s.samples[start:stop])
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.lists(st.integers(0, 3000), max_size=20))
+def test_tap_gives_each_special_datagram_as_sent_with_the_feed_that_settles_it(cuts):
+    specials = [encode_special(PartNumber("84167-4400003-321", "K"), True),
+                encode_special(SerialNumber("N25582405002002"), True),
+                encode_special(Configuration.build(sample_rate_hz=125, crlf=True), True)]
+    data, _, _ = capture(40, 0x93, True, rate=125, seed=1)
+    data = b"".join(specials) + data[:1000] + b"\x00junk" + specials[1] + data[1000:]
+    settled = []
+    parser = StreamParser(tap=settled.append)
+    edges = [0, *sorted({c for c in cuts if c < len(data)}), len(data)]
+    for a, b in zip(edges, edges[1:]):
+        parser.feed(data[a:b])
+    parser.finish()
+    assert [frame for s in settled for frame in s.specials] == [*specials, specials[1]]
+    assert all(frame in s.data for s in settled for frame in s.specials)

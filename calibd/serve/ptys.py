@@ -25,11 +25,9 @@ import uuid
 from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
 import structlog
 
-from stim300.crc import datagram_crc
-from stim300.protocol import (BIAS_TRIM, CONFIGURATION, CR_LF, EXTENDED_ERROR, PART_NUMBER, SERIAL_NUMBER,
+from stim300.protocol import (BIAS_TRIM, CONFIGURATION, EXTENDED_ERROR, PART_NUMBER, SERIAL_NUMBER,
                               SPECIAL_IDS, SpecialKind)
 from stim300.stream import Settled
 
@@ -51,7 +49,6 @@ QUERY_KINDS: dict[bytes, SpecialKind] = {kind.request.removesuffix(b"\r"): kind 
     PART_NUMBER, SERIAL_NUMBER, CONFIGURATION, BIAS_TRIM, EXTENDED_ERROR)}
 QUERIES = frozenset(QUERY_KINDS)
 POWER_UP = (PART_NUMBER, SERIAL_NUMBER, CONFIGURATION)  # what the sensor sends when it starts, in order
-_SPECIAL_ID_BYTES = np.array(sorted(SPECIAL_IDS), np.uint8)
 MODE_CHANGES = frozenset({b"SERVICEMODE", b"UTILITYMODE", b"R"})  # each stops the stream for every reader
 
 
@@ -313,31 +310,6 @@ def _replace_link(link: Path, target: str) -> None:
         raise PtyError(f"{link}: cannot link it to {target}: {exc.strerror.lower()}") from None
 
 
-def special_datagrams(settled: Settled) -> list[bytes]:
-    """The special datagrams among a feed's settled bytes, in stream order: the parser settles only
-    whole datagrams, and a special one lies between the normal ones, found by the parser's own
-    rule (a special id, its CRC, its CR LF when the id has one)."""
-    data = settled.data
-    sizes = [(offsets, layout.wire_length(bool(fmt.crlf))) for layout, fmt, offsets, _, _ in settled.runs]
-    if sum(len(offsets) * size for offsets, size in sizes) == len(data):
-        return []  # normal datagrams only: the usual feed
-    free = np.ones(len(data), bool)
-    for offsets, size in sizes:
-        free[(offsets[:, None] + np.arange(size)).ravel()] = False
-    frames, end = [], 0
-    for start in np.flatnonzero(free & np.isin(np.frombuffer(data, np.uint8), _SPECIAL_ID_BYTES)).tolist():
-        if start < end:
-            continue  # inside the datagram just found
-        kind, crlf = SPECIAL_IDS[data[start]]
-        frame = data[start:start + kind.pre_crc + 4 + (2 if crlf else 0)]
-        crc = frame[kind.pre_crc:kind.pre_crc + 4]
-        if len(crc) == 4 and datagram_crc(frame[:kind.pre_crc]) == int.from_bytes(crc, "big") \
-                and (not crlf or frame[-2:] == CR_LF):
-            frames.append(frame)
-            end = start + len(frame)
-    return frames
-
-
 class Throttle:
     """At most one request of each kind every REQUEST_INTERVAL_S: each answer replaces a normal
     datagram of the sensor's, so a flood of requests would eat the stream. The raw ptys share
@@ -454,7 +426,7 @@ class CorrectedPty:
         """The parser's tap (reader thread): never blocks, never raises."""
         corrector = self._corrector  # one read: set_result runs in another thread
         try:
-            specials = special_datagrams(settled)
+            specials = settled.specials  # found by the parser, as sent
             if corrector is not None:
                 data = self._answered(corrector.apply(settled), settled)
             elif self.before_result == "raw":
