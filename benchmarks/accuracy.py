@@ -46,7 +46,8 @@ from pathlib import Path
 
 import numpy as np
 
-from calibd.calibrate import joint_fit, joint_real_case, thesis_real_case
+from calibd.methods.joint import joint_fit, joint_real_case
+from calibd.methods.thesis import thesis_real_case
 from calibd import spec
 from calibd.errors import CalibrationError
 from calibd.estimators.joint import white_noise_bound

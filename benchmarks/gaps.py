@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from accuracy import random_scenario
-from calibd.calibrate import joint_real_case
+from calibd.methods.joint import joint_real_case
 from calibd.cli import load_session
 from calibd.sim import capture_bytes, simulate, truth_record
 from live import ENV, capture_2000hz

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from calibd.calibrate import joint_real_case
+from calibd.methods.joint import joint_real_case
 from calibd.frames import STANDARD_GRAVITY
 from calibd.scenario import load_scenario
 from calibd.session import Session

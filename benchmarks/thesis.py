@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from calibd.calibrate import thesis_real_case
+from calibd.methods.thesis import thesis_real_case
 from calibd.cli import load_session
 from calibd.frames import Site
 from calibd.scenario import load_scenario

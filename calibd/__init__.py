@@ -7,11 +7,11 @@ is a `Site`; results are written and read with `write_result` / `load_result`. E
 raised about the input is a `CalibdError`. Plotting (calibd.report) is not imported here.
 """
 
-from .calibrate import ProtocolIncomplete, calibrate_capture
+from .calibrate import calibrate_capture
 from .config import ConfigError, DaemonConfig, load_config
 from .errors import CalibdError, CalibrationError, SiteError
 from .frames import Site, normal_gravity
-from .methods import ESTIMATORS, Estimator, JointOptions, OptionError, ThesisOptions, estimator
+from .methods import ESTIMATORS, Estimator, JointOptions, OptionError, ProtocolIncomplete, ThesisOptions, estimator
 from .results import CalibrationResult, Estimate, ResultError, SchemaError, load_result, write_result
 from .scenario import Scenario, ScenarioError, load_scenario
 from .session import CaptureSessions, Session, SessionBuilder, decode_sessions, power_up_session

@@ -388,7 +388,7 @@ def full_turns(segments: list[Segment], min_angle_deg: float = FULL_TURN_MIN_DEG
     part of exactly such a turn. The gyro gives the angle within a fraction of a degree, so the
     10 deg below 360 only admit a platform stopping short of its mark; longer turns (390, 720
     deg) are full turns too. Whether the constant-rate part covers a whole period is the
-    consumer's question (calibrate._one_period)."""
+    consumer's question (calibd.methods.common.one_period)."""
     return [s for s in segments if s.kind == "turn" and abs(s.angle_deg) >= min_angle_deg]
 
 
@@ -417,49 +417,6 @@ def index_headings(segments: list[Segment]) -> set[int]:
     cover: the headings `index_positions` finds statics at."""
     statics = [s for s in segments if s.kind == "static"]
     return {q for s in statics[1:] if (q := index_heading(s.platform_angle_deg, INDEX_TOLERANCE_DEG)) is not None}
-
-
-def _through_last_static(segments: list[Segment]) -> list[Segment]:
-    """The segments up to the last static: a turn still under way counts once the platform stops."""
-    last = max((k for k, s in enumerate(segments) if s.kind == "static"), default=-1)
-    return segments[:last + 1]
-
-
-def _lacking(segments: list[Segment], method: str) -> str:
-    """What `method` ("joint" or "thesis") lacks in segments that may end on a turn under way; ""
-    when nothing."""
-    statics = [s for s in segments if s.kind == "static"]
-    if method == "joint":
-        if not statics:
-            return "a level static, then a turn and a static after it on the same mounting"
-        level = statics[0]
-        after = segments[segments.index(level) + 1:]
-        mounted = after[:next((k for k, s in enumerate(after) if s.kind == "static" and s.up != level.up), len(after))]
-        kinds = [s.kind for s in mounted]
-        if "turn" not in kinds:
-            return f"a turn and a static after it on the level static's mounting ({level.up} up)"
-        return "" if "static" in kinds[kinds.index("turn"):] else "a static after the turn"
-    full = f"a full turn (at least {FULL_TURN_MIN_DEG:.0f} deg)"
-    if not statics:
-        return f"a level static, statics at four platform headings 90 deg apart and {full} after it, then a static"
-    absent = [str(90 * q) for q in range(4) if q not in index_headings(segments)]
-    turned = any(t.start >= statics[0].stop for t in full_turns(segments))
-    parts = ([f"{'a static at heading' if len(absent) == 1 else 'statics at headings'} {', '.join(absent)} deg"]
-             if absent else []) + ([] if turned else [full])
-    if parts:
-        return " and ".join(parts) + " after the level static" + ("" if turned else ", then a static")
-    return "" if segments[-1].kind == "static" else "a static after the last turn"
-
-
-def protocol_lacking(segments: list[Segment], method: str) -> str | None:
-    """What a session's segments lack for `method` ("joint": a level static, then a turn and a
-    static of the same mounting; "thesis": the level static, four index positions and a full turn
-    after it, then a static), in words; None once complete. Complete is judged on the segments up
-    to the last static (a turn under way after a complete protocol leaves it complete); what is
-    lacking on all of them, so a turn under way is the turn the protocol waits for."""
-    if not _lacking(_through_last_static(segments), method):
-        return None
-    return _lacking(segments, method) or None
 
 
 @dataclass(frozen=True)

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .calibrate import JointFit, joint_fit
+from .methods.joint import JointFit, joint_fit
 from .errors import CalibrationError
 from .methods import estimator
 from .estimators.joint import AXIS_PARAMS, DRIFT_PARAMS, EARTH_RATE_PARAMS, OFFSET_PARAMS, alpha_beta, has_drift

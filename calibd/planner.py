@@ -19,7 +19,7 @@ import numpy as np
 
 from stim300.protocol import NORMAL_LAYOUTS
 
-from .calibrate import checked_by_statics
+from .methods.joint import checked_by_statics
 from .documents import NoiseDoc, SchemaError, decode_json, schema_version, validate
 from .errors import CalibdError
 from .estimators.joint import JointInput, JointOptions, SensorNoise, Underdetermined, datasheet_noise, solve

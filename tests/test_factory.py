@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from calibd import spec
-from calibd.calibrate import joint_fit, joint_real_case
+from calibd.methods.joint import joint_fit, joint_real_case
 from calibd.cli import load_session
 from calibd.estimators import joint
 from calibd.frames import STANDARD_GRAVITY

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import stim300.port as port
-from calibd.calibrate import joint_real_case
+from calibd.methods.joint import joint_real_case
 from calibd.cli import load_session
 from calibd.config import WarmupConfig
 from calibd.daemon import Calibrator, Callbacks

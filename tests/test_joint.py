@@ -10,7 +10,7 @@ import pytest
 
 from calibd import detect, spec
 from calibd.allan import FLICKER_TAUS_S
-from calibd.calibrate import _joint_warnings, joint_real_case
+from calibd.methods.joint import _joint_warnings, joint_real_case
 from calibd.cli import load_session
 from calibd.cli import main as calibd_main
 from calibd.estimators.joint import (JointInput, JointOptions, NoiseModel, SensorNoise, Underdetermined, alpha_beta,
@@ -321,4 +321,4 @@ def test_calibrate_option_mixups_are_one_line(argv, message, tmp_path, capsys):
 def test_capture_without_turns_is_refused(tmp_path, capsys):
     code = calibd_main(["calibrate", "fixtures/faults_125hz.bin", "--latitude", "40", "-o", str(tmp_path / "r.json")])
     assert code == 2
-    assert "no turn after the level static" in capsys.readouterr().err
+    assert "it lacks a turn and a static after it on the level static's mounting" in capsys.readouterr().err

@@ -13,7 +13,8 @@ from calibd.cli import load_session
 from calibd.segments import session_segments
 from calibd.config import ConfigError, MethodConfig, WarmupConfig, parse_config
 from calibd.daemon import Calibrator, Callbacks
-from calibd.methods import DAEMON_METHODS, ESTIMATORS, JointOptions, OptionError, ThesisOptions, estimator
+from calibd.methods import (DAEMON_METHODS, ESTIMATORS, JointOptions, OptionError, ProtocolIncomplete,
+                            ThesisOptions, estimator)
 from calibd.frames import Site
 from calibd.results import CalibrationResult
 from stim300.bulk import decode_capture
@@ -60,6 +61,20 @@ def test_missing_says_what_a_partial_session_lacks_and_none_on_a_complete_one(se
     assert partial and ("turn" in partial or " up" in partial), partial
     result = method.solve(session, SITE, segments, method.options({}))
     assert isinstance(result, CalibrationResult) and result.method.startswith(name.split("-")[0])
+
+
+@pytest.mark.parametrize("name", list(ESTIMATORS))
+def test_a_solve_refuses_exactly_what_missing_says_in_its_words(sessions, name):
+    """One judge per method: on every prefix of its campaign that `missing` finds short, the solve
+    refuses with those words (what the daemon's progress shows), never with other reasons."""
+    session, segments = sessions[name]
+    method = estimator(name)
+    short = [k for k in range(len(segments)) if method.missing(segments[:k])]
+    assert len(short) >= 3
+    for k in short:
+        with pytest.raises(ProtocolIncomplete) as refused:
+            method.solve(session, SITE, segments[:k], method.options({}))
+        assert refused.value.reason.endswith(f"it lacks {method.missing(segments[:k])}"), (k, refused.value)
 
 
 def test_the_bench_names_the_positions_it_lacks(sessions):

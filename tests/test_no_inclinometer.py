@@ -14,7 +14,7 @@ from calibd.estimators.joint import JointOptions
 from calibd.planner import noise_from_json, plan
 from calibd.scenario import Noise
 from calibd.frames import Site
-from calibd.calibrate import NO_INCLINOMETERS
+from calibd.methods.common import NO_INCLINOMETERS
 from calibd.cli import open_capture
 from calibd.live import configure_logging
 from calibd.session import power_up_session

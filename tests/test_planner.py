@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from calibd import detect, planner
-from calibd.calibrate import checked_by_statics
+from calibd.methods.joint import checked_by_statics
 from calibd.cli import main as calibd_main
 from calibd.estimators.joint import JointInput, JointOptions, datasheet_noise, solve, white_noise_bound
 from calibd.frames import STANDARD_GRAVITY, Site

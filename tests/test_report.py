@@ -17,7 +17,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from calibd.calibrate import calibrate_capture, joint_fit, joint_real_case, thesis_real_case
+from calibd.calibrate import calibrate_capture
+from calibd.methods.joint import joint_fit, joint_real_case
+from calibd.methods.thesis import thesis_real_case
 from calibd.cli import load_session, open_capture
 from calibd.cli import main as calibd_main
 from calibd.estimators.joint import JointOptions

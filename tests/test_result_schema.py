@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from calibd.calibrate import calibrate_capture, joint_real_case
+from calibd.calibrate import calibrate_capture
+from calibd.methods.joint import joint_real_case
 from calibd.cli import load_session, main as calibd_main, open_capture
 from calibd.config import WarmupConfig
 from calibd.daemon import Calibrator, Callbacks

@@ -53,7 +53,7 @@ def test_a_restart_followed_by_a_level_static_uses_the_power_up_with_the_protoco
     assert power_up["duration_s"] == pytest.approx(json.loads(Path(f"{FULL}.truth.json").read_text())["duration_s"],
                                                    abs=0.1)
     assert_near_truth(result, read_truth(str(FULL))[1])
-    assert any("restarted after this power-up (1 of 2)" in w and "no turn after the level static" in w
+    assert any("restarted after this power-up (1 of 2)" in w and "it lacks a turn and a static after it" in w
                for w in result["warnings"])
     assert "session: power-up 1 of 2" in out
 
@@ -69,7 +69,7 @@ def test_the_last_power_up_with_the_protocol_wins_and_session_picks_another(leve
 
     code, _, _, err = calibrate(capsys, capture, "--session", "1", tmp_path=tmp_path)
     assert code == 2 and len(err.strip().splitlines()) == 1
-    assert "power-up 1 of 2" in err and "no turn after the level static" in err
+    assert "power-up 1 of 2" in err and "it lacks a turn and a static after it" in err
     code, _, _, err = calibrate(capsys, capture, "--session", "3", tmp_path=tmp_path)
     assert code == 2 and "no power-up 3: the capture has 2" in err and len(err.strip().splitlines()) == 1
 
@@ -115,7 +115,7 @@ def test_start_past_the_end_is_one_line(tmp_path, capsys):
 def test_a_capture_whose_power_ups_all_lack_the_protocol_is_refused_naming_each(tmp_path, capsys):
     code, _, _, err = calibrate(capsys, FIXTURES / "faults_125hz.bin", tmp_path=tmp_path)
     assert code == 2 and len(err.strip().splitlines()) == 1
-    assert "power-up 2 of 2: no turn" in err and "power-up 1 of 2: no turn" in err
+    assert "power-up 2 of 2: not the joint" in err and "power-up 1 of 2: not the joint" in err
 
 
 WARMING = FIXTURES / "warmup_then_protocol_125hz.bin"  # from power-on, 100 s time constant

@@ -9,7 +9,10 @@ import numpy as np
 import pytest
 
 from calibd import detect
-from calibd.calibrate import ProtocolIncomplete, _one_period, thesis_bench, thesis_real_case
+from calibd.methods import ProtocolIncomplete
+from calibd.methods.bench import thesis_bench
+from calibd.methods.common import one_period
+from calibd.methods.thesis import thesis_real_case
 from calibd.cli import load_session
 from calibd.cli import main as calibd_main
 from calibd.segments import session_segments
@@ -273,7 +276,7 @@ def test_one_period_is_timed_by_the_sample_clock_across_lost_datagrams():
                    None, rate_hz, {}, {})
     turn = detect.Segment("turn", 0, len(time_s), 0.0, 40.0, 0.0, angle_deg=720.0, rate_deg_s=30.0,
                           cruise_start=rate_hz, cruise_stop=len(time_s) - rate_hz, cruise_angle_deg=720.0)
-    window, covered = _one_period(data, turn)
+    window, covered = one_period(data, turn)
     assert covered == 360.0 and window.start == rate_hz
     assert time_s[window.stop - 1] - time_s[window.start] == pytest.approx(12.0 - 1 / rate_hz)
     assert window.stop - window.start == 10 * rate_hz
@@ -286,7 +289,7 @@ def test_a_turn_short_of_350_deg_is_no_full_turn_and_the_refusal_says_so(tmp_pat
     write_capture(scenario, tmp_path / "s.bin")
     with pytest.raises(ProtocolIncomplete) as refusal:
         thesis_real_case(load_session(str(tmp_path / "s.bin")), SITE)
-    assert "no full turn (at least 350 deg) after the level static" in str(refusal.value)
+    assert "it lacks a full turn (at least 350 deg) after the level static" in str(refusal.value)
     assert refusal.value.found.endswith("4 index turns, 0 full turns, 1 other turn")
 
 

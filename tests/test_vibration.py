@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from calibd import detect
-from calibd.calibrate import joint_real_case
+from calibd.methods.joint import joint_real_case
 from calibd.estimators import joint
 from calibd.frames import STANDARD_GRAVITY
 from calibd.scenario import ScenarioError, Segment, load_scenario, parse_scenario

@@ -111,7 +111,7 @@ def test_the_warm_up_warning_says_the_start_that_leaves_it_out_where_a_user_can_
 def test_calibrate_from_power_on_names_the_start_and_the_daemons_session_does_not(tmp_path, capsys):
     from dataclasses import replace
 
-    from calibd.calibrate import _session_warnings
+    from calibd.methods.common import session_warnings
     from calibd.cli import main
 
     capture = str(FIXTURES / "warmup_then_protocol_125hz.bin")
@@ -122,9 +122,9 @@ def test_calibrate_from_power_on_names_the_start_and_the_daemons_session_does_no
     assert "warm-up" not in capsys.readouterr().out
     session = load_session(capture, 0.0)
     daemons = replace(session, stream={k: v for k, v in session.stream.items() if k != "power_up"})
-    assert any("--start" in w for w in _session_warnings(session))
-    assert not any("--start" in w for w in _session_warnings(daemons)) and any("warm-up" in w for w in
-                                                                                _session_warnings(daemons))
+    assert any("--start" in w for w in session_warnings(session))
+    assert not any("--start" in w for w in session_warnings(daemons)) and any("warm-up" in w for w in
+                                                                                session_warnings(daemons))
 
 
 def test_the_words_never_name_a_window_longer_than_the_data(warming, tmp_path):

@@ -1,0 +1,62 @@
+"""What a calibration method is at the seam: the `Estimator` every method module provides, the
+`Setting`s it takes from a configuration file, and its two refusals (`OptionError` for options
+that do not go together, `ProtocolIncomplete` for data its campaign does not hold)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+from .. import detect
+from ..errors import CalibdError, CalibrationError
+
+
+class OptionError(CalibdError):
+    """Settings a method cannot take together: `key` names the one at fault, `reason` says why."""
+
+    def __init__(self, key: str, reason: str):
+        super().__init__(f"{key}: {reason}")
+        self.key, self.reason = key, reason
+
+
+class ProtocolIncomplete(CalibrationError):
+    """The session lacks segments a method needs: why (`reason`) and what it has (`found`)."""
+
+    def __init__(self, reason: str, found: str):
+        super().__init__(f"{reason}; found {found}")
+        self.reason, self.found = reason, found
+
+
+def refusal(campaign: str, lacking: str, segments: list[detect.Segment], hint: str = "") -> ProtocolIncomplete:
+    """The refusal of a method whose campaign (`campaign`, in words) the segments do not hold:
+    what it lacks, in the words its `missing` gives the daemon's progress, and what was found."""
+    found = detect.protocol_progress(segments)
+    return ProtocolIncomplete(f"not the {campaign}: it lacks {lacking}", f"{found}; {hint}" if hint else found)
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One option a method takes from a configuration file: its kind, and the range it must lie in
+    (`check`) said in words (`expect`)."""
+
+    kind: type
+    check: Callable[[Any], bool] | None = None
+    expect: str = ""
+
+
+class Estimator(Protocol):
+    name: str
+    settings: Mapping[str, Setting]  # the options a configuration file may set for this method
+
+    def options(self, settings: Mapping[str, Any]) -> Any:
+        """This method's options from named settings (a MethodConfig's fields, the command line's);
+        settings of other methods are ignored. OptionError when its own do not go together."""
+
+    def missing(self, segments: list[detect.Segment]) -> str | None:
+        """What the campaign still lacks in these segments, in words; None when they hold all it
+        needs. The one judge: the method's solve refuses exactly when this is not None."""
+
+    def solve(self, session, site, segments: list[detect.Segment] | None, options):
+        """The CalibrationResult of a session (`segments`: its segments, None: found here);
+        CalibrationError when the data cannot give it."""

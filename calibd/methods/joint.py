@@ -1,0 +1,364 @@
+"""The joint method (`joint`, the default): every static and turning sample from the level static
+to the last static of the same mounting in one fit, with 1-sigma and its error budget, the turns'
+angles checked against the tilt the statics see (docs/method.md, Estimators). The maths is
+calibd.estimators.joint; the turn-angle check is calibd.gaps."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+from scipy.special import gammaincc
+
+from .. import detect, gaps, spec
+from ..errors import CalibrationError
+from ..estimators import joint
+from ..estimators.joint import JointOptions
+from ..frames import STANDARD_GRAVITY, Site, int_to_imu
+from ..results import ESTIMATES, CalibrationResult, make_result
+from ..scenario import Noise
+from ..segments import segment_record, session_segments
+from ..session import Session
+from ..units import DEG
+from . import bench
+from .base import Setting, refusal
+from .common import YAW_SIGMA_POOR_DEG, judged_once_stopped, session_warnings
+
+CAMPAIGN = "joint method's protocol"
+
+
+def _mounted(segments: list[detect.Segment]) -> list[detect.Segment]:
+    """The segments from the first (the level static) to before the first static on another
+    mounting: a re-mounting ends the single-axis model."""
+    level = segments[0]
+    return segments[:next((k for k, s in enumerate(segments) if s.kind == "static" and s.up != level.up),
+                          len(segments))]
+
+
+def _lacking(segments: list[detect.Segment]) -> str:
+    """What the joint fit lacks in segments that may end on a turn under way; "" when nothing."""
+    statics = [s for s in segments if s.kind == "static"]
+    if not statics:
+        return "a level static, then a turn and a static after it on the same mounting"
+    level = statics[0]
+    kinds = [s.kind for s in _mounted(segments[segments.index(level):])]
+    if "turn" not in kinds:
+        return f"a turn and a static after it on the level static's mounting ({level.up} up)"
+    return "" if "static" in kinds[kinds.index("turn"):] else "a static after the turn"
+
+
+class Joint:
+    """Every static and turning sample in one fit, with 1-sigma (the default method)."""
+
+    name = "joint"
+    settings = {"fixed_amplitude": Setting(bool), "drift": Setting(bool)}
+
+    def options(self, settings: Mapping[str, Any]) -> JointOptions:
+        return JointOptions(bool(settings.get("fixed_amplitude")), bool(settings.get("drift")))
+
+    def missing(self, segments: list[detect.Segment]) -> str | None:
+        return judged_once_stopped(segments, _lacking)
+
+    def solve(self, session, site, segments, options: JointOptions):
+        return joint_real_case(session, site, options, segments)
+
+
+METHOD = Joint()
+
+
+@dataclass
+class JointFit:
+    """The joint estimator's input and fit on a session, kept for figures that show how the
+    estimates came about (the Earth-rate sinusoid against the platform angle)."""
+
+    segments: list[detect.Segment]  # those used: from the level static to the last static of its mounting
+    first: int  # the session sample where the fit's input starts (the level static's first)
+    inp: joint.JointInput
+    fit: joint.JointResult
+    options: joint.JointOptions  # as solved: the accelerometer range the sensor's configuration gave
+    turn_angles: gaps.TiltCheck | None = None  # each turn's angle against the tilt, before any correction
+    final_tilt: gaps.TiltCheck | None = None  # the same check on the fit as returned
+
+
+def joint_fit(session: Session, site: Site, options: joint.JointOptions = joint.JointOptions(),
+              segments: list[detect.Segment] | None = None) -> JointFit:
+    """The joint estimator's fit on every static and turning sample from the level static to the
+    last static of the same mounting. `segments`: the session's, when already found. The
+    datasheet figures are those of the sensor's accelerometer range, when its configuration
+    datagram gave it (else `options`')."""
+    segments = session_segments(session) if segments is None else segments
+    if session.sensor.get("acc_range_g") in spec.ACC:
+        options = replace(options, acc_range_g=session.sensor["acc_range_g"])
+    if lacking := METHOD.missing(segments):
+        raise refusal(CAMPAIGN, lacking, segments, bench.hint(segments))
+    level = detect.level_static(segments)
+    used = _mounted(segments[segments.index(level):])
+    while used[-1].kind != "static":
+        used.pop()
+    statics = [s for s in used if s.kind == "static"]
+    first, stop = level.start, used[-1].stop
+    inp = joint.JointInput(
+        time_s=session.time_s[first:stop] - session.time_s[first], gyro=session.gyro[first:stop],
+        acc=session.acc[first:stop], incl=None if session.incl is None else session.incl[first:stop],
+        statics=tuple((s.start - first, s.stop - first) for s in statics), rate_hz=session.rate_hz)
+    try:
+        fit = joint.solve(inp, site, options)
+    except joint.Underdetermined as exc:
+        raise refusal(CAMPAIGN, f"what determines every parameter ({exc})", segments) from None
+    except np.linalg.LinAlgError:
+        raise refusal(CAMPAIGN, "what determines every parameter (too few platform angles)", segments) from None
+    check = tilt_check(inp, fit, site)
+    found = [t for t in check.turns if t.found] if check else []
+    if not found:
+        return JointFit(used, first, inp, seen_by_statics(fit, check), options, check, check)
+    try:
+        inp, fit = _corrected(inp, fit, site, options, found)
+    except (joint.Underdetermined, np.linalg.LinAlgError) as exc:
+        raise CalibrationError(f"the tilt the accelerometers and inclinometers see disagrees with the gyros' turn "
+                               f"angles, and the corrected angles leave no usable fit ({exc})") from None
+    final = tilt_check(inp, fit, site)
+    return JointFit(used, first, inp, seen_by_statics(fit, final), options, check, final)
+
+
+def checked_by_statics(inp: joint.JointInput, fit: joint.JointResult, site: Site) -> joint.JointResult:
+    """The fit with what the turn-angle check of its statics sees of the factory residuals (the
+    planner's view of a session; calibrate keeps the check too)."""
+    return seen_by_statics(fit, tilt_check(inp, fit, site))
+
+
+def seen_by_statics(fit: joint.JointResult, check: gaps.TiltCheck | None) -> joint.JointResult:
+    """The fit with what the statics' forces saw of the factory residuals, where they were checked."""
+    if check is None or check.factory is None:
+        return fit
+    return fit.with_factory_posterior(check.factory)
+
+
+def tilt_check(inp: joint.JointInput, fit: joint.JointResult, site: Site) -> gaps.TiltCheck | None:
+    """The turns' angles against the tilt; None when the statics cannot tell them."""
+    a = int_to_imu(fit.estimates["alpha"], fit.estimates["beta"])
+    try:
+        return gaps.check_turn_angles(inp, fit.gyro.chi, a, site.gravity, fit.acc.noise, fit.incl and fit.incl.noise,
+                                      fit.tilt.params[joint.TILT_PARAMS], fit.factory, fit.gyro.noise)
+    except (joint.Underdetermined, np.linalg.LinAlgError):
+        return None
+
+
+def _corrected(inp: joint.JointInput, fit: joint.JointResult, site: Site, options: joint.JointOptions,
+               found: list[gaps.TurnAngle]) -> tuple[joint.JointInput, joint.JointResult]:
+    """The joint fit redone with the turns' angles corrected to the tilt's; each correction's
+    1-sigma is carried into the covariance through a fit redone with that correction moved by it."""
+    def solved(turns):
+        corrected_inp = replace(inp, chi_correction=gaps.chi_correction(inp, fit.gyro.chi, turns))
+        return corrected_inp, joint.solve(corrected_inp, site, options)
+
+    inp, corrected = solved(found)
+    turn_angles = np.zeros_like(corrected.covariance)
+    for k, turn in enumerate(found):
+        _, moved = solved(found[:k] + [replace(turn, correction_rad=turn.correction_rad + turn.sigma_rad)]
+                          + found[k + 1:])
+        shift = np.array([moved.estimates[name] - value for name, value in corrected.estimates.items()])
+        turn_angles += np.outer(shift, shift)  # one correction's error moves every estimate together
+    return inp, replace(corrected, budget=corrected.budget | {"turn_angles": turn_angles})
+
+
+def joint_real_case(session: Session, site: Site, options: joint.JointOptions = joint.JointOptions(),
+                    segments: list[detect.Segment] | None = None) -> CalibrationResult:
+    """The joint estimator (docs/method.md, Estimators) on every static and turning sample from the level
+    static to the last static of the same mounting. `segments`: the session's, when already found."""
+    fitted = joint_fit(session, site, options, segments)
+    used, fit = fitted.segments, fitted.fit
+    warnings = (session_warnings(session) + _vibration_warnings(fitted, session) + _joint_warnings(fit, site)
+                + _turn_angle_warnings(fitted, session))
+    estimates = {name: (fit.estimates[name], fit.sigmas[name]) for name in joint.ESTIMATE_NAMES
+                 if name in fit.estimates}  # the order of fit.estimates, which is the covariance's
+    result = make_result("joint", site, estimates, [segment_record(s, s.kind) for s in used], warnings,
+                         session.sensor, fit.covariance, stream=session.stream,
+                         options={"fixed_amplitude": options.fixed_amplitude, "drift": options.drift},
+                         checks=_joint_checks(fit, site) | _turn_angle_checks(fitted, session),
+                         bias_reference="turn-on", error_budget=error_budget_record(fit, fitted.options))
+    if fit.sigmas["yaw"] / DEG > YAW_SIGMA_POOR_DEG:
+        result = result.flag_poor(("yaw",))
+    if fitted.final_tilt and fitted.final_tilt.p_value < CHI2_ALARM_P:
+        result = result.flag_poor(PLATFORM_ANGLE_ESTIMATES)
+    return result
+
+
+def error_budget_record(fit: joint.JointResult, options: joint.JointOptions) -> dict:
+    """The result's error_budget: each estimate's sigma by its parts (display units; their squares
+    add up to the sigma's square) and the factory residuals' prior, term by term."""
+    sigma = {name: {part: value * ESTIMATES[name][0] for part, value in parts.items()}
+             for name, parts in fit.sigma_budget().items()}
+    factory = None
+    if fit.factory is not None:
+        factory = {"reference": spec.SPECIFICATIONS,
+                   "acc_range_g": options.acc_range_g,
+                   "terms": {t.name: _term_record(t, fit.factory.posterior, k)
+                             for k, t in enumerate(fit.factory.terms)}}
+    return {"frame": "housing", "tilt_from": "inclinometers" if fit.tilt is fit.incl else "accelerometers",
+            "parts": list(next(iter(sigma.values()))), "sigma": sigma, "factory_residuals": factory}
+
+
+def _term_record(term, posterior: joint.FactoryPosterior | None, k: int) -> dict:
+    """One factory term: its value and sigma after the data (in ppm or mrad), the prior's sigma,
+    and whether the data set it (`estimated`) or its prior did."""
+    if posterior is None:
+        return {"value": 0.0, "sigma": term.sigma_in_unit, "prior_sigma": term.sigma_in_unit, "unit": term.unit,
+                "source": "prior"}
+    return {"value": float(posterior.z[k]) * term.sigma_in_unit,
+            "sigma": float(np.sqrt(posterior.cov[k, k])) * term.sigma_in_unit, "prior_sigma": term.sigma_in_unit,
+            "unit": term.unit, "source": "estimated" if posterior.estimated(k) else "prior"}
+
+
+VIBRATION_FACTOR = 3.0  # a static whose noise per sample exceeds the specified this many times is named
+_SPEC_WORDS = {"gyro": ("gyro", 1 / DEG, "deg/s", "ARW", 60 / DEG, "deg/sqrt(h)"),
+               "acc": ("accelerometer", 1000 / STANDARD_GRAVITY, "mg", "VRW", 60, "m/s/sqrt(h)"),
+               "incl": ("inclinometer", 1000 / STANDARD_GRAVITY, "mg", "VRW", 60, "m/s/sqrt(h)")}
+
+
+def _vibration_warnings(fitted: JointFit, session: Session) -> list[str]:
+    """Statics whose noise per sample is VIBRATION_FACTOR times the sensor's specified noise (its
+    datasheet random walk at the session's rate, `joint.datasheet_noise`) or more: vibration (an
+    engine running) or a platform that is not still. The fits weigh each static by its own
+    measured noise (`joint.static_inflation`), so the estimates and sigmas stay honest; the
+    warning says what the data are worth."""
+    inp = fitted.inp
+    warnings = []
+    for k, (start, stop) in enumerate(inp.statics):
+        # the datasheet's inclinometer figures are at 0 g: an axis along gravity is noisier
+        along = None if inp.incl is None else inp.incl[start:stop].mean(axis=0) / STANDARD_GRAVITY
+        figures = joint.datasheet_noise(Noise.datasheet(fitted.options.acc_range_g), inp.rate_hz, along)
+        loud = []
+        for sensor, values in (("gyro", inp.gyro), ("acc", inp.acc), ("incl", inp.incl)):
+            if values is None:
+                continue
+            measured = np.sqrt(joint.sample_variance(values, [(start, stop)])[0])
+            specified = np.sqrt(np.mean(getattr(figures, sensor).white))  # as measured: the channels' mean
+            if measured > VIBRATION_FACTOR * specified:
+                name, factor, unit, walk, walk_factor, walk_unit = _SPEC_WORDS[sensor]
+                density = specified / np.sqrt(inp.rate_hz) * walk_factor
+                loud.append(f"{name} noise {measured * factor:.3g} {unit} per sample, {measured / specified:.0f}x "
+                            f"the specified {specified * factor:.2g} {unit} ({walk} {density:.3g} {walk_unit} at "
+                            f"{inp.rate_hz:g} Hz)")
+        if loud:
+            begin_s = session.time_s[fitted.first + start]
+            warnings.append(f"static {k + 1} ({begin_s:.1f} s to {begin_s + (stop - start) / inp.rate_hz:.1f} s): "
+                            f"{'; '.join(loud)}: vibration (an engine running?) or a platform not at rest; the "
+                            "fits weigh it by its measured noise")
+    return warnings
+
+
+# what a wrong platform angle at the statics moves (alpha and beta come from the turns' rates)
+PLATFORM_ANGLE_ESTIMATES = ("pitch", "roll", "yaw", *(f"{s}_bias_{a}" for s in ("acc", "incl") for a in "xyz"))
+
+
+def _turn_window_s(fitted: JointFit, session: Session, turn: gaps.TurnAngle) -> tuple[float, float]:
+    """The turn's start and end on the session's time base."""
+    return float(session.time_s[fitted.first + turn.start]), float(session.time_s[fitted.first + turn.stop])
+
+
+def _turn_angle_checks(fitted: JointFit, session: Session) -> dict:
+    if fitted.turn_angles is None:
+        return {}
+    turns = []
+    for t in fitted.turn_angles.turns:
+        start_s, end_s = _turn_window_s(fitted, session, t)
+        turns.append({"start_s": round(start_s, 3), "end_s": round(end_s, 3), "gyro_deg": t.gyro_rad / DEG,
+                      "tilt_minus_gyro_deg": t.correction_rad / DEG,
+                      "sigma_deg": t.sigma_rad / DEG if t.checkable else None, "corrected": t.found})
+    final = fitted.final_tilt
+    chi2 = {"force_static_chi2": {"chi2": final.chi2, "dof": final.dof, "p_value": final.p_value}} if final else {}
+    return {"turn_angles": turns} | chi2
+
+
+def _turn_angle_warnings(fitted: JointFit, session: Session) -> list[str]:
+    """Turns whose angle the tilt corrected, turns it could not check, statics' forces that do
+    not fit."""
+    unseen = ("a datagram loss the counter cannot see (whole 0.128 s cycles) during a turn would go unnoticed "
+              "except by the gyro chi-square")
+    if fitted.turn_angles is None:
+        return [f"the statics do not pin the turns' angles (statics at fewer than {gaps.MIN_HEADINGS} "
+                f"headings): {unseen}"]
+    warnings = []
+    for t in fitted.turn_angles.turns:
+        start_s, end_s = _turn_window_s(fitted, session, t)
+        if t.found:
+            top_rate = np.max(np.abs(fitted.fit.gyro.chi_rate[t.start:t.stop]))
+            warnings.append(
+                f"the turn from {start_s:.1f} s to {end_s:.1f} s: the tilt the accelerometers and inclinometers "
+                f"see turned {(t.gyro_rad + t.correction_rad) / DEG:+.2f} deg where the gyros integrated "
+                f"{t.gyro_rad / DEG:+.2f} deg (off by {t.correction_rad / DEG:+.2f} +- {t.sigma_rad / DEG:.2f} deg): "
+                f"datagrams lost unseen by the counter (at least {abs(t.correction_rad) / top_rate:.2f} s at the "
+                "turn's top rate); the platform angle from that turn on is corrected and the correction's "
+                "uncertainty is in the sigmas")
+    unchecked = [t for t in fitted.turn_angles.turns if not t.checkable]
+    if unchecked:
+        tilt_deg = np.degrees(np.arcsin(min(np.hypot(*fitted.fit.tilt.params[joint.TILT_PARAMS]), 1.0)))
+        warnings.append(f"{len(unchecked)} of {len(fitted.turn_angles.turns)} turns' angles could not be "
+                        f"checked against the tilt (platform axis {tilt_deg:.3f} deg from Up, too little to see "
+                        f"the angle to {np.degrees(gaps.CHECKABLE_SIGMA_RAD):.0f} deg): {unseen}")
+    final = fitted.final_tilt
+    if final and final.p_value < CHI2_ALARM_P:
+        warnings.append(f"the static segments' accelerometer and inclinometer means do not fit the model "
+                        f"(chi-square {final.chi2:.0f} for {final.dof} degrees of freedom): a platform angle off "
+                        "(datagrams lost during a turn), a platform that moved during a static, or a bias jump; "
+                        "pitch, roll, yaw and the accelerometer and inclinometer biases are flagged poor")
+    return warnings
+
+
+def _joint_checks(fit: joint.JointResult, site: Site) -> dict:
+    fitted, sigma = fit.gyro.amplitude_check
+    expected = joint.EARTH_RATE * np.cos(np.radians(site.latitude_deg))
+    to_deg_h = 3600 / DEG
+    return {"earth_rate_horizontal_deg_h": {"fitted": fitted * to_deg_h, "sigma": sigma * to_deg_h,
+                                            "expected": expected * to_deg_h},
+            "static_chi2": _chi2_record(fit),
+            "gyro_residual_rms_deg_s": (fit.gyro.residual_rms / DEG).tolist(),
+            # the platform axis as the gyro triad sees it (unit): what taking the platform's rate out of
+            # the gyros' outputs needs, known far better than the housing's alpha and beta
+            "platform_axis_in_gyro_axes": (fit.gyro.params[joint.AXIS_PARAMS]
+                                           / np.linalg.norm(fit.gyro.params[joint.AXIS_PARAMS])).tolist(),
+            "noise_excess_over_white": {"gyro": fit.gyro.noise_scale, "acc": fit.acc.noise_scale,
+                                        **({} if fit.incl is None else {"incl": fit.incl.noise_scale})}}
+
+
+CHI2_ALARM_P = 1e-3  # p-value below which the statics' residuals say the model does not hold
+
+
+def _chi2_record(fit: joint.JointResult) -> dict:
+    value, dof = fit.gyro.static_chi2
+    return {"chi2": value, "dof": dof, "p_value": float(gammaincc(dof / 2, value / 2))}  # chi-square survival
+
+
+def _joint_warnings(fit: joint.JointResult, site: Site) -> list[str]:
+    forces = "accelerometer" if fit.incl is None else "accelerometer and inclinometer"
+    warnings = ["biases are turn-on biases (the sensor's at this power-up): their 1-sigma includes the "
+                "bias-instability wander over the session, which moves the bias the data carry away from them",
+                f"horizontal {forces} biases rest on the gyro-derived alpha and beta "
+                "(a single rotation axis cannot separate them from the IMU tilt otherwise): an error "
+                "d_beta moves the X biases by g0 d_beta, and their 1-sigma carries it"]
+    if fit.factory is not None:
+        warnings.append("every 1-sigma carries the factory residuals the STIM300 datasheet allows (each triad's "
+                        "misalignment to the housing and scale factors, as a prior the statics narrow only where "
+                        "they see them): they limit pitch, roll, alpha, beta and the accelerometer and "
+                        "inclinometer biases (the result's error_budget says how much and what was estimated)")
+    if site.g0 is None:
+        warnings.append(f"Z {forces} biases rest on normal gravity: their 1-sigma includes "
+                        f"{site.gravity_sigma / STANDARD_GRAVITY * 1000:.3f} mg for a typical local gravity anomaly, "
+                        "more where it is large (give --g0 when it is measured)")
+    if fit.sigmas["yaw"] / DEG > YAW_SIGMA_POOR_DEG:
+        warnings.append(f"yaw is too poor to use: 1-sigma {fit.sigmas['yaw'] / DEG:.1f} deg (more static time "
+                        "at several headings, or more turning, would help)")
+    chi2_check = _chi2_record(fit)
+    if chi2_check["p_value"] < CHI2_ALARM_P:
+        warnings.append(f"the static segments' gyro means do not fit the model (chi-square {chi2_check['chi2']:.0f} "
+                        f"for {chi2_check['dof']} degrees of freedom): a bias jump, a platform that moved during a "
+                        "static, or warm-up drift; the estimates and their sigma are not to be trusted")
+    fitted, sigma = fit.gyro.amplitude_check
+    expected = joint.EARTH_RATE * np.cos(np.radians(site.latitude_deg))
+    if abs(fitted - expected) > 3 * sigma + 0.05 * expected:
+        warnings.append(f"the gyros see a horizontal Earth rate of {fitted / DEG * 3600:.2f} +- "
+                        f"{sigma / DEG * 3600:.2f} deg/h where {expected / DEG * 3600:.2f} deg/h is expected: "
+                        "model mismatch (platform disturbed, wrong latitude, scale error?)")
+    return warnings
