@@ -2,12 +2,15 @@
 each fed the same 2000 Hz stream in real time through a pty.
 
 Serving: 4 socket clients watching samples (2 raw, 2 corrected), one client that watches raw
-samples and never reads, the raw and corrected ptys each with a reader, and, halfway through,
-1000 connect/disconnect cycles and 10 MB of garbage commands. Printed: the daemon's CPU (% of
-one core, and the ratio to bare), its RSS over time, the reading clients' sample latency (host
-read -> socket, from each sample's t_host), and how far the served run's result lies from the
-bare run's (in sigma).
-Targets: CPU <= 2x bare and <= 8 % of a core; latency p99 < 50 ms; RSS flat; result unchanged.
+samples and never reads, two raw ptys each with its own reader, the corrected pty with a reader
+that behaves like a driver (asks `C` once, then writes a request the pty refuses every 100 ms),
+the "best" correction policy, and, halfway through, 1000 connect/disconnect cycles and 10 MB of
+garbage commands. Printed: the daemon's CPU (% of one core, and the ratio to bare), its RSS over
+time, the reading clients' sample latency (host read -> socket, from each sample's t_host), the
+bytes each pty reader got against the bytes fed, the served run's log lines by event, and how far
+the served run's result lies from the bare run's (in sigma).
+Targets: CPU <= 2x bare and <= 8 % of a core; latency p99 < 50 ms; RSS flat; every raw reader
+gets every byte; the served run's log under 100 lines for 10 minutes; result unchanged.
 
     python benchmarks/serve.py [--seconds 600] [--quick]
 """
@@ -25,6 +28,7 @@ import tempfile
 import threading
 import time
 import tty
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -65,18 +69,32 @@ class Watcher(threading.Thread):
 
 
 class PtyReader(threading.Thread):
-    """Reads a served pty to its end, counting bytes."""
+    """Reads a served pty to its end, counting bytes; a `pester`ing reader also asks `C` once and
+    then writes a request the pty refuses every 100 ms, as a confused driver would."""
 
-    def __init__(self, link: Path):
+    def __init__(self, link: Path, pester: bool = False):
         super().__init__(daemon=True)
-        self.fd = os.open(link, os.O_RDONLY | os.O_NOCTTY)
+        self.fd = os.open(link, os.O_RDWR | os.O_NOCTTY)
         tty.setraw(self.fd)
         self.bytes = 0
+        self.requests = 0
+        if pester:
+            threading.Thread(target=self._pester, daemon=True).start()
 
     def run(self) -> None:
         try:
             while chunk := os.read(self.fd, 65536):
                 self.bytes += len(chunk)
+        except OSError:
+            pass
+
+    def _pester(self) -> None:
+        try:
+            os.write(self.fd, b"C\r")
+            while True:
+                time.sleep(0.1)
+                os.write(self.fd, b"Q\r")  # not a request the corrected pty answers
+                self.requests += 1
         except OSError:
             pass
 
@@ -102,6 +120,15 @@ def abuse(path: Path) -> None:
                 pass
 
 
+def event_name(line: str) -> str:
+    """The event of one log line (JSON or console rendering), or the line's first word."""
+    try:
+        return json.loads(line)["event"]
+    except (ValueError, KeyError, TypeError):
+        words = line.split()
+        return next((w for w in words if w.isidentifier()), line[:20])
+
+
 def measure(data: bytes, seconds: float, serve: bool) -> dict:
     master, slave = os.openpty()
     tty.setraw(master)
@@ -110,7 +137,8 @@ def measure(data: bytes, seconds: float, serve: bool) -> dict:
         sock_path = Path(tmp) / "calibd.sock"
         table = f'[serve]\nsocket = "{sock_path}"\n' if serve else ""
         if serve:
-            table += f'raw_pty = "{tmp}/raw"\ncorrected_pty = "{tmp}/corrected"\n'
+            table += (f'raw_pty = ["{tmp}/raw1", "{tmp}/raw2"]\ncorrected_pty = "{tmp}/corrected"\n'
+                      'correction = "best"\n')
         config = Path(tmp) / "calibd.toml"
         config.write_text(f'[serial]\nport = "{os.ttyname(slave)}"\n[site]\nlatitude_deg = 40.59129\n'
                           f'[output]\nstate_dir = "{tmp}/state"\n[warmup]\nwindow_s = {WARMUP_WINDOW_S}\n{table}')
@@ -130,7 +158,7 @@ def measure(data: bytes, seconds: float, serve: bool) -> dict:
             stalled.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
             stalled.connect(str(sock_path))
             stalled.sendall(b'?WATCH={"enable":true,"samples":"raw"};\n')  # and never reads again
-            readers = [PtyReader(Path(tmp) / name) for name in ("raw", "corrected")]
+            readers = [PtyReader(Path(tmp) / name, name == "corrected") for name in ("raw1", "raw2", "corrected")]
             for thread in (*clients, *readers):
                 thread.start()
             threading.Timer(seconds / 2, abuse, (sock_path,)).start()
@@ -144,12 +172,14 @@ def measure(data: bytes, seconds: float, serve: bool) -> dict:
             process.wait(timeout=30)
             os.close(master)
             os.close(slave)
+            log.seek(0)
+            log_lines = log.read().splitlines()
             log.close()
             if stalled is not None:
                 stalled.close()
         result_file = Path(tmp) / "state" / "result.json"
         result = json.loads(result_file.read_text()) if result_file.exists() else None
-    return {"usage": samples, "clients": clients, "readers": readers, "result": result}
+    return {"usage": samples, "clients": clients, "readers": readers, "result": result, "log": log_lines}
 
 
 def main() -> int:
@@ -183,8 +213,15 @@ def main() -> int:
           f"{np.percentile(latency_ms, 50):.1f} ms, p99 {np.percentile(latency_ms, 99):.1f} ms, max "
           f"{latency_ms.max():.1f} ms (target p99 < 50 ms); newest sample of each batch p99 "
           f"{np.percentile(newest_ms, 99):.1f} ms")
-    for reader, name in zip(runs["serving"]["readers"], ("raw", "corrected")):
-        print(f"{name} pty reader: {reader.bytes / 1e6:.1f} MB")
+    raw1, raw2, corrected = runs["serving"]["readers"]
+    for reader, name in ((raw1, "raw pty 1"), (raw2, "raw pty 2")):
+        print(f"{name} reader: {reader.bytes:,} of the {len(data):,} bytes fed "
+              f"({'every byte' if reader.bytes == len(data) else f'{len(data) - reader.bytes:,} short'})")
+    print(f"corrected pty reader: {corrected.bytes / 1e6:.1f} MB, {corrected.requests} refused requests written")
+    log = runs["serving"]["log"]
+    events = Counter(event_name(line) for line in log)
+    print(f"served run's log: {len(log)} lines in {seconds:.0f} s (target for 600 s: < 100): "
+          + ", ".join(f"{name} {count}" for name, count in events.most_common()))
     bare, served = runs["bare"]["result"], runs["serving"]["result"]
     if bare is None or served is None:
         print("no result in one of the runs: the result comparison needs a longer run")
