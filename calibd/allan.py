@@ -9,6 +9,8 @@ Pure functions of arrays: the simulator, the estimators and the noise characteri
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import numpy as np
 from scipy.optimize import nnls
 from scipy.special import chdtri
@@ -183,18 +185,17 @@ def fit_noise_model(residuals: np.ndarray, rate_hz: float, corr_taus=FLICKER_TAU
     return float(coef[0]), float(coef[1])
 
 
-def correlate(columns: np.ndarray, rate_hz: float, corrs) -> list[np.ndarray]:
+def correlate(columns: np.ndarray, rate_hz: float, corrs) -> Iterator[np.ndarray]:
     """K @ columns for each unit Gauss-Markov correlation K_ij = exp(-|i - j| / (corr rate_hz)),
-    one per time constant in `corrs`: convolutions with the two-sided exponential, by FFT
-    (no N x N matrix; the columns are transformed once for all time constants)."""
+    one per time constant in `corrs`, in turn: convolutions with the two-sided exponential, by FFT
+    (no N x N matrix; the columns are transformed once for all time constants, and one product at
+    a time is held, each the size of the padded transform)."""
     n = len(columns)
     size = 1 << int(np.ceil(np.log2(2 * n)))
     lags = np.arange(size)
     lags = np.minimum(lags, size - lags)  # circular distance: wraps only beyond n, which is cut off
     spectrum = np.fft.rfft(columns, size, axis=0)
-    out = []
     for corr in corrs:
         kernel = np.exp(-lags / (corr * rate_hz))
         kernel[n:size - n + 1] = 0.0
-        out.append(np.fft.irfft(np.fft.rfft(kernel)[:, None] * spectrum, size, axis=0)[:n])
-    return out
+        yield np.fft.irfft(np.fft.rfft(kernel)[:, None] * spectrum, size, axis=0)[:n]

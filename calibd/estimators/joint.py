@@ -214,8 +214,13 @@ def _row_weights(values: np.ndarray, inp: JointInput) -> np.ndarray:
 
 
 def _scaled(designs: list[ChannelDesign], root: np.ndarray) -> list[ChannelDesign]:
-    """Designs with each row multiplied by its root weight: their least squares is the weighted one."""
-    return [ChannelDesign(d.params, d.values * root[:, None]) for d in designs]
+    """Designs with each row multiplied by its root weight: their least squares is the weighted
+    one. Channels that share a basis share its scaled copy."""
+    scaled: dict[int, np.ndarray] = {}
+    for d in designs:
+        if id(d.basis) not in scaled:
+            scaled[id(d.basis)] = d.basis * root[:, None]
+    return [ChannelDesign(d.params, scaled[id(d.basis)], d.mix) for d in designs]
 
 
 # ---------------------------------------------------------------- gyro fit
@@ -239,38 +244,50 @@ def _platform_angle(inp: JointInput, axis: np.ndarray, offset: np.ndarray,
 
 @dataclass(frozen=True)
 class ChannelDesign:
-    """One channel's regressors, kept as the non-zero columns of its N x P design: each channel
-    has its own offsets (and rate and drift terms), so most of the P columns are zero, and a
-    session of an hour at 125 Hz would spend most of the solver's memory on them."""
+    """One channel's regressors, kept as the non-zero columns of its N x P design (each channel
+    has its own offsets, rate and drift terms, so most of the P columns are zero), and those as
+    a few N-long columns all channels of a fit share (`basis`: cos chi, sin chi, ...) mixed by
+    the channel's own small matrix (`mix`): the channels differ only in how they mix the same
+    columns, so a session's columns are held once, not once per channel. A session of two hours
+    at 125 Hz would otherwise spend most of the solver's memory on them."""
 
     params: np.ndarray  # which of the P parameters the columns belong to
-    values: np.ndarray  # N x len(params)
+    basis: np.ndarray  # N x B, shared by the channels of a fit
+    mix: np.ndarray  # B x len(params): the design is basis @ mix
 
     def __matmul__(self, params: np.ndarray) -> np.ndarray:
-        return self.values @ params[self.params]
+        return self.basis @ (self.mix @ params[self.params])
 
 
 def _gyro_designs(chi, chi_rate, tau, a, drift: bool) -> list[ChannelDesign]:
-    """Per channel, the regressors of (v1, v2, k_xyz, c_xyz[, d_xyz]): the Earth terms, and the
-    channel's own rate coefficient, offset and drift."""
-    cos, sin = np.cos(chi), np.sin(chi)
+    """Per channel, the regressors of (v1, v2, k_xyz, c_xyz[, d_xyz]): the Earth terms
+    (a_i0 cos chi - a_i1 sin chi, a_i0 sin chi + a_i1 cos chi), and the channel's own rate
+    coefficient, offset and drift, on the basis (cos chi, sin chi, chi', 1[, tau])."""
+    basis = np.empty((len(chi), 5 if drift else 4))
+    np.cos(chi, out=basis[:, 0])
+    np.sin(chi, out=basis[:, 1])
+    basis[:, 2], basis[:, 3] = chi_rate, 1.0
+    if drift:
+        basis[:, 4] = tau
     designs = []
     for i in range(3):
-        cols = [a[i, 0] * cos - a[i, 1] * sin, a[i, 0] * sin + a[i, 1] * cos, chi_rate, np.ones(len(chi))]
+        mix = np.eye(basis.shape[1])
+        mix[:2, :2] = [[a[i, 0], a[i, 1]], [-a[i, 1], a[i, 0]]]
         params = [*range(EARTH_RATE_PARAMS.start, EARTH_RATE_PARAMS.stop), AXIS_PARAMS.start + i,
-                  OFFSET_PARAMS.start + i]
-        if drift:
-            cols.append(tau)
-            params.append(DRIFT_PARAMS.start + i)
-        designs.append(ChannelDesign(np.array(params), np.column_stack(cols)))
+                  OFFSET_PARAMS.start + i] + ([DRIFT_PARAMS.start + i] if drift else [])
+        designs.append(ChannelDesign(np.array(params), basis, mix))
     return designs
 
 
 def _gram(designs: list[ChannelDesign], p: int) -> np.ndarray:
-    """Sum over channels of D' D, each channel's block placed at its parameters."""
+    """Sum over channels of D' D = M' (B' B) M, each channel's block placed at its parameters;
+    B' B once per shared basis."""
     gram = np.zeros((p, p))
+    basis_grams: dict[int, np.ndarray] = {}
     for d in designs:
-        gram[np.ix_(d.params, d.params)] += d.values.T @ d.values
+        if id(d.basis) not in basis_grams:
+            basis_grams[id(d.basis)] = d.basis.T @ d.basis
+        gram[np.ix_(d.params, d.params)] += d.mix.T @ basis_grams[id(d.basis)] @ d.mix
     return gram
 
 
@@ -280,7 +297,7 @@ def _normal_equations(designs: list[ChannelDesign], data: np.ndarray, p: int) ->
     through its small tilt coefficients)."""
     rhs = np.zeros(p)
     for i, d in enumerate(designs):
-        rhs[d.params] += d.values.T @ data[:, i]
+        rhs[d.params] += d.mix.T @ (d.basis.T @ data[:, i])
     return _gram(designs, p), rhs
 
 
@@ -347,14 +364,18 @@ def _iterate_gyros(inp: JointInput, site: Site, options: JointOptions, root: np.
     for _ in range(MAX_ITERATIONS):
         previous = chi
         chi, chi_rate = _platform_angle(inp, axis, offset, static)
+        designs = residuals = offset = None  # the last pass's session-long arrays go before this pass's are made
         designs = _gyro_designs(chi, chi_rate, tau, int_to_imu(*alpha_beta(axis)), options.drift)
         gram, rhs = _normal_equations(_scaled(designs, root), inp.gyro * root[:, None],
                                       GYRO_PARAM_COUNT[options.drift])
         params, bread = _on_circle(gram, rhs, amplitude) if options.fixed_amplitude else _free(gram, rhs)
-        residuals = np.column_stack([inp.gyro[:, i] - designs[i] @ params for i in range(3)])
+        residuals = inp.gyro.copy()
+        for i, design in enumerate(designs):
+            residuals[:, i] -= design @ params
         k = params[AXIS_PARAMS]
         axis = k / np.linalg.norm(k)
-        offset = inp.gyro - residuals - np.outer(chi_rate, k)  # the fitted non-rotational part
+        offset = inp.gyro - residuals  # the fitted non-rotational part: the fit less its rate term
+        offset -= np.outer(chi_rate, k)
         if np.max(np.abs(chi - previous)) < tolerance:
             break
     return _GyroSolution(params, bread, designs, chi, chi_rate, residuals, offset)
@@ -447,7 +468,11 @@ def _covariance(designs, rows: np.ndarray, inp: JointInput, bread: np.ndarray, n
         bins = np.floor(inp.time_s[rows] / FLICKER_BIN_S).astype(np.int64)
         starts = np.flatnonzero(np.diff(bins, prepend=-1))
         grid = np.zeros((bins[-1] + 1, sum(len(d.params) for d in designs)))
-        grid[bins[starts]] = np.hstack([np.add.reduceat(d.values * root[:, None], starts) for d in designs])
+        binned: dict[int, np.ndarray] = {}  # each shared basis's bin sums, mixed per channel below
+        for d in designs:
+            if id(d.basis) not in binned:
+                binned[id(d.basis)] = np.add.reduceat(d.basis * root[:, None], starts)
+        grid[bins[starts]] = np.hstack([binned[id(d.basis)] @ d.mix for d in designs])
         for correlated in correlate(grid, 1.0 / FLICKER_BIN_S, FLICKER_TAUS_S):
             start = 0
             for i, d in enumerate(designs):
@@ -508,18 +533,17 @@ class ForceFit:
         output is `through` times the data), another axis k, g0 or platform angle `chi` (all
         samples; None: the fit's), with the same weights: how the error budget sees a change of
         the data. The sums are linear in the data, so the map acts on them."""
-        sums = self.sums if chi is None else _static_sums(self.sums.force, chi[self.rows], self.root)
+        sums = self.sums if chi is None else _static_sums(self.sums.force, _angle_basis(chi[self.rows]), self.root)
         return _force_params(replace(sums, cross=sums.cross @ through.T), k, g0)[0]
 
 
 @dataclass(frozen=True)
 class _StaticSums:
-    """The statics' platform-angle basis B = (cos chi, sin chi, 1) and its sums with itself and
+    """The sums of the statics' platform-angle basis B = (cos chi, sin chi, 1) with itself and
     the data, weighted (W: each static's weight). A channel's design is B times a 3 x 3 matrix
     of the axis and g0, so the force fit's normal equations for any axis and g0 follow from these
     sums: refitting for the sensitivity costs no pass over the samples."""
 
-    basis: np.ndarray  # n x 3
     gram: np.ndarray  # B' W B
     cross: np.ndarray  # B' W f, one column per channel
     force: np.ndarray  # f: n x 3
@@ -561,8 +585,8 @@ def fit_force(force: np.ndarray, chi: np.ndarray, inp: JointInput, k: np.ndarray
         raise Underdetermined("the statics cover too few platform angles to separate the tilt from the biases "
                               "(index positions about 90 deg apart are needed)")
     root = _row_weights(force, inp)[rows]
-    sums = _static_sums(force[rows], chi[rows], root)
-    basis = sums.basis
+    basis = _angle_basis(chi[rows])
+    sums = _static_sums(force[rows], basis, root)
     params, gram, maps, offsets = _force_params(sums, k, g0)
     drivers = np.append(k, g0)
 
@@ -571,7 +595,7 @@ def fit_force(force: np.ndarray, chi: np.ndarray, inp: JointInput, k: np.ndarray
 
     steps = np.diag([1e-6, 1e-6, 1e-6, 1e-4])  # k is near unit length; g0 in m/s^2
     sensitivity = np.column_stack([(refit(drivers + h) - refit(drivers - h)) / (2 * h.max()) for h in steps])
-    designs = [ChannelDesign(np.array([0, 1, 2 + i]), basis @ t) for i, t in enumerate(maps)]
+    designs = [ChannelDesign(np.array([0, 1, 2 + i]), basis, t) for i, t in enumerate(maps)]
     full = np.zeros_like(force)
     full[rows] = force[rows] - offsets - np.column_stack([d @ params for d in designs])
     ref = inp.statics[reference_static(sample_variance(force, inp.statics), inp.statics)]
@@ -580,10 +604,14 @@ def fit_force(force: np.ndarray, chi: np.ndarray, inp: JointInput, k: np.ndarray
     return ForceFit(params, parts, _noise_scale(full, inp, ref), noise, sensitivity, rows, root, sums)
 
 
-def _static_sums(force_rows: np.ndarray, chi_rows: np.ndarray, root: np.ndarray) -> _StaticSums:
-    basis = np.column_stack([np.cos(chi_rows), np.sin(chi_rows), np.ones(len(chi_rows))])
+def _angle_basis(chi_rows: np.ndarray) -> np.ndarray:
+    """B = (cos chi, sin chi, 1), one row per sample."""
+    return np.column_stack([np.cos(chi_rows), np.sin(chi_rows), np.ones(len(chi_rows))])
+
+
+def _static_sums(force_rows: np.ndarray, basis: np.ndarray, root: np.ndarray) -> _StaticSums:
     weighted = basis * (root**2)[:, None]
-    return _StaticSums(basis, weighted.T @ basis, weighted.T @ force_rows, force_rows)
+    return _StaticSums(weighted.T @ basis, weighted.T @ force_rows, force_rows)
 
 
 # ---------------------------------------------------------------- from fits to estimates
@@ -788,12 +816,20 @@ def factory_effects(inp: JointInput, site: Site, options: JointOptions, gyro: Gy
             params = gyro.params.copy()
             params[AXIS_PARAMS] = through @ params[AXIS_PARAMS]
             start = replace(gyro, params=params, offset=gyro.offset @ through.T)
-            refit = _iterate_gyros(replace(inp, gyro=inp.gyro @ through.T), site, options, root, start, REFIT_TOLERANCE)
-            columns.append(estimates(refit.params, refit.chi) - base)
-            refits[index] = (refit.params[AXIS_PARAMS], np.array([refit.chi[a:b].mean() for a, b in inp.statics]))
+            refit_params, refit_chi = _gyro_refit(replace(inp, gyro=inp.gyro @ through.T), site, options, root, start)
+            columns.append(estimates(refit_params, refit_chi) - base)
+            refits[index] = (refit_params[AXIS_PARAMS], np.array([refit_chi[a:b].mean() for a, b in inp.statics]))
         else:
             columns.append(estimates(gyro.params, None, term.sensor, through) - base)
     return FactoryEffects(terms, np.column_stack(columns), refits)
+
+
+def _gyro_refit(inp: JointInput, site: Site, options: JointOptions, root: np.ndarray,
+                start: GyroFit) -> tuple[np.ndarray, np.ndarray]:
+    """The parameters and platform angle of a gyro fit refitted from `start`; its other
+    session-long arrays are let go here, not held through the next term's refit."""
+    solution = _iterate_gyros(inp, site, options, root, start, REFIT_TOLERANCE)
+    return solution.params, solution.chi
 
 
 def parameter_covariance(gyro: GyroFit, incl: ForceFit | None, acc: ForceFit, g0_sigma: float) -> dict[str, np.ndarray]:
