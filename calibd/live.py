@@ -93,7 +93,7 @@ class SystemdStatus(Listener):
         self._line = ""
         self._degraded: str | None = None
 
-    def on_state(self, state: State, detail: str) -> None:
+    def on_state(self, state: State, detail: str, progress: dict | None = None) -> None:
         self._line = f"{state.value.lower()}: {detail}"
         self._send()
 
@@ -182,8 +182,6 @@ def replay(source: SampleSource, calibrator: Calibrator, progress=None, hub: Hub
     calibrator's listeners) serves the replayed sensor and is closed at the end. A failed port
     reader raises."""
     try:
-        if hub is not None:
-            hub.watch(calibrator)
         with source:
             pump(source, calibrator, on_step=progress and (lambda fed: progress(source.done_bytes, source.total_bytes)),
                  on_stream=hub and hub.stream_seen)
@@ -216,7 +214,6 @@ def run(config, reload_config) -> int:
                             [StateLog(), store, status, *([hub] if hub else [])],
                             source=config.serial.port, detection=config.detection, previous=previous)
     if hub is not None:
-        hub.watch(calibrator)
         hub.port_writer = source.reader.write  # requests written into the raw pty go to the sensor
     stopping = []
     signal.signal(signal.SIGTERM, lambda *_: stopping.append("SIGTERM"))

@@ -451,7 +451,7 @@ class ResultStore:
         self._kept, self._held_back = marked, None
         self._write(self.dir / "result.json", result_json(marked))
 
-    def on_state(self, state: Enum, detail: str) -> None:
+    def on_state(self, state: Enum, detail: str, progress: dict | None = None) -> None:
         self._state = {"state": state.value, "detail": detail}
         self._write_state()
 

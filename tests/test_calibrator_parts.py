@@ -223,7 +223,7 @@ class Recorder(Listener):
     def __init__(self):
         self.states, self.results = [], []
 
-    def on_state(self, state, detail):
+    def on_state(self, state, detail, progress=None):
         self.states.append(state)
 
     def on_result(self, result):

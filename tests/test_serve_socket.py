@@ -498,7 +498,6 @@ def test_after_a_sensor_restart_nothing_is_corrected_with_the_previous_power_ups
                           state=lambda state, detail: phase.setdefault(state, True))
     calibrator = Calibrator(Site(60.0), WarmupConfig(window_s=10.0), MethodConfig(resolve_every_s=1e9),
                             [hub, meanwhile])
-    hub.watch(calibrator)
     try:
         while chunks:
             read()

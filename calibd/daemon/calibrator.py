@@ -209,5 +209,6 @@ class Calibrator:
 
     def _set(self, state: State, detail: str) -> None:
         self.state, self.detail = state, detail
+        progress = self.progress_fields()
         for listener in self.listeners:
-            listener.on_state(state, detail)
+            listener.on_state(state, detail, progress)

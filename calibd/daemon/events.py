@@ -32,8 +32,9 @@ class Listener(Protocol):
     """One consumer of the calibrator's events; a class deriving from it hears nothing it does not
     define."""
 
-    def on_state(self, state: State, detail: str) -> None:
-        """The state, at every transition and whenever its detail changes."""
+    def on_state(self, state: State, detail: str, progress: dict | None = None) -> None:
+        """The state, at every transition and whenever its detail changes, with the session's
+        progress (STATE's `progress` fields, docs/protocol.md; None where a caller has none)."""
 
     def on_result(self, result: CalibrationResult) -> None:
         """A new result."""
@@ -50,7 +51,7 @@ class Callbacks(Listener):
     result: Callable[[CalibrationResult], None] = lambda result: None
     stale: Callable[[CalibrationResult], None] = lambda result: None
 
-    def on_state(self, state: State, detail: str) -> None:
+    def on_state(self, state: State, detail: str, progress: dict | None = None) -> None:
         self.state(state, detail)
 
     def on_result(self, result: CalibrationResult) -> None:
@@ -68,7 +69,7 @@ class StateLog(Listener):
     def __init__(self) -> None:
         self._state = State.STARTING
 
-    def on_state(self, state: State, detail: str) -> None:
+    def on_state(self, state: State, detail: str, progress: dict | None = None) -> None:
         if state != self._state:
             (log.warning if state == State.FAULT else log.info)("state", state=state.value, detail=detail)
         self._state = state

@@ -31,7 +31,7 @@ from stim300.capture import StreamInfo
 from stim300.clock import CounterClock
 
 from ..config import ServeConfig
-from ..daemon import Calibrator, Listener, State
+from ..daemon import Listener, State
 from ..results import CalibrationResult, result_json
 from ..session import PowerUpCuts
 from .protocol import (MAX_TOKEN_BYTES, SAMPLES_MAX_S, Command, ProtocolError, correction_message, device_message,
@@ -70,7 +70,6 @@ class Hub(Listener):
         self.config, self.port = config, port
         self.gid = _group_id(config.group)
         self.port_writer = None  # the port's writer, for requests written into the raw pty (`calibd run` sets it)
-        self._calibrator: Calibrator | None = None
         self._state = {"state": State.STARTING.value, "detail": "waiting for data", "progress": {}}
         self._result = previous
         self._kept: Correction | None = None  # what this power-up's corrected outputs subtract ([serve] correction)
@@ -117,10 +116,6 @@ class Hub(Listener):
             self.close()
             raise
 
-    def watch(self, calibrator: Calibrator) -> None:
-        """The calibrator whose protocol progress STATE and POLL report (it has this hub among its listeners)."""
-        self._calibrator = calibrator
-
     @property
     def _bias(self) -> dict[str, np.ndarray] | None:
         """The biases subtracted now (deg/s, g), None when none."""
@@ -133,11 +128,11 @@ class Hub(Listener):
                 part.close()
 
     # ------------------------------------------------------------------ the calibrator's events (pump thread)
-    def on_state(self, state: State, detail: str) -> None:
+    def on_state(self, state: State, detail: str, progress: dict | None = None) -> None:
         if state == State.RESTARTED:
             with self._lock:
                 self._kept, self._restart_unheard = None, False
-        self._state = {"state": state.value, "detail": detail, "progress": self._progress()}
+        self._state = {"state": state.value, "detail": detail, "progress": progress or {}}
         self._publish(state_message(**self._state))
 
     def on_result(self, result: CalibrationResult) -> None:
@@ -168,10 +163,6 @@ class Hub(Listener):
         if self.config.result_copy is not None:
             self._write_copy(result)
         self._publish(result_message(result.to_dict()))
-
-    def _progress(self) -> dict:
-        """The protocol's progress: the calibrator's record of its session, the one its detail words."""
-        return {} if self._calibrator is None else self._calibrator.progress_fields()
 
     def stream_seen(self, info: StreamInfo, counts: dict, increases: dict) -> None:
         """The daemon's loop after each batch: the stream as it is (DEVICE) and the faults that
