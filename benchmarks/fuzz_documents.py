@@ -58,12 +58,11 @@ def make_seeds(work: Path) -> dict[str, list[bytes]]:
     subprocess.run([*calibd, "replay", str(CAPTURE), "--latitude", "60", "--state-dir", str(state_dir)],
                    check=True, capture_output=True)
     sys.path.insert(0, str(ROOT))
-    from calibd.serve.protocol import encode, poll_message, result_message, state_message, version_message
+    from calibd.serve.protocol import Poll, Result, State, StateFields, Version, encode
     doc = json.loads(result.read_bytes())
     state = json.loads((state_dir / "state.json").read_bytes())
-    messages = [encode(m) for m in (version_message(), result_message(doc),
-                                    state_message("COLLECTING", "statics 2 of 3", {"statics": 2}),
-                                    poll_message({k: state.get(k) for k in ("state", "detail")}, doc))]
+    messages = [encode(m) for m in (Version.this(), Result(doc), State("COLLECTING", "statics 2 of 3", {"statics": 2}),
+                                    Poll(StateFields(state["state"], state["detail"]), doc))]
     return {"command": list(COMMANDS), "message": messages, "result": [result.read_bytes()],
             "state": [(state_dir / "state.json").read_bytes()], "noise": [noise.read_bytes()],
             "config": [(ROOT / "systemd" / "calibd.example.toml").read_bytes()],

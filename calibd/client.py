@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import socket
 import time
 from collections import deque
@@ -31,10 +30,16 @@ import numpy as np
 
 from .errors import CalibdError
 from .results import CalibrationResult, ResultError
-from .serve.protocol import MAX_MESSAGE_BYTES, PROTO_MAJOR, SAMPLE_KINDS, ProtocolError, decode
+from .serve import protocol
+from .serve.protocol import (MAX_MESSAGE_BYTES, PROTO_MAJOR, SAMPLE_KINDS, Auth, Device, Error, Fault, Overflow,
+                             ProtocolError, State, StateFields, Version, Watch, decode, host_port)
+
+# the message types: calibd.serve.protocol's, and the richer views this module reads
+__all__ = ["Client", "ClientError", "VersionError", "ServerGone", "NoAnswer", "message_of",
+           "Version", "Auth", "Watch", "State", "Poll", "Result", "Fault", "Samples", "Correction", "Overflow",
+           "Device", "Error", "Message"]
 
 CONNECT_TIMEOUT_S = 5.0
-_HOST_PORT = re.compile(r"(?:\[(?P<v6>[^\]]+)\]|(?P<host>[^:/\[\]]+)):(?P<port>\d{1,5})")
 
 
 class ClientError(CalibdError):
@@ -62,47 +67,10 @@ class Message:
 
 
 @dataclass(frozen=True)
-class Version:
-    release: str
-    proto_major: int
-    proto_minor: int
-
-
-@dataclass(frozen=True)
-class Auth:
-    """The server took the token of ?AUTH."""
-
-    authenticated: bool
-
-
-@dataclass(frozen=True)
-class Watch:
-    enable: bool
-    samples: str
-
-
-@dataclass(frozen=True)
-class State:
-    """The daemon's state, what it is doing (detail) and the protocol's progress (flat, any keys)."""
-
-    state: str
-    detail: str
-    progress: dict
-
-
-@dataclass(frozen=True)
 class Result:
     """A new result, or the last one marked stale (`result.stale` then says why)."""
 
     result: CalibrationResult
-
-
-@dataclass(frozen=True)
-class Fault:
-    """Stream fault counts (crc_errors, lost_samples, ...) and their growth since the last FAULT."""
-
-    counts: dict
-    increase: dict
 
 
 @dataclass(frozen=True, eq=False)
@@ -122,10 +90,7 @@ class Samples:
 
 @dataclass(frozen=True)
 class Correction:
-    """The biases the corrected outputs subtract changed (the [serve] `correction` policy chose
-    the result of `session_id`): `old` (None: the power-up's first) and `new` map bias names to
-    (value, unit) as results give them (deg/h, mg); the corrected samples carry `new` from stream
-    time `from_t` (s, as Samples `t`; None when the daemon timed no samples) on."""
+    """protocol.Correction with each bias as (value, unit) (deg/h, mg)."""
 
     policy: str
     session_id: str | None
@@ -135,42 +100,9 @@ class Correction:
 
 
 @dataclass(frozen=True)
-class Overflow:
-    """`dropped` messages (oldest SAMPLES first) this client lost since the last OVERFLOW."""
-
-    dropped: int
-
-
-@dataclass(frozen=True)
 class Poll:
-    state: State
+    state: StateFields
     result: CalibrationResult | None
-
-
-@dataclass(frozen=True)
-class Device:
-    path: str
-    part_number: str | None
-    serial_number: str | None
-    datagram_id: str | None
-    rate_hz: float | None
-    configuration: dict | None
-    units: dict
-
-
-@dataclass(frozen=True)
-class Error:
-    """The server's answer to a command it refused."""
-
-    message: str
-
-
-def _state(doc: dict) -> State:
-    return State(str(doc["state"]), str(doc.get("detail", "")), dict(doc.get("progress") or {}))
-
-
-def _result(doc, where: str) -> CalibrationResult | None:
-    return None if doc is None else CalibrationResult.from_dict(doc, where)
 
 
 def _rows(values, n: int, name: str) -> np.ndarray | None:
@@ -184,70 +116,59 @@ def _rows(values, n: int, name: str) -> np.ndarray | None:
     return rows
 
 
-def _samples(doc: dict) -> Samples:
-    t = np.asarray(doc["t"], dtype=np.float64)
-    t_host = np.asarray(doc["t_host"], dtype=np.float64)
-    counter = np.asarray(doc["counter"], dtype=np.int64)
-    n = len(t)
-    if t.shape != (n,) or t_host.shape != (n,) or counter.shape != (n,):
-        raise ValueError(f"t, t_host and counter differ in length ({len(t)}, {len(t_host)}, {len(counter)})")
-    return Samples(bool(doc["corrected"]), t, t_host, counter, _rows(doc["gyro"], n, "gyro"),
-                   _rows(doc.get("acc"), n, "acc"), _rows(doc.get("incl"), n, "incl"))
+def _samples(m: protocol.Samples) -> Samples:
+    n = len(m.t)
+    if len(m.t_host) != n or len(m.counter) != n:
+        raise ValueError(f"t, t_host and counter differ in length ({n}, {len(m.t_host)}, {len(m.counter)})")
+    return Samples(m.corrected, np.asarray(m.t, dtype=np.float64), np.asarray(m.t_host, dtype=np.float64),
+                   np.asarray(m.counter, dtype=np.int64), _rows(m.gyro, n, "gyro"), _rows(m.acc, n, "acc"),
+                   _rows(m.incl, n, "incl"))
 
 
-def _biases(doc: dict | None) -> dict[str, tuple[float, str]] | None:
-    return None if doc is None else {str(name): (float(b["value"]), str(b["unit"])) for name, b in doc.items()}
+def _biases(biases: dict[str, protocol.Bias] | None) -> dict[str, tuple[float, str]] | None:
+    return None if biases is None else {name: (b.value, b.unit) for name, b in biases.items()}
 
 
-def _correction(doc: dict) -> Correction:
-    from_t = doc.get("from_t")
-    return Correction(str(doc["policy"]), doc.get("session_id"), None if from_t is None else float(from_t),
-                      _biases(doc.get("old")), _biases(doc["new"]))
+def _result(doc: dict | None, where: str) -> CalibrationResult | None:
+    return None if doc is None else CalibrationResult.from_dict(doc, where)
 
 
-_TYPES = {
-    "VERSION": lambda d: Version(str(d["release"]), int(d["proto_major"]), int(d["proto_minor"])),
-    "AUTH": lambda d: Auth(bool(d["authenticated"])),
-    "WATCH": lambda d: Watch(bool(d["enable"]), str(d.get("samples", "none"))),
-    "STATE": _state,
-    "RESULT": lambda d: Result(_result(d["result"], "RESULT")),
-    "FAULT": lambda d: Fault(dict(d["counts"]), dict(d.get("increase") or {})),
-    "SAMPLES": _samples,
-    "OVERFLOW": lambda d: Overflow(int(d["dropped"])),
-    "CORRECTION": _correction,
-    "POLL": lambda d: Poll(_state(d["state"]), _result(d["result"], "POLL")),
-    "DEVICE": lambda d: Device(str(d["path"]), d.get("part_number"), d.get("serial_number"),
-                               d.get("datagram_id"), None if d.get("rate_hz") is None else float(d["rate_hz"]),
-                               d.get("configuration"),
-                               dict(d.get("units") or {})),
-    "ERROR": lambda d: Error(str(d["message"])),
+_VIEWS = {  # the messages this client reads as richer types: arrays, results, (value, unit) pairs
+    protocol.Samples: _samples,
+    protocol.Result: lambda m: Result(_result(m.result, "RESULT")),
+    protocol.Poll: lambda m: Poll(m.state, _result(m.result, "POLL")),
+    protocol.Correction: lambda m: Correction(m.policy, m.session_id, m.from_t, _biases(m.old), _biases(m.new)),
 }
 
 
 def message_of(doc: dict):
-    """A decoded server object -> its typed message (`Message` for a class not known here);
-    ProtocolError (one line) when a known class lacks or garbles a field."""
-    build = _TYPES.get(doc["class"])
-    if build is None:
-        return Message(doc["class"], doc)
+    """A decoded server object -> its typed message: calibd.serve.protocol's type, or the richer
+    view above; `Message` for a class not known here. ProtocolError (one line) when a known class
+    lacks or garbles a field."""
     try:
-        return build(doc)
+        message = protocol.typed(doc)
+    except KeyError:
+        return Message(doc["class"], doc)
+    view = _VIEWS.get(type(message))
+    if view is None:
+        return message
+    try:
+        return view(message)
     except ResultError as exc:
         raise ProtocolError(f"{doc['class']}: {exc}") from None
-    except (KeyError, TypeError, ValueError, AttributeError) as exc:
-        what = f"no {exc}" if isinstance(exc, KeyError) else str(exc)
-        raise ProtocolError(f"malformed {doc['class']} message: {what}") from None
+    except ValueError as exc:
+        raise ProtocolError(f"malformed {doc['class']} message: {exc}") from None
 
 
 def _address(where: str):
-    """A Unix socket path, or ("HOST", PORT) for "HOST:PORT" / "[V6]:PORT" that is not a file."""
-    match = _HOST_PORT.fullmatch(where)
-    if match is None or os.path.lexists(where):
+    """A Unix socket path, or (HOST, PORT) for "HOST:PORT" / "[V6]:PORT" that is not a file."""
+    if os.path.lexists(where):
         return where
-    port = int(match["port"])
-    if not 0 < port < 65536:
-        raise ClientError(f"{where}: port {port} is outside 1..65535")
-    return (match["v6"] or match["host"], port)
+    try:
+        address = host_port(where)
+    except ValueError as exc:
+        raise ClientError(f"{where}: {exc}") from None
+    return where if address is None else address
 
 
 def _connect_error(where: str, exc: OSError) -> ClientError:

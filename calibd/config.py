@@ -16,6 +16,7 @@ from stim300.errors import UsageError
 from stim300.protocol import DEFAULT_BIT_RATE
 
 from .methods import DAEMON_METHODS, OptionError, estimator
+from .serve.protocol import host_port
 from .serve.sockets import IDLE_TIMEOUT_S, MAX_CLIENTS, MAX_CLIENTS_PER_UID
 from .documents import parse_toml
 from .warmup import WarmupConfig
@@ -103,14 +104,12 @@ class ServeConfig:
 
 
 def parse_tcp(text: str) -> tuple[str, int] | None:
-    """"HOST:PORT" ("[V6]:PORT"), or "PORT" alone for the loopback address -> (host, port); None
-    when malformed (the port is 1 to 65535)."""
-    host, colon, port = text.strip().rpartition(":")
-    host = host.removeprefix("[").removesuffix("]") if colon else "127.0.0.1"
-    valid_port = port.isascii() and port.isdigit() and 0 < int(port) < 65536
-    if not valid_port or not host or any(c.isspace() for c in host):
+    """[serve] tcp: "HOST:PORT" ("[V6]:PORT"), or "PORT" alone for the loopback address ->
+    (host, port); None when malformed (the socket protocol's one rule, `host_port`)."""
+    try:
+        return host_port(text, "127.0.0.1")
+    except ValueError:
         return None
-    return host, int(port)
 
 
 @dataclass(frozen=True)

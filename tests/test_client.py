@@ -24,8 +24,8 @@ from calibd.client import (Client, ClientError, Device, Error, Fault, Message, O
                            ServerGone, State, VersionError, Watch)
 from calibd.frames import Site
 from calibd.results import make_result
-from calibd.serve.protocol import (ProtocolError, correction_message, decode, encode, error_message, parse_command,
-                                   version_message)
+from calibd.serve import protocol
+from calibd.serve.protocol import ProtocolError, decode, encode, parse_command
 from calibd.units import DEG
 from calibd.watchview import WatchView, progress_text, render, value_sigma
 
@@ -53,7 +53,7 @@ class FakeServer:
 
     def __init__(self, listener: socket.socket, script=(), then="hold", greeting=None, result=RESULT_DOC):
         self.listener, self.script, self.then, self.result = listener, list(script), then, result
-        self.greeting = version_message() if greeting is None else greeting
+        self.greeting = protocol.Version.this() if greeting is None else greeting
         self.sent: list[bytes] = []
         self.commands: list[bytes] = []
         self.thread = threading.Thread(target=self._serve, daemon=True)
@@ -68,18 +68,18 @@ class FakeServer:
         try:
             command = parse_command(line)
         except ProtocolError as exc:
-            return [error_message(str(exc))]
+            return [protocol.Error(str(exc))]
         if command.name == "WATCH":
             enable = bool((command.args or {}).get("enable", True))
             watch = {"class": "WATCH", "enable": enable, "samples": (command.args or {}).get("samples", "none")}
             return [watch, *(self.script if enable else [])]
         if command.name == "AUTH":
             good = (command.args or {}).get("token") == FAKE_TOKEN
-            return [{"class": "AUTH", "authenticated": True} if good else error_message("?AUTH: wrong token")]
+            return [{"class": "AUTH", "authenticated": True} if good else protocol.Error("?AUTH: wrong token")]
         if command.name == "POLL":
             return [{"class": "POLL", "state": {k: STATE[k] for k in ("state", "detail", "progress")},
                      "result": self.result}]
-        return [DEVICE if command.name == "DEVICE" else version_message()]
+        return [DEVICE if command.name == "DEVICE" else protocol.Version.this()]
 
     def _serve(self) -> None:
         try:
@@ -143,7 +143,7 @@ def test_client_reads_every_message_typed(serve):
               {"class": "NEWTHING", "x": 1}]
     path, server = serve(script=script)
     with Client.connect(path, timeout_s=5) as client:
-        assert client.version.proto_major == 1 and client.version_line == encode(version_message())[:-1]
+        assert client.version.proto_major == 1 and client.version_line == encode(protocol.Version.this())[:-1]
         assert client.watch("raw") == Watch(True, "raw")
         assert server.commands[-1] == b'?WATCH={"enable":true,"samples":"raw"};'
         state, result, fault, samples, overflow, unknown = (client.read(5) for _ in script)
@@ -246,7 +246,7 @@ def test_an_empty_samples_batch_has_empty_arrays():
 
 def test_a_correction_is_typed_with_its_units_and_watch_says_it():
     new = {"gyro_bias_x": (2.2, "deg/h"), "incl_bias_y": (-0.15, "mg")}
-    doc = decode(encode(correction_message("best", "s1", 12.0005, None, new)))
+    doc = decode(encode(protocol.Correction.of("best", "s1", 12.0005, None, new)))
     correction = client_module.message_of(doc)
     assert correction == client_module.Correction("best", "s1", 12.0005, None, new)
     line = WatchView("x").update(correction, 0.0)
@@ -390,8 +390,8 @@ def test_progress_says_complete_once_nothing_is_missing():
 
 def watched(now_s: float = 100.0, result=RESULT_DOC) -> WatchView:
     view = WatchView("/run/calibd/ttyUSB0/calibd.sock")
-    for t, doc in ((0.0, version_message()), (1.0, DEVICE), (2.0, STATE), (40.0, {"class": "RESULT", "result": result}),
-                   (50.0, FAULT)):
+    for t, doc in ((0.0, decode(encode(protocol.Version.this()))), (1.0, DEVICE), (2.0, STATE),
+                   (40.0, {"class": "RESULT", "result": result}), (50.0, FAULT)):
         view.update(client_module.message_of(doc), t)
     return view
 

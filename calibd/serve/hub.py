@@ -24,6 +24,7 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 
+import msgspec
 import numpy as np
 import structlog
 
@@ -34,8 +35,8 @@ from ..config import ServeConfig
 from ..daemon import Listener, State
 from ..results import CalibrationResult, result_json
 from ..session import PowerUpCuts
-from .protocol import (MAX_TOKEN_BYTES, SAMPLES_MAX_S, Command, ProtocolError, correction_message, device_message,
-                       fault_message, poll_message, result_message, samples_line, state_message, token_of)
+from . import protocol
+from .protocol import MAX_TOKEN_BYTES, SAMPLES_MAX_S, Command, ProtocolError, samples_line, token_of
 from .correct import bias_estimates, replaces, result_biases, sample_units, samples_correctable
 from .ptys import CorrectedPty, PtyError, RawPty, Throttle
 from .sockets import ServeError, SocketServer
@@ -70,7 +71,7 @@ class Hub(Listener):
         self.config, self.port = config, port
         self.gid = _group_id(config.group)
         self.port_writer = None  # the port's writer, for requests written into the raw pty (`calibd run` sets it)
-        self._state = {"state": State.STARTING.value, "detail": "waiting for data", "progress": {}}
+        self._state = protocol.StateFields(State.STARTING.value, "waiting for data")
         self._result = previous
         self._kept: Correction | None = None  # what this power-up's corrected outputs subtract ([serve] correction)
         self._pty_kept: Correction | None = None  # the reader thread's: what the corrected pty was given
@@ -132,8 +133,8 @@ class Hub(Listener):
         if state == State.RESTARTED:
             with self._lock:
                 self._kept, self._restart_unheard = None, False
-        self._state = {"state": state.value, "detail": detail, "progress": progress or {}}
-        self._publish(state_message(**self._state))
+        self._state = protocol.StateFields(state.value, detail, progress or {})
+        self._publish(protocol.State(state.value, detail, progress or {}))
 
     def on_result(self, result: CalibrationResult) -> None:
         """Always published; its biases are subtracted only when the tap has seen no restart the
@@ -162,7 +163,7 @@ class Hub(Listener):
             self._say_correction(kept, changed, None)
         if self.config.result_copy is not None:
             self._write_copy(result)
-        self._publish(result_message(result.to_dict()))
+        self._publish(protocol.Result(result.to_dict()))
 
     def stream_seen(self, info: StreamInfo, counts: dict, increases: dict) -> None:
         """The daemon's loop after each batch: the stream as it is (DEVICE) and the faults that
@@ -170,7 +171,7 @@ class Hub(Listener):
         self._info = info
         if increases:
             self._overrun += increases.get("overrun", 0)
-            self._publish(fault_message({**counts, "overrun": self._overrun}, increases))
+            self._publish(protocol.Fault({**counts, "overrun": self._overrun}, increases))
 
     def _publish(self, message: dict) -> None:
         if self.server is not None:
@@ -315,20 +316,20 @@ class Hub(Listener):
     def _say_correction(self, old: Correction | None, new: Correction, from_t_s: float | None) -> None:
         """CORRECTION to every watcher and `correction_changed` in the log: the subtracted biases
         changed from `old` (None: the power-up's first) to `new` at stream time `from_t_s` (s)."""
-        message = correction_message(self.config.correction, new.result.session_id, from_t_s,
-                                     None if old is None else old.biases(), new.biases())
-        log.info("correction_changed", **{k: v for k, v in message.items() if k != "class"})
+        message = protocol.Correction.of(self.config.correction, new.result.session_id, from_t_s,
+                                         None if old is None else old.biases(), new.biases())
+        log.info("correction_changed", **{k: v for k, v in msgspec.to_builtins(message).items() if k != "class"})
         self._publish(message)
 
-    def _answer(self, command: Command) -> dict:
+    def _answer(self, command: Command) -> protocol.Message:
         if command.name == "POLL":
-            return poll_message(self._state, None if self._result is None else self._result.to_dict())
+            return protocol.Poll(self._state, None if self._result is None else self._result.to_dict())
         if command.name == "DEVICE":
             info = self._info
             if info is None:
-                return device_message(self.port, {}, None, None)
+                return protocol.Device(self.port)
             configuration = None if info.configuration is None else info.configuration.as_dict()
-            return device_message(self.port, info.sensor_record(), sample_units(info.format), configuration)
+            return protocol.Device.of(self.port, info.sensor_record(), sample_units(info.format), configuration)
         raise ProtocolError(f"?{command.name} takes no part in this server")
 
 

@@ -106,11 +106,6 @@ def _excerpt(text: str, limit: int = 60) -> str:
     return repr(text if len(text) <= limit else text[:limit] + "...")
 
 
-def encode(message: dict) -> bytes:
-    """A message as one line of compact JSON."""
-    return json.dumps(message, separators=(",", ":"), allow_nan=False).encode() + b"\n"
-
-
 def decode(line: bytes | str) -> dict:
     """One line from the server -> its message (a dict with "class"); ProtocolError otherwise."""
     try:
@@ -122,6 +117,168 @@ def decode(line: bytes | str) -> dict:
     return message
 
 
+# ---- the server's messages: one type each, built by the server and read by the client (calibd.client)
+
+class Message(msgspec.Struct, frozen=True, tag_field="class"):
+    """A server message: a JSON object whose "class" names its type (the struct's tag)."""
+
+
+class Version(Message, tag="VERSION"):
+    """The greeting of every connection, and the answer to ?VERSION."""
+
+    release: str
+    proto_major: int
+    proto_minor: int
+
+    @classmethod
+    def this(cls) -> Version:
+        return cls(_release(), PROTO_MAJOR, PROTO_MINOR)
+
+
+class Error(Message, tag="ERROR"):
+    """The refusal of a command line, or why the server closes a connection."""
+
+    message: str
+
+
+class Auth(Message, tag="AUTH"):
+    """The server took the token of ?AUTH."""
+
+    authenticated: bool
+
+
+class Watch(Message, tag="WATCH"):
+    enable: bool
+    samples: str = "none"
+
+
+class StateFields(msgspec.Struct, frozen=True):
+    """The daemon's state, what it is doing (detail) and its session's progress (flat, any keys;
+    docs/protocol.md): STATE's fields, and POLL's "state"."""
+
+    state: str
+    detail: str = ""
+    progress: dict = {}
+
+
+class State(StateFields, Message, tag="STATE"):
+    """The state at each change, to watchers."""
+
+
+class Poll(Message, tag="POLL"):
+    state: StateFields
+    result: dict | None  # the latest result document (docs/result-schema.md), None before the first
+
+
+class Result(Message, tag="RESULT"):
+    """A new result, or the last one marked stale (its document's `stale` says why)."""
+
+    result: dict
+
+
+class Fault(Message, tag="FAULT"):
+    """Stream fault counts (crc_errors, lost_samples, ...) and their growth since the last FAULT."""
+
+    counts: dict
+    increase: dict = {}
+
+
+class Overflow(Message, tag="OVERFLOW"):
+    """`dropped` messages (oldest SAMPLES first) this client lost since the last OVERFLOW."""
+
+    dropped: int
+
+
+class Bias(msgspec.Struct, frozen=True):
+    value: float
+    unit: str
+
+
+class Correction(Message, tag="CORRECTION"):
+    """The biases the corrected outputs subtract changed (the [serve] `correction` policy chose
+    the result of `session_id`): `old` (None: the power-up's first) and `new` by bias name, as
+    the result gives them (deg/h, mg); the corrected samples carry `new` from stream time `from_t`
+    (s, SAMPLES "t"; None when nothing timed the stream) on."""
+
+    policy: str
+    session_id: str | None
+    from_t: float | None
+    old: dict[str, Bias] | None
+    new: dict[str, Bias]
+
+    @classmethod
+    def of(cls, policy: str, session_id: str | None, from_t_s: float | None,
+           old: dict[str, tuple[float, str]] | None, new: dict[str, tuple[float, str]]) -> Correction:
+        """From (value, unit) pairs by bias name, the stream time to the microsecond."""
+        def biases(pairs):
+            return None if pairs is None else {name: Bias(value, unit) for name, (value, unit) in pairs.items()}
+        return cls(policy, session_id, None if from_t_s is None else round(from_t_s, 6), biases(old), biases(new))
+
+
+class Device(Message, tag="DEVICE"):
+    """The sensor on the port: its identity and rate (None until its datagrams said them), its
+    configuration report, and the units of SAMPLES' blocks."""
+
+    path: str
+    part_number: str | None = None
+    serial_number: str | None = None
+    datagram_id: str | None = None
+    rate_hz: float | None = None
+    configuration: dict | None = None
+    units: dict | None = None
+
+    @classmethod
+    def of(cls, path: str, sensor: dict, units: dict | None, configuration: dict | None) -> Device:
+        """`sensor`: a StreamInfo's `sensor_record()`; `units`: of the gyro, acc and incl blocks."""
+        return cls(path, sensor.get("part_number"), sensor.get("serial_number"), sensor.get("datagram_id"),
+                   sensor.get("sample_rate_hz"), configuration, units)
+
+
+class Samples(Message, tag="SAMPLES"):
+    """A batch of at most SAMPLES_MAX_S in the sensor's units (DEVICE's "units"); the server
+    writes it with `samples_line`, its bulk work, in these fields."""
+
+    corrected: bool
+    t: list[float]
+    t_host: list[float]
+    counter: list[int]
+    gyro: list[list[float | None]] | None
+    acc: list[list[float | None]] | None = None
+    incl: list[list[float | None]] | None = None
+
+
+MESSAGES = Version | Error | Auth | Watch | State | Poll | Result | Fault | Overflow | Correction | Device | Samples
+
+
+def _plain(value):
+    """numpy numbers and arrays in a document (a result's checks) as JSON numbers and lists."""
+    if isinstance(value, (np.generic, np.ndarray)):
+        return value.tolist()
+    raise NotImplementedError(f"a {type(value).__name__} is not JSON")
+
+
+_ENCODER = msgspec.json.Encoder(enc_hook=_plain)
+
+
+def encode(message: Message | dict) -> bytes:
+    """A message as one line of compact JSON."""
+    return _ENCODER.encode(message) + b"\n"
+
+
+def typed(doc: dict) -> Message:
+    """A decoded server object (`decode`) -> its message type; KeyError for a class this side does
+    not know, ProtocolError (one line) when a known class lacks or garbles a field."""
+    if doc["class"] not in _CLASSES:
+        raise KeyError(doc["class"])
+    try:
+        return msgspec.convert(doc, MESSAGES)
+    except msgspec.ValidationError as exc:
+        raise ProtocolError(f"malformed {doc['class']} message: {exc}") from None
+
+
+_CLASSES = {kind.__struct_config__.tag for kind in MESSAGES.__args__}
+
+
 @lru_cache(maxsize=1)
 def _release() -> str:
     """calibd's version, looked up once: the lookup takes about 0.4 ms, and every connection and
@@ -129,60 +286,24 @@ def _release() -> str:
     return package_version()
 
 
-def version_message() -> dict:
-    return {"class": "VERSION", "release": _release(), "proto_major": PROTO_MAJOR, "proto_minor": PROTO_MINOR}
+_HOST_PORT = re.compile(r"(?:\[(?P<v6>[^\]]+)\]|(?P<host>[^:/\[\]\s]+)):(?P<port>\d{1,5})")
 
 
-def error_message(text: str) -> dict:
-    return {"class": "ERROR", "message": text}
-
-
-def auth_message() -> dict:
-    """The answer to an accepted ?AUTH."""
-    return {"class": "AUTH", "authenticated": True}
-
-
-def watch_message(enable: bool, samples: str) -> dict:
-    return {"class": "WATCH", "enable": enable, "samples": samples}
-
-
-def state_message(state: str, detail: str, progress: dict) -> dict:
-    return {"class": "STATE", "state": state, "detail": detail, "progress": progress}
-
-
-def poll_message(state: dict, result: dict | None) -> dict:
-    """`state`: a STATE message's fields without "class"; `result`: the result document or None."""
-    return {"class": "POLL", "state": state, "result": result}
-
-
-def result_message(result: dict) -> dict:
-    return {"class": "RESULT", "result": result}
-
-
-def fault_message(counts: dict, increase: dict) -> dict:
-    return {"class": "FAULT", "counts": counts, "increase": increase}
-
-
-def correction_message(policy: str, session_id: str | None, from_t_s: float | None,
-                       old: dict[str, tuple[float, str]] | None, new: dict[str, tuple[float, str]]) -> dict:
-    """The biases the corrected outputs subtract changed: `old` (None: the power-up's first) and
-    `new` map bias names to (value, unit) as the result gives them (deg/h, mg); `from_t_s` is the
-    stream time (s, SAMPLES "t") of the first sample carrying `new` (None: not timed, no socket)."""
-    def values(biases):
-        return None if biases is None else {name: {"value": v, "unit": unit} for name, (v, unit) in biases.items()}
-    return {"class": "CORRECTION", "policy": policy, "session_id": session_id,
-            "from_t": None if from_t_s is None else round(from_t_s, 6), "old": values(old), "new": values(new)}
-
-
-def overflow_message(dropped: int) -> dict:
-    return {"class": "OVERFLOW", "dropped": dropped}
-
-
-def device_message(path: str, sensor: dict, units: dict | None, configuration: dict | None) -> dict:
-    """`sensor`: a StreamInfo's `sensor_record()`; `units`: of the gyro, acc and incl blocks."""
-    return {"class": "DEVICE", "path": path, "part_number": sensor.get("part_number"),
-            "serial_number": sensor.get("serial_number"), "datagram_id": sensor.get("datagram_id"),
-            "rate_hz": sensor.get("sample_rate_hz"), "configuration": configuration, "units": units}
+def host_port(text: str, default_host: str | None = None) -> tuple[str, int] | None:
+    """"HOST:PORT" or "[V6]:PORT" (and "PORT" alone when a `default_host` is given) -> (host,
+    port); None for anything else; ValueError for a port outside 1..65535. The daemon's [serve]
+    tcp and the client's address are read by this one rule."""
+    text = text.strip()
+    match = _HOST_PORT.fullmatch(text)
+    if match is not None:
+        host, port = match["v6"] or match["host"], int(match["port"])
+    elif default_host is not None and text.isascii() and text.isdigit() and len(text) <= 5:
+        host, port = default_host, int(text)
+    else:
+        return None
+    if not 0 < port < 65536:
+        raise ValueError(f"port {port} is outside 1..65535")
+    return host, port
 
 
 def samples_line(corrected: bool, t_s: np.ndarray, t_host_s: np.ndarray, counter: np.ndarray,

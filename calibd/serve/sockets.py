@@ -28,8 +28,8 @@ from pathlib import Path
 import structlog
 
 from ..errors import CalibdError
-from .protocol import (AUTH_TRIES, MAX_LINE_BYTES, SAMPLE_KINDS, Command, ProtocolError, auth_message, auth_token,
-                       encode, error_message, overflow_message, parse_command, version_message, watch_message)
+from .protocol import (AUTH_TRIES, MAX_LINE_BYTES, SAMPLE_KINDS, Auth, Command, Error, Message, Overflow, ProtocolError,
+                       Version, Watch, auth_token, encode, parse_command)
 
 log = structlog.get_logger("calibd")
 
@@ -132,7 +132,7 @@ class SocketServer:
     the thread; `close()` stops it and removes the socket file."""
 
     def __init__(self, unix_path: Path | None, tcp: tuple[str, int] | None, gid: int | None,
-                 answer: Callable[[Command], dict], cut_samples: Callable[[set], list[tuple[str, bytes]]],
+                 answer: Callable[[Command], Message], cut_samples: Callable[[set], list[tuple[str, bytes]]],
                  tcp_token: bytes | None = None, idle_timeout_s: float = IDLE_TIMEOUT_S,
                  max_clients_per_uid: int = MAX_CLIENTS_PER_UID):
         self.unix_path, self.tcp, self.gid = unix_path, tcp, gid
@@ -238,7 +238,7 @@ class SocketServer:
         self._selector.register(sock, selectors.EVENT_READ, "listen")
 
     # ------------------------------------------------------------------ from other threads
-    def publish(self, message: dict) -> None:
+    def publish(self, message: Message) -> None:
         """A message to every watching client (any thread: it is queued here, sent by the loop)."""
         self._published.append(encode(message))
         self._wake()
@@ -372,7 +372,7 @@ class SocketServer:
             if self._episodes.count(f"refused: {refusal}"):
                 log.warning("clients_refused", why=refusal)
             try:
-                sock.send(encode(error_message(refusal)))
+                sock.send(encode(Error(refusal)))
             except OSError:  # gone already: nothing to tell
                 pass
             sock.close()
@@ -381,7 +381,7 @@ class SocketServer:
                          authenticated=isinstance(peer, int) or self.tcp_token is None)
         self._clients[sock] = client
         self._selector.register(sock, selectors.EVENT_READ, client)
-        self._send(client, encode(version_message()), samples=False)
+        self._send(client, encode(Version.this()), samples=False)
 
     def _drop(self, client: _Client) -> None:
         self._held.discard(client)
@@ -408,7 +408,7 @@ class SocketServer:
                         else f"closed: no ?AUTH within {self.idle_timeout_s:g} s")
                 if not client.sending:  # never inside a message begun
                     with contextlib.suppress(OSError):
-                        client.sock.send(encode(error_message(told)))
+                        client.sock.send(encode(Error(told)))
                 self._drop(client)
 
     # ------------------------------------------------------------------ input
@@ -465,7 +465,7 @@ class SocketServer:
                 self._command(client, line)
 
     def _refuse(self, client: _Client, why: str) -> None:
-        self._send(client, encode(error_message(why)), samples=False)
+        self._send(client, encode(Error(why)), samples=False)
 
     def _command(self, client: _Client, line: bytes) -> None:
         if not client.authenticated:
@@ -481,17 +481,17 @@ class SocketServer:
             if command.name == "WATCH":
                 reply = self._watch(client, command.args or {})
             elif command.name == "VERSION":
-                reply = version_message()
+                reply = Version.this()
             elif command.name == "AUTH":
                 raise ProtocolError("?AUTH: this connection needs no token")
             else:
                 reply = self._answer(command)
         except ProtocolError as exc:
-            reply = error_message(str(exc))
+            reply = Error(str(exc))
         except Exception as exc:  # a fault of calibd: said to the client and logged, the server runs on
             if self._episodes.count("fault answering a command"):
                 log.exception("serve_command_failed", command=command.name)
-            reply = error_message(f"internal error answering ?{command.name}: {type(exc).__name__}: {exc}")
+            reply = Error(f"internal error answering ?{command.name}: {type(exc).__name__}: {exc}")
         self._send(client, encode(reply), samples=False)
 
     def _authenticate(self, client: _Client, line: bytes) -> None:
@@ -514,10 +514,10 @@ class SocketServer:
                 self._drop(client)
             return
         client.authenticated, client.active_s = True, time.monotonic()
-        self._send(client, encode(auth_message()), samples=False)
+        self._send(client, encode(Auth(True)), samples=False)
 
     @staticmethod
-    def _watch(client: _Client, args: dict) -> dict:
+    def _watch(client: _Client, args: dict) -> Watch:
         enable, samples = args.get("enable", True), args.get("samples", "none")
         if not isinstance(enable, bool):
             raise ProtocolError(f"?WATCH: \"enable\" must be true or false, not {enable!r}")
@@ -527,7 +527,7 @@ class SocketServer:
         if unknown:
             raise ProtocolError(f"?WATCH: unknown key(s) {', '.join(sorted(unknown))} (known: enable, samples)")
         client.watching, client.samples = enable, samples if enable else "none"
-        return watch_message(client.watching, client.samples)
+        return Watch(client.watching, client.samples)
 
     # ------------------------------------------------------------------ output
     def _send(self, client: _Client, data: bytes, samples: bool) -> None:
@@ -548,7 +548,7 @@ class SocketServer:
         while True:
             if not client.sending:
                 if client.dropped:
-                    client.sending = memoryview(encode(overflow_message(client.dropped)))
+                    client.sending = memoryview(encode(Overflow(client.dropped)))
                     client.dropped = 0
                 elif client.queue:
                     client.sending = memoryview(client.queue.pop())
