@@ -71,8 +71,9 @@ def main() -> int:
               f"baseline), {wall_s:.1f} s wall")
     (m0, p0), (m1, p1) = peaks[0], peaks[-1]
     if m1 > m0:
-        print(f"growth: {(p1 - p0) / ((m1 - m0) / 60):.0f} MB per hour of session ({(p1 - p0) * 1024 / ((m1 - m0) * 60 * 125):.2f} kB "
-              f"per 125 Hz sample)")
+        per_sample_kb = (p1 - p0) * 1024 / ((m1 - m0) * 60 * 125)
+        print(f"growth: {(p1 - p0) / ((m1 - m0) / 60):.0f} MB per hour of session ({per_sample_kb:.2f} kB per 125 Hz "
+              "sample)")
     print(f"{m1:.0f} min: {p1:.0f} MB (target <= {PEAK_TARGET_MB} MB at 120 min: "
           f"{'met' if p1 <= PEAK_TARGET_MB or m1 < 120 else 'NOT met'})")
     return 0
