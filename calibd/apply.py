@@ -5,8 +5,9 @@ One job: a result and decoded samples -> corrected arrays, block by block as the
 hands them over, so a capture of any length streams to a CSV file in one block's memory. The
 command line opens the files; `Correction` says what is subtracted and how vectors turn,
 `apply_capture` runs the decoder and gives each corrected block to a writer (`CsvWriter`,
-`NpzWriter`). Which biases a result has, in the sensor's units, has one home
-(`calibd.serve.correct.result_biases`); here they only become SI.
+`NpzWriter`). Which biases a result has, which outputs can take them and whether the result is
+of the capture's sensor have one home, `calibd.correction`, shared with the daemon's corrected
+outputs.
 """
 
 from __future__ import annotations
@@ -22,17 +23,12 @@ from stim300.clock import CounterClock
 from stim300.protocol import INTERNAL_RATE_HZ, NORMAL_LAYOUTS
 
 from .errors import CalibdError
-from .frames import STANDARD_GRAVITY
 from .results import ROTATIONS, CalibrationResult
-from .serve.correct import result_biases
+from .correction import CLUSTERS, SI_PER_SENSOR_UNIT, WORDS, other_sensor, si_biases, uncorrectable
 from .session import PowerUpCuts
-from .units import DEG
 
 APPLIED_SCHEMA = "calibd.applied/1"
-CLUSTERS = ("gyro", "acc", "incl")
-SI_PER_SENSOR_UNIT = {"gyro": DEG, "acc": STANDARD_GRAVITY, "incl": STANDARD_GRAVITY}  # deg/s, g -> rad/s, m/s^2
 UNITS = {"gyro": "rad_s", "acc": "m_s2", "incl": "m_s2"}  # in column and array names
-WORDS = {"gyro": "gyro", "acc": "accelerometer", "incl": "inclinometer"}
 ATTITUDE = ROTATIONS["nav_to_imu"][1]  # yaw, pitch, roll
 # 9 significant digits: every STIM300 value is a 24-bit count (exact in float32, which 9 digits
 # round-trip); a corrected value printed so is within 0.02 LSB at full scale, far below one
@@ -66,7 +62,7 @@ def correction(result: CalibrationResult, frame: bool, force: bool) -> Correctio
     (ApplyError naming them) unless `force`, then each is a warning: corrected data are trusted
     without looking back at the result, so a poor bias must not pass silently. A result
     without yaw, or with yaw poor, cannot give the home frame: refused even with `force`."""
-    biases = {cluster: value * SI_PER_SENSOR_UNIT[cluster] for cluster, value in result_biases(result).items()}
+    biases = si_biases(result)
     if "gyro" not in biases and "acc" not in biases:
         raise ApplyError("the result has neither gyro nor accelerometer biases: nothing to apply")
     used = [f"{cluster}_bias_{axis}" for cluster in biases for axis in "xyz"]
@@ -139,18 +135,16 @@ class _Applier:
         if not self.applied.clusters:
             self.applied.clusters = tuple(c for c in CLUSTERS if c in clusters)
             self._uncorrected()
-        units = {"gyro": fmt.gyro_unit, "acc": fmt.acc_unit, "incl": fmt.incl_unit}
-        summed = [f"{WORDS[c]} {units[c].name}" for c in clusters
-                  if (units[c].is_angle if c == "gyro" else units[c].is_velocity)]
+        summed = uncorrectable(fmt)
         if summed:
-            self.refusal = (f"the capture's {', '.join(summed).lower()} outputs are not rates and accelerations: "
+            self.refusal = (f"the capture's {', '.join(summed)} outputs are not rates and accelerations: "
                             "apply writes rad/s and m/s^2 and corrects those only (configure rate and "
                             "acceleration outputs, as calibration needs)")
         if self._checked_serial or scanner.serial_number is None:
             return
         self._checked_serial = True
         serial = self.applied.serial_number = scanner.serial_number.text
-        if self.result_serial is not None and serial != self.result_serial:
+        if other_sensor(self.result_serial, serial):
             text = (f"the capture is of sensor {serial}, the result of sensor {self.result_serial}: "
                     "its biases are another sensor's")
             if self.force:

@@ -78,7 +78,7 @@ class ServeConfig:
     raw_pty: Path | tuple[Path, ...] | None = None  # symlink(s) to ptys carrying the sensor's bytes unchanged
     corrected_pty: Path | None = None  # a symlink to a pty carrying bias-corrected datagrams
     corrected_before_result: str = "hold"  # "hold": nothing corrected before a result; "raw": raw data
-    correction: str = "latest"  # which result of the power-up is subtracted (calibd.serve.correct.replaces)
+    correction: str = "latest"  # which result of the power-up is subtracted (calibd.correction.replaces)
     allow_service_mode: bool = False  # SERVICEMODE, UTILITYMODE and R written into a raw pty reach the sensor
     socket: Path | None = None  # Unix stream socket speaking calibd.serve.protocol
     tcp: tuple[str, int] | None = None  # (host, port) of the same protocol on TCP

@@ -14,7 +14,7 @@ from calibd.config import ServeConfig
 from calibd.daemon import State
 from calibd.frames import Site
 from calibd.results import make_result
-from calibd.serve.correct import replaces
+from calibd.correction import replaces
 from calibd.serve.hub import Hub
 from calibd.units import DEG
 from stim300.bulk import decode_capture

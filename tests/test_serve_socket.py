@@ -21,7 +21,7 @@ from calibd.frames import Site
 from calibd.results import ResultStore, make_result, result_json, write_result
 from calibd.serve import hub as hub_module
 from calibd.serve import sockets
-from calibd.serve.correct import result_biases, sample_units, samples_correctable
+from calibd.correction import sample_units, sensor_biases, uncorrectable
 from calibd.serve.hub import Hub
 from calibd.serve.protocol import MAX_LINE_BYTES, SAMPLES_MAX_S
 from calibd.serve.sockets import ServeError
@@ -228,11 +228,11 @@ def test_corrected_samples_are_raw_minus_the_power_ups_biases(served, tmp_path):
 
 
 def test_the_bias_conversion_is_deg_per_s_and_g_and_skips_what_a_unit_lacks():
-    bias = result_biases(known_result())
+    bias = sensor_biases(known_result())
     assert np.allclose(bias["gyro"], BIAS["gyro"]) and np.allclose(bias["acc"], np.array(BIAS["acc"]) * 1e-3)
     no_incl = known_result()
     no_incl = replace(no_incl, estimates={k: e for k, e in no_incl.estimates.items() if not k.startswith("incl_")})
-    assert set(result_biases(no_incl)) == {"gyro", "acc"}  # a unit without inclinometers: still corrected
+    assert set(sensor_biases(no_incl)) == {"gyro", "acc"}  # a unit without inclinometers: still corrected
 
 
 def test_a_client_that_stops_reading_neither_delays_the_others_nor_grows(served, tmp_path, monkeypatch):
@@ -335,7 +335,7 @@ def _free_port() -> int:
     (GyroUnit.RATE, AccUnit.ACCELERATION, AccUnit.INCREMENTAL_VELOCITY, False)])
 def test_samples_are_corrected_in_rates_and_accelerations_only(gyro_unit, acc_unit, incl_unit, correctable):
     fmt = Configuration.build(gyro_unit=gyro_unit, acc_unit=acc_unit, incl_unit=incl_unit).format
-    assert samples_correctable(fmt) is correctable
+    assert (not uncorrectable(fmt)) is correctable
     assert (sample_units(fmt) == {"gyro": "deg/s", "acc": "g", "incl": "g"}) is correctable
 
 
@@ -491,7 +491,7 @@ def test_after_a_sensor_restart_nothing_is_corrected_with_the_previous_power_ups
         if phase["now"] != "old" and State.RESTARTED in phase:
             phase["now"] = "new, solved"
         if phase["now"] != "new, unsolved":
-            phase["bias"] = result_biases(result)
+            phase["bias"] = sensor_biases(result)
         read()  # the reader goes on while the pump thread tells the listeners
 
     meanwhile = Callbacks(result=result, stale=lambda result: read(),

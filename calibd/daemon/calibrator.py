@@ -22,6 +22,7 @@ import numpy as np
 
 from .. import detect
 from ..config import DetectionConfig, MethodConfig
+from ..correction import other_sensor
 from ..frames import Site
 from ..methods import estimator, progress
 from ..results import CalibrationResult
@@ -153,7 +154,7 @@ class Calibrator:
         if self._inherited is None or self.result is not self._inherited:
             return
         theirs = self._inherited.sensor.get("serial_number")
-        if serial is not None and theirs is not None and serial != theirs:
+        if other_sensor(theirs, serial):
             self._mark_stale(f"the sensor on the port is {serial}, the result is of sensor {theirs}")
 
     def _power_cycled(self) -> None:

@@ -1,4 +1,5 @@
-"""A result's biases taken out of the sensor's own datagrams, in place, CRCs written again.
+"""A result's biases (calibd.correction) taken out of the sensor's own datagrams, in place, CRCs
+written again.
 
 The corrected pty carries the stream a driver already reads, so the correction is done in each
 datagram's own units: a rate or an acceleration loses the bias itself, an incremental angle or
@@ -17,9 +18,9 @@ from stim300.codec import seal, subtract_counts
 from stim300.protocol import AccUnit, Format, GyroUnit, Layout
 from stim300.stream import Settled
 
+from ..correction import sensor_biases
 from ..frames import STANDARD_GRAVITY
-from ..results import ESTIMATES, CalibrationResult
-from ..units import DEG
+from ..results import CalibrationResult
 
 log = structlog.get_logger("calibd")
 
@@ -29,68 +30,9 @@ _FORCE_PER_BASE = {AccUnit.ACCELERATION: "base", AccUnit.AVERAGE_ACCELERATION: "
                    AccUnit.INCREMENTAL_VELOCITY: "interval_m_s"}
 
 
-def sample_units(fmt: Format) -> dict[str, str]:
-    """The units of the sensor blocks a bias is taken from (the SAMPLES and DEVICE units)."""
-    return {block: unit for block, unit in fmt.units().items() if block in ("gyro", "acc", "incl")}
-
-
-def samples_correctable(fmt: Format) -> bool:
-    """Whether decoded samples of this format take `result_biases` as they are: every block in
-    the sensor's base unit (a rate, an acceleration), none incremental or integrated."""
-    return (_GYRO_PER_BASE.get(_gyro_unit(fmt.gyro_unit)) == "base"
-            and _FORCE_PER_BASE.get(fmt.acc_unit) == _FORCE_PER_BASE.get(fmt.incl_unit) == "base")
-
-
 def _gyro_unit(unit) -> GyroUnit:
     """The gyro output unit without its delayed flag."""
     return GyroUnit(unit & 0x7)
-
-
-_PER_SI = {"gyro": 1 / DEG, "acc": 1 / STANDARD_GRAVITY, "incl": 1 / STANDARD_GRAVITY}  # -> deg/s, g, g
-
-
-def _bias_names(result: CalibrationResult) -> dict[str, list[str]]:
-    """The bias estimates' names of each cluster whose three estimates the result has."""
-    names = {cluster: [f"{cluster}_bias_{axis}" for axis in "xyz"] for cluster in _PER_SI}
-    return {cluster: axes for cluster, axes in names.items() if all(name in result.estimates for name in axes)}
-
-
-def result_biases(result: CalibrationResult) -> dict[str, np.ndarray]:
-    """The result's biases in the sensor's base units (gyro deg/s, accelerometer and
-    inclinometer g), for each cluster whose three estimates the result has."""
-    return {cluster: np.array([result.estimates[name].value / ESTIMATES[name][0] for name in names])
-            * _PER_SI[cluster] for cluster, names in _bias_names(result).items()}
-
-
-def bias_estimates(result: CalibrationResult) -> dict:
-    """The estimates `result_biases` subtracts, by name, in the result's own units (deg/h, mg)."""
-    return {name: result.estimates[name] for names in _bias_names(result).values() for name in names}
-
-
-def replaces(policy: str, kept: CalibrationResult | None, new: CalibrationResult) -> bool:
-    """Whether `new`, a result of the power-up that carries biases, takes the place of `kept`,
-    the one subtracted now (None: none yet), under [serve] `correction` (docs/serving.md):
-    "latest" always; "first" never; "best" when none of its bias estimates is "poor" and either
-    one of the kept ones is, or none of its bias sigmas is larger than the kept one's (an
-    estimate without a sigma counts as infinitely uncertain). So a poorer result never replaces
-    the kept one, and the kept biases only change for better-known ones."""
-    if kept is None or policy == "latest":
-        return True
-    if policy == "first":
-        return False
-    new_biases, kept_biases = bias_estimates(new), bias_estimates(kept)
-    if any(e.quality == "poor" for e in new_biases.values()):
-        return False
-    if any(e.quality == "poor" for e in kept_biases.values()):
-        return True
-    return all(_sigma_si(e) <= _sigma_si(kept_biases.get(name)) for name, e in new_biases.items())
-
-
-def _sigma_si(estimate) -> float:
-    """An estimate's sigma in SI (rad/s, m/s^2: comparable whatever unit a result wrote it in);
-    infinite when it has none."""
-    sigma = None if estimate is None else estimate.sigma_si
-    return float("inf") if sigma is None else sigma
 
 
 class Corrector:
@@ -100,7 +42,7 @@ class Corrector:
     the stream's format does not say it (no configuration datagram seen)."""
 
     def __init__(self, result: CalibrationResult):
-        self.biases = result_biases(result)
+        self.biases = sensor_biases(result)
         self.rate_hz = result.sensor.get("sample_rate_hz")
         self._counts: dict[tuple[int, Format], list[tuple[int, np.ndarray]]] = {}
         self._said: set[tuple[str, str]] = set()

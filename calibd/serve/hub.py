@@ -9,7 +9,7 @@ the daemon's Collector times by), encodes each batch once per kind and shares th
 the clients watching that kind.
 
 Which result's biases the corrected outputs subtract ([serve] `correction`) is decided when a
-result comes (`correct.replaces`), taken from the next read on by the corrected pty and the
+result comes (`calibd.correction.replaces`), taken from the next read on by the corrected pty and the
 corrected SAMPLES alike, and told by the server thread (CORRECTION, with the stream time of that
 read's first sample) before the first SAMPLES carrying it.
 """
@@ -37,7 +37,7 @@ from ..results import CalibrationResult, result_json
 from ..session import PowerUpCuts
 from . import protocol
 from .protocol import MAX_TOKEN_BYTES, SAMPLES_MAX_S, Command, ProtocolError, samples_line, token_of
-from .correct import bias_estimates, replaces, result_biases, sample_units, samples_correctable
+from ..correction import bias_estimates, replaces, sample_units, sensor_biases, uncorrectable
 from .ptys import CorrectedPty, PtyError, RawPty, Throttle
 from .sockets import ServeError, SocketServer
 
@@ -141,7 +141,7 @@ class Hub(Listener):
         calibrator has not yet said (the calibrator solves the old power-up to its end after the
         tap has seen the new one: that result's biases are the old power-up's), and when [serve]
         `correction` prefers it to the power-up's kept one (`replaces`)."""
-        bias = {block: bias.astype(np.float32) for block, bias in result_biases(result).items()} or None
+        bias = {block: bias.astype(np.float32) for block, bias in sensor_biases(result).items()} or None
         self._new_result(result, bias)
 
     def on_stale(self, result: CalibrationResult) -> None:
@@ -293,7 +293,7 @@ class Hub(Listener):
                  kept: Correction | None) -> list[tuple[str, bytes]]:
         """Timed samples that take the same biases (`kept`) as SAMPLES batches of each kind."""
         bias, hold = None if kept is None else kept.bias, self.config.corrected_before_result == "hold"
-        if not samples_correctable(info.format):
+        if uncorrectable(info.format):
             bias = None  # incremental or integrated units: not corrected (docs/serving.md)
         batches = []
         step = max(1, int(SAMPLES_MAX_S * info.rate_hz))

@@ -1,0 +1,88 @@
+"""A result's correction, one home for every output that subtracts it: `calibd apply`, the
+corrected pty, corrected SAMPLES (and whatever publishes corrected data next). What a result's
+biases are in SI and in the sensor's base units, which output units can take them, which of a
+power-up's results is subtracted ([serve] correction), and whether a result is of the sensor
+at hand."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from stim300.protocol import NORMAL_LAYOUTS, Format
+
+from .frames import STANDARD_GRAVITY
+from .results import CalibrationResult, Estimate
+from .units import DEG
+
+CLUSTERS = ("gyro", "acc", "incl")
+SI_PER_SENSOR_UNIT = {"gyro": DEG, "acc": STANDARD_GRAVITY, "incl": STANDARD_GRAVITY}  # deg/s, g -> rad/s, m/s^2
+WORDS = {"gyro": "gyro", "acc": "accelerometer", "incl": "inclinometer"}
+
+
+def bias_estimates(result: CalibrationResult) -> dict[str, Estimate]:
+    """The bias estimates a correction subtracts, by name, as the result gives them (deg/h, mg):
+    those of each cluster whose three estimates the result has."""
+    names = {cluster: [f"{cluster}_bias_{axis}" for axis in "xyz"] for cluster in CLUSTERS}
+    return {name: result.estimates[name] for axes in names.values()
+            if all(name in result.estimates for name in axes) for name in axes}
+
+
+def si_biases(result: CalibrationResult) -> dict[str, np.ndarray]:
+    """The biases subtracted, by cluster, in SI (gyro rad/s, accelerometer and inclinometer m/s^2)."""
+    estimates = bias_estimates(result)
+    return {cluster: np.array([estimates[f"{cluster}_bias_{axis}"].value_si for axis in "xyz"])
+            for cluster in CLUSTERS if f"{cluster}_bias_x" in estimates}
+
+
+def sensor_biases(result: CalibrationResult) -> dict[str, np.ndarray]:
+    """The biases subtracted, by cluster, in the sensor's base units (deg/s, g), as the sensor's
+    own datagrams carry rates and accelerations."""
+    return {cluster: bias / SI_PER_SENSOR_UNIT[cluster] for cluster, bias in si_biases(result).items()}
+
+
+def uncorrectable(fmt: Format) -> list[str]:
+    """The outputs of this format a constant bias cannot be taken from as they are, in words
+    ("gyro incremental_angle"): an incremental angle or velocity holds the bias times the sample
+    interval, an integrated one has summed it since power-up. Empty: every block of the
+    format's datagram is a rate or an acceleration."""
+    units = {"gyro": fmt.gyro_unit, "acc": fmt.acc_unit, "incl": fmt.incl_unit}
+    return [f"{WORDS[c]} {units[c].name.lower()}" for c in NORMAL_LAYOUTS[fmt.datagram_id].clusters
+            if c in units and (units[c].is_angle if c == "gyro" else units[c].is_velocity)]
+
+
+def sample_units(fmt: Format) -> dict[str, str]:
+    """The units of the sensor blocks a bias is taken from (the SAMPLES and DEVICE units)."""
+    return {block: unit for block, unit in fmt.units().items() if block in CLUSTERS}
+
+
+def replaces(policy: str, kept: CalibrationResult | None, new: CalibrationResult) -> bool:
+    """Whether `new`, a result of the power-up that carries biases, takes the place of `kept`,
+    the one subtracted now (None: none yet), under [serve] `correction` (docs/serving.md):
+    "latest" always; "first" never; "best" when none of its bias estimates is "poor" and either
+    one of the kept ones is, or none of its bias sigmas is larger than the kept one's (an
+    estimate without a sigma counts as infinitely uncertain). So a poorer result never replaces
+    the kept one, and the kept biases only change for better-known ones."""
+    if kept is None or policy == "latest":
+        return True
+    if policy == "first":
+        return False
+    new_biases, kept_biases = bias_estimates(new), bias_estimates(kept)
+    if any(e.quality == "poor" for e in new_biases.values()):
+        return False
+    if any(e.quality == "poor" for e in kept_biases.values()):
+        return True
+    return all(_sigma_si(e) <= _sigma_si(kept_biases.get(name)) for name, e in new_biases.items())
+
+
+def _sigma_si(estimate: Estimate | None) -> float:
+    """An estimate's sigma in SI (comparable whatever unit a result wrote it in); infinite when
+    it has none."""
+    sigma = None if estimate is None else estimate.sigma_si
+    return float("inf") if sigma is None else sigma
+
+
+def other_sensor(result_serial: str | None, serial: str | None) -> bool:
+    """Whether a result (of the sensor with serial number `result_serial`) is of another unit
+    than the stream's (`serial`): only when both are known and differ. A serial number comes
+    only in the sensor's power-up datagrams, so a stream joined later cannot tell."""
+    return serial is not None and result_serial is not None and serial != result_serial
