@@ -118,28 +118,14 @@ class Truth:
 
 
 @dataclass(frozen=True)
-class Noise:
-    """STIM300 noise figures, by default the datasheet's for a 10 g unit (`calibd.spec`; the
-    scenario parser takes the sensor's own range, `Noise.datasheet`). Bias instability is the
-    minimum of the Allan deviation, as the manufacturer defines it. The inclinometer figures are
-    those at 0 g; an axis along gravity is 35 % noisier (`spec.incl_noise_factor`), as the
-    simulator makes it. The inclinometer figures are None for a unit without inclinometers (a
-    noise file of one, read by the planner)."""
+class Noise(spec.NoiseFigures):
+    """The simulated sensor's noise: its figures (`spec.NoiseFigures`, by default the
+    datasheet's for a 10 g unit; the scenario parser takes the sensor's own range,
+    `Noise.datasheet`), whether it is on, and the temperature sensor's. The inclinometers are
+    made 35 % noisier along gravity (`spec.incl_noise_factor`)."""
 
     enabled: bool = True
-    gyro_arw_deg_sqrt_h: float = spec.GYRO.random_walk
-    gyro_bias_instability_deg_h: float = spec.GYRO.bias_instability
-    acc_vrw_m_s_sqrt_h: float = spec.ACC[spec.DEFAULT_ACC_RANGE_G].random_walk
-    acc_bias_instability_mg: float = spec.ACC[spec.DEFAULT_ACC_RANGE_G].bias_instability
-    incl_vrw_m_s_sqrt_h: float | None = spec.INCL.random_walk
-    incl_bias_instability_mg: float | None = spec.INCL.bias_instability
     temperature_noise_c: float = 0.01
-
-    @classmethod
-    def datasheet(cls, acc_range_g: int = spec.DEFAULT_ACC_RANGE_G) -> Noise:
-        """The datasheet's figures for a unit whose accelerometers have this range (g)."""
-        acc = spec.triads(acc_range_g)["acc"]
-        return cls(acc_vrw_m_s_sqrt_h=acc.random_walk, acc_bias_instability_mg=acc.bias_instability)
 
 
 @dataclass(frozen=True)

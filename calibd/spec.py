@@ -80,6 +80,29 @@ def triads(acc_range_g: int = DEFAULT_ACC_RANGE_G) -> dict[str, Triad]:
     return {"gyro": GYRO, "acc": ACC[acc_range_g], "incl": INCL}
 
 
+@dataclass(frozen=True)
+class NoiseFigures:
+    """A unit's noise figures in the datasheet's terms, by default the datasheet's for a 10 g
+    unit (`NoiseFigures.datasheet` for another range): random walk and bias instability (the
+    minimum of the Allan deviation, as the manufacturer defines it) of each triad. The
+    inclinometer figures are those at 0 g (an axis along gravity is noisier:
+    `incl_noise_factor`), None for a unit without inclinometers. The estimator's noise floors
+    and the simulator's noise both start from these."""
+
+    gyro_arw_deg_sqrt_h: float = GYRO.random_walk
+    gyro_bias_instability_deg_h: float = GYRO.bias_instability
+    acc_vrw_m_s_sqrt_h: float = ACC[DEFAULT_ACC_RANGE_G].random_walk
+    acc_bias_instability_mg: float = ACC[DEFAULT_ACC_RANGE_G].bias_instability
+    incl_vrw_m_s_sqrt_h: float | None = INCL.random_walk
+    incl_bias_instability_mg: float | None = INCL.bias_instability
+
+    @classmethod
+    def datasheet(cls, acc_range_g: int = DEFAULT_ACC_RANGE_G):
+        """The datasheet's figures for a unit whose accelerometers have this range (g)."""
+        acc = triads(acc_range_g)["acc"]
+        return cls(acc_vrw_m_s_sqrt_h=acc.random_walk, acc_bias_instability_mg=acc.bias_instability)
+
+
 # ---------------------------------------------------------------- factory residuals
 
 # The off-diagonal elements of a triad's map from the housing axes, in the order scenarios and

@@ -40,7 +40,6 @@ from ..errors import CalibdError
 from ..frames import EARTH_RATE, STANDARD_GRAVITY, Site, euler_321, int_to_imu
 from ..allan import FLICKER_TAUS_S, allan_deviation, correlate, fit_noise_model, flicker_sigma
 from .. import spec
-from ..scenario import Noise
 from ..units import DEG
 
 INCL_ESTIMATES = ("incl_bias_x", "incl_bias_y", "incl_bias_z")  # absent for a unit without inclinometers
@@ -109,7 +108,7 @@ class SensorNoise:
     incl: NoiseModel | None  # m/s^2; None: the unit has no inclinometers
 
 
-def datasheet_noise(figures: Noise, rate_hz: float, incl_force_g: np.ndarray | None = None) -> SensorNoise:
+def datasheet_noise(figures: spec.NoiseFigures, rate_hz: float, incl_force_g: np.ndarray | None = None) -> SensorNoise:
     """The noise models of datasheet figures, at `rate_hz`: white variance per sample from the
     random walk, and the flicker components the simulator uses for the bias instability (Allan
     deviation minimum = the figure). `incl_force_g`: the specific force along the inclinometer
@@ -717,7 +716,7 @@ def solve(inp: JointInput, site: Site, options: JointOptions = JointOptions(),
     (whose flicker is at least the STIM300 datasheet's)."""
     statics = np.concatenate([np.arange(a, b) for a, b in inp.statics])
     along = None if inp.incl is None else inp.incl[statics].mean(axis=0) / STANDARD_GRAVITY
-    least = datasheet_noise(Noise.datasheet(options.acc_range_g), inp.rate_hz, along)
+    least = datasheet_noise(spec.NoiseFigures.datasheet(options.acc_range_g), inp.rate_hz, along)
     gyro = fit_gyros(inp, site, options, noise and noise.gyro, least.gyro.flicker)
     k = gyro.params[AXIS_PARAMS]
     incl = None if inp.incl is None else \

@@ -18,7 +18,6 @@ from ..estimators import joint
 from ..estimators.joint import JointOptions
 from ..frames import STANDARD_GRAVITY, Site, int_to_imu
 from ..results import ESTIMATES, CalibrationResult, make_result
-from ..scenario import Noise
 from ..segments import segment_record, session_segments
 from ..session import Session
 from ..units import DEG
@@ -228,7 +227,7 @@ def _vibration_warnings(fitted: JointFit, session: Session) -> list[str]:
     for k, (start, stop) in enumerate(inp.statics):
         # the datasheet's inclinometer figures are at 0 g: an axis along gravity is noisier
         along = None if inp.incl is None else inp.incl[start:stop].mean(axis=0) / STANDARD_GRAVITY
-        figures = joint.datasheet_noise(Noise.datasheet(fitted.options.acc_range_g), inp.rate_hz, along)
+        figures = joint.datasheet_noise(spec.NoiseFigures.datasheet(fitted.options.acc_range_g), inp.rate_hz, along)
         loud = []
         for sensor, values in (("gyro", inp.gyro), ("acc", inp.acc), ("incl", inp.incl)):
             if values is None:
