@@ -20,6 +20,7 @@ import numpy as np
 from stim300.bulk import decode_blocks
 from stim300.capture import stream_info
 from stim300.clock import CounterClock
+from stim300.csvtable import write_rows
 from stim300.protocol import INTERNAL_RATE_HZ, NORMAL_LAYOUTS
 
 from .errors import CalibdError
@@ -261,9 +262,8 @@ class CsvWriter:
     def __call__(self, columns: dict[str, np.ndarray]) -> None:
         if self.clusters is None:
             self._header(columns)
-        table = np.column_stack([columns["time_s"], *(columns[f"{c}_{UNITS[c]}"] for c in self.clusters),
-                                 columns["counter"], columns["status"], columns["power_up"]])
-        np.savetxt(self.f, table, fmt=self.formats, delimiter=",")
+        write_rows(self.f, [columns["time_s"], *(columns[f"{c}_{UNITS[c]}"] for c in self.clusters),
+                            columns["counter"], columns["status"], columns["power_up"]], self.formats)
 
 
 class NpzWriter:
