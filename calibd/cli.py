@@ -498,7 +498,7 @@ def cmd_report(args) -> int:
     input_file(args.result, "result file")
     not_an_input(args.output, args.result, args.capture)
     try:
-        written = write_report(args.result, open_capture(args.capture), args.output)
+        written = write_report(args.result, open_capture(args.capture), args.output, svg=args.svg)
     except (ResultError, ReportError, CalibrationError) as exc:
         raise UsageError(str(exc)) from None
     except OSError as exc:
@@ -824,7 +824,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("result", help="RESULT.json written by calibd calibrate")
     p.add_argument("capture", help="the capture the result was made from")
     p.add_argument("-o", "--output", type=path_arg, required=True,
-                   help="report.html (self-contained); the figures also go to report_files/*.png and *.svg beside it")
+                   help="report.html (self-contained); the figures also go to report_files/*.png (and *.svg with "
+                        "--svg) beside it")
+    p.add_argument("--svg", action="store_true", help="also write each figure's vector copy, report_files/*.svg")
     p.set_defaults(func=cmd_report)
     p = sub.add_parser("plan", help="protocol + site + noise -> expected 1-sigma of every estimate, time to a "
                                     "target yaw 1-sigma (docs/planner.md)")

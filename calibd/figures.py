@@ -1,5 +1,5 @@
 """The report's figures: the session timeline, the Earth-rate fit against the platform angle, and
-the Allan deviation of the static data, each drawn into PNG and SVG bytes.
+the Allan deviation of the static data, each drawn into PNG bytes, and into SVG on request.
 
 matplotlib is imported inside the functions only (the optional extra `[plot]`); `calibd.report`
 checks it is there before any of these run. Every figure is FIGURE_WIDTH_IN wide at 100 dpi, the
@@ -41,15 +41,25 @@ YAW_MARKER = "yaw-marker"  # gid of the Earth-rate figure's phase line (an id in
 
 @dataclass
 class Figure:
-    """One figure of the report: its PNG and SVG and the matplotlib figure drawn, or why there is none."""
+    """One figure of the report: its PNG and the matplotlib figure drawn, or why there is none."""
 
-    name: str  # file stem: report_files/<name>.png and .svg
+    name: str  # file stem: report_files/<name>.png (and .svg)
     title: str
     caption: str
     png: bytes | None = None
-    svg: bytes | None = None
-    drawing: object = None  # the matplotlib Figure, for tests that read what was drawn
+    drawing: object = None  # the matplotlib Figure: its SVG when asked for, and what tests read
     missing: str = ""
+
+    def svg(self) -> bytes:
+        """The vector copy (`calibd report --svg`), rendered only when asked for: a second drawing,
+        half the PNG's CPU again. Laid out as the PNG, with no date: the same report gives the same
+        file."""
+        from matplotlib import rc_context
+
+        svg = io.BytesIO()
+        with rc_context(STYLE):  # read while saving: text as text, ids salted alike
+            self.drawing.savefig(svg, format="svg", metadata={"Date": None})
+        return svg.getvalue()
 
 
 def _styled(draw):
@@ -64,12 +74,11 @@ def _styled(draw):
 
 
 def _figure(name: str, title: str, caption: str, fig) -> Figure:
-    """The figure with its PNG and SVG (no date in the SVG: the same report gives the same file)."""
-    png, svg = io.BytesIO(), io.BytesIO()
+    """The figure with its PNG."""
+    png = io.BytesIO()
     fig.savefig(png, format="png")
-    fig.set_layout_engine("none")  # laid out by the first drawing: the second keeps it
-    fig.savefig(svg, format="svg", metadata={"Date": None})
-    return Figure(name, title, caption, png.getvalue(), svg.getvalue(), fig)
+    fig.set_layout_engine("none")  # laid out by this drawing: an SVG drawn later keeps it
+    return Figure(name, title, caption, png.getvalue(), fig)
 
 
 def _new_figure(height_in: float):

@@ -1,16 +1,18 @@
-"""The calibration report: one self-contained HTML page, and its figures as PNG files beside it.
+"""The calibration report: one self-contained HTML page, and its figures as PNG files beside it
+(and as SVG on request).
 
 A result file holds numbers; the report shows what they rest on. On the capture the result was
 made from (decoded by the caller), it finds the segments again and draws the session's timeline, the Earth-rate
 sinusoid the horizontal gyros see against the platform angle, and the Allan deviation of the
 static data; it tables every estimate with its 1-sigma beside the thesis method's value on the
 same capture and, for a simulated capture, the truth and the error in sigma. `report.html` embeds
-the figures (data URIs, inline CSS: it can be mailed or archived alone); `report_files/*.png` and
-`*.svg` are the same figures.
+the figures (data URIs, inline CSS: it can be mailed or archived alone); `report_files/*.png` are
+the same figures, and `*.svg` their vector copies when asked for (`svg=True`: a second drawing
+of each figure).
 
 matplotlib (the optional extra `[plot]`) is imported only inside the functions here and in
-`calibd.figures`, and draws with its Agg and SVG back ends: the other commands never load it,
-and no display is needed.
+`calibd.figures`, and draws with its Agg back end (SVG's for the vector copies): the other
+commands never load it, and no display is needed.
 """
 
 from __future__ import annotations
@@ -54,11 +56,12 @@ def figures_dir(output) -> Path:
     return output.with_name(f"{output.stem}_files")
 
 
-def write_report(result_path, capture: CaptureSessions, output, stream=None) -> list[Path]:
+def write_report(result_path, capture: CaptureSessions, output, stream=None, svg: bool = False) -> list[Path]:
     """Render the report of the result at `result_path` on the decoded `capture` to `output` and
-    its figures directory; returns the files written, the HTML first. A progress bar goes to
-    `stream` (stderr) when it is a terminal. ReportError (or UsageError, for a result file that
-    is not a regular file) for inputs it cannot use, OSError when the files cannot be written."""
+    its figures directory (with each figure's SVG beside its PNG when `svg`); returns the files
+    written, the HTML first. A progress bar goes to `stream` (stderr) when it is a terminal.
+    ReportError (or UsageError, for a result file that is not a regular file) for inputs it cannot
+    use, OSError when the files cannot be written."""
     _need_matplotlib()
     # a regular file of bounded size; parse_result checks the schema, the estimates and the site
     result = parse_result(read_input(result_path, "result file", DOCUMENT_LIMIT_BYTES), result_path)
@@ -89,8 +92,8 @@ def write_report(result_path, capture: CaptureSessions, output, stream=None) -> 
         thesis = thesis_comparison(session, site, segments)
         bar.update(6, STEPS[6])
         page = render_html(result, str(result_path), capture.path, whole, segments, roles, warm_up, figures, thesis,
-                           read_truth(capture.path), figures_dir(output).name)
-        written = _write(output, figures, page)
+                           read_truth(capture.path), figures_dir(output).name, svg)
+        written = _write(output, figures, page, svg)
         bar.update(len(STEPS))
     return written
 
@@ -112,11 +115,11 @@ def thesis_comparison(session: Session, site: Site, segments: list[detect.Segmen
 # ---------------------------------------------------------------- inputs
 
 def _need_matplotlib() -> None:
-    """matplotlib with its Agg and SVG back ends, or the one-line reason why not."""
+    """matplotlib with its Agg back end (compiled; the SVG one is Python of the same package), or
+    the one-line reason why not."""
     try:
         import matplotlib  # noqa: F401  (the package first: a missing one must say so, not a submodule)
         import matplotlib.backends.backend_agg  # noqa: F401
-        import matplotlib.backends.backend_svg  # noqa: F401
     except ImportError:
         raise ReportError(MATPLOTLIB_MISSING) from None
 
@@ -315,20 +318,21 @@ def _segments_table(segments, roles) -> str:
     return '<table id="segments">' + "".join(rows) + "</table>"
 
 
-def _figure_html(figure: Figure, directory: str) -> str:
+def _figure_html(figure: Figure, directory: str, svg: bool) -> str:
+    """The figure embedded, its PNG named and linked, and its SVG linked only when written."""
     if figure.png is None:
         return f'<h2>{_e(figure.title)}</h2><p class="missing">{_e(figure.missing)}</p>'
     file, vector = (f"{directory}/{figure.name}.{suffix}" for suffix in ("png", "svg"))
     data = base64.b64encode(figure.png).decode("ascii")
+    files = (f'Files: <a href="{_e(file)}">{_e(file)}</a>, <a href="{_e(vector)}">{_e(vector)}</a> (vector)' if svg
+             else f'File: <a href="{_e(file)}">{_e(file)}</a>')
     return (f'<h2>{_e(figure.title)}</h2><figure id="{figure.name}"><img src="data:image/png;base64,{data}" '
-            f'alt="{_e(file)}" title="{_e(file)}"><figcaption>{_e(figure.caption)} '
-            f'Files: <a href="{_e(file)}">{_e(file)}</a>, <a href="{_e(vector)}">{_e(vector)}</a> '
-            f'(vector)</figcaption></figure>')
+            f'alt="{_e(file)}" title="{_e(file)}"><figcaption>{_e(figure.caption)} {files}</figcaption></figure>')
 
 
 def render_html(result: CalibrationResult, result_name: str, capture: str, whole: Session, segments, roles,
                 warm_up: tuple[float, str], figures: list[Figure], thesis: CalibrationResult | str,
-                truth: dict | None, directory: str) -> str:
+                truth: dict | None, directory: str, svg: bool) -> str:
     site = result.site
     warnings = "".join(f'<li class="warning">{_e(w)}</li>' for w in result.warnings) or "<li>none</li>"
     warm_end, warm_label = warm_up
@@ -345,20 +349,20 @@ def render_html(result: CalibrationResult, result_name: str, capture: str, whole
     if checks:
         body += ["<h2>Checks</h2><ul>", checks, "</ul>"]
     body += ["<h2>Stream</h2>", _stream(result, whole)]
-    body += [_figure_html(f, directory) for f in figures]
+    body += [_figure_html(f, directory, svg) for f in figures]
     body += ["<h2>Segments found</h2>", _segments_table(segments, roles)]
     return ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
             f"<title>Calibration report: {_e(Path(capture).name)}</title><style>{CSS}</style></head><body>\n"
             + "\n".join(body) + "\n</body></html>\n")
 
 
-def _write(output: Path, figures: list[Figure], page: str) -> list[Path]:
-    """The page and its figures directory, each whole or not at all; OSError (a full disk) leaves
-    nothing of this run behind. The figures go into a new directory beside the output, which
-    replaces `report_files/` only once the page is written too; the page is renamed into place
-    last. Nothing is written through a symbolic link: the directory is made by this run and its
-    files are new. A page that is a device or FIFO (`-o /dev/stdout`) has no beside: the page
-    only, which embeds the figures."""
+def _write(output: Path, figures: list[Figure], page: str, svg: bool) -> list[Path]:
+    """The page and its figures directory (the PNGs, and the SVGs when `svg`), each whole or not at
+    all; OSError (a full disk) leaves nothing of this run behind. The figures go into a new
+    directory beside the output, which replaces `report_files/` only once the page is written too;
+    the page is renamed into place last. Nothing is written through a symbolic link: the directory
+    is made by this run and its files are new. A page that is a device or FIFO (`-o /dev/stdout`)
+    has no beside: the page only, which embeds the figures."""
     if in_place(output):
         write_atomic(output, page.encode(), durable=False)
         return [output]
@@ -368,12 +372,11 @@ def _write(output: Path, figures: list[Figure], page: str) -> list[Path]:
     os.mkdir(fresh)
     try:
         with atomic_file(output, durable=False) as f:
-            for figure in figures:
-                for suffix, data in (("png", figure.png), ("svg", figure.svg)):
-                    if data is not None:
-                        name = f"{figure.name}.{suffix}"
-                        write_atomic(fresh / name, data, durable=False, follow=False)  # can be made again: no sync
-                        written.append(directory / name)
+            for figure in (f for f in figures if f.png is not None):
+                for suffix, data in [("png", figure.png)] + ([("svg", figure.svg())] if svg else []):
+                    name = f"{figure.name}.{suffix}"
+                    write_atomic(fresh / name, data, durable=False, follow=False)  # can be made again: no sync
+                    written.append(directory / name)
             f.write(page.encode())
             f.flush()  # a full disk fails here, before the old figures go
             _replace_directory(fresh, directory)

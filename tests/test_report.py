@@ -2,6 +2,7 @@
 thesis method's and the truth; the figures' decomposition is the joint fit's; one-line errors."""
 
 import base64
+import contextlib
 import io
 import json
 import os
@@ -104,10 +105,18 @@ def rendered(made):
     return made | {"written": written, "bar": terminal.getvalue(), "page": (made["dir"] / "report.html").read_text()}
 
 
+@pytest.fixture(scope="module")
+def with_svg(rendered):
+    """The same report by the command with --svg, beside the first."""
+    output = rendered["dir"] / "vector.html"
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert calibd_main(["report", str(rendered["path"]), CAPTURE, "-o", str(output), "--svg"]) == 0
+    return {"dir": rendered["dir"] / "vector_files", "page": output.read_text()}
+
+
 def test_files_exist_and_are_pngs(rendered):
     d = rendered["dir"]
-    assert rendered["written"] == [d / "report.html"] + [d / "report_files" / f"{f}.{suffix}" for f in FIGURES
-                                                         for suffix in ("png", "svg")]
+    assert rendered["written"] == [d / "report.html"] + [d / "report_files" / f"{f}.png" for f in FIGURES]
     for name in FIGURES:
         data = (d / "report_files" / f"{name}.png").read_bytes()
         assert data.startswith(b"\x89PNG\r\n\x1a\n")
@@ -117,18 +126,33 @@ def test_files_exist_and_are_pngs(rendered):
     assert not list(d.glob(".*part")) and not list((d / "report_files").glob(".*part"))  # no temporaries left
 
 
-def test_svg_beside_each_png_with_its_text(rendered):
-    """Vector copies for print: SVG documents whose labels are text, not paths, dated nowhere."""
+def test_no_svg_unless_asked_and_the_page_names_only_files_written(rendered):
+    """The SVGs cost as much again as the PNGs: written only with --svg, and a page without them
+    links no file that is not there."""
+    assert sorted(p.name for p in (rendered["dir"] / "report_files").iterdir()) == sorted(f"{f}.png" for f in FIGURES)
+    named = {value for _, key, value in parse(rendered["page"]).attributes if key != "src"}
+    assert named == {f"report_files/{f}.png" for f in FIGURES}
+    assert all((rendered["dir"] / name).is_file() for name in named)
+    assert ".svg" not in rendered["page"]
+
+
+def test_svg_beside_each_png_with_its_text(rendered, with_svg):
+    """--svg: vector copies for print, SVG documents whose labels are text, not paths, dated
+    nowhere; the PNGs are the same bytes as without it, and the page differs only in its links."""
     for name, words in (("timeline", "platform rate [deg/h]"), ("earth_rate", "yaw ="), ("allan", "Allan deviation")):
-        data = (rendered["dir"] / "report_files" / f"{name}.svg").read_bytes()
+        data = (with_svg["dir"] / f"{name}.svg").read_bytes()
         root = ET.fromstring(data)
         assert root.tag == "{http://www.w3.org/2000/svg}svg"
         text = " ".join("".join(e.itertext()) for e in root.iter("{http://www.w3.org/2000/svg}text"))
         assert words in text, name
         assert b"<dc:date>" not in data
-        named = {(tag, key) for tag, key, value in parse(rendered["page"]).attributes
-                 if value == f"report_files/{name}.svg"}
+        named = {(tag, key) for tag, key, value in parse(with_svg["page"]).attributes
+                 if value == f"vector_files/{name}.svg"}
         assert ("a", "href") in named
+        assert (with_svg["dir"] / f"{name}.png").read_bytes() == \
+            (rendered["dir"] / "report_files" / f"{name}.png").read_bytes()
+    links = re.compile(r" Files?: .*?</figcaption>")
+    assert links.sub("", with_svg["page"].replace("vector_files/", "report_files/")) == links.sub("", rendered["page"])
 
 
 def test_html_embeds_and_names_every_figure_and_loads_nothing(rendered):
