@@ -71,7 +71,7 @@ def make_seeds(work: Path) -> dict[str, list[bytes]]:
 
 def readers(work: Path):
     """reader name -> a function of the input's bytes that reads it as the programs do."""
-    from calibd.cli import _load_state
+    from calibd.documents import load_state
     from calibd.client import message_of
     from calibd.config import load_config
     from calibd.planner import noise_from_json
@@ -88,7 +88,7 @@ def readers(work: Path):
         return run
     return {"command": parse_command, "message": lambda data: message_of(decode(data)),
             "result": lambda data: parse_result(data, "result.json"),
-            "state": through_file(_load_state, "state.json"),
+            "state": through_file(load_state, "state.json"),
             "noise": lambda data: noise_from_json(data, "noise.json"),
             "config": through_file(load_config, "calibd.toml"),
             "scenario": through_file(lambda p: load_scenario(str(p)), "scenario.toml")}

@@ -5,23 +5,30 @@ A capture's bytes `decode_sessions` to `CaptureSessions`; `power_up_session` mak
 gives a `CalibrationResult` of `Estimate`s (`calibrate_capture` picks the power-up). The site
 is a `Site`; results are written and read with `write_result` / `load_result`. Every error
 raised about the input is a `CalibdError`. Plotting (calibd.report) is not imported here.
+
+The names are imported when first used (PEP 562), not with the package: `import calibd` loads
+none of calibd's modules, so neither the methods nor scipy (docs/architecture.md, Start-up).
 """
 
-from .calibrate import calibrate_capture
-from .config import ConfigError, DaemonConfig, load_config
-from .errors import CalibdError, CalibrationError, SiteError
-from .frames import Site, normal_gravity
-from .methods import ESTIMATORS, Estimator, JointOptions, OptionError, ProtocolIncomplete, ThesisOptions, estimator
-from .results import CalibrationResult, Estimate, ResultError, SchemaError, load_result, write_result
-from .scenario import Scenario, ScenarioError, load_scenario
-from .session import CaptureSessions, Session, SessionBuilder, decode_sessions, power_up_session
-from .warmup import WarmupConfig
+import importlib
 
-__all__ = [
-    "decode_sessions", "CaptureSessions", "Session", "SessionBuilder", "power_up_session", "WarmupConfig",
-    "estimator", "ESTIMATORS", "Estimator", "JointOptions", "ThesisOptions", "calibrate_capture",
-    "CalibrationResult", "Estimate", "load_result", "write_result",
-    "Site", "normal_gravity", "DaemonConfig", "load_config", "Scenario", "load_scenario",
-    "CalibdError", "CalibrationError", "ProtocolIncomplete", "SiteError", "OptionError", "ConfigError",
-    "ScenarioError", "ResultError", "SchemaError",
-]
+_HOMES = {  # public name -> the module of calibd that defines it
+    "decode_sessions": "session", "CaptureSessions": "session", "Session": "session", "SessionBuilder": "session",
+    "power_up_session": "session", "WarmupConfig": "warmup",
+    "estimator": "methods", "ESTIMATORS": "methods", "Estimator": "methods", "JointOptions": "methods",
+    "ThesisOptions": "methods", "calibrate_capture": "calibrate",
+    "CalibrationResult": "results", "Estimate": "results", "load_result": "results", "write_result": "results",
+    "Site": "frames", "normal_gravity": "frames", "DaemonConfig": "config", "load_config": "config",
+    "Scenario": "scenario", "load_scenario": "scenario",
+    "CalibdError": "errors", "CalibrationError": "errors", "ProtocolIncomplete": "methods", "SiteError": "errors",
+    "OptionError": "methods", "ConfigError": "config", "ScenarioError": "scenario", "ResultError": "results",
+    "SchemaError": "results",
+}
+
+__all__ = list(_HOMES)
+
+
+def __getattr__(name: str):
+    if name not in _HOMES:
+        raise AttributeError(f"module 'calibd' has no attribute {name!r}")
+    return getattr(importlib.import_module(f".{_HOMES[name]}", __name__), name)

@@ -12,8 +12,6 @@ from __future__ import annotations
 from collections.abc import Iterator
 
 import numpy as np
-from scipy.optimize import nnls
-from scipy.special import chdtri
 
 
 FLICKER_TAUS_S = (3.0, 30.0, 300.0, 3000.0, 30000.0)  # Gauss-Markov time constants approximating flicker
@@ -166,6 +164,7 @@ def allan_edf(alpha, count, m):
 def confidence_interval(adev: np.ndarray, edf: np.ndarray, confidence: float = ONE_SIGMA):
     """(low, high) of a deviation whose variance is chi-square distributed with `edf` degrees
     of freedom (scipy.special, not the slow-to-import scipy.stats)."""
+    from scipy.special import chdtri  # when used: start-up (docs/architecture.md)
     tail = (1 - confidence) / 2
     return adev * np.sqrt(edf / chdtri(edf, tail)), adev * np.sqrt(edf / chdtri(edf, 1 - tail))
 
@@ -175,6 +174,7 @@ def confidence_interval(adev: np.ndarray, edf: np.ndarray, confidence: float = O
 def fit_noise_model(residuals: np.ndarray, rate_hz: float, corr_taus=FLICKER_TAUS_S[:4]) -> tuple[float, float]:
     """(white variance per sample, variance of each flicker component) whose Allan deviation best
     matches that of `residuals` (static, samples x channels, pooled), in relative terms."""
+    from scipy.optimize import nnls  # when used: start-up (docs/architecture.md)
     n = len(residuals)
     taus, adev = allan_deviation(residuals, rate_hz, 2.0 ** np.arange(int(np.log2(max(n // 4, 1))) + 1) / rate_hz)
     target = (adev**2).mean(axis=1)

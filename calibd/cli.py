@@ -10,10 +10,8 @@ Errors in files, scenarios or arguments end with one line on stderr and exit sta
 from __future__ import annotations
 
 import argparse
-import contextlib
 import errno
 import json
-import logging
 import mmap
 import os
 import select
@@ -22,36 +20,26 @@ import time
 from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
-
-import structlog
+from typing import TYPE_CHECKING
 
 from stim300.cliutil import (DOCUMENT_LIMIT_BYTES, CommandParser, RunError, input_file, not_an_input, open_regular,
                              path_arg, read_input, run_command, write_error)
-from stim300.bulk import decode_blocks
 from stim300.errors import UsageError
-from stim300.progress import Progress
-from stim300.reads import load_reads
-from stim300.source import CaptureSource, PtySource
 
-from .calibrate import calibrate_capture
-from .config import (METHODS, WARMUP_WINDOW_S, ConfigError, DetectionConfig, MethodConfig, ServeConfig, WarmupConfig,
-                     load_config)
-from .daemon import Calibrator, Callbacks, StateLog
-from .errors import CalibdError, CalibrationError, SiteError
-from .methods import estimator
-from .estimators.thesis import sensitivity
-from .frames import STANDARD_GRAVITY, Site, site_value_error
-from .live import configure_logging, replay, run
-from .serve.protocol import MAX_TOKEN_BYTES, ProtocolError, token_of
 from . import spec
-from .documents import DocumentError, StateDoc, decode_json, validate
-from .results import CalibrationResult, ResultError, ResultStore, StateDirError, parse_result, write_result
-from .scenario import READY_MADE, Noise, ScenarioError, load_scenario
-from .serve.hub import Hub
-from .serve.protocol import SAMPLE_KINDS
-from .serve.sockets import ServeError
-from .session import CaptureSessions, Session, decode_sessions, power_up_session
+from .errors import CalibdError, CalibrationError, SiteError
+from .frames import STANDARD_GRAVITY, Site, site_value_error
+from .scenario import READY_MADE, ScenarioError, load_scenario
+from .serve.protocol import MAX_TOKEN_BYTES, SAMPLE_KINDS, ProtocolError, token_of
 from .units import DEG, estimate_rows
+
+if TYPE_CHECKING:
+    from .config import ServeConfig
+    from .results import CalibrationResult
+    from .session import CaptureSessions, Session
+
+# Each command imports what only it needs in its own body (the daemon, the methods and scipy, matplotlib), so
+# that a command pays for its own imports only (docs/architecture.md, Start-up; benchmarks/startup.py).
 
 
 @contextmanager
@@ -77,6 +65,10 @@ def open_capture(path: str, data: bytes | None = None) -> CaptureSessions:
     read log recorded beside it (PATH.reads.npy) when there is one. Capture files are read here
     only: the rest of calibd takes decoded captures and sessions. A file is mapped, not read, and
     the pages decoded are let go, so a long capture never sits in memory whole."""
+    from stim300.reads import load_reads
+
+    from .session import decode_sessions
+
     reads = load_reads(path)
     if data is not None:
         return decode_sessions(data, str(path), reads)
@@ -87,6 +79,8 @@ def open_capture(path: str, data: bytes | None = None) -> CaptureSessions:
 def load_session(path: str, start_s: float | None = 0.0, data: bytes | None = None,
                  power_up: int | None = None) -> Session:
     """One power-up of a capture (default the last) from `start_s` (None: where the warm-up ends)."""
+    from .session import power_up_session
+
     return power_up_session(open_capture(path, data), power_up, start_s)
 
 
@@ -208,6 +202,10 @@ def _session_line(result: CalibrationResult) -> str | None:
 
 
 def cmd_calibrate(args) -> int:
+    from .calibrate import calibrate_capture
+    from .methods import estimator
+    from .results import write_result
+
     if (args.alpha is None) != (args.beta is None):
         raise UsageError("calibrate: give both --alpha and --beta (the nominal run) or neither (the linear run)")
     if args.bench and args.alpha is not None:
@@ -244,6 +242,8 @@ def cmd_calibrate(args) -> int:
 
 
 def cmd_sensitivity(args) -> int:
+    from .estimators.thesis import sensitivity
+
     site = _site(args)
     s = sensitivity(args.alpha_error * DEG, args.beta_error * DEG, args.platform_rate * DEG, site)
     print(f"interface-tilt errors d_alpha {args.alpha_error:g} deg, d_beta {args.beta_error:g} deg at a platform "
@@ -257,11 +257,15 @@ def cmd_sensitivity(args) -> int:
 
 def _load_config(path: str, port: str | None):
     """The configuration at `path`, its port replaced by `port` when given; ConfigError if unusable."""
+    from .config import load_config
+
     config = load_config(path)
     return config.with_port(port) if port else config
 
 
 def _config(path: str, port: str | None):
+    from .config import ConfigError
+
     try:
         return _load_config(path, port)
     except ConfigError as exc:
@@ -269,6 +273,8 @@ def _config(path: str, port: str | None):
 
 
 def cmd_run(args) -> int:
+    from .live import configure_logging, run
+
     config = _config(args.config, args.port)
     configure_logging()
     _drop_log_event("start_failed")  # run says why in its one stderr line (the journal keeps it too)
@@ -280,6 +286,8 @@ def _replay_serve(args, config) -> ServeConfig | None:
     --corrected-pty (which imply --serve) in place of its keys; None without serving. A replay
     serves only when told (a run's configuration may name the real daemon's socket), and says
     so when --config has a [serve] table, so that nothing being served is no surprise."""
+    from .config import ServeConfig
+
     given = {key: Path(value) for key, value in (("socket", args.socket), ("raw_pty", args.raw_pty),
                                                  ("corrected_pty", args.corrected_pty)) if value is not None}
     if not (args.serve or given):
@@ -295,6 +303,19 @@ def _replay_serve(args, config) -> ServeConfig | None:
 
 
 def cmd_replay(args) -> int:
+    import contextlib
+    import logging
+
+    from stim300.progress import Progress
+    from stim300.source import CaptureSource, PtySource
+
+    from .config import DetectionConfig, MethodConfig, WarmupConfig
+    from .daemon import Calibrator, Callbacks, StateLog
+    from .live import configure_logging, replay
+    from .statedir import ResultStore, StateDirError
+    from .serve.hub import Hub
+    from .serve.sockets import ServeError
+
     config = _config(args.config, None) if args.config else None
     if config:
         site, warmup, method, detection = config.site, config.warmup, config.method, config.detection
@@ -366,6 +387,8 @@ def _refuse_without_datagrams(data, path: str) -> None:
     """Refuse (exit 2), as calibrate and `stim300 info` do, a capture in which no STIM300 datagram
     is found: scanned at numpy speed (300 MB in about a second) up to the first one, where the
     daemon's pipeline would take minutes to find nothing."""
+    from stim300.bulk import decode_blocks
+
     def found(samples, scanner, offset):
         raise _Found
 
@@ -378,6 +401,8 @@ def _refuse_without_datagrams(data, path: str) -> None:
 
 def _drop_log_event(event: str) -> None:
     """Keep the log lines named `event` off stderr: what the command says itself, in its one line."""
+    import structlog
+
     def drop(logger, method, fields):
         if fields.get("event") == event:
             raise structlog.DropEvent
@@ -386,37 +411,18 @@ def _drop_log_event(event: str) -> None:
     structlog.configure(processors=[drop, *structlog.get_config()["processors"]])
 
 
-def _load_state(state_file: Path) -> dict:
-    """The daemon's state.json: an object with its state (text), detail (text) and time of update
-    (s since the epoch); UsageError (one line) for anything else."""
-    def refuse(why: str):
-        return UsageError(f"{state_file}: not a calibd state file: {why}")
-    try:
-        text = read_input(state_file, "state file", DOCUMENT_LIMIT_BYTES, follow=False).decode()
-    except UsageError as exc:  # a directory, FIFO, device, symbolic link or a huge file
-        raise refuse(f"cannot read it ({str(exc).removeprefix(f'{state_file}: ')})") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise refuse(f"cannot read it ({getattr(exc, 'strerror', None) or exc})") from None
-    where = f"{state_file}: not a calibd state file"
-    try:  # its schema: calibd.documents.StateDoc
-        state = decode_json(text, where, StateDoc)
-        if not isinstance(state, dict):
-            raise refuse(f"a JSON {type(state).__name__}, not an object")
-        validate(state, StateDoc, where)
-    except DocumentError as exc:
-        raise UsageError(str(exc)) from None
-    return state
-
-
 def _status(directory: Path, as_json: bool, one_line: bool = False) -> str:
     """What `calibd status` prints for the state directory: the state and the last result in
     words, or (`as_json`) the object {"state": state.json as written, "result": result.json's
     document or null}, what ?POLL gives on the daemon's socket (`one_line`: one JSON line).
     UsageError (one line) for a directory without a state.json or a file that is not calibd's."""
+    from .results import ResultError, parse_result
+    from .documents import load_state
+
     state_file, result_file = directory / "state.json", directory / "result.json"
     if not os.path.lexists(state_file):  # Path.exists raises where the directory cannot be read
         raise UsageError(f"{directory}: no state.json (is calibd running with this state directory?)")
-    state = _load_state(state_file)
+    state = load_state(state_file)
     try:  # a state directory's files are the daemon's: a symbolic link there is refused, not followed
         result = parse_result(read_input(result_file, "result file", DOCUMENT_LIMIT_BYTES, follow=False),
                               result_file) if os.path.lexists(result_file) else None
@@ -494,6 +500,7 @@ def _wait_unless_stdout_closed(seconds: float) -> None:
 
 def cmd_report(args) -> int:
     from .report import ReportError, figures_dir, write_report  # matplotlib only for this command
+    from .results import ResultError
 
     input_file(args.result, "result file")
     not_an_input(args.output, args.result, args.capture)
@@ -509,7 +516,7 @@ def cmd_report(args) -> int:
     return 0
 
 
-PLAN_NOISE_OPTIONS = {  # calibd plan option -> (calibd.scenario.Noise field, unit, what)
+PLAN_NOISE_OPTIONS = {  # calibd plan option -> (calibd.spec.NoiseFigures field, unit, what)
     "--arw": ("gyro_arw_deg_sqrt_h", "deg/sqrt(h)", "gyro angle random walk"),
     "--bias-instability": ("gyro_bias_instability_deg_h", "deg/h", "gyro bias instability"),
     "--vrw": ("acc_vrw_m_s_sqrt_h", "m/s/sqrt(h)", "accelerometer velocity random walk"),
@@ -595,7 +602,10 @@ def cmd_apply(args) -> int:
     from stim300.atomic import atomic_file
     from stim300.cliutil import package_version
 
+    from stim300.reads import load_reads
+
     from .apply import ApplyError, CsvWriter, NpzWriter, apply_capture, correction, meta_record
+    from .results import ResultError, parse_result
 
     kind = Path(args.output).suffix.lower()
     if kind not in APPLY_OUTPUTS:
@@ -754,6 +764,8 @@ def _speed(text: str) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from .config import METHODS, WARMUP_WINDOW_S
+
     parser = CommandParser(prog="calibd", description="STIM300 calibration: calibrate captures, simulate sessions.")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=CommandParser)
     p = sub.add_parser("calibrate", help="capture -> biases and alignment (result JSON)")
@@ -841,7 +853,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--noise", type=path_arg,
                    help="NOISE.json (calibd.noise/1, from calibd noise) instead of the figures below")
     for option, (field, unit, what) in PLAN_NOISE_OPTIONS.items():
-        stim300 = getattr(Noise(), field)
+        stim300 = getattr(spec.NoiseFigures(), field)
         p.add_argument(option, dest=field, type=_number(0, 1000, unit), metavar=unit.upper(),
                        help=f"{what}, {unit} (default: the scenario's [noise], else the STIM300's {stim300:g} {unit})")
     p.set_defaults(func=cmd_plan)

@@ -16,13 +16,11 @@ from stim300.errors import UsageError
 from stim300.protocol import DEFAULT_BIT_RATE
 
 from .methods import DAEMON_METHODS, OptionError, estimator
-from .serve.protocol import host_port
-from .serve.sockets import IDLE_TIMEOUT_S, MAX_CLIENTS, MAX_CLIENTS_PER_UID
-from .documents import parse_toml
+from .serve.protocol import IDLE_TIMEOUT_S, MAX_CLIENTS, MAX_CLIENTS_PER_UID, host_port
+from .documents import Table, parse_toml, site_from_table
 from .warmup import WarmupConfig
 from .errors import CalibdError
 from .frames import Site
-from .scenario import _Table, site_from_table
 
 METHODS = DAEMON_METHODS  # the estimators (calibd.estimators) the daemon runs
 TABLES = ("serial", "site", "output", "warmup", "detection", "method", "serve")
@@ -128,11 +126,11 @@ class DaemonConfig:
         return replace(self, serial=replace(self.serial, port=port))
 
 
-class _ConfigTable(_Table):
-    """scenario's `_Table`, raising ConfigError, with required keys."""
+class _ConfigTable(Table):
+    """A configuration's table: ConfigError, and required keys."""
 
-    def fail(self, key: str, message: str):
-        raise ConfigError(f"{self.where} {key}: {message}")
+    def __init__(self, data: dict, where: str):
+        super().__init__(data, where, ConfigError)
 
     def require(self, key: str, kind, check, expect: str):
         value = self.get(key, None, kind, check, expect)

@@ -18,19 +18,24 @@ version policy is `schema_version`. The scenario's keys and ranges are its parse
 
 from __future__ import annotations
 
+import difflib
 import json
 import math
 import re
 import sys
 import tomllib
+from pathlib import Path
 from typing import Annotated, Literal, Union
 
 import msgspec
 from msgspec import Meta, Struct
 
+from stim300.cliutil import DOCUMENT_LIMIT_BYTES, read_input
+from stim300.errors import UsageError
+
 from . import spec
 from .errors import CalibdError
-from .frames import SITE_RANGES
+from .frames import SITE_RANGES, Site, SiteError
 
 FLOAT_MAX = sys.float_info.max
 FREE_DEPTH = 6  # lists and objects inside a free-form field (the error budget's factory terms need 3)
@@ -379,6 +384,75 @@ _JSON_TOKENS = re.compile(rb'"(?:[^"\\]|\\.)*"|[\[\]{}:,]')
 _NOT_NUMBERS = re.compile(rb"-?(NaN|Infinity)")  # what Python's json writes and JSON does not have
 
 
+# ---------------------------------------------------------------- TOML tables
+
+class Table:
+    """Typed access to one TOML table (a scenario's, a daemon configuration's), with errors of
+    type `error` that say file, table and key."""
+
+    def __init__(self, data: dict, where: str, error: type[CalibdError] = DocumentError):
+        self.data, self.where, self.used, self.error = data, where, set(), error
+
+    def fail(self, key: str, message: str):
+        raise self.error(f"{self.where} {key}: {message}")
+
+    def get(self, key: str, default, kind=float, check=None, expect: str = ""):
+        self.used.add(key)
+        length = len(default) if isinstance(default, tuple) else 3  # of a list (kind tuple)
+        if key not in self.data:
+            return default
+        value = self.data[key]
+        try:
+            if kind is float:
+                if not finite(value):
+                    raise TypeError
+                value = float(value)
+            elif kind is tuple:
+                if not isinstance(value, list) or len(value) != length or not all(map(finite, value)):
+                    raise TypeError
+                value = tuple(map(float, value))
+            elif not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
+                raise TypeError
+        except TypeError:
+            names = {float: "a number", int: "an integer", bool: "true or false", str: "a string",
+                     tuple: f"a list of {length} numbers", dict: "a table", list: "a list"}
+            self.fail(key, f"{_table_value(value)} is not {names[kind]}")
+        if check is not None and not check(value):
+            self.fail(key, f"{_table_value(value)} is not {expect}")
+        return value
+
+    def missing(self, key: str, words: str):
+        """Fail: `key` is missing; an unknown key of the table close to it is named (a typo)."""
+        typo = difflib.get_close_matches(key, [k for k in self.data if k not in self.used], 1, 0.75)
+        self.fail(key, f"missing: {words}" + (f" (the table has {typo[0]!r}, an unknown key: a typo?)" if typo else ""))
+
+    def finish(self) -> None:
+        unknown = sorted(set(self.data) - self.used)
+        if unknown:
+            self.fail(unknown[0], f"unknown key (known: {', '.join(sorted(self.used))})")
+
+
+def _table_value(value) -> str:
+    """A TOML value as a table's message shows it (Python's spelling, at most 60 characters: a list
+    nested deep, a long string)."""
+    text = repr(value) if not isinstance(value, int) or value.bit_length() < 200 else "an integer too large"
+    return text if len(text) <= 60 else f"{text[:57]}..."
+
+
+def site_from_table(t: Table) -> Site:
+    """The [site] table of a scenario or a daemon configuration; the Site checks the ranges, the
+    table says where."""
+    lat = t.get("latitude_deg", None, float)
+    if lat is None:
+        t.missing("latitude_deg", "the site's latitude is needed for the Earth rate")
+    try:
+        site = Site(lat, t.get("height_m", 0.0, float), t.get("g0", None, float))
+    except SiteError as exc:
+        t.fail(exc.field, exc.reason)
+    t.finish()
+    return site
+
+
 def decode_json(data: str | bytes, where, schema: type, error: type[CalibdError] = DocumentError,
                 noun: str = "JSON"):
     """The JSON value of `data` (dicts, lists, ...) or `error` in one line: not JSON (said as
@@ -566,3 +640,26 @@ def finite(value) -> bool:
         return math.isfinite(value)
     except OverflowError:
         return False
+
+
+def load_state(state_file: Path) -> dict:
+    """The daemon's state.json, as `calibd status` reads it: an object with its state (text),
+    detail (text) and time of update (s since the epoch); UsageError (one line) for anything
+    else."""
+    def refuse(why: str):
+        return UsageError(f"{state_file}: not a calibd state file: {why}")
+    try:
+        text = read_input(state_file, "state file", DOCUMENT_LIMIT_BYTES, follow=False).decode()
+    except UsageError as exc:  # a directory, FIFO, device, symbolic link or a huge file
+        raise refuse(f"cannot read it ({str(exc).removeprefix(f'{state_file}: ')})") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise refuse(f"cannot read it ({getattr(exc, 'strerror', None) or exc})") from None
+    where = f"{state_file}: not a calibd state file"
+    try:  # its schema: calibd.documents.StateDoc
+        state = decode_json(text, where, StateDoc)
+        if not isinstance(state, dict):
+            raise refuse(f"a JSON {type(state).__name__}, not an object")
+        validate(state, StateDoc, where)
+    except DocumentError as exc:
+        raise UsageError(str(exc)) from None
+    return state

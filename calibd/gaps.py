@@ -18,9 +18,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import block_diag
-from scipy.optimize import least_squares
-from scipy.special import gammaincc
 
 from .estimators.joint import (FactoryEffects, FactoryPosterior, JointInput, NoiseModel, Underdetermined, alpha_beta,
                                mean_variance, static_inflation)
@@ -76,6 +73,7 @@ class TiltCheck:
 
     @property
     def p_value(self) -> float:
+        from scipy.special import gammaincc  # when used: start-up (docs/architecture.md)
         return float(gammaincc(self.dof / 2, self.chi2 / 2))
 
 
@@ -111,6 +109,8 @@ def check_turn_angles(inp: JointInput, chi: np.ndarray, a: np.ndarray, g0: float
     the statics' angles off by a random walk (0.007 deg a 7 s turn): on a platform axis tilted by
     degrees the quiet accelerometers see it. Raises Underdetermined when the statics do not
     determine the corrections."""
+    from scipy.linalg import block_diag  # when used: start-up (docs/architecture.md)
+    from scipy.optimize import least_squares
     statics = inp.statics
     static_chi = np.array([chi[s:e].mean() for s, e in statics])
     if distinct_headings(static_chi) < MIN_HEADINGS:

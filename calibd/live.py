@@ -27,7 +27,7 @@ from stim300.source import PortSource, SampleSource
 
 from .config import ConfigError
 from .daemon import Calibrator, Listener, State, StateLog
-from .results import ResultStore, StateDirError
+from .statedir import ResultStore, StateDirError
 from .serve.hub import Hub
 from .serve.sockets import ServeError
 

@@ -10,7 +10,6 @@ The truth file written beside a simulated capture is read back by `truth_from_js
 
 from __future__ import annotations
 
-import difflib
 from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
@@ -21,8 +20,9 @@ from stim300.protocol import ACC_RANGE_LSB_EXP, NORMAL_LAYOUTS, SAMPLE_RATES_HZ
 from stim300.special import PartNumber, SerialNumber
 
 from . import spec
-from .documents import NOISE_MAX, SchemaError, TruthDoc, decode_json, finite, parse_toml, schema_version, validate
-from .errors import CalibdError, SiteError
+from .documents import (NOISE_MAX, SchemaError, Table, TruthDoc, decode_json, parse_toml, schema_version,
+                        site_from_table, validate)
+from .errors import CalibdError
 from .frames import Site
 
 READY_MADE = ("thesis-real", "thesis-bench", "continuous")
@@ -186,57 +186,6 @@ class Scenario:
 
 # ---------------------------------------------------------------- reading
 
-class _Table:
-    """Typed access to one TOML table, with errors that say file, table and key."""
-
-    def __init__(self, data: dict, where: str):
-        self.data, self.where, self.used = data, where, set()
-
-    def fail(self, key: str, message: str):
-        raise ScenarioError(f"{self.where} {key}: {message}")
-
-    def get(self, key: str, default, kind=float, check=None, expect: str = ""):
-        self.used.add(key)
-        length = len(default) if isinstance(default, tuple) else 3  # of a list (kind tuple)
-        if key not in self.data:
-            return default
-        value = self.data[key]
-        try:
-            if kind is float:
-                if not finite(value):
-                    raise TypeError
-                value = float(value)
-            elif kind is tuple:
-                if not isinstance(value, list) or len(value) != length or not all(map(finite, value)):
-                    raise TypeError
-                value = tuple(map(float, value))
-            elif not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
-                raise TypeError
-        except TypeError:
-            names = {float: "a number", int: "an integer", bool: "true or false", str: "a string",
-                     tuple: f"a list of {length} numbers", dict: "a table", list: "a list"}
-            self.fail(key, f"{_shown(value)} is not {names[kind]}")
-        if check is not None and not check(value):
-            self.fail(key, f"{_shown(value)} is not {expect}")
-        return value
-
-    def missing(self, key: str, words: str):
-        """Fail: `key` is missing; an unknown key of the table close to it is named (a typo)."""
-        typo = difflib.get_close_matches(key, [k for k in self.data if k not in self.used], 1, 0.75)
-        self.fail(key, f"missing: {words}" + (f" (the table has {typo[0]!r}, an unknown key: a typo?)" if typo else ""))
-
-    def finish(self) -> None:
-        unknown = sorted(set(self.data) - self.used)
-        if unknown:
-            self.fail(unknown[0], f"unknown key (known: {', '.join(sorted(self.used))})")
-
-
-def _shown(value) -> str:
-    """A value as the message shows it: at most 60 characters (a list nested deep, a long string)."""
-    text = repr(value) if not isinstance(value, int) or value.bit_length() < 200 else "an integer too large"
-    return text if len(text) <= 60 else f"{text[:57]}..."
-
-
 def _datagram(text: str) -> int:
     try:
         value = int(text, 16)
@@ -245,7 +194,7 @@ def _datagram(text: str) -> int:
     return value
 
 
-def _sensor(t: _Table) -> Sensor:
+def _sensor(t: Table) -> Sensor:
     d = Sensor()
     ident = _datagram(t.get("datagram", f"0x{d.datagram_id:02X}", str, lambda s: _datagram(s) in NORMAL_LAYOUTS,
                             "a normal datagram id such as \"0xA7\""))
@@ -277,21 +226,7 @@ def _sensor(t: _Table) -> Sensor:
     return sensor
 
 
-def site_from_table(t: _Table) -> Site:
-    """The [site] table of a scenario or a daemon configuration; the Site checks the ranges, the
-    table says where."""
-    lat = t.get("latitude_deg", None, float)
-    if lat is None:
-        t.missing("latitude_deg", "the site's latitude is needed for the Earth rate")
-    try:
-        site = Site(lat, t.get("height_m", 0.0, float), t.get("g0", None, float))
-    except SiteError as exc:
-        t.fail(exc.field, exc.reason)
-    t.finish()
-    return site
-
-
-def _fields(cls, t: _Table, defaults=None):
+def _fields(cls, t: Table, defaults=None):
     """The table's keys as a `cls`, each missing one taken from `defaults` (default: cls())."""
     values = {}
     for name, default in vars(cls() if defaults is None else defaults).items():
@@ -301,7 +236,7 @@ def _fields(cls, t: _Table, defaults=None):
     return cls(**values)
 
 
-def _segment(t: _Table) -> Segment:
+def _segment(t: Table) -> Segment:
     kind = t.get("type", None, str, lambda k: k in ("static", "turn", "position"), "static, turn or position")
     if kind is None:
         t.fail("type", "missing (static, turn or position)")
@@ -332,19 +267,19 @@ def _segment(t: _Table) -> Segment:
 
 def parse_scenario(data: dict, where: str) -> Scenario:
     """Build a Scenario from TOML data; `where` names the source in error messages."""
-    top = _Table(data, where)
+    top = Table(data, where, ScenarioError)
 
     def table(key):
         value = top.get(key, {}, dict)
-        return _Table(value, f"{where} [{key}]")
+        return Table(value, f"{where} [{key}]", ScenarioError)
 
     name = top.get("name", Path(where).stem, str)
     seed = top.get("seed", 0, int, lambda s: s >= 0, "a non-negative integer")
     segments_data = top.get("segments", None, list)
     if not segments_data:
         top.fail("segments", "missing: a scenario needs at least one [[segments]] entry")
-    segments = tuple(_segment(_Table(s if isinstance(s, dict) else {}, f"{where} [[segments]] #{i + 1}"))
-                     for i, s in enumerate(segments_data))
+    segments = tuple(_segment(Table(s if isinstance(s, dict) else {}, f"{where} [[segments]] #{i + 1}",
+                                    ScenarioError)) for i, s in enumerate(segments_data))
     faults_t = table("faults")
     faults = Faults(drop=faults_t.get("drop", 0, int, lambda v: v >= 0, "a count >= 0"),
                     garbage_bursts=faults_t.get("garbage_bursts", 0, int, lambda v: v >= 0, "a count >= 0"),

@@ -4,25 +4,30 @@ A whole capture decodes with `decode_capture` (samples and a `StreamInfo`), a li
 `StreamParser` (any chunking, the same samples) described by `stream_info`; `PortReader` reads a
 port into a `RingBuffer`. Samples are SAMPLE_DTYPE rows in the sensor's units, timed by
 `counter_times` / `CounterClock`. Every error raised on purpose is a `Stim300Error`.
+
+The names are imported when first used (PEP 562), not with the package: a program that needs
+one module of the driver (`stim300.cliutil` for calibd's command line) does not load the port,
+pyserial and the logging with it.
 """
 
-from .bulk import decode_capture, decode_columns
-from .capture import Capture, StreamInfo, stream_info
-from .clock import CounterClock, CounterTimes, counter_times
-from .codec import SAMPLE_DTYPE
-from .errors import FormatError, PortError, ServiceError, ServiceTimeout, Stim300Error, UsageError
-from .port import PortReader, open_serial, record
-from .protocol import AccUnit, Format, GyroUnit, PpsUnit, Status
-from .reads import load_reads
-from .ringbuffer import RingBuffer
-from .service import enter_service_mode, exit_service_mode, service_command
-from .stream import StreamParser, StreamStats
+import importlib
 
-__all__ = [
-    "decode_capture", "decode_columns", "Capture", "StreamInfo", "StreamStats", "stream_info", "StreamParser",
-    "load_reads", "SAMPLE_DTYPE", "Format", "GyroUnit", "AccUnit", "PpsUnit", "Status",
-    "counter_times", "CounterClock", "CounterTimes",
-    "open_serial", "PortReader", "RingBuffer", "record",
-    "enter_service_mode", "service_command", "exit_service_mode",
-    "Stim300Error", "FormatError", "PortError", "ServiceError", "ServiceTimeout", "UsageError",
-]
+_HOMES = {  # public name -> the module of stim300 that defines it
+    "decode_capture": "bulk", "decode_columns": "bulk", "Capture": "capture", "StreamInfo": "capture",
+    "StreamStats": "stream", "stream_info": "capture", "StreamParser": "stream",
+    "load_reads": "reads", "SAMPLE_DTYPE": "codec", "Format": "protocol", "GyroUnit": "protocol",
+    "AccUnit": "protocol", "PpsUnit": "protocol", "Status": "protocol",
+    "counter_times": "clock", "CounterClock": "clock", "CounterTimes": "clock",
+    "open_serial": "port", "PortReader": "port", "RingBuffer": "ringbuffer", "record": "port",
+    "enter_service_mode": "service", "service_command": "service", "exit_service_mode": "service",
+    "Stim300Error": "errors", "FormatError": "errors", "PortError": "errors", "ServiceError": "errors",
+    "ServiceTimeout": "errors", "UsageError": "errors",
+}
+
+__all__ = list(_HOMES)
+
+
+def __getattr__(name: str):
+    if name not in _HOMES:
+        raise AttributeError(f"module 'stim300' has no attribute {name!r}")
+    return getattr(importlib.import_module(f".{_HOMES[name]}", __name__), name)

@@ -7,17 +7,31 @@ import errno
 import os
 import stat
 import sys
-from importlib.metadata import PackageNotFoundError, version
 
 from .errors import Stim300Error, UsageError
 
 
 def package_version() -> str:
-    """The installed stim300-calib's version (both command lines' --version, the socket's VERSION)."""
+    """The installed stim300-calib's version (both command lines' --version, the socket's VERSION).
+    importlib.metadata is imported here, when asked: it costs every command's start-up otherwise."""
+    from importlib.metadata import PackageNotFoundError, version
+
     try:
         return version("stim300-calib")
     except PackageNotFoundError:
         return "unknown (not installed)"
+
+
+class _Version(argparse.Action):
+    """--version: "PROG VERSION" on stdout, the version looked up only when asked."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS,
+                 help="show program's version number and exit"):
+        super().__init__(option_strings, dest, nargs=0, default=default, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(f"{parser.prog} {package_version()}")
+        parser.exit()
 
 
 class CommandParser(argparse.ArgumentParser):
@@ -26,7 +40,7 @@ class CommandParser(argparse.ArgumentParser):
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         if "prog" in kwargs and " " not in kwargs["prog"]:
-            self.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
+            self.add_argument("--version", action=_Version)
 
     def error(self, message):  # one line, not usage + message
         raise UsageError(f"{self.prog}: {message}")

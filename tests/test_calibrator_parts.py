@@ -19,7 +19,7 @@ from calibd.daemon.warmwatch import WARM_CHECK_EVERY_S, WarmWatch
 from calibd.frames import Site
 from calibd.live import configure_logging, replay
 from calibd.methods import estimator
-from calibd.results import ResultStore
+from calibd.statedir import ResultStore
 from calibd.segments import session_segments
 from calibd.session import PowerUpCuts, SessionBuilder
 from calibd.units import value_sigma

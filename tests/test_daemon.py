@@ -23,7 +23,8 @@ from calibd.config import MethodConfig, WarmupConfig
 from calibd.daemon import Calibrator, Callbacks, State
 from calibd.frames import Site
 from calibd.live import configure_logging, replay, stream_faults
-from calibd.results import SCHEMA, CalibrationResult, Estimate, ResultStore
+from calibd.results import SCHEMA, CalibrationResult, Estimate
+from calibd.statedir import ResultStore
 from stim300.bulk import decode_capture
 from stim300.source import CaptureSource, PtySource
 
@@ -177,7 +178,7 @@ def test_kill_9_while_writing_leaves_a_readable_result(tmp_path):
     temporary files the kills orphaned are gone once the store starts again."""
     root = str(Path(__file__).resolve().parents[1])
     script = (f"import sys; sys.path.insert(0, {root!r})\n"
-              "from calibd.results import CalibrationResult, Estimate, ResultStore\n"
+              "from calibd.results import CalibrationResult, Estimate\nfrom calibd.statedir import ResultStore\n"
               "yaw = {'yaw': Estimate(0.0, None, 'deg')}\n"
               f"store = ResultStore({str(tmp_path)!r})\n"
               "n = 0\n"

@@ -18,7 +18,8 @@ from structlog.testing import capture_logs
 from calibd.config import MethodConfig, ServeConfig, WarmupConfig
 from calibd.daemon import Calibrator, Callbacks, State
 from calibd.frames import Site
-from calibd.results import ResultStore, make_result, result_json, write_result
+from calibd.results import make_result, result_json, write_result
+from calibd.statedir import ResultStore
 from calibd.serve import hub as hub_module
 from calibd.serve import sockets
 from calibd.correction import sample_units, sensor_biases, uncorrectable

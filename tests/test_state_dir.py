@@ -17,13 +17,14 @@ from pathlib import Path
 import pytest
 from structlog.testing import capture_logs
 
-import calibd.results
+import calibd.statedir
 from calibd.cli import main as calibd_main
 from calibd.daemon import Calibrator, Callbacks, State, StateLog
 from calibd.daemon.solver import stale_result
 from calibd.live import Watchdog, replay
 from calibd.frames import Site
-from calibd.results import CalibrationResult, Estimate, ResultStore, StateDirError, site_record, write_result
+from calibd.results import CalibrationResult, Estimate, site_record, write_result
+from calibd.statedir import ResultStore, StateDirError
 from stim300.bulk import decode_capture
 from stim300.source import CaptureSource
 from stim300.special import SerialNumber, encode_special
@@ -85,11 +86,11 @@ def test_the_store_rides_out_a_broken_state_dir_and_recovers(tmp_path, monkeypat
     store = ResultStore(state_dir, on_health=heard.append)
     store.on_result(result(2.0))
     breakage(state_dir)
-    real_write = calibd.results.write_atomic
+    real_write = calibd.statedir.write_atomic
     if breakage is break_disk_full:
         def full(path, data, durable=True, follow=True):
             raise OSError(28, "No space left on device", str(path))
-        monkeypatch.setattr(calibd.results, "write_atomic", full)
+        monkeypatch.setattr(calibd.statedir, "write_atomic", full)
     with capture_logs() as logs:
         for sigma in (1.5, 1.0):
             store.on_state(State.SOLVED, "solved")
@@ -98,7 +99,7 @@ def test_the_store_rides_out_a_broken_state_dir_and_recovers(tmp_path, monkeypat
         assert len(heard) == 1 and heard[0].startswith("cannot write results (") and why in heard[0]
         if breakage is break_result_json:  # state.json still says why
             assert json.loads((state_dir / "state.json").read_text())["degraded"] == store.degraded
-        monkeypatch.setattr(calibd.results, "write_atomic", real_write)
+        monkeypatch.setattr(calibd.statedir, "write_atomic", real_write)
         repair(state_dir)
         store.retry()
     events = [e["event"] for e in logs]
@@ -425,7 +426,7 @@ def test_a_long_outage_holds_only_the_newest_history_entries(tmp_path, monkeypat
     """While the state directory stays unusable, the history entries waiting to be written are
     bounded (memory stays bounded over a long outage): the oldest go, with a warning; the
     newest and result.json are written when it comes back."""
-    monkeypatch.setattr(calibd.results, "MAX_PENDING_HISTORY", 3)
+    monkeypatch.setattr(calibd.statedir, "MAX_PENDING_HISTORY", 3)
     state_dir = tmp_path / "state"
     store = ResultStore(state_dir)
     break_by_file(state_dir)

@@ -14,7 +14,8 @@ from pathlib import Path
 
 from calibd.daemon import State
 from calibd.frames import Site
-from calibd.results import CalibrationResult, Estimate, ResultStore, site_record
+from calibd.results import CalibrationResult, Estimate, site_record
+from calibd.statedir import ResultStore
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = dict(os.environ, PYTHONPATH=str(ROOT))

@@ -34,7 +34,6 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.linalg import block_diag
 
 from ..errors import CalibdError
 from ..frames import EARTH_RATE, STANDARD_GRAVITY, Site, euler_321, int_to_imu
@@ -837,6 +836,7 @@ def parameter_covariance(gyro: GyroFit, incl: ForceFit | None, acc: ForceFit, g0
     force fits use the gyro-derived platform axis and g0: their parameters move with the gyro
     parameters and g0 through their sensitivities, which couples all the blocks.
     With d = (gyro params, g0): x = M d + force noise, cov = M cov(d) M' + blockdiag(0, incl, acc)."""
+    from scipy.linalg import block_diag  # when used: start-up (docs/architecture.md)
     p = len(gyro.params)
 
     def from_drivers(force: ForceFit) -> np.ndarray:

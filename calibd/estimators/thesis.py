@@ -11,7 +11,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.ndimage import gaussian_filter1d
 
 from ..frames import EARTH_RATE, Site
 
@@ -177,6 +176,7 @@ def earth_rate_diagnostic(gyro: np.ndarray, rate_hz: float, site: Site, sigma_s:
     largest non-DC component of a horizontal channel is of the order of Omega cos(lat) (within
     a factor of 10). On static data this cannot tell the Earth rate from bias drift; during a
     turn the Earth rate is a real line at the turn frequency. A diagnostic only, as in the thesis."""
+    from scipy.ndimage import gaussian_filter1d  # when used: start-up (docs/architecture.md)
     filtered = gaussian_filter1d(np.asarray(gyro, float), sigma_s * rate_hz, axis=0, mode="nearest")
     n = len(filtered)
     spectrum = np.abs(np.fft.rfft(filtered - filtered.mean(axis=0), axis=0)) * 2 / n

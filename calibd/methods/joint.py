@@ -10,7 +10,6 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
-from scipy.special import gammaincc
 
 from .. import detect, gaps, spec
 from ..errors import CalibrationError
@@ -326,6 +325,7 @@ CHI2_ALARM_P = 1e-3  # p-value below which the statics' residuals say the model 
 
 
 def _chi2_record(fit: joint.JointResult) -> dict:
+    from scipy.special import gammaincc  # when used: start-up (docs/architecture.md)
     value, dof = fit.gyro.static_chi2
     return {"chi2": value, "dof": dof, "p_value": float(gammaincc(dof / 2, value / 2))}  # chi-square survival
 

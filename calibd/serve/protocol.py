@@ -30,6 +30,9 @@ SAMPLES_MAX_S = 0.1  # a SAMPLES message holds at most this much of the stream
 COMMANDS = ("WATCH", "POLL", "DEVICE", "VERSION", "AUTH")
 MAX_TOKEN_BYTES = 4096  # the longest token of ?AUTH ([serve] tcp_token_file)
 AUTH_TRIES = 3  # refused lines before ?AUTH succeeds that close a connection which needs a token
+MAX_CLIENTS = 64
+MAX_CLIENTS_PER_UID = 16  # [serve] max_clients_per_uid's default: one user cannot take every slot
+IDLE_TIMEOUT_S = 30.0  # [serve] idle_timeout_s's default
 
 _COMMAND = re.compile(r"\?([A-Z]+)(?:=(.*?))?;?")
 

@@ -28,16 +28,14 @@ from pathlib import Path
 import structlog
 
 from ..errors import CalibdError
-from .protocol import (AUTH_TRIES, MAX_LINE_BYTES, SAMPLE_KINDS, Auth, Command, Error, Message, Overflow, ProtocolError,
-                       Version, Watch, auth_token, encode, parse_command)
+from .protocol import (AUTH_TRIES, IDLE_TIMEOUT_S, MAX_CLIENTS, MAX_CLIENTS_PER_UID, MAX_LINE_BYTES, SAMPLE_KINDS,
+                       Auth, Command, Error, Message, Overflow, ProtocolError, Version, Watch, auth_token, encode,
+                       parse_command)
 
 log = structlog.get_logger("calibd")
 
 CUT_S = 0.03  # how often sample batches are cut: their latency, and far within SAMPLES_MAX_S
 QUEUE_BYTES = 1 << 20  # a client's queue: about 3 s of raw 2000 Hz SAMPLES
-MAX_CLIENTS = 64
-MAX_CLIENTS_PER_UID = 16  # [serve] max_clients_per_uid's default: one user cannot take every slot
-IDLE_TIMEOUT_S = 30.0  # [serve] idle_timeout_s's default
 LINES_PER_TURN = 32  # lines of one client taken before the loop turns to the others
 EPISODE_QUIET_S = 10.0  # refusals of a kind end their episode (logged with their count) after this long without one
 SOCKET_MODE = 0o660
