@@ -27,7 +27,7 @@ from stim300.cliutil import (DOCUMENT_LIMIT_BYTES, CommandParser, RunError, inpu
 from stim300.errors import UsageError
 
 from . import spec
-from .errors import CalibdError, CalibrationError, SiteError
+from .errors import CalibdError, CalibrationError
 from .frames import STANDARD_GRAVITY, Site, site_value_error
 from .scenario import READY_MADE, ScenarioError, load_scenario
 from .serve.protocol import MAX_TOKEN_BYTES, SAMPLE_KINDS, ProtocolError, token_of
@@ -89,10 +89,7 @@ def cmd_simulate(args) -> int:
         not_an_input(output, args.scenario)
         if os.path.isdir(output):
             raise UsageError(f"{output}: cannot write: is a directory")
-    try:
-        scenario = load_scenario(args.scenario)
-    except ScenarioError as exc:
-        raise UsageError(str(exc)) from None
+    scenario = load_scenario(args.scenario)
     from .sim import write_capture  # the simulator (and scipy.signal) only when simulating
 
     started = time.perf_counter()
@@ -162,10 +159,7 @@ def _add_site_options(p: argparse.ArgumentParser, required: bool, optional_when:
 
 
 def _site(args) -> Site:
-    try:
-        return Site(args.latitude, args.height, args.g0)
-    except SiteError as exc:
-        raise UsageError(str(exc)) from None
+    return Site(args.latitude, args.height, args.g0)
 
 
 def _summary(result: CalibrationResult) -> str:
@@ -217,10 +211,7 @@ def cmd_calibrate(args) -> int:
         raise UsageError("calibrate: --fixed-amplitude and --drift belong to --method joint")
     site = _site(args)
     not_an_input(args.output, args.capture)
-    try:
-        capture = open_capture(args.capture)
-    except CalibrationError as exc:
-        raise UsageError(str(exc)) from None  # it names the capture
+    capture = open_capture(args.capture)  # a refusal names the capture
 
     method = estimator("thesis-bench" if args.bench else args.method)
     options = method.options({"fixed_amplitude": args.fixed_amplitude, "drift": args.drift, "alpha_deg": args.alpha,
@@ -264,12 +255,8 @@ def _load_config(path: str, port: str | None):
 
 
 def _config(path: str, port: str | None):
-    from .config import ConfigError
 
-    try:
-        return _load_config(path, port)
-    except ConfigError as exc:
-        raise UsageError(str(exc)) from None
+    return _load_config(path, port)
 
 
 def cmd_run(args) -> int:
@@ -312,7 +299,7 @@ def cmd_replay(args) -> int:
     from .config import DetectionConfig, MethodConfig, WarmupConfig
     from .daemon import Calibrator, Callbacks, StateLog
     from .live import configure_logging, replay
-    from .statedir import ResultStore, StateDirError
+    from .statedir import ResultStore
     from .serve.hub import Hub
     from .serve.sockets import ServeError
 
@@ -343,10 +330,7 @@ def cmd_replay(args) -> int:
     listeners = [StateLog(), Callbacks(state=print_state, stale=print_stale)]
     store = None
     if args.state_dir:  # a capture is a world of its own: an earlier result there is not shown
-        try:
-            store = ResultStore(args.state_dir, {"capture": args.capture})
-        except StateDirError as exc:
-            raise UsageError(str(exc)) from None
+        store = ResultStore(args.state_dir, {"capture": args.capture})
         listeners.append(store)
     configure_logging(logging.WARNING)
     _drop_log_event("state_dir_error")  # a state directory that fails is the run's one error line, at its end
@@ -416,18 +400,16 @@ def _status(directory: Path, as_json: bool, one_line: bool = False) -> str:
     words, or (`as_json`) the object {"state": state.json as written, "result": result.json's
     document or null}, what ?POLL gives on the daemon's socket (`one_line`: one JSON line).
     UsageError (one line) for a directory without a state.json or a file that is not calibd's."""
-    from .results import ResultError, parse_result
+    from .results import parse_result
     from .documents import load_state
 
     state_file, result_file = directory / "state.json", directory / "result.json"
     if not os.path.lexists(state_file):  # Path.exists raises where the directory cannot be read
         raise UsageError(f"{directory}: no state.json (is calibd running with this state directory?)")
     state = load_state(state_file)
-    try:  # a state directory's files are the daemon's: a symbolic link there is refused, not followed
-        result = parse_result(read_input(result_file, "result file", DOCUMENT_LIMIT_BYTES, follow=False),
-                              result_file) if os.path.lexists(result_file) else None
-    except ResultError as exc:
-        raise UsageError(str(exc)) from None  # a newer calibd's result, or not a result: say which
+    # a state directory's files are the daemon's: a symbolic link there is refused, not followed
+    result = parse_result(read_input(result_file, "result file", DOCUMENT_LIMIT_BYTES, follow=False),
+                          result_file) if os.path.lexists(result_file) else None
     if as_json:
         document = {"state": state, "result": None if result is None else result.to_dict()}
         return json.dumps(document) if one_line else json.dumps(document, indent=1)
@@ -499,15 +481,12 @@ def _wait_unless_stdout_closed(seconds: float) -> None:
 
 
 def cmd_report(args) -> int:
-    from .report import ReportError, figures_dir, write_report  # matplotlib only for this command
-    from .results import ResultError
+    from .report import figures_dir, write_report  # matplotlib only for this command
 
     input_file(args.result, "result file")
     not_an_input(args.output, args.result, args.capture)
     try:
         written = write_report(args.result, open_capture(args.capture), args.output, svg=args.svg)
-    except (ResultError, ReportError, CalibrationError) as exc:
-        raise UsageError(str(exc)) from None
     except OSError as exc:
         raise write_error(args.output, exc) from None
     figures = (f"figures: {', '.join(p.name for p in written[1:])} in {figures_dir(written[0])}/" if written[1:]
@@ -527,7 +506,7 @@ PLAN_NOISE_OPTIONS = {  # calibd plan option -> (calibd.spec.NoiseFigures field,
 
 
 def cmd_plan(args) -> int:
-    from .planner import (PlanError, builtin_protocol, noise_from_json, protocol_from_scenario,  # the simulator
+    from .planner import (builtin_protocol, noise_from_json, protocol_from_scenario,  # the simulator
                           report, time_to_target)  # only here
 
     given = {field: getattr(args, field) for field, _, _ in PLAN_NOISE_OPTIONS.values()
@@ -537,18 +516,14 @@ def cmd_plan(args) -> int:
     if args.latitude is None and (args.protocol or args.g0 is not None or args.height):
         raise UsageError("plan: --latitude is needed with --protocol, --height or --g0 (a scenario file has its own "
                          "[site], which --latitude replaces)")
-    try:
-        if args.scenario:
-            scenario = load_scenario(args.scenario)
-            protocol = protocol_from_scenario(scenario, args.scenario)
-        else:
-            protocol = builtin_protocol(args.protocol)
-        site = protocol.scenario.site if args.latitude is None else _site(args)
-        figures = (noise_from_json(read_input(args.noise, "noise file", DOCUMENT_LIMIT_BYTES), args.noise)
-                   if args.noise else replace(protocol.figures, **given))
-        reach = time_to_target(protocol, site, figures, args.target_yaw_deg * DEG)
-    except (PlanError, ScenarioError) as exc:
-        raise UsageError(str(exc)) from None
+    if args.scenario:
+        protocol = protocol_from_scenario(load_scenario(args.scenario), args.scenario)
+    else:
+        protocol = builtin_protocol(args.protocol)
+    site = protocol.scenario.site if args.latitude is None else _site(args)
+    figures = (noise_from_json(read_input(args.noise, "noise file", DOCUMENT_LIMIT_BYTES), args.noise)
+               if args.noise else replace(protocol.figures, **given))
+    reach = time_to_target(protocol, site, figures, args.target_yaw_deg * DEG)
     print(report(reach, figures))
     return 0
 
@@ -605,7 +580,7 @@ def cmd_apply(args) -> int:
     from stim300.reads import load_reads
 
     from .apply import ApplyError, CsvWriter, NpzWriter, apply_capture, correction, meta_record
-    from .results import ResultError, parse_result
+    from .results import parse_result
 
     kind = Path(args.output).suffix.lower()
     if kind not in APPLY_OUTPUTS:
@@ -616,8 +591,6 @@ def cmd_apply(args) -> int:
     try:
         result = parse_result(result_bytes, args.result)  # the bytes hashed into the output's meta
         fix = correction(result, args.frame, args.force)
-    except ResultError as exc:
-        raise UsageError(str(exc)) from None
     except ApplyError as exc:
         raise UsageError(f"{args.result}: {exc}") from None
     meta = meta_record(fix, args.result, hashlib.sha256(result_bytes).hexdigest(), result, args.capture,
@@ -631,8 +604,6 @@ def cmd_apply(args) -> int:
                                     reads, let_go)
             if gather:
                 gather.finish(f, meta)
-    except ApplyError as exc:
-        raise UsageError(str(exc)) from None
     except OSError as exc:
         raise write_error(args.output, exc) from None
     for text in applied.warnings:
@@ -886,7 +857,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    return run_command(build_parser(), argv)
+    return run_command(build_parser(), argv, input_errors=(CalibdError,))
 
 
 if __name__ == "__main__":

@@ -158,17 +158,18 @@ def write_error(path, exc: OSError) -> Exception:
     return (UsageError if usage else RunError)(f"{path}: cannot write: {reason}")
 
 
-def run_command(parser: argparse.ArgumentParser, argv=None) -> int:
-    """Parse, dispatch to the subcommand's `func`, and turn UsageError (exit 2) and RunError
-    (exit 1) into one stderr line."""
+def run_command(parser: argparse.ArgumentParser, argv=None, input_errors: tuple[type[Exception], ...] = ()) -> int:
+    """Parse, dispatch to the subcommand's `func`, and turn UsageError and the program's own
+    `input_errors` (what is wrong with the input, each one line: calibd's CalibdError) into one
+    stderr line and exit 2, RunError into one line and exit 1."""
     prog = parser.prog
     try:
         args = parser.parse_args(argv)
         return args.func(args)
-    except (UsageError, RunError) as exc:
+    except (UsageError, RunError, *input_errors) as exc:
         text = str(exc)
         print(text if text.startswith(prog) else f"{prog}: {text}", file=sys.stderr)
-        return 2 if isinstance(exc, UsageError) else 1
+        return 1 if isinstance(exc, RunError) else 2
     except KeyboardInterrupt:
         return 130
     except BrokenPipeError:  # `... | head` closed our stdout: nothing more to say, and no traceback
