@@ -1,7 +1,6 @@
 """The stim300 package's seams: one error root, and the public names of `import stim300`."""
 
 import inspect
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -9,6 +8,7 @@ from pathlib import Path
 import pytest
 
 import stim300.errors as errors
+from captures import command_env
 from stim300.errors import FormatError, PortError, ServiceError, ServiceTimeout, Stim300Error, UsageError
 from stim300.port import open_serial
 from stim300.protocol import Format
@@ -56,5 +56,5 @@ def test_import_stim300_loads_neither_calibd_nor_scipy():
     code = ("import sys, stim300; from stim300 import *; "
             "print(sorted({m.split('.')[0] for m in sys.modules} & {'calibd', 'scipy', 'matplotlib'}))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
-                         env=os.environ | {"PYTHONPATH": str(ROOT)}, cwd=ROOT).stdout
+                         env=command_env(), cwd=ROOT).stdout
     assert out.strip() == "[]"

@@ -190,15 +190,9 @@ def result_files(tmp_path_factory):
     return folder
 
 
-def run(capsys, *argv):
-    code = main(["apply", *map(str, argv)])
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
-def test_csv_and_npz_agree(result_files, tmp_path, capsys):
+def test_csv_and_npz_agree(result_files, tmp_path, run_main):
     for name in ("o.csv", "o.npz"):
-        code, out, err = run(capsys, result_files / "r.json", FIXTURE, "-o", tmp_path / name, "--frame")
+        code, out, err = run_main(main, ["apply", result_files / "r.json", FIXTURE, "-o", tmp_path / name, "--frame"])
         assert code == 0 and err == "" and "75728 samples" in out, err
     npz = np.load(tmp_path / "o.npz")
     lines = (tmp_path / "o.csv").read_text().splitlines()
@@ -249,25 +243,25 @@ def test_poor_estimates_refused_on_the_command_line_and_applied_with_force(resul
     ("o.txt", "unknown output type '.txt': name it .npz or .csv"),
     ("o", "unknown output type '(no extension)'"),
 ])
-def test_an_output_that_is_not_npz_or_csv_is_refused(result_files, tmp_path, capsys, output, says):
-    code, _, err = run(capsys, result_files / "r.json", FIXTURE, "-o", tmp_path / output)
+def test_an_output_that_is_not_npz_or_csv_is_refused(result_files, tmp_path, run_main, output, says):
+    code, _, err = run_main(main, ["apply", result_files / "r.json", FIXTURE, "-o", tmp_path / output])
     assert code == 2 and says in err and err.count("\n") == 1, err
 
 
-def test_the_output_cannot_be_an_input(result_files, tmp_path, capsys):
+def test_the_output_cannot_be_an_input(result_files, tmp_path, run_main):
     capture_copy = tmp_path / "c.csv"
     capture_copy.write_bytes(FIXTURE.read_bytes())
-    code, _, err = run(capsys, result_files / "r.json", capture_copy, "-o", capture_copy)
+    code, _, err = run_main(main, ["apply", result_files / "r.json", capture_copy, "-o", capture_copy])
     assert code == 2 and "is the input" in err and err.count("\n") == 1
     assert capture_copy.read_bytes() == FIXTURE.read_bytes()
 
 
-def test_a_file_that_is_not_a_result_is_refused(tmp_path, capsys):
+def test_a_file_that_is_not_a_result_is_refused(tmp_path, run_main):
     bad = tmp_path / "r.json"
     bad.write_text('{"schema": "calibd.noise/1"}')
-    code, _, err = run(capsys, bad, FIXTURE, "-o", tmp_path / "o.npz")
+    code, _, err = run_main(main, ["apply", bad, FIXTURE, "-o", tmp_path / "o.npz"])
     assert code == 2 and "not a calibd.result file" in err and err.count("\n") == 1, err
-    code, _, err = run(capsys, tmp_path / "missing.json", FIXTURE, "-o", tmp_path / "o.npz")
+    code, _, err = run_main(main, ["apply", tmp_path / "missing.json", FIXTURE, "-o", tmp_path / "o.npz"])
     assert code == 2 and "no such file" in err, err
 
 

@@ -11,14 +11,13 @@ import stat
 import subprocess
 import sys
 import time
-import tty
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from calibd.cli import main as calibd_main
-from captures import capture, exact_samples
+from captures import capture, command_env, exact_samples
 from stim300.cli import main as stim300_main
 from stim300.codec import encode_samples
 from stim300.protocol import Format
@@ -111,12 +110,6 @@ def _state_dirs(d: Path) -> dict[str, Path]:
                 with open(path, "wb") as f:
                     f.truncate(17 << 20)
     return dirs
-
-
-def _run(main, argv, capsys):
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 CALIBRATE = ["calibrate", "{capture}", "-o", "{out}/r.json", "--latitude", "60"]
@@ -304,6 +297,9 @@ CASES = {  # name: (program, argv with {placeholders}, exit status, text in the 
     "info link to a fifo": ("stim300", ["info", "{fifo_link}"], 2, "not a regular file"),
 }
 FULL_DISK = {name for name in CASES if name.endswith("on a full disk")}
+# the cases that calibrate, report or replay the whole capture before the output fails: end-to-end runs
+WHOLE_RUNS = {"calibrate -o /dev/full", "calibrate -o fifo", "calibrate -o directory", "calibrate on a full disk",
+              "report -o /dev/full", "report -o fifo", "report on a full disk", "replay --state-dir on a full disk"}
 
 
 @pytest.fixture
@@ -357,8 +353,9 @@ def result_file(tmp_path_factory):
     return path
 
 
-@pytest.mark.parametrize("name", list(CASES))
-def test_bad_input_is_one_line_and_leaves_nothing(name, tmp_path, capsys, request):
+@pytest.mark.parametrize("name", [pytest.param(name, marks=pytest.mark.slow) if name in WHOLE_RUNS else name
+                                  for name in CASES])
+def test_bad_input_is_one_line_and_leaves_nothing(name, tmp_path, run_main, request):
     program, argv, status, text = CASES[name]
     ins = tmp_path / "in"
     ins.mkdir()
@@ -375,7 +372,7 @@ def test_bad_input_is_one_line_and_leaves_nothing(name, tmp_path, capsys, reques
     before = _files(tmp_path)
     kinds = {p: stat.S_IFMT(os.lstat(p).st_mode) for p in ("/dev/null", "/dev/full", "/dev/zero", places["fifo"])}
     main = calibd_main if program == "calibd" else stim300_main
-    code, stdout, err = _run(main, [str(a).format(**places) for a in argv], capsys)
+    code, stdout, err = run_main(main, [str(a).format(**places) for a in argv])
     lines = err.strip().splitlines()
     assert code == status, err
     assert len(lines) == 1, err
@@ -385,16 +382,15 @@ def test_bad_input_is_one_line_and_leaves_nothing(name, tmp_path, capsys, reques
     assert {p: stat.S_IFMT(os.lstat(p).st_mode) for p in kinds} == kinds  # devices and FIFOs stay what they were
 
 
-def test_record_killed_by_sigterm_keeps_the_bytes(tmp_path):
+@pytest.mark.slow
+def test_record_killed_by_sigterm_keeps_the_bytes(tmp_path, pty):
     """SIGTERM (kill, systemd) ends a recording as Ctrl-C does: the bytes read so far are in OUT,
     its read log beside it, no .part left; it once left a 0-byte .part."""
-    master, slave = os.openpty()
-    tty.setraw(slave)
+    master, path = pty
     out = tmp_path / "imu.bin"
     data = bytes(range(256)) * 20
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path))
-    recorder = subprocess.Popen([sys.executable, "-m", "stim300.cli", "record", os.ttyname(slave), "-o", str(out)],
-                                stderr=subprocess.PIPE, text=True, env=env)
+    recorder = subprocess.Popen([sys.executable, "-m", "stim300.cli", "record", path, "-o", str(out)],
+                                stderr=subprocess.PIPE, text=True, env=command_env())
     try:
         assert recorder.stderr.readline().startswith("recorded 0 B")  # the port is open: what follows is read
         os.write(master, data)
@@ -407,8 +403,6 @@ def test_record_killed_by_sigterm_keeps_the_bytes(tmp_path):
         assert recorder.wait(10) == 0
     finally:
         recorder.kill()
-        os.close(master)
-        os.close(slave)
     assert out.read_bytes() == data
     assert (tmp_path / "imu.bin.reads.npy").exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["imu.bin", "imu.bin.reads.npy"]
@@ -421,7 +415,7 @@ def test_record_killed_by_sigterm_keeps_the_bytes(tmp_path):
     ["report", "{capture}.json", "{capture}", "-o", "{capture}"],
     ["simulate", "{scenario}", "-o", "{scenario}"],
 ])
-def test_an_output_that_is_an_input_is_refused(command, tmp_path, capsys):
+def test_an_output_that_is_an_input_is_refused(command, tmp_path, run_main):
     """`-o` naming the command's own input (or a link to it) would replace the capture with what
     was made from it: refused before anything is read, and the input is as it was."""
     capture, scenario, link = tmp_path / "c.bin", tmp_path / "s.toml", tmp_path / "link.bin"
@@ -431,15 +425,15 @@ def test_an_output_that_is_an_input_is_refused(command, tmp_path, capsys):
     link.symlink_to(capture)
     before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
     argv = [a.format(capture=capture, scenario=scenario, link=link) for a in command]
-    code, _, err = _run(calibd_main, argv, capsys)
+    code, _, err = run_main(calibd_main, argv)
     assert code == 2 and len(err.splitlines()) == 1 and "writing it would destroy the input" in err
     assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
 
 
-def test_decode_onto_its_input_is_refused(tmp_path, capsys):
+def test_decode_onto_its_input_is_refused(tmp_path, run_main):
     capture = tmp_path / "c.csv"
     capture.write_bytes(GOOD.read_bytes()[:100_000])
-    code, _, err = _run(stim300_main, ["decode", capture, "-o", capture], capsys)
+    code, _, err = run_main(stim300_main, ["decode", capture, "-o", capture])
     assert code == 2 and "writing it would destroy the input" in err
     assert capture.read_bytes() == GOOD.read_bytes()[:100_000]
 
@@ -449,9 +443,8 @@ def test_output_to_dev_stdout_and_through_a_link(tmp_path):
     an output that is a symbolic link keeps the link and replaces its target."""
     from stim300.atomic import write_atomic
 
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path))
     piped = subprocess.run([sys.executable, "-m", "calibd.cli", "noise", str(GOOD), "-o", "/dev/stdout"],
-                           capture_output=True, text=True, env=env)
+                           capture_output=True, text=True, env=command_env())
     assert piped.returncode == 0, piped.stderr
     assert json.loads(piped.stdout[:piped.stdout.rindex("}") + 1])["schema"] == "calibd.noise/1"
     target, link = tmp_path / "target.json", tmp_path / "link.json"

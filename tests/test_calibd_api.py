@@ -1,6 +1,5 @@
 """calibd's public names: `import calibd` gives what a library user needs, without matplotlib."""
 
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -8,6 +7,7 @@ from pathlib import Path
 import pytest
 
 import calibd
+from captures import command_env
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -27,6 +27,7 @@ def test_the_public_errors_share_calibds_root():
     assert all(issubclass(e, calibd.CalibdError) for e in errors)
 
 
+@pytest.mark.slow
 def test_the_library_calibrates_a_capture_through_its_public_names():
     path = ROOT / "fixtures" / "thesis_real_cw_125hz.bin"
     capture = calibd.decode_sessions(path.read_bytes(), path.name)
@@ -41,5 +42,5 @@ def test_the_library_calibrates_a_capture_through_its_public_names():
 def test_import_calibd_loads_no_matplotlib(module):
     code = f"import sys, {module}; print('matplotlib' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
-                         env=os.environ | {"PYTHONPATH": str(ROOT)}, cwd=ROOT).stdout
+                         env=command_env(), cwd=ROOT).stdout
     assert out.strip() == "False"

@@ -195,6 +195,7 @@ def test_without_temperatures_the_watch_waits_the_window_since_power_up():
 
 # ---- one solve ------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_a_solve_says_what_the_protocol_lacks_or_gives_the_result_with_its_session_record():
     session = load_session(str(HEADING137))
     segments = session_segments(session)
@@ -230,6 +231,7 @@ class Recorder(Listener):
         self.results.append(result)
 
 
+@pytest.mark.slow
 def test_listeners_hear_the_state_sequence_of_a_fixture_replay_in_their_order(tmp_path):
     from structlog.testing import capture_logs
 

@@ -26,16 +26,10 @@ def capture_file(tmp_path):
     return path, np.delete(truth, 100)
 
 
-def run(argv, capsys):
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
-def test_decode_to_npz_gives_physical_columns(capture_file, tmp_path, capsys):
+def test_decode_to_npz_gives_physical_columns(capture_file, tmp_path, run_main):
     path, truth = capture_file
     out = tmp_path / "table.npz"
-    code, _, err = run(["decode", path, "-o", out], capsys)
+    code, _, err = run_main(main, ["decode", path, "-o", out])
     assert code == 0, err
     table = np.load(out)
     expected = ["t_s", "counter", "latency_us", "gyro_x", "gyro_y", "gyro_z", "acc_x", "acc_y", "acc_z",
@@ -54,9 +48,9 @@ def test_decode_to_npz_gives_physical_columns(capture_file, tmp_path, capsys):
     assert "299 datagrams" in err and "lost_samples 1" in err
 
 
-def test_decode_to_csv_matches_npz(capture_file, tmp_path, capsys):
+def test_decode_to_csv_matches_npz(capture_file, tmp_path, run_main):
     path, truth = capture_file
-    code, _, err = run(["decode", path, "-o", tmp_path / "t.csv"], capsys)
+    code, _, err = run_main(main, ["decode", path, "-o", tmp_path / "t.csv"])
     assert code == 0, err
     lines = (tmp_path / "t.csv").read_text().splitlines()
     header = lines[0].split(",")
@@ -67,20 +61,20 @@ def test_decode_to_csv_matches_npz(capture_file, tmp_path, capsys):
     assert np.array_equal(table[:, header.index("acc_y")].astype(np.float32), truth["acc"][:, 1])
 
 
-def test_decode_without_configuration_takes_options(tmp_path, capsys):
+def test_decode_without_configuration_takes_options(tmp_path, run_main):
     data, truth, _ = capture(50, 0x93, False, rate=500, acc_range_g=30)
     path = tmp_path / "c.bin"
     path.write_bytes(data)
-    code, _, err = run(["decode", path, "-o", tmp_path / "t.npz", "--acc-range", "30"], capsys)
+    code, _, err = run_main(main, ["decode", path, "-o", tmp_path / "t.npz", "--acc-range", "30"])
     assert code == 0, err
     table = np.load(tmp_path / "t.npz")
     assert np.array_equal(table["acc_x"], truth["acc"][:, 0])
     assert "temp_gyro_x" not in table.files
 
 
-def test_info_json(capture_file, capsys):
+def test_info_json(capture_file, run_main):
     path, truth = capture_file
-    code, out, err = run(["info", path, "--json"], capsys)
+    code, out, err = run_main(main, ["info", path, "--json"])
     assert code == 0, err
     info = json.loads(out)
     assert info["datagrams"] == 299
@@ -97,20 +91,20 @@ def test_info_json(capture_file, capsys):
     assert set(flags) == {"gyro", "acc", "incl", "temp_gyro", "temp_acc", "temp_incl"}
 
 
-def test_info_text_has_units(capture_file, capsys):
+def test_info_text_has_units(capture_file, run_main):
     path, _ = capture_file
-    code, out, _ = run(["info", path], capsys)
+    code, out, _ = run_main(main, ["info", path])
     assert code == 0
     assert "125 Hz" in out and "2.400 s" in out and "datagrams        299" in out
 
 
-def test_info_shows_the_configuration_as_grouped_lines_with_units(tmp_path, capsys):
+def test_info_shows_the_configuration_as_grouped_lines_with_units(tmp_path, run_main):
     config = Configuration.build(sample_rate_hz=500, crlf=True, gyro_lpf_hz=(262, 131, 66),
                                  incl_axes=(True, True, False), parity=2, stop_bits=2)
     data, _, _ = capture(50, 0xA7, True, rate=500)
     path = tmp_path / "c.bin"
     path.write_bytes(encode_special(config, True) + data)
-    code, out, _ = run(["info", path], capsys)
+    code, out, _ = run_main(main, ["info", path])
     assert code == 0 and "{" not in out
     shown = out[out.index("configuration    "):].splitlines()
     groups = [line.strip() for line in shown if line.startswith("  ") and not line.startswith("    ")]
@@ -121,25 +115,25 @@ def test_info_shows_the_configuration_as_grouped_lines_with_units(tmp_path, caps
                 "parity odd", "    CR LF           yes", "    datagram        0xA7 (gyro, acc, incl, temperatures)",
                 "    sample rate     500 Hz"):
         assert row in shown, row
-    code, out, _ = run(["info", path, "--json"], capsys)
+    code, out, _ = run_main(main, ["info", path, "--json"])
     assert json.loads(out)["configuration"]["gyro_lpf_hz"] == [262, 131, 66]  # the machine form keeps the fields
 
 
-def test_info_shows_an_undefined_configuration_code_as_read(tmp_path, capsys):
+def test_info_shows_an_undefined_configuration_code_as_read(tmp_path, run_main):
     """A real unit's configuration with bit-rate code 4, which the byte map does not define: shown
     as what it is, not as a user-defined bit rate."""
     config = bytes.fromhex("bc4b1f06407144407044407044400c00003330000000a91f9809")
     data, _, _ = capture(50, 0x93, False, rate=125)
     path = tmp_path / "c.bin"
     path.write_bytes(config + data)
-    code, out, _ = run(["info", path], capsys)
+    code, out, _ = run_main(main, ["info", path])
     assert code == 0 and "    bit rate        undefined code 0x4" in out.splitlines()
     assert "user-defined" not in out and "warning" in out
 
 
 @pytest.mark.parametrize("case", ["missing", "directory", "empty", "not_stim300", "bad_datagram", "bad_range",
                                   "bad_unit", "bad_suffix", "no_output_dir", "output_is_dir"])
-def test_bad_input_is_one_line_and_nonzero(case, capture_file, tmp_path, capsys):
+def test_bad_input_is_one_line_and_nonzero(case, capture_file, tmp_path, run_main):
     path, _ = capture_file
     empty = tmp_path / "empty.bin"
     empty.write_bytes(b"")
@@ -158,7 +152,7 @@ def test_bad_input_is_one_line_and_nonzero(case, capture_file, tmp_path, capsys)
         "output_is_dir": ["decode", path, "-o", tmp_path / "d.npz"],
     }[case]
     (tmp_path / "d.npz").mkdir()
-    code, out, err = run(argv, capsys)
+    code, out, err = run_main(main, argv)
     assert code != 0
     assert len(err.strip().splitlines()) == 1, err
     assert "Traceback" not in err
@@ -176,20 +170,20 @@ def test_console_script_reports_errors_without_traceback(tmp_path):
     (["--datagram", "0x93"], "--datagram 0x93 not used: its configuration datagram says 0xA7"),
     (["--rate", "2000"], "--rate 2000 not used: its configuration datagram says 125 Hz"),
 ])
-def test_format_options_the_data_override_are_said(option, note, capture_file, capsys):
+def test_format_options_the_data_override_are_said(option, note, capture_file, run_main):
     """The options describe captures without a configuration datagram; one that has one wins,
     and the user is told in one line rather than left to believe the option applied."""
     path, _ = capture_file
-    code, out, err = run(["info", path, "--json", *option], capsys)
+    code, out, err = run_main(main, ["info", path, "--json", *option])
     assert code == 0 and json.loads(out)["sample_rate_hz"] == 125
     assert err.strip().splitlines() == [f"stim300: {path}: {note}"]
 
 
-def test_a_rate_the_counter_confirms_is_taken(tmp_path, capsys):
+def test_a_rate_the_counter_confirms_is_taken(tmp_path, run_main):
     data, _, _ = capture(40, 0x93, True, rate=250)
     path = tmp_path / "c.bin"
     path.write_bytes(data)
-    code, out, err = run(["info", path, "--json", "--rate", "250"], capsys)
+    code, out, err = run_main(main, ["info", path, "--json", "--rate", "250"])
     assert code == 0 and err == ""
     info = json.loads(out)
     assert info["sample_rate_hz"] == 250 and info["lost_samples"] == 0
@@ -207,6 +201,7 @@ def test_a_value_is_rounded_at_its_sigmas_second_digit(value, sigma, texts):
     assert value_sigma(value, sigma, unit) == (f"{texts[0]} +- {texts[1]} {unit}" if texts[1] else f"{texts[0]} {unit}")
 
 
+@pytest.mark.slow
 def test_calibrate_prints_estimates_rounded_and_aligned(tmp_path, capsys):
     code = calibd_main(["calibrate", "fixtures/thesis_real_cw_125hz.bin", "--latitude", "40.59129",
                         "-o", str(tmp_path / "r.json")])

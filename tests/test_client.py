@@ -8,8 +8,6 @@ import os
 import re
 import signal
 import socket
-import subprocess
-import sys
 import threading
 import time
 from dataclasses import replace
@@ -28,8 +26,8 @@ from calibd.serve import protocol
 from calibd.serve.protocol import ProtocolError, decode, encode, parse_command
 from calibd.units import DEG
 from calibd.watchview import WatchView, progress_text, render, value_sigma
+from captures import calibd
 
-ROOT = Path(__file__).resolve().parents[1]
 PROGRESS = {"warm": True, "session_s": 312.5, "statics": 3, "headings": 2, "turns": 1,
             "missing": "a turn between two statics"}
 STATE = {"class": "STATE", "state": "COLLECTING", "detail": "collecting: 3 statics", "progress": PROGRESS}
@@ -303,12 +301,6 @@ def test_a_garbled_known_message_is_a_one_line_error(serve):
 
 
 # ---- calibd pipe ---------------------------------------------------------------------------
-
-def calibd(*args: str, **options) -> subprocess.Popen:
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
-    return subprocess.Popen([sys.executable, "-m", "calibd.cli", *args], cwd=ROOT, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, **options)
-
 
 def test_pipe_prints_every_line_as_sent_then_fails_when_the_server_goes(serve):
     path, server = serve(script=[STATE, SAMPLES, {"class": "RESULT", "result": RESULT_DOC}], then="close")

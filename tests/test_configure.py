@@ -11,12 +11,12 @@ import signal
 import subprocess
 import sys
 import time
-import tty
 from dataclasses import replace
 from pathlib import Path
 
 import pytest
 
+from captures import Terminal, command_env
 from sensor_emulator import SensorEmulator, State, report
 import stim300.configure as configure_module
 from stim300.cli import main
@@ -165,6 +165,7 @@ def test_the_port_ends_at_the_rate_the_unit_made_of_a_user_defined_one(sensor):
     assert sensor.mode == "normal" and sensor.lines == ["i", "t f,1000000", "i", "x N"]
 
 
+@pytest.mark.slow
 def test_changes_go_one_by_one_and_the_port_follows_the_bit_rate(sensor, capsys):
     assert main(["config", sensor.path, "--rate", "500", "--gyro-lpf", "33", "--bit-rate", "460800"]) == 0
     assert sensor.lines == ["i", "m 2", "f 1,g", "t 1", "i", "x N"]
@@ -244,11 +245,6 @@ def test_save_with_yes_writes_flash_and_shows_the_remaining_saves(sensor, capsys
     assert sensor.lines == ["i", "m 3", "i", "s", "i", "x N"] and sensor.mode == "normal"
 
 
-class Terminal(io.StringIO):
-    def isatty(self):
-        return True
-
-
 def test_a_declined_save_keeps_the_changes_volatile(sensor, capsys, monkeypatch):
     monkeypatch.setattr(sys, "stdin", Terminal("n\n"))
     assert main(["config", sensor.path, "--incl-lpf", "33", "--save"]) == 1
@@ -318,9 +314,8 @@ def test_a_failed_exit_names_both_failures(monkeypatch):
 # ---------------------------------------------------------------- as a program
 
 def run_cli(*argv):
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
     return subprocess.run([sys.executable, "-m", "stim300.cli", "config", *argv], capture_output=True, text=True,
-                          env=env, cwd=ROOT, timeout=60)
+                          env=command_env(), cwd=ROOT, timeout=60)
 
 
 def test_the_program_reads_the_configuration_and_refuses_a_held_port(sensor):
@@ -348,20 +343,15 @@ def test_a_unit_that_keeps_its_bit_rate_is_found_at_the_old_one():
         sensor.stop()
 
 
-def test_no_prompt_after_servicemode_still_sends_the_exit():
+def test_no_prompt_after_servicemode_still_sends_the_exit(pty):
     """SERVICEMODE may have arrived and only the prompt been lost: `x N` goes out anyway."""
-    master, slave = os.openpty()
-    try:
-        tty.setraw(master)
-        with open_serial(os.ttyname(slave)) as ser, pytest.raises(ServiceTimeout, match="SERVICEMODE|Service Mode"):
-            configure(ser, Changes(), timeout=0.2)
-        written = b""
-        while select.select([master], [], [], 0.5)[0]:
-            written += os.read(master, 100)
-        assert written == b"SERVICEMODE\rx N\r"
-    finally:
-        os.close(master)
-        os.close(slave)
+    master, path = pty
+    with open_serial(path) as ser, pytest.raises(ServiceTimeout, match="SERVICEMODE|Service Mode"):
+        configure(ser, Changes(), timeout=0.2)
+    written = b""
+    while select.select([master], [], [], 0.5)[0]:
+        written += os.read(master, 100)
+    assert written == b"SERVICEMODE\rx N\r"
 
 
 def test_ctrl_c_while_a_command_is_answered_still_leaves_cleanly(sensor, monkeypatch, capsys):
@@ -382,9 +372,9 @@ def test_sigterm_mid_session_leaves_the_sensor_in_normal_mode():
     """`kill` (or systemd stopping a script's unit) ends a session as Ctrl-C does: back to Normal Mode."""
     sensor = emulated(silent=("m 1",))  # the unit takes the command and says nothing: the program waits
     try:
-        env = dict(os.environ, PYTHONPATH=str(ROOT))
         program = subprocess.Popen([sys.executable, "-m", "stim300.cli", "config", sensor.path, "--rate", "250"],
-                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=ROOT)
+                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=command_env(),
+                                   cwd=ROOT)
         deadline = time.monotonic() + 20
         while "m 1" not in sensor.lines and time.monotonic() < deadline:
             time.sleep(0.02)

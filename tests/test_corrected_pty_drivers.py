@@ -5,8 +5,6 @@ hub in real time at 2000 Hz."""
 
 import os
 import select
-import subprocess
-import sys
 import termios
 import threading
 import time
@@ -18,27 +16,21 @@ from structlog.testing import capture_logs
 
 from pathlib import Path
 
-from captures import exact_samples
+from captures import calibd, exact_samples, power_up, wait_until
 from calibd.config import ServeConfig
 from calibd.serve import ptys
 from calibd.serve.hub import Hub
 from stim300.codec import encode_samples
 from stim300.protocol import Status
-from stim300.special import Configuration, PartNumber, SerialNumber, encode_special
+from stim300.special import Configuration
 from stim300.stream import StreamParser
 
-from test_serve_pty import ACC_BIAS_MG, GYRO_BIAS_DEG_H, INCL_BIAS_MG, result, wait_until
+from test_serve_pty import ACC_BIAS_MG, GYRO_BIAS_DEG_H, INCL_BIAS_MG, result
 
 ROOT = Path(__file__).resolve().parents[1]
 RATE_HZ = 2000
+pytestmark = pytest.mark.slow  # every test feeds a sensor in real time
 FEED_DATAGRAMS = 8  # a port reader's read at 2000 Hz: 4 ms of datagrams
-
-
-def power_up(crlf: bool = False) -> bytes:
-    """What the sensor sends when it starts, before its first normal datagram."""
-    return (encode_special(PartNumber("84167-4400003-321", "K"), crlf)
-            + encode_special(SerialNumber("N25582405002002"), crlf)
-            + encode_special(Configuration.build(sample_rate_hz=RATE_HZ, crlf=crlf), crlf))
 
 
 class Sensor:
@@ -53,7 +45,7 @@ class Sensor:
         for cluster in ("gyro", "acc", "incl"):
             self.samples["status_" + cluster] &= np.uint8(0xFF & ~Status.START_UP)
         self.samples["latency_us"] = np.arange(len(self.samples))
-        self.head = power_up(crlf)
+        self.head = power_up(Configuration.build(sample_rate_hz=RATE_HZ, crlf=crlf))
         frames = encode_samples(self.samples, self.fmt.datagram_id, self.fmt, crlf)
         self.datagrams = frames.tobytes()
         self.data = self.head + self.datagrams
@@ -299,9 +291,7 @@ def test_replay_serve_feeds_two_raw_ptys_of_a_config_list_every_byte(tmp_path):
     config.write_text(f'[serial]\nport = "{tmp_path / "tty"}"\n[site]\nlatitude_deg = 44.5\n'
                       f'[output]\nstate_dir = "{tmp_path / "state"}"\n'
                       f'[serve]\nraw_pty = ["{links[0]}", "{links[1]}"]\n')
-    daemon = subprocess.Popen([sys.executable, "-m", "calibd.cli", "replay", str(capture), "--config", str(config),
-                               "--serve", "--speed", "1"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                              env={**os.environ, "PYTHONPATH": str(ROOT)})
+    daemon = calibd("replay", capture, "--config", config, "--serve", "--speed", "1")
     got = [bytearray(), bytearray()]
     try:
         deadline = time.monotonic() + 30

@@ -9,7 +9,6 @@ import signal
 import subprocess
 import sys
 import time
-import tty
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +24,7 @@ from calibd.frames import Site
 from calibd.live import configure_logging, replay, stream_faults
 from calibd.results import SCHEMA, CalibrationResult, Estimate
 from calibd.statedir import ResultStore
+from captures import calibd, plug
 from stim300.bulk import decode_capture
 from stim300.source import CaptureSource, PtySource
 
@@ -45,6 +45,7 @@ def run_replay(name: str, warmup: WarmupConfig = WarmupConfig()):
     return calibrator, changes, results
 
 
+@pytest.mark.slow
 def test_warm_up_then_protocol_gives_a_result_near_the_truth():
     truth = json.loads((FIXTURES / "warmup_then_protocol_125hz.bin.truth.json").read_text())["truth"]
     calibrator, changes, results = run_replay("warmup_then_protocol_125hz", WarmupConfig(window_s=100.0))
@@ -56,6 +57,7 @@ def test_warm_up_then_protocol_gives_a_result_near_the_truth():
     assert last["yaw"].sigma == min(r.estimates["yaw"].sigma for r in results)
 
 
+@pytest.mark.slow
 def test_the_state_progress_and_detail_are_one_record_complete_once_solved():
     """What STATE carries (`progress`) and what `calibd status` prints (the detail) come from one
     record: the same statics and the same missing step at every state, and "complete" once solved."""
@@ -75,6 +77,7 @@ def test_the_state_progress_and_detail_are_one_record_complete_once_solved():
 
 
 @pytest.mark.parametrize("window_s", [100.0, 600.0])
+@pytest.mark.slow
 def test_no_session_starts_during_the_steep_part_of_the_warm_up(window_s):
     """The fixture's temperature rises with a 100 s time constant from power-up: whatever the
     window, the session must leave out at least the first three time constants."""
@@ -89,6 +92,7 @@ def test_sensor_restart_starts_a_new_session():
     assert State.RESTARTED in changes and changes[-1] == State.WARMING_UP and not results
 
 
+@pytest.mark.slow
 def test_a_data_gap_starts_a_new_session_and_keeps_the_warm_up():
     """The platform may turn while the port is gone, so the session restarts when data returns;
     the sensor stayed powered (no restart datagrams), so there is no second warm-up. While
@@ -117,6 +121,7 @@ def test_a_data_gap_starts_a_new_session_and_keeps_the_warm_up():
     assert waiting and re.match(r"collecting: \d+ s of data, \d+ static(s)? at \d/4 index headings", waiting[0])
 
 
+@pytest.mark.slow
 def test_detection_settings_reach_the_session():
     """A fixed turn threshold above the platform's 20 deg/s: no turn is seen, so no result, and
     the status says so; the same data with the thresholds from the noise solves."""
@@ -173,6 +178,7 @@ def test_a_crash_while_writing_keeps_the_last_good_result(tmp_path, monkeypatch)
     assert not [p for p in tmp_path.rglob("*.part")]
 
 
+@pytest.mark.slow
 def test_kill_9_while_writing_leaves_a_readable_result(tmp_path):
     """A writer killed at random moments: result.json is always a whole result, and the
     temporary files the kills orphaned are gone once the store starts again."""
@@ -202,6 +208,7 @@ def test_kill_9_while_writing_leaves_a_readable_result(tmp_path):
     assert not [p for p in tmp_path.rglob("*.part")]
 
 
+@pytest.mark.slow
 def test_replay_command_and_status(tmp_path, capsys):
     code = calibd_main(["replay", str(FIXTURES / "warmup_then_protocol_125hz.bin"), "--latitude", "40.59129",
                         "--g0", "9.79956", "--warmup-window", "100", "--state-dir", str(tmp_path)])
@@ -220,6 +227,7 @@ def test_replay_command_and_status(tmp_path, capsys):
     assert calibd_main(["replay", str(FIXTURES / "faults_125hz.bin"), "--latitude", "40"]) == 1
 
 
+@pytest.mark.slow
 def test_replay_through_a_pty_gives_the_direct_replays_result(capsys):
     """--pty: the capture goes through a pseudo-terminal into the daemon's port reader, as fast as
     the daemon keeps up (the writer waits on the ring): no sample lost, the same final solution
@@ -269,16 +277,10 @@ def _wait_for_result(result_file: Path, daemon, deadline: float) -> None:
         time.sleep(0.2)
 
 
-SYSTEMD_ENV = ("NOTIFY_SOCKET", "WATCHDOG_USEC", "WATCHDOG_PID", "JOURNAL_STREAM")
-
-
 def _calibd_run(config: Path, systemd_env: dict | None = None) -> subprocess.Popen:
     """`calibd run` as systemd starts it: a subprocess, JSON logs on stderr; `systemd_env` the
     variables systemd would set (none from the test's own environment)."""
-    env = {**{k: v for k, v in os.environ.items() if k not in SYSTEMD_ENV}, **(systemd_env or {}),
-           "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
-    return subprocess.Popen([sys.executable, "-m", "calibd.cli", "run", "--config", str(config)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
+    return calibd("run", "--config", config, env=systemd_env)
 
 
 def _stop(daemon: subprocess.Popen, *fds: int) -> None:
@@ -289,22 +291,12 @@ def _stop(daemon: subprocess.Popen, *fds: int) -> None:
         os.close(fd)
 
 
-def _plug(link: Path) -> tuple[int, int]:
-    """A new pty behind `link`, as udev re-creates /dev/stim300 when the adapter comes back."""
-    master, slave = os.openpty()
-    tty.setraw(master)
-    tty.setraw(slave)
-    tmp = link.with_suffix(".new")
-    tmp.symlink_to(os.ttyname(slave))
-    os.replace(tmp, link)
-    return master, slave
-
-
+@pytest.mark.slow
 def test_calibd_run_through_a_pty_until_sigterm(tmp_path):
     """The daemon as systemd runs it: a subprocess reading a pty through pyserial; the thesis
     capture is written into the pty at 100 times real time; a result appears; SIGTERM stops it."""
     link = tmp_path / "ttySTIM"
-    master, slave = _plug(link)
+    master, slave = plug(link)
     config = tmp_path / "calibd.toml"
     state_dir = tmp_path / "state"
     config.write_text(f'[serial]\nport = "{link}"\n[site]\nlatitude_deg = 40.59129\ng0 = 9.79956\n'
@@ -330,6 +322,7 @@ def test_calibd_run_through_a_pty_until_sigterm(tmp_path):
     assert '"event": "solved"' in log and '"event": "stopped"' in log  # JSON lines off a terminal
 
 
+@pytest.mark.slow
 def test_calibd_run_survives_unplug_and_replug(tmp_path):
     """The adapter goes away after the warm-up, in the first static, and 5 s of data are lost:
     the daemon reports the fault, reopens the port when it comes back, and, as the platform angle
@@ -338,7 +331,7 @@ def test_calibd_run_survives_unplug_and_replug(tmp_path):
     data = (FIXTURES / "warmup_then_protocol_125hz.bin").read_bytes()
     per_sample = len(data) // len(samples)  # 0x97 datagrams, no garbage in this capture
     link = tmp_path / "ttySTIM"
-    master, slave = _plug(link)
+    master, slave = plug(link)
     state_dir = tmp_path / "state"
     config = tmp_path / "calibd.toml"
     config.write_text(f'[serial]\nport = "{link}"\n[site]\nlatitude_deg = 40.59129\ng0 = 9.79956\n'
@@ -353,7 +346,7 @@ def test_calibd_run_survives_unplug_and_replug(tmp_path):
         os.close(master)
         os.close(slave)
         time.sleep(4.0)  # silence beyond calibd's 3 s: a fault
-        master, slave = _plug(link)
+        master, slave = plug(link)
         _write_paced(master, data[795 * 125 * per_sample:], speed, deadline)
         result_file = state_dir / "result.json"
         _wait_for_result(result_file, daemon, deadline)
@@ -371,6 +364,7 @@ def test_calibd_run_survives_unplug_and_replug(tmp_path):
     assert abs(yaw["value"] - -3.036) < 3 * yaw["sigma"]
 
 
+@pytest.mark.slow
 def test_datagrams_the_sensor_flags_are_counted_and_warned_about(tmp_path):
     """An overload on the X accelerometer in ten datagrams of the session: calibrate and the
     daemon both count them, name the flags and warn; START_UP alone is no fault."""
@@ -393,6 +387,7 @@ def test_datagrams_the_sensor_flags_are_counted_and_warned_about(tmp_path):
     assert any("fault flags (X, OVERLOAD)" in w for w in results[-1].warnings)
 
 
+@pytest.mark.slow
 def test_segments_are_logged_once_each_when_final():
     from structlog.testing import capture_logs
 
@@ -428,6 +423,7 @@ class CountingCalibrator:
         self.finished = True
 
 
+@pytest.mark.slow
 def test_replay_through_a_pty_is_paced_and_complete():
     """--pty --speed 20: a minute of data takes about 3 s (unpaced it takes about 1 s), and every
     datagram arrives, garbage, CRC errors and the restart in this capture notwithstanding."""
@@ -445,6 +441,7 @@ def test_replay_through_a_pty_is_paced_and_complete():
 
 
 @pytest.mark.parametrize("source", [CaptureSource, PtySource])
+@pytest.mark.slow
 def test_a_replay_solves_at_the_end_of_the_data_as_calibrate_does(source):
     """Both replay paths end SOLVED with the whole capture's segments (the full turn and the
     final static) in the last solution, which equals calibrate's on the same data (the capture
@@ -467,6 +464,7 @@ def test_a_replay_solves_at_the_end_of_the_data_as_calibrate_does(source):
         assert abs(result.estimates[name].value - e.value) < 0.02 * e.sigma, name
 
 
+@pytest.mark.slow
 def test_the_replay_of_a_capture_that_needs_no_warm_up_gives_calibrates_result():
     """With a short warm-up window the session loses only the window's seconds: the last
     solution is calibrate's on the whole capture within 0.1 sigma."""
@@ -478,6 +476,7 @@ def test_the_replay_of_a_capture_that_needs_no_warm_up_gives_calibrates_result()
 
 
 @pytest.mark.parametrize("method", ["joint", "thesis"])
+@pytest.mark.slow
 def test_a_complete_protocol_is_solved_once_the_platform_has_settled(method):
     """Fed in 0.2 s batches (as the live loop drains its ring) with no re-solve timer, the
     calibrator solves within the settle time, the minimum static and one batch (plus the
@@ -498,6 +497,7 @@ def test_a_complete_protocol_is_solved_once_the_platform_has_settled(method):
         assert earliest_s - 0.2 <= solved_s <= earliest_s + batch / 125 + 0.2, (turn["end_s"], solved_s)
 
 
+@pytest.mark.slow
 def test_a_restart_marks_the_last_result_stale_before_anything_else():
     """The previous power-up's data are solved to their end, then its result is marked stale at
     once (on_stale, state RESTARTED); the new power-up's warm-up gives no result meanwhile."""
@@ -523,6 +523,7 @@ def test_a_restart_marks_the_last_result_stale_before_anything_else():
     assert calibrator.result is stale and "marked stale" in after[3][1]
 
 
+@pytest.mark.slow
 def test_replay_of_two_power_ups_leaves_the_first_ones_result_marked_stale(tmp_path, capsys):
     """A capture of one power-up followed by another (which restarts again): result.json says
     the result belongs to the previous power-up, `calibd status` says so, history keeps it as
@@ -545,6 +546,7 @@ def test_replay_of_two_power_ups_leaves_the_first_ones_result_marked_stale(tmp_p
     assert "result: stale since" in status and "from the previous power-up" in status
 
 
+@pytest.mark.slow
 def test_time_spent_solving_is_not_silence(monkeypatch):
     """A feed that holds the loop longer than the no-data limit (a long solve on a loaded
     machine) is not a data fault: silence counts from the end of the last feed."""
@@ -603,11 +605,12 @@ def _read_log_until(daemon: subprocess.Popen, log: list[str], event: str, count:
             log.append((daemon.stderr.read() or b"").decode())
 
 
+@pytest.mark.slow
 def test_a_broken_configuration_on_sighup_keeps_the_daemon_running(tmp_path):
     """Each way a configuration file can break (syntax, type, unknown key, deleted, a directory,
     not text) is one `reload_failed` line on SIGHUP, and the daemon runs on; a good file reloads."""
     link = tmp_path / "ttySTIM"
-    master, slave = _plug(link)
+    master, slave = plug(link)
     config = tmp_path / "calibd.toml"
     good = (f'[serial]\nport = "{link}"\n[site]\nlatitude_deg = 40.59129\n'
             f'[output]\nstate_dir = "{tmp_path / "state"}"\n[method]\nresolve_every_s = 300\n')

@@ -29,7 +29,8 @@ def counter_sense(scenario):
     return replace(scenario, name=scenario.name + "-ccw", seed=scenario.seed + 1, segments=flipped)
 
 
-def quiet(scenario):
+def noiseless(scenario):
+    """No noise; the warm-up as the scenario has it."""
     return replace(scenario, noise=replace(scenario.noise, enabled=False))
 
 
@@ -84,7 +85,7 @@ def test_simulated_sessions_are_cut_where_the_simulator_put_them(session, reques
 
 
 def test_noise_free_session_gives_the_commanded_profile_exactly():
-    sim = simulate(quiet(load_scenario("thesis-real")))
+    sim = simulate(noiseless(load_scenario("thesis-real")))
     check_against_truth(found(sim), [asdict(p) for p in sim.phases], 125, angle_tol=1e-3, rate_tol=1e-4,
                         chi_tol=1e-3)
 
@@ -112,7 +113,7 @@ def test_a_full_turn_is_judged_on_its_whole_angle_ramps_included(angle_deg, role
     """As a platform runs it: 27.93 deg/s with 30 deg/s^2 ramps, whatever the constant-rate part."""
     scenario = load_scenario("thesis-real")
     segments = (scenario.segments[0], replace(scenario.segments[-2], angle_deg=angle_deg), scenario.segments[-1])
-    found_segments = found(simulate(quiet(replace(scenario, segments=segments))))
+    found_segments = found(simulate(noiseless(replace(scenario, segments=segments))))
     assert detect.segment_roles(found_segments) == ["static", role, "static"]
     progress = detect.protocol_progress(found_segments)  # what the daemon shows while collecting
     assert f"1 {role}," in progress + "," and progress.count(" 0 ") == 2

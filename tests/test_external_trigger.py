@@ -78,6 +78,7 @@ def test_calibrate_recovers_the_truth_of_the_200hz_capture(tmp_path, capsys):
     assert max(abs(v) for v in z.values()) < 3.0, z
 
 
+@pytest.mark.slow
 def test_the_daemon_times_the_200hz_capture_in_seconds():
     """A replay through the daemon's loop: the session spans the capture's seconds (not five
     times as many, as at the 1000 Hz a step of 10 once implied) and solves near the truth."""

@@ -61,6 +61,7 @@ FIRST_ORDER = [
 
 
 @pytest.mark.parametrize("field, index, value, estimate, move", FIRST_ORDER)
+@pytest.mark.slow
 def test_one_residual_moves_its_estimate_as_first_order_physics_says_and_the_budget_predicts(
         perfect, field, index, value, estimate, move):
     values = [0.0] * len(getattr(THESIS.truth, field))
@@ -88,6 +89,7 @@ def noisy_session(scenario) -> Session:
 
 
 @pytest.mark.parametrize("seed", [3, 4])
+@pytest.mark.slow
 def test_a_tilted_platform_axis_estimates_the_gyro_z_scale_factor(seed):
     """With the platform axis 5.8 deg from Up the accelerometers see the statics' angles turned
     by the gyro Z scale factor (s chi): estimated to about a tenth of its prior, within 2 sigma
@@ -105,6 +107,7 @@ def test_a_tilted_platform_axis_estimates_the_gyro_z_scale_factor(seed):
     assert terms["factory_residuals"]["terms"]["gyro_scale_z"]["source"] == "prior"  # 0.07 deg from Up: unseen
 
 
+@pytest.mark.slow
 def test_the_moved_estimates_are_only_those_the_physics_names(perfect):
     """A misaligned gyro triad moves alpha, beta and (through the axis) pitch and roll and the
     horizontal biases; yaw and the gyro biases barely (well under their noise sigma)."""
@@ -117,6 +120,7 @@ def test_the_moved_estimates_are_only_those_the_physics_names(perfect):
         assert np.linalg.norm(effects[name]) > 5 * noise_only[name], name
 
 
+@pytest.mark.slow
 def test_the_budget_parts_add_up_to_the_sigma_in_the_result_document():
     sim = simulate(THESIS)
     s, rate = sim.samples, THESIS.sensor.sample_rate_hz
@@ -141,6 +145,7 @@ def test_the_budget_parts_add_up_to_the_sigma_in_the_result_document():
     assert 0.8 < budget["sigma"]["alpha"]["factory_residuals"] / np.degrees(0.5e-3) < 1.0
 
 
+@pytest.mark.slow
 def test_without_the_prior_the_fit_is_that_of_a_perfect_sensor(perfect):
     session = session_of(simulate(QUIET))
     bare = joint_fit(session, QUIET.site, joint.JointOptions(factory_residuals=False)).fit
@@ -150,6 +155,7 @@ def test_without_the_prior_the_fit_is_that_of_a_perfect_sensor(perfect):
 
 
 @pytest.mark.parametrize("seed", [1, 2])
+@pytest.mark.slow
 def test_residuals_at_the_datasheet_limits_are_flagged_or_within_three_sigma(seed):
     """Every residual at its limit with a random sign, datasheet noise: no confident wrong answer."""
     rng = np.random.default_rng(seed)
@@ -171,6 +177,7 @@ def test_residuals_at_the_datasheet_limits_are_flagged_or_within_three_sigma(see
         assert e.quality == "poor" or abs(e.value - truth[name]) < 3 * e.sigma, (name, e, truth[name])
 
 
+@pytest.mark.slow
 def test_a_clean_capture_with_the_datasheet_noise_raises_no_vibration_warning():
     """The inclinometers' 0.08 m/s/sqrt(h) at 0 g and 35 % more along gravity, the 10 g
     accelerometers' 0.024: the sensor as specified is not vibrating."""
@@ -212,6 +219,7 @@ def test_a_scenario_takes_each_triads_residuals_and_refuses_the_wrong_shape():
         parse_scenario(base | {"truth": {"gyro_scale_ppm": [0, 0, 2e4]}}, "s.toml")
 
 
+@pytest.mark.slow
 def test_an_80_g_unit_is_held_to_its_own_datasheet_figures(tmp_path):
     """The configuration datagram names the accelerometers' range: its noise (0.15 m/s/sqrt(h))
     raises no vibration warning, and its 1000 ppm scale factor sets the Z bias's prior."""

@@ -14,23 +14,16 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from captures import capture, same_samples
+from captures import capture, power_up, same_samples, stream_decode
 from stim300 import bulk
 from stim300.bulk import SYNC_RUN, BulkDecoder, decode_blocks, decode_capture
 from stim300.capture import stream_info
 from stim300.codec import SAMPLE_DTYPE
 from stim300.protocol import NORMAL_LAYOUTS, Format
 from stim300.special import Configuration, PartNumber, SerialNumber, encode_special
-from stim300.stream import StreamParser, Stats
+from stim300.stream import Stats
 
 FORMATS = ((0xA7, False), (0x93, True), (0x90, False), (0xF7, True), (0xAF, False))
-
-
-def power_up(crlf: bool, rate_hz: int) -> bytes:
-    """The power-up datagrams: part number, serial number, configuration."""
-    config = Configuration.build(sample_rate_hz=rate_hz, crlf=crlf)
-    return (encode_special(PartNumber("84167-4400003-321", "K"), crlf)
-            + encode_special(SerialNumber("N25582405002002"), crlf) + encode_special(config, crlf))
 
 
 def valid_capture(rng: np.random.Generator, n: int) -> tuple[bytes, int, bool]:
@@ -38,7 +31,7 @@ def valid_capture(rng: np.random.Generator, n: int) -> tuple[bytes, int, bool]:
     ident, crlf = FORMATS[rng.integers(len(FORMATS))]
     data, _, _ = capture(n, ident, crlf, rate=2000 if ident == 0xA7 else 125, seed=int(rng.integers(1 << 30)))
     if rng.random() < 0.5 and ident == 0xA7:
-        data = power_up(crlf, 2000) + data
+        data = power_up(Configuration.build(sample_rate_hz=2000, crlf=crlf)) + data
     return data, ident, crlf
 
 
@@ -100,14 +93,6 @@ def chunking(rng: np.random.Generator, size: int) -> list[int]:
         start = int(rng.integers(size))
         cuts += range(start, min(size, start + 200))
     return sorted(set(cuts))
-
-
-def stream_decode(data: bytes, cuts: list[int], fmt: Format | None) -> tuple[np.ndarray, StreamParser]:
-    parser = StreamParser(fmt)
-    edges = [0, *cuts, len(data)]
-    parts = [parser.feed(data[a:b]) for a, b in zip(edges, edges[1:])]
-    parts.append(parser.finish())
-    return np.concatenate(parts), parser
 
 
 def disagreement(data: bytes, cuts: list[int], fmt: Format | None = None) -> str | None:

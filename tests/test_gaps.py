@@ -92,6 +92,7 @@ def assert_unflagged_within_3_sigma(result: CalibrationResult, expected: dict) -
 
 
 @pytest.mark.parametrize("turn,lost", [(0, 16), (1, 64), (2, 188), (4, 16), (4, 188)])
+@pytest.mark.slow
 def test_an_unseen_loss_in_a_turn_is_found_corrected_and_named(thesis_sim, turn, lost):
     """Index turns (20 deg/s) and the full turn (27.93 deg/s) losing 1, 4 and 11.75 counter cycles in
     their constant-rate part: the counter sees 0, 0 and 12 datagrams lost, the gyros 2.6 to 39 deg
@@ -113,6 +114,7 @@ def test_an_unseen_loss_in_a_turn_is_found_corrected_and_named(thesis_sim, turn,
     assert_unflagged_within_3_sigma(result, truth(thesis_sim))
 
 
+@pytest.mark.slow
 def test_a_clean_session_is_left_as_it_is(thesis_sim):
     result = calibrate_without(thesis_sim, 0, 0)
     assert not any(t["corrected"] for t in result.checks["turn_angles"])
@@ -122,12 +124,14 @@ def test_a_clean_session_is_left_as_it_is(thesis_sim):
     assert_unflagged_within_3_sigma(result, truth(thesis_sim))
 
 
+@pytest.mark.slow
 def test_shipped_capture_raises_no_gap_warning():
     result = joint_real_case(load_session("fixtures/thesis_real_cw_125hz.bin"), Site(40.59129, g0=9.79956))
     assert not any(t["corrected"] for t in result.checks["turn_angles"])
     assert not any(LOST_WARNING in w for w in result.warnings)
 
 
+@pytest.mark.slow
 def test_statics_forces_that_do_not_fit_flag_the_estimates_poor(thesis_sim):
     """A 2 mg jump of the Z accelerometer during one index static: no platform angle explains it,
     so the force chi-square fails and what rests on the statics' forces and angles is flagged."""
@@ -142,6 +146,7 @@ def test_statics_forces_that_do_not_fit_flag_the_estimates_poor(thesis_sim):
     assert result.estimates["alpha"].quality is None
 
 
+@pytest.mark.slow
 def test_a_platform_axis_along_up_leaves_the_turns_unchecked():
     """No interface or IMU tilt: the platform axis is Up, the statics' forces do not turn with the
     platform, and the result says the turns' angles could not be checked."""
@@ -154,6 +159,7 @@ def test_a_platform_axis_along_up_leaves_the_turns_unchecked():
     assert any("5 of 5 turns' angles could not be checked" in w for w in result.warnings)
 
 
+@pytest.mark.slow
 def test_continuous_rotation_says_the_turns_went_unchecked():
     """Two statics (before and after ten turns) cannot pin a turn's angle: the result says so."""
     scenario = load_scenario("continuous")
@@ -169,6 +175,7 @@ def test_headings_are_counted_modulo_a_turn():
     assert gaps.distinct_headings(np.radians([0, 10, 355])) == 1
 
 
+@pytest.mark.slow
 def test_one_index_position_leaves_the_turns_unchecked_and_is_solved():
     """Statics at two headings (level, one index position, and again after a full turn): one
     difference of tilt directions fits any turn angle, so none is corrected; the result says so

@@ -6,7 +6,6 @@ import os
 import select
 import threading
 import time
-import tty
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -60,6 +59,7 @@ def within_3_sigma(result: CalibrationResult, name: str, value: float) -> bool:
     return abs(e.value - value) < 3 * e.sigma
 
 
+@pytest.mark.slow
 def test_the_daemon_keeps_the_platform_angle_across_a_hidden_gap_in_a_turn():
     samples, _ = cut_in_a_turn()
     results = []
@@ -97,6 +97,7 @@ def capture_with_read_log(tmp_path):
     return path, true_s
 
 
+@pytest.mark.slow
 def test_load_session_times_a_capture_from_its_read_log(capture_with_read_log, capsys):
     path, true_s = capture_with_read_log
     session = load_session(str(path))
@@ -164,12 +165,10 @@ def sensor_bytes() -> tuple[bytes, np.ndarray]:
 
 
 @pytest.fixture
-def pty_sensor():
+def pty_sensor(pty):
     """A pty whose far end plays a 125 Hz sensor losing SENT's gap: call the returned function
     (once the reader has the port open) to send, on the sample clock, two datagrams a write."""
-    master, slave = os.openpty()
-    tty.setraw(master)
-    tty.setraw(slave)
+    master, path = pty
     head, frames = sensor_bytes()
 
     def send() -> None:
@@ -180,11 +179,10 @@ def pty_sensor():
             select.select([], [master], [], 1.0)
             os.write(master, frames[k:k + 2].tobytes())
 
-    yield os.ttyname(slave), send
-    os.close(master)
-    os.close(slave)
+    return path, send
 
 
+@pytest.mark.slow
 def test_port_reader_times_give_the_live_clock_the_lost_cycle(pty_sensor):
     """The read times the daemon's own port reader stamps on a real pty are evidence enough."""
     path, send = pty_sensor
@@ -206,6 +204,7 @@ def test_port_reader_times_give_the_live_clock_the_lost_cycle(pty_sensor):
     np.testing.assert_allclose(kept, SENT / RATE_HZ, atol=1e-9)
 
 
+@pytest.mark.slow
 def test_record_writes_the_read_log_that_load_session_times_the_capture_with(pty_sensor, tmp_path, monkeypatch):
     """`stim300 record` on a pty fed like a sensor at 125 Hz that loses 16 datagrams (one whole
     counter cycle): the capture's read log restores the lost 0.128 s."""

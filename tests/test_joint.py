@@ -19,6 +19,7 @@ from calibd.frames import EARTH_RATE, NORMAL_GRAVITY_SIGMA, STANDARD_GRAVITY, Si
 from calibd.scenario import Noise, Segment, load_scenario
 from calibd.sim import simulate, truth_record, write_capture
 from calibd.units import DEG
+from captures import quiet, with_sense
 
 DISPLAY = {"pitch": 1 / DEG, "roll": 1 / DEG, "yaw": 1 / DEG, "alpha": 1 / DEG, "beta": 1 / DEG}
 
@@ -49,21 +50,12 @@ def errors(estimates: dict, truth: dict) -> dict:
     return out
 
 
-def quiet(scenario, **truth):
-    return replace(scenario, noise=replace(scenario.noise, enabled=False),
-                   warmup=replace(scenario.warmup, power_on_s=1e7), truth=replace(scenario.truth, **truth))
-
-
-def with_sense(scenario, sense):
-    return replace(scenario, segments=tuple(replace(s, angle_deg=abs(s.angle_deg) * sense) if s.kind == "turn"
-                                            else s for s in scenario.segments))
-
-
 THESIS = load_scenario("thesis-real")
 
 
 @pytest.mark.parametrize("yaw,latitude,sense", [(-3.036, 40.59129, -1), (-3.036, 40.59129, 1), (179.5, -33.9, 1),
                                                 (-120.0, 60.0, -1), (60.0, 75.0, 1), (0.0, 0.0, -1)])
+@pytest.mark.slow
 def test_noise_free_truth_to_1e6_deg(yaw, latitude, sense):
     """The model is exact, so float64 data give the truth to numerical precision, whatever the
     heading, the turn sense or the latitude (cos(lat) > 0.2)."""
@@ -78,6 +70,7 @@ def test_noise_free_truth_to_1e6_deg(yaw, latitude, sense):
         assert abs(e[name]) < 1e-4, (name, e[name])  # mg
 
 
+@pytest.mark.slow
 def test_continuous_rotation_and_several_turns():
     """No index positions: ten turns at 10 deg/s without stopping also determine everything."""
     scenario = quiet(load_scenario("continuous"), yaw_deg=77.0)
@@ -98,6 +91,7 @@ def test_continuous_rotation_and_several_turns():
     assert abs(e["yaw"]) < 1e-6 and abs(e["gyro_bias_y"]) < 1e-3
 
 
+@pytest.mark.slow
 def test_overshoot_and_platform_tilt_leave_yaw_unbiased():
     """Index turns of 91 deg (overshoot) and a platform axis tilted 1 mrad: chi comes from the
     gyros and the tilt is part of the model, so neither biases yaw."""
@@ -110,6 +104,7 @@ def test_overshoot_and_platform_tilt_leave_yaw_unbiased():
     assert abs(e["yaw"]) < 1e-6 and abs(e["gyro_bias_y"]) < 1e-3
 
 
+@pytest.mark.slow
 def test_rate_ripple_leaves_yaw_unbiased():
     """A 1 % once-per-revolution ripple of the platform rate: chi is integrated from the gyros,
     so the fit sees the rate the platform really had."""
@@ -126,6 +121,7 @@ def test_rate_ripple_leaves_yaw_unbiased():
     assert abs(e["yaw"]) < 1e-6 and abs(e["gyro_bias_y"]) < 1e-3
 
 
+@pytest.mark.slow
 def test_quantised_capture_through_the_whole_path(tmp_path):
     """Through bytes: quantisation is the only error. A constant static rate is off by up to half a
     count (0.11 deg/h), which moves yaw by up to 0.11 / 11.42 rad = 0.55 deg. The statics' forces,
@@ -141,6 +137,7 @@ def test_quantised_capture_through_the_whole_path(tmp_path):
     assert all(v.sigma is not None for v in result.estimates.values())
 
 
+@pytest.mark.slow
 def test_fixed_amplitude_agrees_with_free():
     scenario = replace(THESIS, seed=5)
     sim = simulate(scenario)
@@ -153,6 +150,7 @@ def test_fixed_amplitude_agrees_with_free():
     assert amplitude == pytest.approx(EARTH_RATE * np.cos(np.radians(scenario.site.latitude_deg)), abs=4 * sigma)
 
 
+@pytest.mark.slow
 def test_sigma_is_honest_on_a_small_monte_carlo():
     """Eight noisy thesis sessions: errors against the turn-on bias (the bias-instability wander
     is error), over the reported 1-sigma, pooled over every estimate and over the biases. The
@@ -218,6 +216,7 @@ def test_horizontal_bias_sigma_carries_alpha_beta(quiet_thesis):
         assert s[f"{sensor}_bias_y"] == pytest.approx(g0 * s["alpha"], rel=0.01)
 
 
+@pytest.mark.slow
 def test_z_bias_sigma_carries_g0_only_when_normal_gravity(quiet_thesis):
     """A measured g0 adds nothing; normal gravity adds the local anomaly's spread to the Z biases
     (in quadrature) and says so in a warning."""
@@ -232,6 +231,7 @@ def test_z_bias_sigma_carries_g0_only_when_normal_gravity(quiet_thesis):
     assert not any("normal gravity" in w for w in _joint_warnings(given, measured))
 
 
+@pytest.mark.slow
 def test_bias_sigma_includes_the_wander_over_the_session(quiet_thesis):
     """Accelerometer flicker only: the Z bias is the mean over the statics, so its variance
     against the turn-on bias is that of the flicker's mean over the static samples, every
@@ -246,6 +246,7 @@ def test_bias_sigma_includes_the_wander_over_the_session(quiet_thesis):
     assert flicker[2] * per_component[-1] > 0.3 * result.sigmas["acc_bias_z"] ** 2  # the slowest is a large share
 
 
+@pytest.mark.slow
 def test_fitted_flicker_is_at_least_the_datasheets(quiet_thesis):
     """A static of minutes cannot resolve flicker under the white noise (noise-free data: none
     at all); the covariance then uses the STIM300 datasheet's rather than none, the
@@ -265,6 +266,7 @@ def one_index(scenario):
     return replace(scenario, segments=scenario.segments[:3] + scenario.segments[-2:])
 
 
+@pytest.mark.slow
 def test_one_index_position_yaw_sigma_covers():
     """Statics at 0 and 90 deg only: yaw rests on the difference of two statics minutes apart,
     which gyro flicker moves; the fitted noise would often find no flicker there and give
@@ -278,6 +280,7 @@ def test_one_index_position_yaw_sigma_covers():
         assert abs(e["yaw"]) < 3 * result.sigmas["yaw"] / DEG, seed
 
 
+@pytest.mark.slow
 def test_a_bias_jump_fails_the_residual_check():
     scenario = replace(THESIS, seed=3)
     inp = exact_input(simulate(scenario))
@@ -293,6 +296,7 @@ def test_a_bias_jump_fails_the_residual_check():
 FIXTURE = "fixtures/thesis_real_cw_125hz.bin"
 
 
+@pytest.mark.slow
 def test_calibrate_defaults_to_joint(tmp_path, capsys):
     out = tmp_path / "r.json"
     assert calibd_main(["calibrate", FIXTURE, "--latitude", "40.59129", "--g0", "9.79956", "-o", str(out)]) == 0

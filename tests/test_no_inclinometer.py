@@ -80,6 +80,7 @@ def test_a_gyro_only_unit_is_refused_naming_the_accelerometers(tmp_path, capsys)
     assert code == 2 and "gyros only" in err and "accelerometers" in err and len(err.strip().splitlines()) == 1
 
 
+@pytest.mark.slow
 def test_noise_has_six_channels_and_plan_reads_the_file_as_a_unit_without_inclinometers(tmp_path, capsys):
     path = tmp_path / "noise.json"
     assert calibd_main(["noise", str(CAPTURE), "-o", str(path)]) == 0
@@ -111,6 +112,7 @@ def test_characterise_skips_the_missing_sensor():
     assert list(characterise(session)) == [f"{s}_{a}" for s in ("gyro", "acc") for a in "xyz"]
 
 
+@pytest.mark.slow
 def test_the_daemon_solves_a_unit_without_inclinometers(tmp_path, capsys):
     try:
         code = calibd_main(["replay", str(CAPTURE), "--latitude", "40.59129", "--warmup-window", "10"])

@@ -304,6 +304,7 @@ def test_kalibr_random_walk_is_the_rate_random_walk_in_si():
     assert 0.9 < values["accelerometer_random_walk"] / (walk / M_S2_TO_MG) < 1.6
 
 
+@pytest.mark.slow
 def test_cli_writes_the_kalibr_file(static_capture, tmp_path):
     path, _ = static_capture
     out = tmp_path / "imu.yaml"

@@ -53,6 +53,7 @@ def detected_input(sim) -> JointInput:
                       incl[first:] * STANDARD_GRAVITY, tuple((a - first, b - first) for a, b in statics), rate)
 
 
+@pytest.mark.slow
 def test_plan_is_the_estimators_sigma_on_a_real_session(thesis_plan):
     """A noisy 125 Hz thesis session, its statics found by detection, solved with the noise model
     of the same figures: the estimator reports the planner's sigmas (the planner's session is
@@ -90,6 +91,7 @@ def test_yaw_sigma_matches_the_measured_monte_carlo(thesis_plan):
     assert thesis_plan.sigmas["yaw"] / DEG == pytest.approx(measured_rms, rel=0.25)
 
 
+@pytest.mark.slow
 def test_white_noise_sigma_falls_as_one_over_root_time():
     """White noise only: doubling the statics of the index protocol (nearly all its data)
     divides the sigma of what the statics determine by sqrt of the data time ratio; alpha and
@@ -117,6 +119,7 @@ def test_yaw_sigma_grows_as_one_over_cos_latitude(noise_plan, latitude):
     assert other.sigmas["yaw"] == pytest.approx(expected, rel=1e-4)
 
 
+@pytest.mark.slow
 def test_time_to_target_is_the_shortest_meeting_it():
     target = 2.5 * DEG  # the nominal index protocol gives 1.87 deg: shorter statics do
     reach = planner.time_to_target("index", SITE, STIM300, target)
@@ -128,6 +131,7 @@ def test_time_to_target_is_the_shortest_meeting_it():
     assert got.duration_s < planner.duration_s("index", 1.0)
 
 
+@pytest.mark.slow
 def test_whole_turns_are_searched_one_revolution_apart():
     target = 2.0 * DEG  # the nominal continuous protocol (ten turns) gives 2.17 deg
     reach = planner.time_to_target("continuous", SITE, STIM300, target)
@@ -137,6 +141,7 @@ def test_whole_turns_are_searched_one_revolution_apart():
     assert abs(got.segments[1].angle_deg) % 360 == 90  # the last static a quarter turn from the first
 
 
+@pytest.mark.slow
 def test_a_target_below_the_flicker_floor_is_not_reachable():
     reach = planner.time_to_target("index", SITE, STIM300, 0.8 * DEG, max_session_s=1800)
     longest = reach.short_of_it
@@ -183,22 +188,17 @@ def test_a_noise_file_gives_the_inclinometers_figure_at_0_g_from_x_and_y(tmp_pat
     assert (figures.incl_vrw_m_s_sqrt_h, figures.incl_bias_instability_mg) == pytest.approx((0.08, 0.06))
 
 
-def run(argv, capsys):
-    code = calibd_main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
-def test_plan_command_prints_every_sigma_and_the_time(tmp_path, capsys):
+@pytest.mark.slow
+def test_plan_command_prints_every_sigma_and_the_time(tmp_path, run_main):
     argv = ["plan", "--latitude", "40.59129", "--g0", "9.79956", "--protocol", "index", "--target-yaw-deg", "2.5"]
-    code, out, err = run(argv, capsys)
+    code, out, err = run_main(calibd_main, argv)
     assert code == 0, err
     for name, unit in (("yaw", "deg"), ("gyro_bias_y", "deg/h"), ("acc_bias_z", "mg"), ("incl_bias_x", "mg")):
         assert re.search(rf"^  {name} +[0-9.e-]+ {re.escape(unit)} +\([0-9.e-]+ {re.escape(unit)}\)$", out, re.M), name
     assert "nominal: 18.4 min of data: static 10.0 min, 4 x (turn -90 deg at 20 deg/s, static 2.0 min)" in out
     assert re.search(r"time to a yaw 1-sigma of 2.5 deg \(static durations scaled, turns kept\):\n"
                      r"  [0-9.]+ min of data: static [0-9.]+ min, 4 x", out)
-    assert run(argv + ["--noise", noise_file(tmp_path)], capsys)[1] == out  # the file's figures are the defaults
+    assert run_main(calibd_main, [*argv, "--noise", noise_file(tmp_path)])[1] == out  # the file's figures: the defaults
 
 
 @pytest.mark.parametrize("argv,message", [
@@ -208,10 +208,10 @@ def test_plan_command_prints_every_sigma_and_the_time(tmp_path, capsys):
     (["--protocol", "thesis", "--noise", "NOISE", "--arw", "0.2"], "not both"),
     (["--protocol", "thesis", "--arw", "-1"], "outside"),
 ])
-def test_plan_command_errors_are_one_line(argv, message, tmp_path, capsys, monkeypatch):
+def test_plan_command_errors_are_one_line(argv, message, tmp_path, run_main, monkeypatch):
     monkeypatch.chdir(tmp_path)
     Path("NOISE").write_text("{}")
-    code, _, err = run(["plan", "--latitude", "40", *argv], capsys)
+    code, _, err = run_main(calibd_main, ["plan", "--latitude", "40", *argv])
     assert code == 2 and message in err and len(err.strip().splitlines()) == 1, err
 
 
@@ -229,7 +229,7 @@ def test_plan_command_errors_are_one_line(argv, message, tmp_path, capsys, monke
     ("gyro_x__random_walk__value=1e308",
      "noise.json: channels.gyro_x.random_walk.value is 1e+308, expected a number in [0, 1000]"),
 ])
-def test_bad_noise_files_are_one_line(content, message, tmp_path, capsys):
+def test_bad_noise_files_are_one_line(content, message, tmp_path, run_main):
     if isinstance(content, (dict, list)) or content == "not json":
         path = tmp_path / "noise.json"
         path.write_text(content if isinstance(content, str) else json.dumps(content))
@@ -239,7 +239,7 @@ def test_bad_noise_files_are_one_line(content, message, tmp_path, capsys):
         key, value = content.split("=")
         value = None if value == "None" else float(value) if value[0].isdigit() else value
         path = noise_file(tmp_path, **{key: value})
-    code, _, err = run(["plan", "--latitude", "40", "--protocol", "thesis", "--noise", path], capsys)
+    code, _, err = run_main(calibd_main, ["plan", "--latitude", "40", "--protocol", "thesis", "--noise", path])
     assert code == 2 and message in err and len(err.strip().splitlines()) == 1, err
 
 
@@ -269,17 +269,18 @@ def test_a_scenario_equal_to_a_builtin_protocol_plans_the_same(tmp_path, thesis_
     assert planner.duration_s(carousel, 3.0) == planner.duration_s("continuous", 3.0)
 
 
-def test_plan_command_takes_a_scenario_file(tmp_path, capsys):
+@pytest.mark.slow
+def test_plan_command_takes_a_scenario_file(tmp_path, run_main):
     """`calibd plan --scenario` prints what `--protocol` prints for the same steps (its site from
     the scenario's [site]); only the name differs."""
     path = scenario_file(tmp_path, index=("duration_s = 120\n\n[[segments]]\ntype = \"turn\"\nangle_deg = -360",
                                           "duration_s = 120\n\n[[segments]]\ntype = \"turn\"\nangle_deg = -90"))
     index = ["plan", "--latitude", "40.59129", "--g0", "9.79956", "--protocol", "index", "--target-yaw-deg", "2.5"]
-    code, builtin, err = run(index, capsys)
+    code, builtin, err = run_main(calibd_main, index)
     assert code == 0, err
     text = path.read_text().split("[[segments]]")
     path.write_text("[[segments]]".join(text[:10]))  # level static, four index turns and statics: the index protocol
-    code, out, err = run(["plan", "--scenario", path, "--target-yaw-deg", "2.5"], capsys)
+    code, out, err = run_main(calibd_main, ["plan", "--scenario", path, "--target-yaw-deg", "2.5"])
     assert code == 0, err
     assert out.splitlines()[0] == f"{path} protocol at latitude 40.5913 deg, g0 9.79956 m/s^2"
     assert out.splitlines()[1:] == builtin.splitlines()[1:]
@@ -300,19 +301,20 @@ def test_longer_statics_in_a_scenario_give_smaller_sigmas(tmp_path, noise_plan, 
     assert 0.9 * thesis_plan.sigmas["alpha"] < with_prior.sigmas["alpha"] <= thesis_plan.sigmas["alpha"]
 
 
-def test_a_scenario_gives_the_plan_its_site_noise_and_sensor(tmp_path, capsys):
+@pytest.mark.slow
+def test_a_scenario_gives_the_plan_its_site_noise_and_sensor(tmp_path, run_main):
     """The scenario's [site] and [noise] are the plan's unless options replace them; a unit
     without inclinometers (datagram 0x91) is planned without them."""
     path = scenario_file(tmp_path, site=("latitude_deg = 40.59129", "latitude_deg = -33.9"),
                          noise=("[warmup]", "[noise]\ngyro_arw_deg_sqrt_h = 0.3\n\n[warmup]"),
                          datagram=('datagram = "0xA7"', 'datagram = "0x91"'))
     argv = ["plan", "--scenario", path, "--target-yaw-deg", "5"]
-    code, out, err = run(argv, capsys)
+    code, out, err = run_main(calibd_main, argv)
     assert code == 0, err
     assert "at latitude -33.9 deg, g0 9.79956 m/s^2" in out
     assert "noise: gyro 0.3 deg/sqrt(h), 0.3 deg/h; acc 0.024 m/s/sqrt(h), 0.005 mg; no inclinometers" in out
     assert "incl_bias" not in out and re.search(r"^  pitch +[0-9.e-]+ deg +\([0-9.e-]+ deg\)$", out, re.M)
-    code, out, err = run(argv + ["--latitude", "10", "--arw", "0.2"], capsys)
+    code, out, err = run_main(calibd_main, argv + ["--latitude", "10", "--arw", "0.2"])
     assert code == 0, err
     assert "at latitude 10 deg" in out and "noise: gyro 0.2 deg/sqrt(h)" in out
 
@@ -332,10 +334,10 @@ def test_a_scenario_gives_the_plan_its_site_noise_and_sensor(tmp_path, capsys):
      'peak_rate_deg_s = 20\naccel_deg_s2 = 20\n', "s at 125 Hz is more than the simulator's 10,000,000 samples"),
     ("[[segments]\n", "not valid TOML"),
 ])
-def test_bad_scenario_files_are_one_line(segments, message, tmp_path, capsys):
+def test_bad_scenario_files_are_one_line(segments, message, tmp_path, run_main):
     path = tmp_path / "mine.toml"
     path.write_text(f"[site]\nlatitude_deg = 45\n{segments}")
-    code, _, err = run(["plan", "--scenario", path], capsys)
+    code, _, err = run_main(calibd_main, ["plan", "--scenario", path])
     assert code == 2 and message in err and len(err.strip().splitlines()) == 1, err
     assert err.startswith(f"calibd: {path}") and "Traceback" not in err
 
@@ -347,7 +349,7 @@ def test_bad_scenario_files_are_one_line(segments, message, tmp_path, capsys):
     (["--protocol", "thesis"], "--latitude is needed with --protocol"),
     (["--scenario", "thesis-real", "--g0", "9.8"], "--latitude is needed with --protocol, --height or --g0"),
 ])
-def test_plan_command_scenario_usage_errors(argv, message, tmp_path, capsys, monkeypatch):
+def test_plan_command_scenario_usage_errors(argv, message, tmp_path, run_main, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    code, _, err = run(["plan", *argv], capsys)
+    code, _, err = run_main(calibd_main, ["plan", *argv])
     assert code == 2 and message in err and len(err.strip().splitlines()) == 1, err

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 import stim300.port as port
-from captures import exact_samples, same_samples
+from captures import exact_samples, same_samples, wait_until
 from stim300.bulk import decode_capture
 from stim300.cli import main as stim300_main
 from stim300.codec import SAMPLE_DTYPE, encode_samples
@@ -76,13 +76,6 @@ def pty():
     pair.close()
 
 
-def wait_for(condition, what: str, timeout: float = DEADLINE_S) -> None:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        time.sleep(0.005)
-
-
 def sensor_stream(n: int, rate: int = 2000, seed: int = 0):
     """A configuration datagram (as after `C<CR>`), then the 0xA7 frames of n exact samples."""
     config = Configuration.build(sample_rate_hz=rate, bit_rate_bps=1843200)
@@ -100,6 +93,7 @@ def write_paced(pty: Pty, head: bytes, frames: np.ndarray, rate: int, per_write:
         pty.write(frames[start:start + per_write].tobytes())
 
 
+@pytest.mark.slow
 def test_reader_fills_the_ring_with_exactly_the_bulk_decoded_samples(pty):
     """Live path == offline path: the same bytes give the same samples, stamped in order."""
     head, frames, samples = sensor_stream(3000)
@@ -109,7 +103,7 @@ def test_reader_fills_the_ring_with_exactly_the_bulk_decoded_samples(pty):
     with PortReader(pty.path, ring, baudrate=1843200, on_raw=raw.append) as reader, ThreadPoolExecutor(1) as pool:
         pty.expect(b"C\r")  # the reader asks for the configuration: the parser learns the format
         writer = pool.submit(write_paced, pty, head, frames, 2000)
-        wait_for(lambda: ring.total == len(samples), "all samples in the ring")
+        wait_until(lambda: ring.total == len(samples), "all samples in the ring")
         writer.result(timeout=DEADLINE_S)
     assert not reader.is_alive() and reader.error is None
     truth = decode_capture(head + frames.tobytes()).samples
@@ -138,16 +132,16 @@ def test_reader_reopens_after_unplug_and_asks_for_the_configuration_again(tmp_pa
         reader.start()
         first.expect(b"C\r")
         first.write(head + frames[:200].tobytes())
-        wait_for(lambda: ring.total == 200, "samples before the unplug")
+        wait_until(lambda: ring.total == 200, "samples before the unplug")
         first.close()  # unplug: the reader's next read fails with EIO
-        wait_for(lambda: reader.read_errors >= 1, "the read error")
+        wait_until(lambda: reader.read_errors >= 1, "the read error")
         assert not reader.connected
         second = Pty()  # replug: a new device node, reached through the repointed link
         (tmp_path / "imu.new").symlink_to(second.path)
         os.replace(tmp_path / "imu.new", link)
         second.expect(b"C\r")
         second.write(head + frames[200:].tobytes())
-        wait_for(lambda: ring.total == 400, "samples after the replug")
+        wait_until(lambda: ring.total == 400, "samples after the replug")
         assert reader.connected
     finally:
         reader.stop()
@@ -168,7 +162,7 @@ def test_a_failing_callback_ends_the_reader_and_is_kept(pty):
     reader = PortReader(pty.path, RingBuffer(16, SAMPLE_DTYPE), on_raw=broken).start()
     try:
         pty.write(b"\x93")
-        wait_for(lambda: not reader.is_alive(), "the reader to end")
+        wait_until(lambda: not reader.is_alive(), "the reader to end")
     finally:
         reader.stop()
     assert isinstance(reader.error, RuntimeError) and not reader.connected
@@ -181,7 +175,7 @@ def test_non_termios_bit_rates_open_and_read(pty, baudrate):
         assert ser.baudrate == baudrate
         pty.write(b"\x93\r\nraw")
         got = bytearray()
-        wait_for(lambda: got.extend(ser.read(16)) or len(got) == 6, "bytes through the port")
+        wait_until(lambda: got.extend(ser.read(16)) or len(got) == 6, "bytes through the port")
         assert got == b"\x93\r\nraw"  # 8 bit clean, no CR/LF translation
 
 
@@ -369,7 +363,7 @@ def test_service_mode_enter_command_error_and_exit_back_to_datagrams(pty):
                 exit_service_mode(ser, "I", timeout=DEADLINE_S)
             data = bytearray(exit_service_mode(ser, timeout=DEADLINE_S))
             assert data.startswith(EXIT_FRAGMENT[-4:])  # binary after the exit line goes to the parser
-            wait_for(lambda: data.extend(ser.read(max(1, ser.in_waiting))) or len(data) >= len(stream),
+            wait_until(lambda: data.extend(ser.read(max(1, ser.in_waiting))) or len(data) >= len(stream),
                      "the datagrams after the exit")
     finally:
         sensor.done.set()
@@ -398,7 +392,7 @@ def test_shipped_captures_replayed_through_a_pty_equal_the_bulk_decoder(pty, nam
     with PortReader(pty.path, ring, request_config=False, batch_s=0.0) as reader:
         for start in range(0, len(data), 4096):
             pty.write(data[start:start + 4096])
-        wait_for(lambda: ring.total == len(truth), f"{len(truth)} samples of {name}")
+        wait_until(lambda: ring.total == len(truth), f"{len(truth)} samples of {name}")
     assert reader.error is None
     assert same_samples(ring.latest_copy(ring.total), truth)
     live, offline = reader.parser.stats.snapshot(), decoded.info.stats

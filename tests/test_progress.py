@@ -7,14 +7,12 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
+from captures import Terminal, command_env
 from stim300.progress import Progress
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-class Terminal(io.StringIO):
-    def isatty(self):
-        return True
 
 
 def test_silent_off_a_terminal():
@@ -88,15 +86,15 @@ def test_lines_above_an_idle_bar_are_plain():
     assert plain.getvalue() == "before\nline\n"
 
 
+@pytest.mark.slow
 def test_replay_on_one_terminal_never_glues_a_state_line_to_the_bar():
     """calibd replay draws its bar on stderr and prints states on stdout: on one terminal each
     state line stands alone, and the bar is seen between them."""
     master, slave = os.openpty()
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
     capture = ROOT / "fixtures/thesis_real_ccw_125hz.bin"
     child = subprocess.Popen([sys.executable, "-m", "calibd", "replay", str(capture),
                               "--latitude", "40.59129"], stdout=slave, stderr=slave, stdin=subprocess.DEVNULL,
-                             cwd=ROOT, env=env)
+                             cwd=ROOT, env=command_env())
     os.close(slave)
     chunks = []
     while True:

@@ -120,6 +120,7 @@ def test_the_covariance_is_the_joint_fits_and_its_diagonal_the_sigmas(cw_result)
     assert cov[yaw, bias_y] / (sigma[yaw] * sigma[bias_y]) > 0.2
 
 
+@pytest.mark.slow
 def test_a_turn_angle_correction_keeps_the_diagonal_the_sigmas():
     """A turn corrected for datagrams lost unseen adds its correction's effect to the whole
     covariance: the sigmas still are its diagonal."""
@@ -145,6 +146,7 @@ def test_the_thesis_methods_have_no_covariance_and_the_linear_yaw_is_poor():
         assert doc["covariance"] is None and doc["rotation"]["nav_to_imu"]["poor"] == poor, given
 
 
+@pytest.mark.slow
 def test_calibrate_writes_every_version_3_field(tmp_path, capsys):
     out = tmp_path / "r.json"
     assert calibd_main(["calibrate", str(CW), "--latitude", "40.59129", "-o", str(out)]) == 0
@@ -176,6 +178,7 @@ def test_the_same_capture_and_start_give_the_same_session_id(tmp_path, capsys):
     assert ids[0] == ids[1] != ids[2] and ids[2].endswith("/p1/t10.000")
 
 
+@pytest.mark.slow
 def test_a_daemon_session_gives_every_result_its_id():
     results = []
     calibrator = Calibrator(Site(60.0), WarmupConfig(window_s=100.0), listeners=[Callbacks(result=results.append)])

@@ -138,6 +138,7 @@ def test_numpy_scalars_in_a_result_are_written_as_plain_json():
         result_json(replace(result, checks={"bad": object()}))
 
 
+@pytest.mark.slow
 def test_a_calibrated_capture_names_the_file_it_came_from(tmp_path):
     """The result says which bytes it rests on: size, SHA-256 and the sensor's serial number."""
     import hashlib

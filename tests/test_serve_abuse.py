@@ -28,6 +28,7 @@ from calibd.serve import sockets
 from calibd.serve.hub import Hub
 from calibd.serve.protocol import MAX_LINE_BYTES
 from calibd.serve.sockets import ServeError
+from captures import command_env
 
 from test_serve_socket import Client, known_result
 
@@ -397,11 +398,10 @@ def test_serving_refuses_a_world_readable_token_file_at_start(tmp_path):
     config.write_text(f'[serial]\nport = "{tmp_path / "tty"}"\n[site]\nlatitude_deg = 40\n[output]\n'
                       f'state_dir = "{tmp_path / "state"}"\n[serve]\nsocket = "{tmp_path / "s.sock"}"\n'
                       f'tcp = "127.0.0.1:29500"\ntcp_token_file = "{token}"\n')
-    env = {k: v for k, v in os.environ.items() if k not in ("NOTIFY_SOCKET", "WATCHDOG_USEC", "JOURNAL_STREAM")}
     capture = ROOT / "fixtures" / "heading137_lat60_125hz.bin"
     done = subprocess.run([sys.executable, "-m", "calibd.cli", "replay", str(capture), "--latitude", "60",
                            "--config", str(config), "--serve"], capture_output=True, text=True,
-                          env={**env, "PYTHONPATH": str(ROOT)}, timeout=60)
+                          env=command_env(), timeout=60)
     printed = [line for line in done.stderr.splitlines() if line.startswith("calibd:")]
     assert done.returncode == 1 and len(printed) == 1 and "other users may read or write it" in printed[0]
     assert "Traceback" not in done.stderr and not (tmp_path / "s.sock").exists()

@@ -19,18 +19,12 @@ import pytest
 from calibd.results import write_result
 from stim300.bulk import decode_capture
 
+from captures import calibd, command_env, plug
 from test_serve_socket import OWN_GROUP, known_result
 
 ROOT = Path(__file__).resolve().parents[1]
 FIXTURES = ROOT / "fixtures"
 CAPTURE = FIXTURES / "warmup_then_protocol_125hz.bin"
-ENV = {**{k: v for k, v in os.environ.items() if k not in ("NOTIFY_SOCKET", "WATCHDOG_USEC", "JOURNAL_STREAM")},
-       "PYTHONPATH": str(ROOT)}
-
-
-def calibd(*args: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "calibd.cli", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, env=ENV)
 
 
 def connect(path: Path, daemon: subprocess.Popen, timeout_s: float = 60.0) -> socket.socket:
@@ -71,6 +65,7 @@ def ask(sock: socket.socket, command: bytes, kind: str) -> dict:
             return message
 
 
+@pytest.mark.slow
 def test_replay_serve_gives_state_results_and_the_feeds_samples_and_ignores_garbage(tmp_path):
     """A client watching raw samples gets VERSION, the STATE stream, RESULT equal to result.json
     and SAMPLES equal to the decode of the capture; another client's garbage gets ERRORs and
@@ -108,18 +103,10 @@ def test_replay_serve_gives_state_results_and_the_feeds_samples_and_ignores_garb
     assert np.array_equal(counter, truth["counter"][first:])
     assert np.array_equal(np.concatenate([b["gyro"] for b in batches]).astype(np.float32), truth["gyro"][first:])
     assert [json.loads(a)["class"] for a in answers] == ["VERSION", "ERROR", "ERROR", "ERROR", "POLL"]
-    plain = subprocess.run([sys.executable, "-m", "calibd.cli", "replay", *args], capture_output=True, env=ENV,
-                           text=True)
+    plain = subprocess.run([sys.executable, "-m", "calibd.cli", "replay", *args], capture_output=True,
+                           env=command_env(), text=True)
     pitch = next(line for line in plain.stdout.splitlines() if line.strip().startswith("pitch")).split()[1]
     assert results[-1]["estimates"]["pitch"]["value"] == pytest.approx(float(pitch), abs=0.002)
-
-
-def _pty(link: Path) -> tuple[int, int]:
-    master, slave = os.openpty()
-    tty.setraw(master)
-    tty.setraw(slave)
-    link.symlink_to(os.ttyname(slave))
-    return master, slave
 
 
 def _write(master: int, data: bytes) -> None:
@@ -136,6 +123,7 @@ def _config(tmp_path: Path, serve: str) -> Path:
     return config
 
 
+@pytest.mark.slow
 def test_run_shows_the_previous_result_and_marks_it_once_the_sensor_restarts(tmp_path):
     """After a daemon restart ?POLL shows result.json as the last daemon left it; when the sensor
     restarts it is marked as the previous power-up's, in POLL, in the group-readable copy and in
@@ -144,7 +132,7 @@ def test_run_shows_the_previous_result_and_marks_it_once_the_sensor_restarts(tmp
     (tmp_path / "state").mkdir()
     write_result(tmp_path / "state" / "result.json", known_result())
     sock_path, copy = tmp_path / "calibd.sock", tmp_path / "copy.json"
-    master, slave = _pty(tmp_path / "tty")
+    master, slave = plug(tmp_path / "tty")
     config = _config(tmp_path, f'socket = "{sock_path}"\nresult_copy = "{copy}"\ngroup = "{OWN_GROUP}"\n')
     daemon = calibd("run", "--config", str(config))
     try:
@@ -186,11 +174,11 @@ def test_run_shows_the_previous_result_and_marks_it_once_the_sensor_restarts(tmp
 def test_run_refuses_a_socket_path_taken_by_a_file_before_ready(tmp_path):
     taken = tmp_path / "calibd.sock"
     taken.write_text("mine")
-    master, slave = _pty(tmp_path / "tty")
+    master, slave = plug(tmp_path / "tty")
     try:
         done = subprocess.run([sys.executable, "-m", "calibd.cli", "run", "--config",
                                str(_config(tmp_path, f'socket = "{taken}"\n'))], capture_output=True, text=True,
-                              env=ENV, timeout=30)
+                              env=command_env(), timeout=30)
     finally:
         os.close(master)
         os.close(slave)
@@ -201,7 +189,7 @@ def test_run_refuses_a_socket_path_taken_by_a_file_before_ready(tmp_path):
 
 def test_replay_serve_needs_something_to_serve(tmp_path):
     done = subprocess.run([sys.executable, "-m", "calibd.cli", "replay", str(CAPTURE), "--latitude", "40",
-                           "--serve"], capture_output=True, text=True, env=ENV, timeout=30)
+                           "--serve"], capture_output=True, text=True, env=command_env(), timeout=30)
     assert done.returncode == 2 and done.stderr.count("\n") == 1 and "nothing to serve" in done.stderr
 
 
@@ -235,6 +223,7 @@ def read_link(link: Path, daemon: subprocess.Popen, limit_s: float = 90.0) -> by
     return bytes(got)
 
 
+@pytest.mark.slow
 def test_replay_serve_raw_pty_carries_the_feed_unchanged(tmp_path):
     link = tmp_path / "raw"
     data = CAPTURE.read_bytes()[:300_000]
@@ -246,6 +235,7 @@ def test_replay_serve_raw_pty_carries_the_feed_unchanged(tmp_path):
     assert len(got) > 0 and got in data  # from when the reader opened it: unchanged, in order
 
 
+@pytest.mark.slow
 def test_replay_serve_corrected_pty_holds_until_a_result_then_subtracts_its_biases(tmp_path):
     """An unchanged driver on the corrected link reads nothing while the power-up has no result,
     then the sensor's datagrams less the result's biases (every datagram: none dropped)."""

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from structlog.testing import capture_logs
 
-from captures import exact_samples
+from captures import exact_samples, wait_until
 from calibd.config import ServeConfig
 from calibd.frames import STANDARD_GRAVITY
 from calibd.results import CalibrationResult, Estimate
@@ -113,13 +113,6 @@ def collect():
     return sent, sent.append
 
 
-def wait_until(condition, timeout: float = DEADLINE_S) -> None:
-    deadline = time.monotonic() + timeout
-    while not condition() and time.monotonic() < deadline:
-        time.sleep(0.005)
-    assert condition()
-
-
 @pytest.fixture
 def quick_episodes(monkeypatch):
     """Episodes end after 0.3 s of quiet instead of QUIET_S, so a test sees their ends."""
@@ -203,6 +196,7 @@ def test_allowed_requests_reach_forward_and_refused_ones_do_not(link, quick_epis
         raw.close()
 
 
+@pytest.mark.slow
 def test_a_flood_of_one_request_is_forwarded_once_a_second_and_logged_per_episode(link, quick_episodes):
     """10,000 `N` over about 2 s: each answer would replace a normal datagram, so at most one a
     second reaches the sensor; the rest are counted, and said in two lines."""
@@ -230,6 +224,7 @@ def test_a_flood_of_one_request_is_forwarded_once_a_second_and_logged_per_episod
         raw.close()
 
 
+@pytest.mark.slow
 def test_each_kind_of_request_has_its_own_second(link):
     sent, forward = collect()
     raw = RawPty(link, forward=forward, allow_service_mode=True)
@@ -298,14 +293,12 @@ def test_service_mode_requests_go_when_allowed_and_long_lines_are_bounded(link):
         raw.close()
 
 
-def test_the_daemon_read_path_forwards_a_request_written_to_the_raw_link(link):
+def test_the_daemon_read_path_forwards_a_request_written_to_the_raw_link(link, pty):
     """PortSource on a pty (the sensor's side is the other master): a request written into the
     raw link reaches the sensor, and the sensor's bytes come out of the link unchanged."""
-    sensor_master, sensor_slave = os.openpty()
-    tty.setraw(sensor_master)
-    tty.setraw(sensor_slave)
+    sensor_master, sensor_path = pty
     raw = None
-    source = PortSource(os.ttyname(sensor_slave), request_config=False, tap=lambda settled: raw.tap(settled))
+    source = PortSource(sensor_path, request_config=False, tap=lambda settled: raw.tap(settled))
     raw = RawPty(link, forward=source.reader.write)
     client = LinkReader(link)
     try:
@@ -322,8 +315,6 @@ def test_the_daemon_read_path_forwards_a_request_written_to_the_raw_link(link):
         client.close()
         raw.close()
         source.close()
-        os.close(sensor_master)
-        os.close(sensor_slave)
     assert source.reader.write(b"C\r") is False  # the port is closed: said, not raised
 
 

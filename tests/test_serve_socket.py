@@ -454,6 +454,7 @@ def test_a_fault_answering_a_command_is_an_error_line_and_the_server_runs_on(ser
     assert client.message()["class"] == "VERSION"
 
 
+@pytest.mark.slow
 def test_after_a_sensor_restart_nothing_is_corrected_with_the_previous_power_ups_biases(tmp_path, monkeypatch):
     """Two power-ups through a real Calibrator, the reader and server threads going on while the
     calibrator solves the old power-up to its end (its result arrives after the tap has seen

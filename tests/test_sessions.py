@@ -42,6 +42,7 @@ def level_only_bytes():
     return capture_bytes(simulate(scenario))[0]
 
 
+@pytest.mark.slow
 def test_a_restart_followed_by_a_level_static_uses_the_power_up_with_the_protocol(level_only_bytes, tmp_path,
                                                                                   capsys):
     capture = tmp_path / "two.bin"
@@ -58,6 +59,7 @@ def test_a_restart_followed_by_a_level_static_uses_the_power_up_with_the_protoco
     assert "session: power-up 1 of 2" in out
 
 
+@pytest.mark.slow
 def test_the_last_power_up_with_the_protocol_wins_and_session_picks_another(level_only_bytes, tmp_path, capsys):
     capture = tmp_path / "two.bin"
     capture.write_bytes(level_only_bytes + FULL.read_bytes())
@@ -74,6 +76,7 @@ def test_the_last_power_up_with_the_protocol_wins_and_session_picks_another(leve
     assert code == 2 and "no power-up 3: the capture has 2" in err and len(err.strip().splitlines()) == 1
 
 
+@pytest.mark.slow
 def test_session_option_picks_the_first_power_up(tmp_path, capsys):
     """Two whole protocols (0xA7 with temperatures, then 0x93 without): --session 1 is the first."""
     capture = tmp_path / "two.bin"
@@ -90,6 +93,7 @@ def test_session_option_picks_the_first_power_up(tmp_path, capsys):
     assert_near_truth(first, read_truth(str(FULL))[1])
 
 
+@pytest.mark.slow
 def test_a_restart_whose_power_up_datagrams_were_lost_is_seen_by_the_start_up_bit(tmp_path, capsys):
     real = load_scenario("thesis-real")
     restarted = replace(real, name="restarted", seed=79, segments=(Segment("static", duration_s=60),),
@@ -131,6 +135,7 @@ def settled_truth():
     return truth
 
 
+@pytest.mark.slow
 def test_calibrate_starts_where_the_warm_up_ends(tmp_path, capsys):
     code, result, out, err = calibrate(capsys, WARMING, tmp_path=tmp_path)
     assert code == 0, err
@@ -142,6 +147,7 @@ def test_calibrate_starts_where_the_warm_up_ends(tmp_path, capsys):
     assert result["segments"][0]["start_s"] >= start
 
 
+@pytest.mark.slow
 def test_start_overrides_the_warm_up_rule(tmp_path, capsys):
     code, result, out, err = calibrate(capsys, WARMING, "--start", "0", tmp_path=tmp_path)
     assert code == 0, err
@@ -153,6 +159,7 @@ def test_start_overrides_the_warm_up_rule(tmp_path, capsys):
     assert result["stream"]["start_s"] == 600.0 and not any("warm-up" in w for w in result["warnings"])
 
 
+@pytest.mark.slow
 def test_a_power_up_that_never_settles_is_calibrated_and_flagged(tmp_path, capsys):
     real = load_scenario("thesis-real")
     scenario = replace(real, name="cold", seed=78, warmup=replace(real.warmup, power_on_s=0.0, time_constant_s=1000.0))
@@ -173,6 +180,7 @@ def test_a_power_up_that_never_settles_is_calibrated_and_flagged(tmp_path, capsy
     (["--latitude", "40.59129", "--g0", "9.79956", "--height", "120"],
      "site: latitude +40.59129 deg, height 120 m, g0 9.79956 m/s^2 (given)"),
 ])
+@pytest.mark.slow
 def test_calibrate_echoes_the_site(argv, shown, tmp_path, capsys):
     code = calibd_main(["calibrate", str(FULL), *argv, "-o", str(tmp_path / "r.json")])
     assert code == 0
@@ -180,6 +188,7 @@ def test_calibrate_echoes_the_site(argv, shown, tmp_path, capsys):
     assert json.loads((tmp_path / "r.json").read_text())["site"]["g0_given"] == ("--g0" in argv)
 
 
+@pytest.mark.slow
 def test_the_report_reads_the_power_up_the_result_used(level_only_bytes, tmp_path, capsys):
     pytest.importorskip("matplotlib")
     from calibd.report import write_report

@@ -13,16 +13,11 @@ from calibd.allan import FLICKER_TAUS_S, allan_deviation, allan_gm, flicker_sigm
 from calibd.scenario import ScenarioError, Segment, load_scenario, parse_scenario
 from calibd.sim import capture_bytes, sensor_noise, simulate, truth_record
 from calibd.units import DEG
+from captures import quiet
 from stim300.bulk import decode_capture
 from stim300.protocol import Status
 
 GYRO_LSB, ACC_LSB, INCL_LSB = 2.0**-14, 2.0**-19, 2.0**-22
-
-
-def quiet(scenario, **truth):
-    """No noise, fully warmed up (biases at their settled values)."""
-    return replace(scenario, noise=replace(scenario.noise, enabled=False),
-                   warmup=replace(scenario.warmup, power_on_s=1e7), truth=replace(scenario.truth, **truth))
 
 
 def decoded(scenario):

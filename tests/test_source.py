@@ -6,7 +6,6 @@ import gc
 import os
 import time
 import tracemalloc
-import tty
 from pathlib import Path
 
 import numpy as np
@@ -81,16 +80,6 @@ def test_a_pty_source_gives_the_bulk_decoders_samples_then_ends():
     assert all(np.isfinite(b.samples["t_host"]).all() for b in batches)  # stamped by the port reader
 
 
-@pytest.fixture
-def pty():
-    master, slave = os.openpty()
-    tty.setraw(master)
-    tty.setraw(slave)
-    yield master, os.ttyname(slave)
-    os.close(master)
-    os.close(slave)
-
-
 def test_a_port_source_gives_the_bulk_decoders_samples(pty):
     master, path = pty
     data = FAULTS.read_bytes()
@@ -103,6 +92,7 @@ def test_a_port_source_gives_the_bulk_decoders_samples(pty):
     check_batches(batches, data)
 
 
+@pytest.mark.slow
 def test_silence_grows_while_nothing_arrives_and_not_while_the_consumer_works(pty):
     master, path = pty
     data, _, _ = capture(500, rate=2000)
@@ -123,6 +113,7 @@ def test_a_port_that_does_not_open_is_a_port_error(tmp_path):
         PortSource(str(tmp_path / "ttyNONE"))
 
 
+@pytest.mark.slow
 def test_a_paced_capture_takes_its_data_time_over_the_speed():
     """The fault capture's minute of data (its lost datagrams included) at 60 times real time
     takes about a second; unpaced, a small fraction of that."""

@@ -3,11 +3,9 @@ time) stopped with SIGSTOP for 0.3 to 2 s at random reads the bytes late, in bur
 find no hidden gap and give the result of a run that was never stopped."""
 
 import json
-import os
 import random
 import signal
 import subprocess
-import sys
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -16,10 +14,8 @@ import pytest
 
 from calibd.scenario import Segment, load_scenario
 from calibd.sim import capture_bytes, simulate
+from captures import calibd
 
-ROOT = Path(__file__).resolve().parents[1]
-ENV = {**{k: v for k, v in os.environ.items() if k not in ("NOTIFY_SOCKET", "WATCHDOG_USEC", "JOURNAL_STREAM")},
-       "PYTHONPATH": str(ROOT)}
 SITE = ["--latitude", "40.59129", "--g0", "9.79956", "--warmup-window", "2"]
 pytestmark = pytest.mark.slow
 
@@ -41,8 +37,7 @@ def capture(tmp_path_factory) -> Path:
 def replay(capture: Path, state_dir: Path, *args: str, stalls: random.Random | None = None) -> tuple[dict, str, list]:
     """result.json, stderr and the stalls (s) of a replay; with `stalls`, SIGSTOP it for 0.3 to 2 s
     every 1.5 to 4 s from 3 s after its start to its end."""
-    daemon = subprocess.Popen([sys.executable, "-m", "calibd.cli", "replay", str(capture), *SITE, "--state-dir",
-                               str(state_dir), *args], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=ENV)
+    daemon = calibd("replay", capture, *SITE, "--state-dir", state_dir, *args, stdout=subprocess.DEVNULL)
     stopped = []
     try:
         if stalls is not None:

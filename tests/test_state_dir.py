@@ -25,10 +25,11 @@ from calibd.live import Watchdog, replay
 from calibd.frames import Site
 from calibd.results import CalibrationResult, Estimate, site_record, write_result
 from calibd.statedir import ResultStore, StateDirError
+from captures import plug
 from stim300.bulk import decode_capture
 from stim300.source import CaptureSource
 from stim300.special import SerialNumber, encode_special
-from test_daemon import FIXTURES, HEADING137, _calibd_run, _plug, _read_log_until, _stop, _write_paced
+from test_daemon import FIXTURES, HEADING137, _calibd_run, _read_log_until, _stop, _write_paced
 
 AS_ROOT = os.geteuid() == 0
 
@@ -323,12 +324,13 @@ def _config(tmp_path: Path, link: Path, state_dir: Path, latitude: float = 60.0)
     return config
 
 
+@pytest.mark.slow
 def test_a_silent_sensor_keeps_the_watchdog_fed_and_is_a_fault_at_warning(tmp_path):
     """No byte ever arrives (the adapter is plugged, the sensor quiet): WATCHDOG=1 still comes at
     half of WATCHDOG_USEC, the state goes to FAULT after 3 s, and under journald each JSON line
     carries its syslog priority: the FAULT at warning (<4>), the start at info (<6>)."""
     link = tmp_path / "ttySTIM"
-    master, slave = _plug(link)
+    master, slave = plug(link)
     notify = Notifications(tmp_path / "notify")
     env = {"NOTIFY_SOCKET": str(notify.path), "WATCHDOG_USEC": "1000000", "JOURNAL_STREAM": "8:12345"}
     daemon, log = _calibd_run(_config(tmp_path, link, tmp_path / "state"), env), []
@@ -352,6 +354,7 @@ def test_a_silent_sensor_keeps_the_watchdog_fed_and_is_a_fault_at_warning(tmp_pa
 
 
 @pytest.mark.parametrize("breakage", ["replaced_by_a_file", "result_json_a_directory", "removed"])
+@pytest.mark.slow
 def test_calibd_run_rides_out_a_broken_state_dir(tmp_path, breakage):
     """Right after READY=1 the state directory becomes a file, or result.json a directory (what
     a read-only directory does to a daemon not running as root), or the directory is deleted:
@@ -362,7 +365,7 @@ def test_calibd_run_rides_out_a_broken_state_dir(tmp_path, breakage):
     data = HEADING137.read_bytes()
     per_sample = len(data) // len(samples)
     link = tmp_path / "ttySTIM"
-    master, slave = _plug(link)
+    master, slave = plug(link)
     notify = Notifications(tmp_path / "notify")
     state_dir = tmp_path / "state"
     daemon, log = _calibd_run(_config(tmp_path, link, state_dir), {"NOTIFY_SOCKET": str(notify.path)}), []
@@ -406,7 +409,7 @@ def test_calibd_run_ends_before_ready_on_a_problem_found_at_start(tmp_path, prob
     link = tmp_path / "ttySTIM"
     state_dir = tmp_path / "state"
     if problem == "state_dir":
-        master, slave = _plug(link)
+        master, slave = plug(link)
         state_dir.write_text("")
     else:
         master = slave = None

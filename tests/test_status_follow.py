@@ -12,13 +12,15 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 from calibd.daemon import State
 from calibd.frames import Site
 from calibd.results import CalibrationResult, Estimate, site_record
 from calibd.statedir import ResultStore
+from captures import calibd, command_env
 
-ROOT = Path(__file__).resolve().parents[1]
-ENV = dict(os.environ, PYTHONPATH=str(ROOT))
+ENV = command_env()
 
 
 def result(yaw_deg: float) -> CalibrationResult:
@@ -31,9 +33,7 @@ class Child:
     """`calibd status --follow` as a subprocess, its output read a line at a time with a timeout."""
 
     def __init__(self, state_dir: Path, *options: str):
-        self.process = subprocess.Popen([sys.executable, "-m", "calibd", "status", "--state-dir", str(state_dir),
-                                         "--follow", *options], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                        env=ENV)
+        self.process = calibd("status", "--state-dir", state_dir, "--follow", *options)
         self.pending = {self.process.stdout: b"", self.process.stderr: b""}
 
     def line(self, stream=None, timeout_s: float = 20.0) -> str:
@@ -75,6 +75,7 @@ def test_json_lines_at_each_change_then_ctrl_c_ends_quietly(tmp_path):
     assert code == 0 and err == ""
 
 
+@pytest.mark.slow
 def test_text_blocks_a_vanished_state_dir_said_once_and_waited_for(tmp_path):
     state_dir = tmp_path / "state"
     store = ResultStore(state_dir)

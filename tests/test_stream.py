@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from captures import capture, same_samples
+from captures import capture, power_up, same_samples, stream_decode
 from stim300.bulk import decode_capture
 from stim300.capture import stream_info
 from stim300.crc import datagram_crc
@@ -17,15 +17,6 @@ from stim300.special import Configuration, PartNumber, SerialNumber, encode_spec
 from stim300.stream import Scanner, StreamParser
 
 LONGEST = max(layout.wire_length(True) for layout in NORMAL_LAYOUTS.values())
-
-
-def stream_decode(data: bytes, cuts, fmt=None):
-    """Feed `data` split at `cuts`; return (samples, parser)."""
-    parser = StreamParser(fmt)
-    edges = [0, *sorted(set(cuts)), len(data)]
-    parts = [parser.feed(data[a:b]) for a, b in zip(edges, edges[1:])]
-    parts.append(parser.finish())
-    return np.concatenate(parts), parser
 
 
 def assert_same_as_bulk(data: bytes, cuts=(), fmt=None):
@@ -188,11 +179,6 @@ def test_t_host_stamps_the_samples_a_read_completes():
     second = parser.feed(data[30:], t_host=2.5)
     assert first["t_host"].tolist() == [1.5]
     assert second["t_host"].tolist() == [2.5, 2.5]
-
-
-def power_up(config, part="84167-4400003-321", serial="N25582405002002") -> bytes:
-    return (encode_special(PartNumber(part, "K"), config.crlf) + encode_special(SerialNumber(serial), config.crlf)
-            + encode_special(config, config.crlf))
 
 
 def test_configuration_datagram_is_adopted():

@@ -22,6 +22,7 @@ from calibd.frames import EARTH_RATE, STANDARD_GRAVITY, Site, int_to_imu, nav_to
 from calibd.scenario import Segment, load_scenario
 from calibd.sim import write_capture
 from calibd.units import DEG
+from captures import quiet, with_sense
 
 SITE = Site(40.59129, g0=9.79956)  # thesis Table 7.1
 H = EARTH_RATE * np.cos(np.radians(SITE.latitude_deg))  # horizontal Earth rate, rad/s
@@ -91,13 +92,6 @@ def test_six_position_biases_cancel_the_reference():
 
 # ---------------------------------------------------------------- the chain on simulated sessions
 
-def quiet(scenario, sense):
-    segments = tuple(replace(s, angle_deg=abs(s.angle_deg) * sense) if s.kind == "turn" else s
-                     for s in scenario.segments)
-    return replace(scenario, segments=segments, noise=replace(scenario.noise, enabled=False),
-                   warmup=replace(scenario.warmup, power_on_s=1e7))
-
-
 def errors(result, scenario) -> dict:
     truth = scenario.truth.estimates()
     return {k: e.value - truth[k] for k, e in result.estimates.items()}
@@ -122,7 +116,7 @@ def unaveraged_bound(data) -> float:
 
 @pytest.fixture(scope="module", params=[-1, +1], ids=["clockwise", "counter-clockwise"])
 def session(request, tmp_path_factory):
-    scenario = quiet(load_scenario("thesis-real"), request.param)
+    scenario = with_sense(quiet(load_scenario("thesis-real")), request.param)
     path = tmp_path_factory.mktemp("s") / "session.bin"
     write_capture(scenario, path)
     return scenario, load_session(str(path)), request.param
@@ -184,7 +178,7 @@ def test_platform_rate_from_the_gyros_matches_the_command(session):
 
 
 def test_bench_chain(tmp_path):
-    scenario = quiet(load_scenario("thesis-bench"), +1)
+    scenario = with_sense(quiet(load_scenario("thesis-bench")), +1)
     write_capture(scenario, tmp_path / "bench.bin")
     result = thesis_bench(load_session(str(tmp_path / "bench.bin")), SITE)
     e = errors(result, scenario)
@@ -232,7 +226,7 @@ def turn_across(angle_deg: float, accel_deg_s2: float = 30.0):
     static = Segment("static", duration_s=60)
     full = Segment("turn", angle_deg=angle_deg, peak_rate_deg_s=27.93, accel_deg_s2=accel_deg_s2)
     base = load_scenario("thesis-real")
-    return quiet(replace(base, segments=(static, index) * 3 + (static, full, static, index, static)), -1)
+    return with_sense(quiet(replace(base, segments=(static, index) * 3 + (static, full, static, index, static))), -1)
 
 
 def nominal_run(scenario, tmp_path):
@@ -283,7 +277,7 @@ def test_one_period_is_timed_by_the_sample_clock_across_lost_datagrams():
 
 
 def test_a_turn_short_of_350_deg_is_no_full_turn_and_the_refusal_says_so(tmp_path):
-    base = quiet(load_scenario("thesis-real"), -1)
+    base = with_sense(quiet(load_scenario("thesis-real")), -1)
     scenario = replace(base, segments=base.segments[:-2] + (replace(base.segments[-2], angle_deg=-300),
                                                              base.segments[-1]))
     write_capture(scenario, tmp_path / "s.bin")
@@ -306,6 +300,7 @@ def test_slow_ramps_leave_too_little_constant_rate_and_flag_yaw_and_gyro_y(tmp_p
 
 # ---------------------------------------------------------------- with noise: the thesis's pattern
 
+@pytest.mark.slow
 def test_with_noise_yaw_and_gyro_y_are_poor_and_pitch_roll_good(tmp_path):
     """A few seeds of the thesis session with the thesis's lab alpha/beta (0.003 and 0.007 deg
     off the truth): its Tables 7.5-7.8 pattern. The long Monte Carlo is benchmarks/thesis.py."""

@@ -56,6 +56,7 @@ def test_it_calibrates_within_sigma_without_inclinometer_estimates(recording, tm
             assert abs(e.value - biases[key]["session"][k]) < 3.5 * e.sigma, (kind, axis, e)
 
 
+@pytest.mark.slow
 def test_the_daemon_solves_it(recording, capsys):
     path, truth = recording
     try:

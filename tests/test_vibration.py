@@ -106,6 +106,7 @@ def test_inflation_is_the_measured_variance_ratio():
     assert joint.reference_static(joint.sample_variance(values, statics), statics) == 0
 
 
+@pytest.mark.slow
 def test_the_fit_weighs_the_vibrating_static_and_stays_within_sigma(sim):
     result = joint_real_case(session_of(sim), sim.scenario.site)
     z = z_scores(result, sim)
@@ -118,6 +119,7 @@ def test_the_fit_weighs_the_vibrating_static_and_stays_within_sigma(sim):
     assert not [w for w in result.warnings if w.startswith("static ") and w is not named[0]]
 
 
+@pytest.mark.slow
 def test_unweighted_the_vibrating_static_pulls_yaw_beyond_its_sigma(sim, monkeypatch):
     """The fault the weighting removes: with every static weighed alike, yaw misses by many sigma."""
     monkeypatch.setattr(joint, "NOISIER_FROM", np.inf)
@@ -125,12 +127,14 @@ def test_unweighted_the_vibrating_static_pulls_yaw_beyond_its_sigma(sim, monkeyp
     assert abs(z["yaw"]) > 2 * K_SIGMA, z
 
 
+@pytest.mark.slow
 def test_quiet_statics_get_no_vibration_warning():
     sim = simulate(vibrating_scenario(0.0))
     result = joint_real_case(session_of(sim), sim.scenario.site)
     assert not [w for w in result.warnings if "per sample" in w]
 
 
+@pytest.mark.slow
 def test_a_static_shaken_at_a_hundred_times_the_noise_stays_within_sigma():
     """2.8 deg/s per sample: the settling next to the static vibrates too, and is weighed by its
     own noise like the static."""

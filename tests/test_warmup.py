@@ -108,6 +108,7 @@ def test_the_warm_up_warning_says_the_start_that_leaves_it_out_where_a_user_can_
     assert warm_up_warnings(t[late], temp[late], start_hint=True) == []  # the hinted start has no warm-up left
 
 
+@pytest.mark.slow
 def test_calibrate_from_power_on_names_the_start_and_the_daemons_session_does_not(tmp_path, capsys):
     from dataclasses import replace
 
