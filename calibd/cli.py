@@ -641,13 +641,18 @@ def _token(path: str | None) -> str | None:
 
 
 def cmd_pipe(args) -> int:
-    """Every message of the daemon's socket on stdout as it was sent, one a line (gpspipe -w)."""
+    """Every message of the daemon's socket on stdout as it was sent, one a line (gpspipe -w), or
+    with --bytes the sensor's bytes alone (gpspipe -R)."""
     from .client import Client
 
     def pipe() -> int:
         out = sys.stdout.buffer
+        if args.bytes and (args.samples != "none" or args.raw):
+            raise UsageError("pipe: --bytes writes the sensor's bytes alone: drop --samples and --raw")
         with Client.connect(args.socket, token=_token(args.token_file)) as client:
-            client.command("WATCH", {"enable": True, "samples": args.samples})
+            if args.bytes:
+                return _pipe_bytes(client, out, args.count)
+            client.command("WATCH", {"enable": True, "samples": args.samples} | ({"raw": True} if args.raw else {}))
             line, written = client.version_line, 0
             while True:
                 out.write(line + b"\n")
@@ -657,6 +662,27 @@ def cmd_pipe(args) -> int:
                     return 0
                 line = client.read_line()
     return _client_program(pipe)
+
+
+def _pipe_bytes(client, out, count: int | None) -> int:
+    """The sensor's bytes from the RAW messages, as read, on `out` (a capture `stim300 info`
+    reads); a gap (bytes this client lost while it did not keep up) is said on stderr, once per gap."""
+    from .client import Raw
+
+    client.watch(raw=True)
+    written, expected = 0, None
+    while count is None or written < count:
+        message = client.read()
+        if not isinstance(message, Raw):
+            continue
+        if expected is not None and message.offset != expected:
+            print(f"calibd pipe: {message.offset - expected} bytes of the stream lost at byte {expected} (this "
+                  "client did not keep up)", file=sys.stderr)
+        data = message.data if count is None else message.data[:count - written]
+        out.write(data)
+        out.flush()
+        written, expected = written + len(data), message.offset + len(message.data)
+    return 0
 
 
 WATCH_REDRAW_S = 0.2  # a terminal is redrawn at most this often
@@ -706,8 +732,11 @@ def _add_client_commands(sub) -> None:
     p.add_argument("socket", help=where)
     p.add_argument("--samples", choices=SAMPLE_KINDS, default="none",
                    help="also SAMPLES messages of the raw or bias-corrected stream (default none)")
+    p.add_argument("--raw", action="store_true", help="also RAW messages: the sensor's bytes, base64")
+    p.add_argument("--bytes", action="store_true",
+                   help="only the sensor's bytes as read, binary (a capture: calibd pipe SOCKET --bytes > x.bin)")
     p.add_argument("-n", "--count", type=_positive_int, metavar="COUNT",
-                   help="stop after COUNT messages (the VERSION and WATCH answers count)")
+                   help="stop after COUNT messages (the VERSION and WATCH answers count); with --bytes COUNT bytes")
     p.add_argument("--token-file", metavar="PATH", help=token)
     p.set_defaults(func=cmd_pipe)
     p = sub.add_parser("watch", help="the daemon live: state, protocol progress, estimates with sigma, stream "

@@ -18,6 +18,8 @@ so a newer server's additions do not break older clients.
 
 from __future__ import annotations
 
+import base64
+import binascii
 import json
 import os
 import socket
@@ -36,7 +38,7 @@ from .serve.protocol import (MAX_MESSAGE_BYTES, PROTO_MAJOR, SAMPLE_KINDS, Auth,
 
 # the message types: calibd.serve.protocol's, and the richer views this module reads
 __all__ = ["Client", "ClientError", "VersionError", "ServerGone", "NoAnswer", "message_of",
-           "Version", "Auth", "Watch", "State", "Poll", "Result", "Fault", "Samples", "Correction", "Overflow",
+           "Version", "Auth", "Watch", "State", "Poll", "Result", "Fault", "Samples", "Raw", "Correction", "Overflow",
            "Device", "Error", "Message"]
 
 CONNECT_TIMEOUT_S = 5.0
@@ -89,6 +91,16 @@ class Samples:
 
 
 @dataclass(frozen=True)
+class Raw:
+    """protocol.Raw with its bytes decoded: `data` are the sensor's bytes from stream byte
+    `offset` on, the first of them read at host monotonic time `t_host` (s)."""
+
+    offset: int
+    t_host: float
+    data: bytes
+
+
+@dataclass(frozen=True)
 class Correction:
     """protocol.Correction with each bias as (value, unit) (deg/h, mg)."""
 
@@ -138,7 +150,15 @@ _VIEWS = {  # the messages this client reads as richer types: arrays, results, (
     protocol.Result: lambda m: Result(_result(m.result, "RESULT")),
     protocol.Poll: lambda m: Poll(m.state, _result(m.result, "POLL")),
     protocol.Correction: lambda m: Correction(m.policy, m.session_id, m.from_t, _biases(m.old), _biases(m.new)),
+    protocol.Raw: lambda m: Raw(m.offset, m.t_host, _base64(m.data)),
 }
+
+
+def _base64(text: str) -> bytes:
+    try:
+        return base64.b64decode(text, validate=True)
+    except binascii.Error as exc:
+        raise ValueError(f"data is not base64 ({exc})") from None
 
 
 def message_of(doc: dict):
@@ -258,11 +278,12 @@ class Client:
         except (BrokenPipeError, ConnectionResetError):
             pass
 
-    def watch(self, samples: str = "none") -> Watch:
-        """Start the stream of STATE, RESULT and FAULT (and SAMPLES of the kind asked for)."""
+    def watch(self, samples: str = "none", raw: bool = False) -> Watch:
+        """Start the stream of STATE, RESULT and FAULT (and SAMPLES of the kind asked for, and
+        with `raw` the sensor's bytes as RAW messages)."""
         if samples not in SAMPLE_KINDS:
             raise ClientError(f"samples must be one of {', '.join(SAMPLE_KINDS)}, not {samples!r}")
-        self.command("WATCH", {"enable": True, "samples": samples})
+        self.command("WATCH", {"enable": True, "samples": samples} | ({"raw": True} if raw else {}))
         return self._answer(Watch)
 
     def unwatch(self) -> Watch:

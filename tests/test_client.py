@@ -480,7 +480,7 @@ def test_watch_prints_one_line_per_event_when_not_a_terminal(serve):
     process = calibd("watch", path)
     out, err = process.communicate(timeout=60)
     lines = out.decode().splitlines()
-    assert lines[0].startswith("calibd ") and ", protocol 1.2" in lines[0]
+    assert lines[0].startswith("calibd ") and ", protocol 1.3" in lines[0]
     assert lines[1] == "watching: on, samples none"
     assert "state COLLECTING: collecting: 3 statics; progress: warm yes, session 312.5 s" in lines[2]
     assert lines[3] == "faults: crc_errors 2 (+1), lost_samples 5"

@@ -129,7 +129,7 @@ def test_version_on_connect_and_commands_answered(served, tmp_path):
     version = client.message()
     assert version["class"] == "VERSION" and version["proto_major"] == 1
     client.send(b'?WATCH={"enable":true,"samples":"raw"};\n?VERSION;\n?DEVICE;\n?POLL;\n')
-    assert client.message() == {"class": "WATCH", "enable": True, "samples": "raw"}
+    assert client.message() == {"class": "WATCH", "enable": True, "samples": "raw", "raw": False}
     assert client.message()["class"] == "VERSION"
     device = client.message()
     assert device["class"] == "DEVICE" and device["path"] == "/dev/ttySTIM" and device["rate_hz"] is None
@@ -137,7 +137,7 @@ def test_version_on_connect_and_commands_answered(served, tmp_path):
     assert poll == {"class": "POLL", "state": {"state": "STARTING", "detail": "waiting for data", "progress": {}},
                     "result": None}
     client.send(b'?WATCH={"enable":false};\n')
-    assert client.message() == {"class": "WATCH", "enable": False, "samples": "none"}
+    assert client.message() == {"class": "WATCH", "enable": False, "samples": "none", "raw": False}
 
 
 def test_the_socket_is_0660_and_removed_at_close(tmp_path):

@@ -21,6 +21,7 @@ import os
 import secrets
 import stat
 import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -36,7 +37,8 @@ from ..daemon import Listener, State
 from ..results import CalibrationResult, result_json
 from ..session import PowerUpCuts
 from . import protocol
-from .protocol import MAX_TOKEN_BYTES, SAMPLES_MAX_S, Command, ProtocolError, samples_line, token_of
+from .protocol import (BYTES, MAX_TOKEN_BYTES, RAW_MAX_BYTES, SAMPLES_MAX_S, Command, ProtocolError, encode,
+                       samples_line, token_of)
 from ..correction import bias_estimates, replaces, sample_units, sensor_biases, uncorrectable
 from .ptys import CorrectedPty, PtyError, RawPty, Throttle
 from .sockets import ServeError, SocketServer
@@ -45,6 +47,7 @@ log = structlog.get_logger("calibd")
 
 RESULT_COPY_MODE = 0o640
 PENDING_SAMPLES = 8000  # samples the tap keeps for the server thread at most (4 s at 2000 Hz)
+PENDING_BYTES = 1 << 20  # the sensor's bytes the tap keeps for RAW watchers at most (13 s at 2000 Hz)
 
 
 @dataclass(frozen=True, eq=False)
@@ -84,6 +87,11 @@ class Hub(Listener):
         self._pending: list[tuple[np.ndarray, Correction | None]] = []  # each read's samples, what they take
         self._pending_count = 0
         self.dropped_samples = 0  # samples the tap let go because the server thread lagged
+        self._bytes_wanted = False  # a client watches RAW (the server thread says so at each cut)
+        self._bytes_seen = 0  # the stream's bytes so far: a RAW message's offset
+        self._raw: list[tuple[int, float, bytes]] = []  # (offset, host time, bytes) of each read, for RAW
+        self._raw_bytes = 0
+        self.dropped_bytes = 0  # bytes for RAW the tap let go because the server thread lagged
         self._episode_dropped = 0  # of them, since the server thread last took the queue
         self._lock = threading.Lock()
         self._clock = CounterClock()  # the server thread's: SAMPLES "t"
@@ -226,6 +234,9 @@ class Hub(Listener):
             self.corrected_pty.set_result(None if kept is None else kept.result)
         for raw_pty in self.raw_ptys:
             raw_pty.tap(settled)
+        if self._bytes_wanted and settled.data:
+            self._keep_bytes(settled.data)
+        self._bytes_seen += len(settled.data)
         if self.corrected_pty is not None:
             self.corrected_pty.tap(settled)
         if self.server is not None and len(settled.samples):
@@ -242,6 +253,30 @@ class Hub(Listener):
             if begins:
                 log.warning("samples_dropping", why="the socket server's thread lags: the oldest queued samples go")
 
+    def _keep_bytes(self, data: bytes) -> None:
+        """A read's bytes kept for the RAW watchers (reader thread); the oldest go, counted, when
+        the server thread lags by more than PENDING_BYTES."""
+        with self._lock:
+            self._raw.append((self._bytes_seen, time.monotonic(), data))
+            self._raw_bytes += len(data)
+            while self._raw_bytes > PENDING_BYTES and len(self._raw) > 1:
+                lost = len(self._raw.pop(0)[2])
+                self._raw_bytes -= lost
+                self.dropped_bytes += lost
+
+    def _raw_lines(self) -> list[tuple[str, bytes]]:
+        """The bytes kept since the last cut as RAW messages: one per run of consecutive reads,
+        at most RAW_MAX_BYTES each."""
+        with self._lock:
+            kept, self._raw, self._raw_bytes = self._raw, [], 0
+        lines = []
+        while kept:
+            offset, t_host, data = kept.pop(0)
+            while kept and kept[0][0] == offset + len(data) and len(data) + len(kept[0][2]) <= RAW_MAX_BYTES:
+                data += kept.pop(0)[2]
+            lines.append((BYTES, encode(protocol.Raw.of(offset, t_host, data))))
+        return lines
+
     def _forward(self, request: bytes) -> None:
         if self.port_writer is None:
             log.warning("request_not_forwarded", request=request.decode("ascii", "replace"),
@@ -251,13 +286,16 @@ class Hub(Listener):
 
     # ------------------------------------------------------------------ the socket server's thread
     def _cut_samples(self, kinds: set) -> list[tuple[str, bytes]]:
-        """The samples queued since the last cut, timed, as SAMPLES batches of at most
+        """The sensor's bytes kept since the last cut as RAW messages (kind BYTES, while a client
+        watches them), and the samples queued, timed, as SAMPLES batches of at most
         SAMPLES_MAX_S, each encoded once per kind in `kinds`. At a change of the biases the cut
         ends: CORRECTION is published, and the samples from the change wait for the next cut, so
         a client has it before the first SAMPLES carrying the new biases."""
+        self._bytes_wanted = BYTES in kinds
+        raw = self._raw_lines()
         info = self._info
         if info is None or not info.rate_hz:
-            return []  # until the rate is known nothing can be timed: the samples wait (bounded)
+            return raw  # until the rate is known nothing can be timed: the samples wait (bounded)
         with self._lock:
             pending, self._pending, self._pending_count = self._pending, [], 0
             ended, self._episode_dropped = self._episode_dropped, 0
@@ -271,7 +309,7 @@ class Hub(Listener):
             for piece, kept in pending:
                 timed.append((samples[lo:lo + len(piece)], time_s[lo:lo + len(piece)], kept))
                 lo += len(piece)
-        batches = []
+        batches = raw
         i = 0
         while i < len(timed):
             kept = timed[i][2]

@@ -7,6 +7,7 @@ fields are spelt once) and the client reads them with `decode`; docs/protocol.md
 
 from __future__ import annotations
 
+import base64
 import json
 import re
 from dataclasses import dataclass
@@ -20,13 +21,15 @@ from stim300.cliutil import package_version
 from ..errors import CalibdError
 
 PROTO_MAJOR = 1
-PROTO_MINOR = 2  # 1.1: ?AUTH and AUTH; 1.2: CORRECTION
+PROTO_MINOR = 3  # 1.1: ?AUTH and AUTH; 1.2: CORRECTION; 1.3: ?WATCH "raw" and RAW
 MAX_LINE_BYTES = 64 * 1024  # a longer command line is refused and skipped to its newline
 # A server message longer than this is not calibd's: SAMPLES of 0.1 s at 2000 Hz and result
 # documents stay well below (a client's bound on what it buffers).
 MAX_MESSAGE_BYTES = 4 * 1024 * 1024
 SAMPLE_KINDS = ("none", "raw", "corrected")  # what ?WATCH "samples" may ask for
+BYTES = "bytes"  # the kind of the RAW batches the server cuts beside the SAMPLES kinds (?WATCH "raw")
 SAMPLES_MAX_S = 0.1  # a SAMPLES message holds at most this much of the stream
+RAW_MAX_BYTES = 48 * 1024  # a RAW message holds at most this many of the sensor's bytes (base64: 64 kB)
 COMMANDS = ("WATCH", "POLL", "DEVICE", "VERSION", "AUTH")
 MAX_TOKEN_BYTES = 4096  # the longest token of ?AUTH ([serve] tcp_token_file)
 AUTH_TRIES = 3  # refused lines before ?AUTH succeeds that close a connection which needs a token
@@ -153,6 +156,7 @@ class Auth(Message, tag="AUTH"):
 class Watch(Message, tag="WATCH"):
     enable: bool
     samples: str = "none"
+    raw: bool = False  # the sensor's bytes as RAW messages
 
 
 class StateFields(msgspec.Struct, frozen=True):
@@ -250,7 +254,23 @@ class Samples(Message, tag="SAMPLES"):
     incl: list[list[float | None]] | None = None
 
 
-MESSAGES = Version | Error | Auth | Watch | State | Poll | Result | Fault | Overflow | Correction | Device | Samples
+class Raw(Message, tag="RAW"):
+    """The sensor's bytes as the daemon read them, every byte once and in order: `offset` is the
+    number of the stream's bytes before these (a gap between two RAW messages is bytes this
+    client lost, told by OVERFLOW), `t_host` the host monotonic time (s) of the first read among
+    them, `data` the bytes in base64."""
+
+    offset: int
+    t_host: float
+    data: str
+
+    @classmethod
+    def of(cls, offset: int, t_host_s: float, data: bytes) -> Raw:
+        return cls(offset, round(t_host_s, 6), base64.b64encode(data).decode("ascii"))
+
+
+MESSAGES = (Version | Error | Auth | Watch | State | Poll | Result | Fault | Overflow | Correction | Device | Samples
+            | Raw)
 
 
 def _plain(value):

@@ -28,9 +28,9 @@ from pathlib import Path
 import structlog
 
 from ..errors import CalibdError
-from .protocol import (AUTH_TRIES, IDLE_TIMEOUT_S, MAX_CLIENTS, MAX_CLIENTS_PER_UID, MAX_LINE_BYTES, SAMPLE_KINDS,
-                       Auth, Command, Error, Message, Overflow, ProtocolError, Version, Watch, auth_token, encode,
-                       parse_command)
+from .protocol import (AUTH_TRIES, BYTES, IDLE_TIMEOUT_S, MAX_CLIENTS, MAX_CLIENTS_PER_UID, MAX_LINE_BYTES,
+                       SAMPLE_KINDS, Auth, Command, Error, Message, Overflow, ProtocolError, Version, Watch, auth_token,
+                       encode, parse_command)
 
 log = structlog.get_logger("calibd")
 
@@ -95,6 +95,7 @@ class _Client:
         self.dropped = 0  # messages dropped since the last OVERFLOW
         self.watching = False
         self.samples = "none"
+        self.raw = False  # RAW messages: the sensor's bytes
         self.authenticated = authenticated  # False on TCP with a token until ?AUTH gives it
         self.refused = 0  # lines refused before ?AUTH succeeded
         self.active_s = time.monotonic()
@@ -326,7 +327,10 @@ class SocketServer:
             pass
 
     def _deliver_samples(self) -> None:
-        kinds = {c.samples for c in self._clients.values() if c.watching and c.samples != "none"}
+        watching = [c for c in self._clients.values() if c.watching]
+        kinds = {c.samples for c in watching if c.samples != "none"}
+        if any(c.raw for c in watching):
+            kinds.add(BYTES)
         try:
             batches = self._cut_samples(kinds)
         except Exception:  # a fault of calibd: these samples are lost, the server and the daemon run on
@@ -335,7 +339,7 @@ class SocketServer:
             return
         for kind, data in batches:
             for client in list(self._clients.values()):
-                if client.watching and client.samples == kind:
+                if client.watching and (client.raw if kind == BYTES else client.samples == kind):
                     self._guarded(client, self._send, client, data, True)
 
     # ------------------------------------------------------------------ connections
@@ -516,16 +520,17 @@ class SocketServer:
 
     @staticmethod
     def _watch(client: _Client, args: dict) -> Watch:
-        enable, samples = args.get("enable", True), args.get("samples", "none")
-        if not isinstance(enable, bool):
-            raise ProtocolError(f"?WATCH: \"enable\" must be true or false, not {enable!r}")
+        enable, samples, raw = args.get("enable", True), args.get("samples", "none"), args.get("raw", False)
+        for key, value in (("enable", enable), ("raw", raw)):
+            if not isinstance(value, bool):
+                raise ProtocolError(f"?WATCH: \"{key}\" must be true or false, not {value!r}")
         if samples not in SAMPLE_KINDS:
             raise ProtocolError(f"?WATCH: \"samples\" must be one of {', '.join(SAMPLE_KINDS)}, not {samples!r}")
-        unknown = set(args) - {"enable", "samples"}
+        unknown = set(args) - {"enable", "samples", "raw"}
         if unknown:
-            raise ProtocolError(f"?WATCH: unknown key(s) {', '.join(sorted(unknown))} (known: enable, samples)")
-        client.watching, client.samples = enable, samples if enable else "none"
-        return Watch(client.watching, client.samples)
+            raise ProtocolError(f"?WATCH: unknown key(s) {', '.join(sorted(unknown))} (known: enable, samples, raw)")
+        client.watching, client.samples, client.raw = enable, samples if enable else "none", raw and enable
+        return Watch(client.watching, client.samples, client.raw)
 
     # ------------------------------------------------------------------ output
     def _send(self, client: _Client, data: bytes, samples: bool) -> None:
