@@ -18,26 +18,16 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
+
+from startup import cpu_s  # benchmarks/startup.py: one child's user + system CPU
 
 ROOT = Path(__file__).resolve().parent.parent
 CAPTURE = ROOT / "fixtures" / "thesis_real_cw_125hz.bin"
 SITE = ["--latitude", "40.59129", "--g0", "9.79956"]  # the thesis's, as in README's quick start
 TARGET_RATIO = 2.0
-
-
-def cpu_s(argv: list[str]) -> float:
-    """User + system CPU seconds of one child process; SystemExit when it fails."""
-    child = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=ROOT,
-                             env=os.environ | {"PYTHONPATH": str(ROOT)})
-    err = child.stderr.read()
-    _, status, usage = os.wait4(child.pid, 0)
-    if os.waitstatus_to_exitcode(status):
-        raise SystemExit(f"{' '.join(argv[2:])} failed: {err.decode(errors='replace').strip()}")
-    return usage.ru_utime + usage.ru_stime
 
 
 def load() -> str:
