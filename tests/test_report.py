@@ -114,6 +114,7 @@ def with_svg(rendered):
     return {"dir": rendered["dir"] / "vector_files", "page": output.read_text()}
 
 
+@pytest.mark.slow  # the whole report drawn (the `rendered` fixture)
 def test_files_exist_and_are_pngs(rendered):
     d = rendered["dir"]
     assert rendered["written"] == [d / "report.html"] + [d / "report_files" / f"{f}.png" for f in FIGURES]
@@ -126,6 +127,7 @@ def test_files_exist_and_are_pngs(rendered):
     assert not list(d.glob(".*part")) and not list((d / "report_files").glob(".*part"))  # no temporaries left
 
 
+@pytest.mark.slow  # the whole report drawn (the `rendered` fixture)
 def test_no_svg_unless_asked_and_the_page_names_only_files_written(rendered):
     """The SVGs cost as much again as the PNGs: written only with --svg, and a page without them
     links no file that is not there."""
@@ -136,6 +138,7 @@ def test_no_svg_unless_asked_and_the_page_names_only_files_written(rendered):
     assert ".svg" not in rendered["page"]
 
 
+@pytest.mark.slow  # the whole report drawn (the `rendered` fixture)
 def test_svg_beside_each_png_with_its_text(rendered, with_svg):
     """--svg: vector copies for print, SVG documents whose labels are text, not paths, dated
     nowhere; the PNGs are the same bytes as without it, and the page differs only in its links."""
@@ -155,6 +158,7 @@ def test_svg_beside_each_png_with_its_text(rendered, with_svg):
     assert links.sub("", with_svg["page"].replace("vector_files/", "report_files/")) == links.sub("", rendered["page"])
 
 
+@pytest.mark.slow  # the whole report drawn (the `rendered` fixture)
 def test_html_embeds_and_names_every_figure_and_loads_nothing(rendered):
     page, d = rendered["page"], rendered["dir"]
     for name in FIGURES:
@@ -167,6 +171,7 @@ def test_html_embeds_and_names_every_figure_and_loads_nothing(rendered):
     assert "<link" not in page and "<script" not in page and "url(" not in page and "@import" not in page
 
 
+@pytest.mark.slow  # the whole report drawn (the `rendered` fixture)
 def test_table_numbers_equal_the_result_file(rendered):
     saved = json.loads((rendered["dir"] / "result.json").read_text())
     rows = parse(rendered["page"]).rows
@@ -179,6 +184,7 @@ def test_table_numbers_equal_the_result_file(rendered):
             assert float(shown) == pytest.approx(e[column], rel=0.05, abs=0.05 * e["sigma"])  # rounded at the sigma
 
 
+@pytest.mark.slow  # the whole report drawn (the `rendered` fixture)
 def test_thesis_and_truth_columns(rendered):
     rows = parse(rendered["page"]).rows
     thesis = thesis_real_case(rendered["session"], SITE).estimates
@@ -266,6 +272,7 @@ def test_earth_rate_figure_marks_the_yaw():
     assert any(f"yaw = {yaw:.2f}" in t.get_text() for t in fig.axes[0].texts)
 
 
+@pytest.mark.slow  # the whole report drawn (the `rendered` fixture)
 def test_segments_are_the_protocols(rendered):
     roles = re.findall(r"<tr><td>\d+</td><td>([a-z ]+)</td>", rendered["page"].split('id="segments"')[1])
     assert roles == ["static", "index turn"] * 4 + ["static", "full turn", "static"]
@@ -296,6 +303,7 @@ def test_the_thesis_column_says_what_the_protocol_lacks_with_headings_modulo_360
     assert "<td class='num'>990.000</td><td class='num'>270.0</td>" in table  # chi, and its heading
 
 
+@pytest.mark.slow  # the whole report drawn (the `rendered` fixture)
 def test_progress_bar_on_a_terminal_only(rendered):
     bar = rendered["bar"]
     assert bar.startswith("\rreport [") and "100.0%" in bar and bar.endswith("\n")
@@ -346,6 +354,7 @@ def run(argv, capsys):
     return code, out, err
 
 
+@pytest.mark.slow  # the whole report drawn (the `rendered` fixture)
 def test_command_without_truth_file(rendered, tmp_path, capsys):
     capture = tmp_path / "copy.bin"
     shutil.copy(CAPTURE, capture)
@@ -440,6 +449,7 @@ def test_a_truth_file_that_is_no_regular_file_is_no_truth(tmp_path):
     assert read_truth(str(capture)) is None
 
 
+@pytest.mark.slow  # the whole report drawn (the `rendered` fixture)
 def test_a_failed_report_leaves_the_previous_one(rendered, tmp_path, monkeypatch):
     """The page and its figures are replaced together or not at all: on a full disk the earlier
     report stays as it was, and nothing of the failed run is left."""
