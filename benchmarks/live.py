@@ -126,13 +126,14 @@ def main() -> int:
         (t0, c0, m0, main0), (t1, c1, m1, main1) = samples[0], samples[-1]
         cpu[name] = 100 * (c1 - c0) / (t1 - t0)
         main = 100 * (main1 - main0) / (t1 - t0)
-        print(f"{name}: {cpu[name]:.1f}% of one core (main thread {main:.1f}%, other threads "
-              f"{cpu[name] - main:.1f}%); RSS {m0:.0f} MB -> {m1:.0f} MB (max {max(s[2] for s in samples):.0f} MB)")
+        print(f"{name}: {cpu[name]:.2f}% of one core (main thread {main:.2f}%, other threads "
+              f"{cpu[name] - main:.2f}%: in calibd run, the port reader); RSS {m0:.0f} MB -> {m1:.0f} MB "
+              f"(max {max(s[2] for s in samples):.0f} MB); load average {os.getloadavg()[0]:.2f} (1 min)")
         minutes = [max(s[2] for s in samples if t0 + 60 * k <= s[0] < t0 + 60 * (k + 1))
                    for k in range(int((t1 - t0) // 60))]
         print(f"  RSS max per minute: {' '.join(f'{m:.0f}' for m in minutes)} MB")
     print(f"calibd run / bare reader CPU: {cpu['calibd run'] / max(cpu['bare pyserial reader'], 0.01):.1f}x "
-          f"(target: calibd run <= 5% of one core)")
+          f"(target: calibd run <= 5% of one core, its port reader thread <= 1%)")
     fixture = ROOT / "fixtures" / "thesis_real_cw_125hz.bin"
     times = {}
     with tempfile.TemporaryDirectory() as tmp:

@@ -8,14 +8,13 @@ not carry are NaN (values) and 0 (status).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
 
 from .crc import crc_columns
-from .protocol import CLUSTERS, CR_LF, NORMAL_LAYOUTS, Format, Layout, Status
-
-AXES = "xyz"
+from .protocol import CR_LF, NORMAL_LAYOUTS, Format, Layout, Status
 
 SAMPLE_DTYPE = np.dtype([
     ("t_host", "f8"),  # host monotonic clock when the read that completed it returned (s); NaN offline
@@ -72,48 +71,58 @@ def empty_columns(n: int) -> dict[str, np.ndarray]:
     return columns
 
 
-def _clear(out, names) -> None:
-    """Mark the blocks `names` (and their status bytes) absent: NaN values, status 0."""
-    for name in names:
-        out[name][...] = np.nan
-        out["status_" + name][...] = 0
+VECTORS = ("gyro", "acc", "incl", "temp_gyro", "temp_acc", "temp_incl")  # SAMPLE_DTYPE's three-axis values
+INTEGERS = ("status_gyro", "status_acc", "status_incl", "status_temp_gyro", "status_temp_acc", "status_temp_incl",
+            "status_aux", "counter", "latency_us")  # SAMPLE_DTYPE's fields copied as sent
+AUX = 3 * len(VECTORS)  # a plan's column of the AUX or PPS value, between VECTORS' and INTEGERS'
+_ABSENT = (0, 1, 0)  # (offset, bytes, mask) of a value the datagram lacks: 0 (NaN once scaled)
+CHUNK = 4096  # datagrams decode_frames decodes together: their words stay in the cache
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """How to decode one layout in one format, worked out once: a live feed decodes a few
+    datagrams at a time, where numpy's cost per call, not per value, is what counts.
+
+    Every value of a datagram is one column: the big-endian 32-bit word that ends with its last
+    byte, shifted left and back right (which drops the bytes before a 24-, 16- or 8-bit value
+    and sign-extends it) and masked (keeping an unsigned value's bits; 0 for a block the
+    datagram lacks). Columns: VECTORS' 18 values, AUX, INTEGERS'."""
+
+    starts: np.ndarray  # per column, the offset of its word in a datagram
+    shifts: np.ndarray  # int32 per column
+    masks: np.ndarray  # int32 per column
+    scales: np.ndarray  # float32 per value of VECTORS; NaN for a block the datagram lacks
+    aux_scale: float  # the AUX or PPS value's LSB (float64 products); NaN without one
 
 
 @lru_cache(maxsize=None)
-def _record(layout: Layout, width: int) -> np.dtype:
-    """Overlapping big-endian fields over one datagram row, so each value is a strided view.
-
-    A 24-bit value at offset o is read as the 32-bit word at o - 1 (the byte before it is
-    shifted out); o >= 1 always, as byte 0 is the id.
-    """
-    off = layout.offsets
-    fields: dict[str, tuple[str, int]] = {}
-    for name in layout.clusters:
-        for k, axis in enumerate(AXES):
-            fields[f"{name}_{axis}"] = (">i4", off[name] + 3 * k - 1)
-        fields["status_" + name] = ("u1", off["status_" + name])
-    for name in layout.temperatures:
-        for k, axis in enumerate(AXES):
-            fields[f"temp_{name}_{axis}"] = (">i2", off["temp_" + name] + 2 * k)
-        fields["status_temp_" + name] = ("u1", off["status_temp_" + name])
-    if layout.aux:
-        fields["aux"] = (">i4", off["aux"] - 1)
-        fields["status_aux"] = ("u1", off["status_aux"])
-    fields["counter"] = ("u1", off["counter"])
-    fields["latency_us"] = (">u2", off["latency"])
-    return np.dtype({"names": list(fields), "formats": [f for f, _ in fields.values()],
-                     "offsets": [o for _, o in fields.values()], "itemsize": width})
+def _plan(layout: Layout, fmt: Format) -> _Plan:
+    off, lsb = layout.offsets, fmt.scales()
+    columns, scales = [], []  # (offset, bytes, mask) per column; LSB per value of VECTORS
+    for name in VECTORS:
+        cluster = name.removeprefix("temp_")
+        present = cluster in (layout.temperatures if name.startswith("temp_") else layout.clusters)
+        size = 2 if name.startswith("temp_") else 3
+        columns += [(off[name] + size * k, size, -1) if present else _ABSENT for k in range(3)]
+        scales += np.broadcast_to(lsb["temp" if size == 2 else name] if present else np.nan, 3).tolist()
+    unsigned = layout.aux == "pps" and fmt.pps_unsigned
+    columns.append((off["aux"], 3, 0xFFFFFF if unsigned else -1) if layout.aux else _ABSENT)
+    for name in INTEGERS:
+        size = 2 if name == "latency_us" else 1
+        offset = off.get("latency" if name == "latency_us" else name)
+        columns.append(_ABSENT if offset is None else (offset, size, (1 << 8 * size) - 1))
+    return _Plan(starts=np.array([max(o + size - 4, 0) for o, size, _ in columns], np.intp),
+                 shifts=np.array([[8 * (4 - size)] for _, size, _ in columns], np.int32),
+                 masks=np.array([[mask] for _, _, mask in columns], np.int32),
+                 scales=np.array(scales, np.float32)[:, None],
+                 aux_scale=lsb[layout.aux] if layout.aux else np.nan)
 
 
-def _int24(word: np.ndarray, signed: bool = True) -> np.ndarray:
-    """The low 24 bits of big-endian words, sign-extended or not, as native int32."""
-    value = word.astype(np.int32)
-    if signed:
-        value <<= 8
-        value >>= 8
-    else:
-        value &= 0xFFFFFF
-    return value
+def _words(data: np.ndarray, rows: int, row_bytes: int) -> np.ndarray:
+    """The big-endian 32-bit word starting at each byte of `rows` rows of `row_bytes` bytes
+    (C-contiguous uint8 `data`): a view, rows x (row_bytes - 3)."""
+    return np.ndarray((rows, row_bytes - 3), ">i4", buffer=data, strides=(row_bytes, 1))
 
 
 def decode_frames(frames: np.ndarray, layout: Layout, fmt: Format, out: np.ndarray,
@@ -123,36 +132,43 @@ def decode_frames(frames: np.ndarray, layout: Layout, fmt: Format, out: np.ndarr
     `t_host` is one read time for all, or one per datagram.
 
     Every field of `out` is written, so it may come from np.empty. The CRC is not checked here:
-    callers only pass frames they have verified.
-    """
-    if not frames.flags.c_contiguous:
-        frames = np.ascontiguousarray(frames)
-    rec = frames.view(_record(layout, frames.shape[1]))[:, 0]
-    scales = {name: np.broadcast_to(np.asarray(value, np.float32), 3) for name, value in fmt.scales().items()}
+    callers only pass frames they have verified. Many datagrams are decoded CHUNK at a time, one
+    strided copy per column each (`decode_at` gathers a few in one step)."""
+    plan = _plan(layout, fmt)
+    frames = np.ascontiguousarray(frames)
+    words = _words(frames, *frames.shape)
+    for start in range(0, len(frames), CHUNK):
+        rows = slice(start, start + CHUNK)
+        columns = np.empty((len(plan.starts), len(words[rows])), np.int32)
+        for column, word in zip(columns, plan.starts.tolist()):
+            column[...] = words[rows, word]
+        part = {name: out[name][rows] for name in SAMPLE_DTYPE.names} if isinstance(out, dict) else out[rows]
+        _finish(columns, layout, plan, part, t_host[rows] if np.ndim(t_host) else t_host)
+
+
+def decode_at(data: np.ndarray, offsets: np.ndarray, layout: Layout, fmt: Format, out: np.ndarray,
+              t_host: float | np.ndarray = np.nan) -> None:
+    """`decode_frames` of the datagrams starting at `offsets` of `data` (C-contiguous uint8),
+    every value gathered in one step: a live feed's few datagrams, wherever the read put them."""
+    plan = _plan(layout, fmt)
+    words = _words(data, 1, len(data))[0]
+    _finish(words[plan.starts[:, None] + offsets].astype(np.int32), layout, plan, out, t_host)
+
+
+def _finish(columns: np.ndarray, layout: Layout, plan: _Plan, out, t_host) -> None:
+    """Decode from each datagram's words (`columns`: one row per plan column, one column per
+    datagram, native int32, changed in place)."""
+    columns <<= plan.shifts
+    columns >>= plan.shifts
+    columns &= plan.masks
+    values = np.multiply(columns[:AUX], plan.scales, dtype=np.float32, casting="unsafe")
     out["t_host"][...] = t_host
     out["datagram_id"][...] = layout.datagram_id
-    _clear(out, [c for c in CLUSTERS if c not in layout.clusters])
-    _clear(out, ["temp_" + c for c in CLUSTERS if c not in layout.temperatures])
-    for name in layout.clusters:
-        block = out[name]
-        for k, axis in enumerate(AXES):
-            np.multiply(_int24(rec[f"{name}_{axis}"]), scales[name][k], out=block[:, k], dtype=np.float32,
-                        casting="unsafe")
-        out["status_" + name][...] = rec["status_" + name]
-    for name in layout.temperatures:
-        block = out["temp_" + name]
-        for k, axis in enumerate(AXES):
-            np.multiply(rec[f"temp_{name}_{axis}"], scales["temp"][k], out=block[:, k], dtype=np.float32,
-                        casting="unsafe")
-        out["status_temp_" + name][...] = rec["status_temp_" + name]
-    if layout.aux:
-        unsigned = layout.aux == "pps" and fmt.pps_unsigned
-        out["aux"][...] = _int24(rec["aux"], signed=not unsigned) * fmt.scales()[layout.aux]
-        out["status_aux"][...] = rec["status_aux"]
-    else:
-        _clear(out, ["aux"])
-    out["counter"][...] = rec["counter"]
-    out["latency_us"][...] = rec["latency_us"]
+    for k, name in enumerate(VECTORS):
+        out[name][...] = values[3 * k:3 * k + 3].T
+    np.multiply(columns[AUX], plan.aux_scale, out=out["aux"])
+    for k, name in enumerate(INTEGERS, AUX + 1):
+        out[name][...] = columns[k]
 
 
 def _put_ints(frames: np.ndarray, offset: int, counts: np.ndarray, nbytes: int) -> None:
@@ -178,7 +194,8 @@ def subtract_counts(frames: np.ndarray, offset: int, counts: np.ndarray) -> None
     of `frames` (N x >= pre_crc + 4 uint8), saturating as the sensor does; `seal` then writes
     the CRC. A constant offset in counts is a bias taken out without decoding the datagram."""
     octets = frames[:, offset:offset + 9].reshape(len(frames), 3, 3).astype(np.int32)
-    value = _int24((octets[:, :, 0] << 16) | (octets[:, :, 1] << 8) | octets[:, :, 2]) - counts
+    value = ((octets[:, :, 0] << 24) | (octets[:, :, 1] << 16) | (octets[:, :, 2] << 8)) >> 8  # sign-extended
+    value -= counts
     np.maximum(value, -(1 << 23), out=value)  # not np.clip: its checks cost more than the work here
     np.minimum(value, (1 << 23) - 1, out=value)
     _put_ints(frames, offset, value, 3)
