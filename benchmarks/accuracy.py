@@ -56,6 +56,7 @@ from calibd.scenario import Truth, load_scenario
 from calibd.session import Session
 from calibd.sim import simulate, truth_record
 from calibd.units import DEG
+from stim300.records import SensorRecord
 
 NAMES = ["pitch", "roll", "yaw", "alpha", "beta", "gyro_bias_x", "gyro_bias_y", "gyro_bias_z", "acc_bias_x",
          "acc_bias_y", "acc_bias_z", "incl_bias_x", "incl_bias_y", "incl_bias_z"]
@@ -128,7 +129,7 @@ def one_session(seed: int, run_set: str) -> dict:
     session = Session(time_s=np.arange(len(s)) / rate, gyro=s["gyro"].astype(float) * DEG,
                       acc=s["acc"].astype(float) * STANDARD_GRAVITY,
                       incl=None if run_set == "no inclinometers" else s["incl"].astype(float) * STANDARD_GRAVITY,
-                      temperature_c=None, rate_hz=rate, sensor={}, stream={"capture": f"seed {seed}"})
+                      temperature_c=None, rate_hz=rate, sensor=SensorRecord(), stream={"capture": f"seed {seed}"})
     given = scenario.site
     site = Site(given.latitude_deg, given.height_m) if run_set == "normal gravity" else given
     truth = scenario.truth.estimates()

@@ -231,7 +231,7 @@ def meta_record(correction: Correction, result_path: str, result_sha256: str, re
     the biases subtracted (SI) and the software."""
     record = {"schema": APPLIED_SCHEMA, "software": f"calibd {version}",
               "result": {"path": result_path, "sha256": result_sha256,
-                         "serial_number": result.sensor.get("serial_number")},
+                         "serial_number": result.sensor.serial_number},
               "capture": capture_path, "frame": correction.frame,
               "biases_subtracted": {f"{c}_{UNITS[c]}": correction.biases[c].tolist() for c in correction.biases}}
     if correction.rotation is not None:

@@ -35,7 +35,7 @@ def calibrate_capture(capture: CaptureSessions, solve, power_up: int | None = No
             result = result.flag_poor(result.estimates, NOT_WARMED_UP)
         return replace(result, session_id=capture_session_id(capture, number, session),
                        capture={"path": capture.path, **capture.identity,
-                                "serial_number": capture.sensor.get("serial_number")})
+                                "serial_number": capture.sensor.serial_number})
     raise CalibrationError("; ".join(refusals))
 
 

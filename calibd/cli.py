@@ -595,7 +595,7 @@ def cmd_apply(args) -> int:
         raise UsageError(f"{args.result}: {exc}") from None
     meta = meta_record(fix, args.result, hashlib.sha256(result_bytes).hexdigest(), result, args.capture,
                        package_version())
-    serial = result.sensor.get("serial_number")
+    serial = result.sensor.serial_number
     reads = load_reads(args.capture)
     try:
         with mapped_input(args.capture) as (data, let_go), atomic_file(args.output, durable=False) as f:

@@ -248,6 +248,6 @@ def kalibr_yaml(session: Session, channels: dict[str, ChannelNoise], rostopic: s
         lines += [f"{kalibr}_noise_density: {density!r}  # {density_unit}, white noise: Allan deviation at 1 s, "
                   f"largest axis",
                   f"{kalibr}_random_walk: {walk!r}  # {walk_unit}, {walk_how}, largest axis"]
-    rate_hz = session.sensor.get("sample_rate_hz", session.rate_hz)  # a session made without a sensor record: its own
+    rate_hz = session.sensor.sample_rate_hz or session.rate_hz  # a session made without the sensor's rate: its own
     lines += [f"rostopic: {rostopic}", f"update_rate: {float(rate_hz)!r}  # Hz, the sensor's sample rate"]
     return "\n".join(lines) + "\n"

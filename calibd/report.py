@@ -297,9 +297,9 @@ def _stream(result: CalibrationResult, whole: Session) -> str:
               if "flagged_datagrams" in s else []),
             ("duration", f"{duration:.3f} s at {whole.rate_hz} Hz")]
     sensor = result.sensor
-    rows += [(label, sensor[key]) for key, label in (("serial_number", "serial number"),
-                                                     ("part_number", "part number"), ("datagram_id", "datagram"))
-             if sensor.get(key)]
+    rows += [(label, value) for value, label in ((sensor.serial_number, "serial number"),
+                                                 (sensor.part_number, "part number"), (sensor.datagram_id, "datagram"))
+             if value]
     return '<table id="stream">' + "".join(f"<tr><th>{_e(k)}</th><td>{_e(v)}</td></tr>" for k, v in rows) + "</table>"
 
 

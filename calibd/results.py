@@ -21,6 +21,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from stim300.atomic import write_atomic
+from stim300.records import SensorRecord
 from stim300.cliutil import DOCUMENT_LIMIT_BYTES, package_version, read_input
 from stim300.errors import UsageError
 
@@ -104,7 +105,7 @@ class CalibrationResult:
     estimates: dict[str, Estimate]
     segments: tuple[dict, ...] = ()
     warnings: tuple[str, ...] = ()
-    sensor: dict = field(default_factory=dict)
+    sensor: SensorRecord = SensorRecord()
     stream: dict = field(default_factory=dict)
     covariance: dict | None = None  # covariance_record: the joint method's; None: the method has none
     software: dict | None = None  # name and version of what made it; None: read from a version 1 or 2 file
@@ -164,7 +165,7 @@ class CalibrationResult:
         doc = {"schema": SCHEMA, "method": self.method, "software": self.software, "session_id": self.session_id,
                "site": self.site, "estimates": {name: e.to_dict() for name, e in self.estimates.items()},
                "rotation": self.rotation_record(), "covariance": self.covariance,
-               "segments": list(self.segments), "warnings": list(self.warnings), "sensor": self.sensor,
+               "segments": list(self.segments), "warnings": list(self.warnings), "sensor": self.sensor.to_dict(),
                "stream": self.stream}
         return doc | {name: getattr(self, name) for name in _OPTIONAL if getattr(self, name) is not None}
 
@@ -184,8 +185,9 @@ class CalibrationResult:
         if not isinstance(estimates, dict) or not any(estimates.get(name) is not None for name in ESTIMATES):
             raise ResultError(f"{where}: the result has no estimates (value and unit each)")
         validate(doc, ResultDoc, where, ResultError)
-        known = {"method", "site", "sensor", "stream", "covariance", "software", "session_id", *_OPTIONAL}
+        known = {"method", "site", "stream", "covariance", "software", "session_id", *_OPTIONAL}
         return cls(**{key: value for key, value in doc.items() if key in known},
+                   sensor=SensorRecord.from_dict(doc.get("sensor") or {}),
                    estimates={name: Estimate(e["value"], e.get("sigma"), e["unit"], e.get("quality"))
                               for name, e in estimates.items() if name in ESTIMATES and e is not None},
                    segments=tuple(doc.get("segments", ())), warnings=tuple(doc.get("warnings", ())),
@@ -220,7 +222,8 @@ def site_record(site: Site) -> dict:
 
 
 def make_result(method: str, site: Site, estimates: dict[str, tuple[float, float | None]], segments: list[dict],
-                warnings: list[str], sensor: dict, covariance: np.ndarray | None = None, **extra) -> CalibrationResult:
+                warnings: list[str], sensor: SensorRecord, covariance: np.ndarray | None = None,
+                **extra) -> CalibrationResult:
     """The result of a method; `estimates` maps names of ESTIMATES to (value, sigma) in SI, and
     `covariance` (SI), when the method has one, is theirs in the same order."""
     unknown = set(estimates) - set(ESTIMATES)

@@ -10,12 +10,13 @@ one power-up makes a session, from where its warm-up ends or a given start.
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from stim300.bulk import decode_blocks
 from stim300.capture import StreamInfo, stream_info
+from stim300.records import SensorRecord
 from stim300.clock import counter_times
 from stim300.codec import fault_bits, start_up_flags, start_up_rises
 from stim300.protocol import status_names
@@ -38,7 +39,7 @@ class Session:
     incl: np.ndarray | None  # m/s^2; None: the unit has no inclinometers (its datagram carries none)
     temperature_c: np.ndarray | None  # mean of the gyro temperatures, when the datagram has them
     rate_hz: int | float  # stored samples per second (an externally triggered sensor's: measured)
-    sensor: dict
+    sensor: SensorRecord
     stream: dict
 
 
@@ -66,7 +67,7 @@ class CaptureSessions:
     path: str
     power_ups: list[PowerUp]
     rate_hz: int | float  # the sensor's samples per second (externally triggered: measured)
-    sensor: dict
+    sensor: SensorRecord
     stream: dict  # the whole capture's stream statistics
     identity: dict  # which file this is: its size_bytes and sha256 (results record it, a report checks it)
 
@@ -350,7 +351,7 @@ def decode_sessions(data, name: str, reads: np.ndarray | None = None,
     reader.finish(info)
     return CaptureSessions(
         path=str(name), power_ups=reader.power_ups, rate_hz=reader.rate_hz,
-        sensor=info.sensor_record() | {"sample_rate_hz": reader.rate_hz},
+        sensor=replace(info.sensor_record(), sample_rate_hz=reader.rate_hz),
         stream={"capture": str(name), **info.stream_record()},
         identity={"size_bytes": len(data), "sha256": digest.hexdigest()})
 

@@ -14,6 +14,7 @@ import importlib
 
 _HOMES = {  # public name -> the module of stim300 that defines it
     "decode_capture": "bulk", "decode_columns": "bulk", "Capture": "capture", "StreamInfo": "capture",
+    "SensorRecord": "records",
     "StreamStats": "stream", "stream_info": "capture", "StreamParser": "stream",
     "load_reads": "reads", "SAMPLE_DTYPE": "codec", "Format": "protocol", "GyroUnit": "protocol",
     "AccUnit": "protocol", "PpsUnit": "protocol", "Status": "protocol",

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .protocol import INTERNAL_RATE_HZ, Format
+from .records import SensorRecord
 from .special import Configuration
 from .stream import Scanner, StreamParser, StreamStats
 
@@ -60,15 +61,12 @@ class StreamInfo:
             return f"external trigger, irregular steps, {rate:.1f} Hz on average"
         return f"external trigger, {rate:.1f} Hz"
 
-    def sensor_record(self) -> dict:
-        """The sensor's identity as a result or status document records it (JSON-ready);
-        `acc_range_g`: the accelerometers' range from the configuration datagram (the widest
-        axis's), None when the stream has none."""
+    def sensor_record(self) -> SensorRecord:
+        """The sensor's identity as the stream names it so far."""
         ident = self.datagram_id
         ranges = None if self.configuration is None else self.configuration.acc_range_g
-        return {"serial_number": self.serial_number, "part_number": self.part_number,
-                "datagram_id": None if ident is None else f"0x{ident:02X}", "sample_rate_hz": self.rate_hz,
-                "sample_rate": self.rate_words(), "acc_range_g": None if ranges is None else max(ranges)}
+        return SensorRecord(self.serial_number, self.part_number, None if ident is None else f"0x{ident:02X}",
+                            self.rate_hz, self.rate_words(), None if ranges is None else max(ranges))
 
     def stream_record(self) -> dict:
         """The stream's statistics as a result records them (JSON-ready): what came, what was lost

@@ -24,6 +24,7 @@ from captures import capture
 from stim300.codec import encode_samples
 from stim300.protocol import GyroUnit
 from stim300.special import Configuration, encode_special
+from stim300.records import SensorRecord
 
 FIXTURE = Path(__file__).parent.parent / "fixtures" / "heading137_lat60_125hz.bin"
 TRUTH = json.loads(Path(f"{FIXTURE}.truth.json").read_text())
@@ -43,14 +44,14 @@ def truth_result(serial: str | None = SERIAL, poor: tuple[str, ...] = (), **chan
             estimates[f"{cluster}_bias_{axis}"] = (value * unit, 1e-3 * unit)
     for name in changes.pop("drop", ()):
         del estimates[name]
-    result = make_result("joint", site, estimates, [], [], {"serial_number": serial})
+    result = make_result("joint", site, estimates, [], [], SensorRecord(serial_number=serial))
     return result.flag_poor(poor) if poor else result
 
 
 def applied_columns(result, frame: bool = False, data: bytes | None = None, force: bool = False):
     data = FIXTURE.read_bytes() if data is None else data
     gather = NpzWriter(NpzWriter.capacity_for(len(data)))
-    applied = apply_capture(data, "c.bin", correction(result, frame, force), result.sensor.get("serial_number"),
+    applied = apply_capture(data, "c.bin", correction(result, frame, force), result.sensor.serial_number,
                             force, gather)
     return {name: values[:gather.n] for name, values in gather.columns.items()}, applied
 

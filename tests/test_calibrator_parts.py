@@ -27,6 +27,7 @@ from calibd.warmup import settling
 from stim300.bulk import decode_capture
 from stim300.codec import SAMPLE_DTYPE
 from stim300.source import CaptureSource
+from stim300.records import SensorRecord
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
 HEADING137 = FIXTURES / "heading137_lat60_125hz.bin"
@@ -139,7 +140,7 @@ def test_the_collectors_session_starts_where_asked_and_stops_growing_at_the_boun
     collector = Collector()
     collector.store(samples[:2500], collector.times(samples[:2500], RATE_HZ))  # 20 s
     collector.start_session(10.0, DetectionConfig())
-    session = collector.session({"serial_number": "N1"}, {"capture": "x.bin", "session": 3})
+    session = collector.session(SensorRecord(serial_number="N1"), {"capture": "x.bin", "session": 3})
     assert session.time_s[0] == 0.0 and session.time_s[-1] == pytest.approx(20.0 - 1 / RATE_HZ - 10.0, abs=0.2)
     assert session.stream == {"capture": "x.bin", "session": 3, "flagged_datagrams": 0, "fault_flags": [],
                               "hidden_gaps": None, "hidden_gap_s": None}  # no host times: none looked for

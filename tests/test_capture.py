@@ -23,7 +23,7 @@ def test_a_capture_with_power_up_datagrams_carries_the_sensor_identity():
     truth = json.loads((FIXTURES / "faults_125hz.bin.truth.json").read_text())["sensor"]
     info = decode_capture(data).info
     assert info.rate_hz == truth["sample_rate_hz"] == info.format.sample_rate_hz
-    assert info.sensor_record() == {
+    assert info.sensor_record().to_dict() == {
         "serial_number": truth["serial_number"], "part_number": f"{truth['part_number']} REV {truth['revision']}",
         "datagram_id": truth["datagram_id"], "sample_rate_hz": truth["sample_rate_hz"], "sample_rate": "125 Hz",
         "acc_range_g": truth["acc_range_g"]}
@@ -36,7 +36,7 @@ def test_without_a_configuration_the_rate_comes_from_the_counter_step(rate_hz):
     info = decode_capture(data, Format(datagram_id=fmt.datagram_id)).info
     assert info.format.sample_rate_hz is None
     assert info.rate_hz == rate_hz and info.stats.counter_step == INTERNAL_RATE_HZ // rate_hz
-    assert info.sensor_record() == {"serial_number": None, "part_number": None, "datagram_id": "0xA7",
+    assert info.sensor_record().to_dict() == {"serial_number": None, "part_number": None, "datagram_id": "0xA7",
                                     "sample_rate_hz": rate_hz, "sample_rate": f"{rate_hz} Hz", "acc_range_g": None}
 
 
@@ -44,7 +44,7 @@ def test_one_datagram_is_too_few_to_know_the_rate():
     data, _, fmt = capture(1, rate=250)
     info = decode_capture(data, Format(datagram_id=fmt.datagram_id)).info
     assert info.stats.datagrams == 1
-    assert info.rate_hz is None and info.sensor_record()["sample_rate_hz"] is None
+    assert info.rate_hz is None and info.sensor_record().sample_rate_hz is None
 
 
 def test_a_live_parser_is_described_as_the_bulk_decoder_describes_the_capture():

@@ -26,6 +26,7 @@ from calibd.serve import protocol
 from calibd.serve.protocol import ProtocolError, decode, encode, parse_command
 from calibd.units import DEG
 from calibd.watchview import WatchView, progress_text, render, value_sigma
+from stim300.records import SensorRecord
 from captures import calibd
 
 PROGRESS = {"warm": True, "session_s": 312.5, "statics": 3, "headings": 2, "turns": 1,
@@ -33,7 +34,7 @@ PROGRESS = {"warm": True, "session_s": 312.5, "statics": 3, "headings": 2, "turn
 STATE = {"class": "STATE", "state": "COLLECTING", "detail": "collecting: 3 statics", "progress": PROGRESS}
 RESULT_DOC = make_result("joint", Site(60.0), {"yaw": (137.2 * DEG, 0.0123 * DEG),
                                                "gyro_bias_x": (3e-6, 1e-7), "acc_bias_z": (0.01, None)},
-                         [], ["a warning"], {"serial_number": "N1"}, session={"number": 1, "duration_s": 312.5}
+                         [], ["a warning"], SensorRecord(serial_number="N1"), session={"number": 1, "duration_s": 312.5}
                          ).to_dict()
 SAMPLES = {"class": "SAMPLES", "corrected": False, "t": [0.0, 0.0005, 0.001], "t_host": [10.0, 10.0, 10.001],
            "counter": [7, 8, 9], "gyro": [[0.1, 0.2, 0.3]] * 3, "acc": [[0.0, 0.0, 1.0]] * 3, "incl": None}

@@ -10,11 +10,12 @@ from calibd.results import make_result
 from calibd.units import DEG
 from stim300.protocol import AccUnit, GyroUnit
 from stim300.special import Configuration
+from stim300.records import SensorRecord
 
 
 def result(**si):
     return make_result("joint", Site(40.0), {name: (value, 1e-6) for name, value in si.items()}, [], [],
-                       {"serial_number": "N1"})
+                       SensorRecord(serial_number="N1"))
 
 
 def test_the_biases_are_the_estimates_in_si_and_in_the_sensors_units():

@@ -20,6 +20,7 @@ from calibd.units import DEG
 from stim300.bulk import decode_capture
 from stim300.capture import stream_info
 from stim300.stream import StreamParser
+from stim300.records import SensorRecord
 
 DATA = (Path(__file__).resolve().parents[1] / "fixtures" / "static_turn_2000hz.bin").read_bytes()
 LSB = decode_capture(DATA[:20_000]).info.format.scales()  # one count of each block (deg/s, g)
@@ -34,7 +35,7 @@ def result(session: str, k: float, sigma: float, poor: bool = False):
     si = {f"gyro_bias_{a}": (k * v / 3600 * DEG, sigma * 0.1 / 3600 * DEG) for a, v in zip("xyz", (1, -2, 3))}
     for block in ("acc", "incl"):
         si |= {f"{block}_bias_{a}": (k * v * 1e-3 * G, sigma * 1e-5 * G) for a, v in zip("xyz", (0.1, -0.2, 0.3))}
-    made = make_result("joint", Site(40.0), si, [], [], {"serial_number": "N1"}, session_id=session)
+    made = make_result("joint", Site(40.0), si, [], [], SensorRecord(serial_number="N1"), session_id=session)
     return made.flag_poor(NAMES, "bias poorly observed") if poor else made
 
 

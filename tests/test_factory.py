@@ -20,6 +20,7 @@ from calibd.scenario import Noise, ScenarioError, Truth, load_scenario, parse_sc
 from calibd.session import Session
 from calibd.sim import simulate, write_capture
 from calibd.units import DEG
+from stim300.records import SensorRecord
 from test_joint import exact_input
 
 MG = STANDARD_GRAVITY / 1000
@@ -31,7 +32,7 @@ def session_of(sim) -> Session:
     s, rate = sim.samples, sim.scenario.sensor.sample_rate_hz
     return Session(time_s=np.arange(len(s)) / rate, gyro=sim.exact["gyro"] * DEG,
                    acc=sim.exact["acc"] * STANDARD_GRAVITY, incl=sim.exact["incl"] * STANDARD_GRAVITY,
-                   temperature_c=None, rate_hz=rate, sensor={}, stream={"capture": "simulated"})
+                   temperature_c=None, rate_hz=rate, sensor=SensorRecord(), stream={"capture": "simulated"})
 
 
 def fitted(truth: Truth, scenario=QUIET):
@@ -85,7 +86,7 @@ def noisy_session(scenario) -> Session:
     s, rate = sim.samples, scenario.sensor.sample_rate_hz
     return Session(time_s=np.arange(len(s)) / rate, gyro=s["gyro"].astype(float) * DEG,
                    acc=s["acc"].astype(float) * STANDARD_GRAVITY, incl=s["incl"].astype(float) * STANDARD_GRAVITY,
-                   temperature_c=None, rate_hz=rate, sensor={}, stream={"capture": "simulated"})
+                   temperature_c=None, rate_hz=rate, sensor=SensorRecord(), stream={"capture": "simulated"})
 
 
 @pytest.mark.parametrize("seed", [3, 4])
@@ -126,7 +127,7 @@ def test_the_budget_parts_add_up_to_the_sigma_in_the_result_document():
     s, rate = sim.samples, THESIS.sensor.sample_rate_hz
     session = Session(time_s=np.arange(len(s)) / rate, gyro=s["gyro"].astype(float) * DEG,
                       acc=s["acc"].astype(float) * STANDARD_GRAVITY, incl=s["incl"].astype(float) * STANDARD_GRAVITY,
-                      temperature_c=None, rate_hz=rate, sensor={}, stream={"capture": "simulated"})
+                      temperature_c=None, rate_hz=rate, sensor=SensorRecord(), stream={"capture": "simulated"})
     doc = json.loads(result_json(joint_real_case(session, THESIS.site)))
     budget = doc["error_budget"]
     assert budget["frame"] == "housing" and doc["schema"] == "calibd.result/4"
@@ -168,7 +169,7 @@ def test_residuals_at_the_datasheet_limits_are_flagged_or_within_three_sigma(see
     s, rate = sim.samples, scenario.sensor.sample_rate_hz
     session = Session(time_s=np.arange(len(s)) / rate, gyro=s["gyro"].astype(float) * DEG,
                       acc=s["acc"].astype(float) * STANDARD_GRAVITY, incl=s["incl"].astype(float) * STANDARD_GRAVITY,
-                      temperature_c=None, rate_hz=rate, sensor={}, stream={"capture": "simulated"})
+                      temperature_c=None, rate_hz=rate, sensor=SensorRecord(), stream={"capture": "simulated"})
     result = joint_real_case(session, scenario.site)
     truth = scenario.truth.estimates()
     for name, e in result.estimates.items():
@@ -186,7 +187,7 @@ def test_a_clean_capture_with_the_datasheet_noise_raises_no_vibration_warning():
     s, rate = sim.samples, THESIS.sensor.sample_rate_hz
     session = Session(time_s=np.arange(len(s)) / rate, gyro=s["gyro"].astype(float) * DEG,
                       acc=s["acc"].astype(float) * STANDARD_GRAVITY, incl=s["incl"].astype(float) * STANDARD_GRAVITY,
-                      temperature_c=None, rate_hz=rate, sensor={}, stream={"capture": "simulated"})
+                      temperature_c=None, rate_hz=rate, sensor=SensorRecord(), stream={"capture": "simulated"})
     result = joint_real_case(session, THESIS.site)
     assert not [w for w in result.warnings if "per sample" in w], result.warnings
 
@@ -227,7 +228,7 @@ def test_an_80_g_unit_is_held_to_its_own_datasheet_figures(tmp_path):
     path = tmp_path / "80g.bin"
     write_capture(scenario, path)
     result = joint_real_case(load_session(str(path)), THESIS.site)
-    assert result.sensor["acc_range_g"] == 80
+    assert result.sensor.acc_range_g == 80
     assert not [w for w in result.warnings if "per sample" in w], result.warnings
     budget = result.error_budget
     assert budget["factory_residuals"]["acc_range_g"] == 80

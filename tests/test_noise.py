@@ -23,6 +23,7 @@ from calibd.session import Session
 from calibd.units import DEG, M_S2_TO_MG, RAD_S_TO_DEG_H
 from calibd.scenario import Segment, load_scenario
 from calibd.sim import write_capture
+from stim300.records import SensorRecord
 
 SIM_S = 3600.0
 
@@ -156,7 +157,7 @@ def synthetic_session(rng, rate_hz, seconds, white, walk):
     si = np.concatenate([np.full(3, RAD_S_TO_DEG_H), np.full(6, M_S2_TO_MG)])
     x = x / si
     return Session(time_s=np.arange(n) / rate_hz, gyro=x[:, :3], acc=x[:, 3:6], incl=x[:, 6:],
-                   temperature_c=None, rate_hz=rate_hz, sensor={}, stream={})
+                   temperature_c=None, rate_hz=rate_hz, sensor=SensorRecord(), stream={})
 
 
 def test_rate_random_walk_is_read_on_the_rising_slope():
@@ -281,7 +282,7 @@ def test_kalibr_update_rate_is_the_sensors_rate_not_the_averaged_one():
     """A 2000 Hz capture is characterised on 125 Hz block means; Kalibr's filter gets 2000 Hz
     messages, so its per-sample noise needs 2000 (125 would make it 4 times too small)."""
     fast = load_session(str(Path(__file__).parent.parent / "fixtures" / "static_turn_2000hz.bin"))
-    assert (fast.rate_hz, fast.sensor["sample_rate_hz"]) == (125, 2000)  # stored averaged, the sensor's kept
+    assert (fast.rate_hz, fast.sensor.sample_rate_hz) == (125, 2000)  # stored averaged, the sensor's kept
     rate, seconds = 125, 3600.0
     session = replace(synthetic_session(np.random.default_rng(7), rate, seconds, 2.0, 0.0), sensor=fast.sensor)
     statics = [Detected("static", 0, int(rate * seconds), 0.0, seconds, 0.0)]

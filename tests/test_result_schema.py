@@ -30,6 +30,7 @@ from calibd.sim import capture_bytes, simulate
 from calibd.units import DEG
 from stim300.cliutil import package_version
 from stim300.source import CaptureSource
+from stim300.records import SensorRecord
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
 CW = FIXTURES / "thesis_real_cw_125hz.bin"
@@ -39,7 +40,7 @@ ANGLES_DEG = {"yaw": 137.0, "pitch": -2.5, "roll": 1.25, "alpha": 0.6, "beta": -
 
 def angles_result(**angles_deg):
     return make_result("joint", SITE, {name: (value * DEG, 0.1 * DEG) for name, value in angles_deg.items()}, [], [],
-                       {})
+                       SensorRecord())
 
 
 def hamilton(p, q):

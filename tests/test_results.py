@@ -13,6 +13,7 @@ from calibd.report import read_truth
 from calibd.results import (SCHEMA, CalibrationResult, Estimate, ResultError, SchemaError, load_result, make_result,
                             result_json, schema_version, write_result)
 from calibd.units import DEG
+from stim300.records import SensorRecord
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
 
@@ -20,7 +21,8 @@ FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
 def joint_like() -> CalibrationResult:
     return make_result("joint", Site(60.0), {"yaw": (0.5 * DEG, 0.1 * DEG), "gyro_bias_x": (1e-6, None)},
                        [{"kind": "static", "role": "static", "start_s": 0.0, "end_s": 60.0}], ["a warning"],
-                       {"serial_number": "N1"}, stream={"capture": "c.bin"}, options={"fixed_amplitude": False},
+                       SensorRecord(serial_number="N1"), stream={"capture": "c.bin"},
+                       options={"fixed_amplitude": False},
                        checks={"static_chi2": {"chi2": 3.0, "dof": 4, "p_value": 0.5}}, bias_reference="turn-on")
 
 
@@ -56,7 +58,7 @@ def test_changes_are_copies():
 def test_a_version_1_file_is_read(tmp_path):
     """A result as calibd wrote it before the typed result: schema 1, no optional fields. What
     version 3 adds takes its default (None: not known), or follows from the estimates (SI), and
-    it is written back as the current version."""
+    it is written back as the current version (its sensor record with every field)."""
     doc = {"schema": "calibd.result/1", "method": "thesis-linear", "site": {"latitude_deg": 40.0},
            "estimates": {"yaw": {"value": 0.0, "sigma": None, "unit": "deg"}}, "warnings": ["w"]}
     path = tmp_path / "old.json"
@@ -71,7 +73,7 @@ def test_a_version_1_file_is_read(tmp_path):
         "schema": SCHEMA, "software": None, "session_id": None, "rotation": None, "covariance": None,
         "estimates": {"yaw": {"value": 0.0, "sigma": None, "unit": "deg", "value_si": 0.0, "sigma_si": None,
                               "unit_si": "rad"}},
-        "segments": [], "sensor": {}, "stream": {}}
+        "segments": [], "stream": {}, "sensor": SensorRecord().to_dict()}  # every field, null: not known
 
 
 @pytest.mark.parametrize("schema, message", [

@@ -26,6 +26,7 @@ from stim300.protocol import AccUnit, GyroUnit, Status
 from stim300.source import PortSource
 from stim300.special import Configuration, encode_special
 from stim300.stream import StreamParser
+from stim300.records import SensorRecord
 
 DEADLINE_S = 5.0
 GYRO_BIAS_DEG_H = (98.6, -34.7, -27.4)
@@ -54,7 +55,7 @@ def result(incl=True, rate_hz=2000):
     estimates |= {f"acc_bias_{a}": Estimate(v, 0.01, "mg") for a, v in zip("xyz", ACC_BIAS_MG)}
     if incl:
         estimates |= {f"incl_bias_{a}": Estimate(v, 0.01, "mg") for a, v in zip("xyz", INCL_BIAS_MG)}
-    return CalibrationResult("joint", {}, estimates, sensor={"sample_rate_hz": rate_hz})
+    return CalibrationResult("joint", {}, estimates, sensor=SensorRecord(sample_rate_hz=rate_hz))
 
 
 def feed(tap, data: bytes, seed: int = 1, pause_s: float = 0.0002) -> StreamParser:

@@ -33,6 +33,7 @@ from stim300.codec import SAMPLE_DTYPE
 from stim300.protocol import AccUnit, GyroUnit
 from stim300.special import Configuration
 from stim300.stream import StreamParser
+from stim300.records import SensorRecord
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
 DATA_2000 = (FIXTURES / "static_turn_2000hz.bin").read_bytes()
@@ -47,7 +48,7 @@ def known_result(stale: dict | None = None):
     for block in ("acc", "incl"):
         si |= {f"{block}_bias_{a}": (v * 1e-3 * G, 1e-6) for a, v in zip("xyz", BIAS[block])}
     si |= {"yaw": (0.1, 0.01)}
-    return make_result("joint", Site(40.0), si, [], ["w"], {"serial_number": "N1"}, stale=stale)
+    return make_result("joint", Site(40.0), si, [], ["w"], SensorRecord(serial_number="N1"), stale=stale)
 
 
 class Client:
@@ -375,7 +376,7 @@ def test_poll_shows_the_previous_result_marked_once_the_sensor_restarts(served, 
     poll = client.until("POLL")
     assert poll["result"] == json.loads((state_dir / "result.json").read_text())
     assert hub._bias is None  # its power-up is unknown: nothing is corrected with it
-    calibrator.sensor_seen({})
+    calibrator.sensor_seen(SensorRecord())
     calibrator.feed(np.zeros(2, SAMPLE_DTYPE), 125, 0, (1,))  # the sensor restarts after the first sample
     client.send(b"?POLL;\n")
     poll = client.until("POLL")

@@ -29,6 +29,7 @@ from captures import plug
 from stim300.bulk import decode_capture
 from stim300.source import CaptureSource
 from stim300.special import SerialNumber, encode_special
+from stim300.records import SensorRecord
 from test_daemon import FIXTURES, HEADING137, _calibd_run, _read_log_until, _stop, _write_paced
 
 AS_ROOT = os.geteuid() == 0
@@ -220,7 +221,7 @@ def test_an_earlier_daemons_result_of_another_sensor_is_marked_stale_once(tmp_pa
     """result.json left by an earlier daemon is served until this one solves: when the stream's
     serial-number datagram names another unit, it is marked stale at once and once (every batch
     names the sensor again); an unknown serial number on either side proves nothing."""
-    write_result(tmp_path / "result.json", replace(result(), sensor={"serial_number": result_serial}))
+    write_result(tmp_path / "result.json", replace(result(), sensor=SensorRecord(serial_number=result_serial)))
     store = ResultStore(tmp_path)
     previous, heard = store.previous(), []
     calibrator = Calibrator(Site(60.0), listeners=[store, Callbacks(stale=heard.append), StateLog()],
@@ -230,7 +231,7 @@ def test_an_earlier_daemons_result_of_another_sensor_is_marked_stale_once(tmp_pa
     with capture_logs() as logs:
         replay(CaptureSource(data[start_byte:REQUEST_AT] + answer + data[REQUEST_AT:200_000]), calibrator)
     assert [e["reason"] for e in logs if e["event"] == "result_stale"] == ([] if why is None else [why])
-    assert calibrator.sensor["serial_number"] == (FIXTURE_UNIT if start_byte == 0 or requested else None)
+    assert calibrator.sensor.serial_number == (FIXTURE_UNIT if start_byte == 0 or requested else None)
     assert calibrator.sessions == 0
     written = json.loads((tmp_path / "result.json").read_text())
     if why is None:

@@ -20,6 +20,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from stim300.records import SensorRecord
+
 from .. import detect
 from ..config import DetectionConfig, MethodConfig
 from ..correction import other_sensor
@@ -54,7 +56,7 @@ class Calibrator:
         self.sessions = 0
         self.session_id: str | None = None
         self.progress = progress(self.method.name, [])  # the session's progress record (detect.Progress)
-        self.sensor: dict = {}
+        self.sensor = SensorRecord()
         self.stream_stats: dict = {}
         self._cuts = PowerUpCuts()
         self._new_power_up()
@@ -64,11 +66,11 @@ class Calibrator:
         """New settings (SIGHUP): they apply from the next solution on (detection: the next session)."""
         self.site, self.warmup, self.method, self.detection = site, warmup, method, detection
 
-    def sensor_seen(self, identity: dict, stream: dict | None = None) -> None:
+    def sensor_seen(self, identity: SensorRecord, stream: dict | None = None) -> None:
         """The sensor as the stream names it (serial and part number, datagram, rate) and the
         stream's statistics since the daemon began reading (StreamInfo.stream_record): results carry them."""
         self.sensor, self.stream_stats = identity, stream or {}
-        self._check_inherited(identity.get("serial_number"))
+        self._check_inherited(identity.serial_number)
 
     def feed(self, samples: np.ndarray, rate_hz: int, first: int = 0, restart_datagrams=()) -> None:
         """A batch of decoded samples (stim300.codec.SAMPLE_DTYPE) in stream order: `first` is the
@@ -153,7 +155,7 @@ class Calibrator:
         started after them, or the result names none, nothing is known, and only a restart tells."""
         if self._inherited is None or self.result is not self._inherited:
             return
-        theirs = self._inherited.sensor.get("serial_number")
+        theirs = self._inherited.sensor.serial_number
         if other_sensor(theirs, serial):
             self._mark_stale(f"the sensor on the port is {serial}, the result is of sensor {theirs}")
 

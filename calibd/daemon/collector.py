@@ -11,6 +11,7 @@ import numpy as np
 import structlog
 
 from stim300.clock import CounterClock
+from stim300.records import SensorRecord
 
 from .. import detect
 from ..config import DetectionConfig
@@ -82,7 +83,7 @@ class Collector:
         self.session_start_s = start_s
         self.tracker = detect.SegmentTracker(self.stored_rate_hz, **detection.options())
 
-    def session(self, sensor: dict, stream: dict) -> Session:
+    def session(self, sensor: SensorRecord, stream: dict) -> Session:
         """The session so far, in its own time; `stream` gains the session's fault records."""
         d = self.data.arrays(since_s=self.session_start_s)
         return Session(time_s=d["time_s"] - d["time_s"][0], gyro=d["gyro"], acc=d["acc"], incl=inclinometers(d["incl"]),

@@ -87,8 +87,8 @@ def joint_fit(session: Session, site: Site, options: joint.JointOptions = joint.
     datasheet figures are those of the sensor's accelerometer range, when its configuration
     datagram gave it (else `options`')."""
     segments = session_segments(session) if segments is None else segments
-    if session.sensor.get("acc_range_g") in spec.ACC:
-        options = replace(options, acc_range_g=session.sensor["acc_range_g"])
+    if session.sensor.acc_range_g in spec.ACC:
+        options = replace(options, acc_range_g=session.sensor.acc_range_g)
     if lacking := METHOD.missing(segments):
         raise refusal(CAMPAIGN, lacking, segments, bench.hint(segments))
     level = detect.level_static(segments)

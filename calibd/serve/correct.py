@@ -43,7 +43,7 @@ class Corrector:
 
     def __init__(self, result: CalibrationResult):
         self.biases = sensor_biases(result)
-        self.rate_hz = result.sensor.get("sample_rate_hz")
+        self.rate_hz = result.sensor.sample_rate_hz
         self._counts: dict[tuple[int, Format], list[tuple[int, np.ndarray]]] = {}
         self._said: set[tuple[str, str]] = set()
 

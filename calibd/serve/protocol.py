@@ -17,6 +17,7 @@ import msgspec
 import numpy as np
 
 from stim300.cliutil import package_version
+from stim300.records import SensorRecord
 
 from ..errors import CalibdError
 
@@ -235,10 +236,10 @@ class Device(Message, tag="DEVICE"):
     units: dict | None = None
 
     @classmethod
-    def of(cls, path: str, sensor: dict, units: dict | None, configuration: dict | None) -> Device:
-        """`sensor`: a StreamInfo's `sensor_record()`; `units`: of the gyro, acc and incl blocks."""
-        return cls(path, sensor.get("part_number"), sensor.get("serial_number"), sensor.get("datagram_id"),
-                   sensor.get("sample_rate_hz"), configuration, units)
+    def of(cls, path: str, sensor: SensorRecord, units: dict | None, configuration: dict | None) -> Device:
+        """`units`: of the gyro, acc and incl blocks."""
+        return cls(path, sensor.part_number, sensor.serial_number, sensor.datagram_id, sensor.sample_rate_hz,
+                   configuration, units)
 
 
 class Samples(Message, tag="SAMPLES"):
