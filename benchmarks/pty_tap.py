@@ -31,6 +31,7 @@ from calibd.results import CalibrationResult, Estimate  # noqa: E402
 from calibd.serve.ptys import CorrectedPty, RawPty  # noqa: E402
 from captures import exact_samples  # noqa: E402
 from stim300.codec import encode_samples  # noqa: E402
+from stim300.records import SensorRecord  # noqa: E402
 from stim300.special import Configuration, encode_special  # noqa: E402
 from stim300.stream import StreamParser  # noqa: E402
 
@@ -81,7 +82,7 @@ def main() -> int:
     head, feeds = stream(args.seconds)
     estimates = {f"{c}_bias_{a}": Estimate(0.5, 0.1, u) for c, u in
                  (("gyro", "deg/h"), ("acc", "mg"), ("incl", "mg")) for a in "xyz"}
-    result = CalibrationResult("joint", {}, estimates, sensor={"sample_rate_hz": RATE_HZ})
+    result = CalibrationResult("joint", {}, estimates, sensor=SensorRecord(sample_rate_hz=RATE_HZ))
     with tempfile.TemporaryDirectory() as tmp:
         raw = RawPty(Path(tmp) / "raw", forward=lambda request: None)
         corrected = CorrectedPty(Path(tmp) / "corrected")

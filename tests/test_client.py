@@ -409,7 +409,7 @@ def test_render_marks_a_stale_result_and_updates_estimates():
     view = watched(result=stale)
     screen = render(view, 100.0)
     assert "         STALE: the previous power-up's result (sensor restarted)" in screen
-    better = make_result("joint", Site(60.0), {"yaw": (137.25 * DEG, 0.004 * DEG)}, [], [], {}).to_dict()
+    better = make_result("joint", Site(60.0), {"yaw": (137.25 * DEG, 0.004 * DEG)}, [], [], SensorRecord()).to_dict()
     line = view.update(client_module.message_of({"class": "RESULT", "result": better}), 101.0)
     assert line == "result joint: yaw 137.2500 +- 0.0040 deg"
     screen = render(view, 101.0)
@@ -469,7 +469,7 @@ def test_render_fits_the_terminal_width_without_breaking_words():
 
 
 def test_stale_result_wording_matches_the_daemon():
-    result = make_result("joint", Site(60.0), {"yaw": (0.0, 0.01)}, [], [], {})
+    result = make_result("joint", Site(60.0), {"yaw": (0.0, 0.01)}, [], [], SensorRecord())
     stale = replace(result, stale={"power_up": "previous", "reason": "r", "since": "s"})
     view = WatchView("x")
     assert "STALE: the previous power-up's result (r)" in view.update(Result(stale), 0.0)
