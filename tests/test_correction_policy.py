@@ -87,6 +87,7 @@ def read_all(client: Client, samples: int, timeout_s: float = 10.0) -> tuple[lis
     return corrections, batches
 
 
+@pytest.mark.slow  # a whole session calibrated and served
 @pytest.mark.parametrize("policy", ["latest", "first", "best"])
 def test_each_policy_keeps_its_biases_and_says_every_change_once(tmp_path, policy):
     hub = Hub(ServeConfig(socket=tmp_path / "s.sock", correction=policy), "/dev/ttySTIM")

@@ -114,6 +114,7 @@ def true_adev(taus, density, instability):
                                            for c in FLICKER_TAUS_S))
 
 
+@pytest.mark.slow  # an hour standing still simulated (static_capture)
 def test_figures_of_a_simulated_static_capture(static_capture):
     path, noise = static_capture
     channels = characterise(load_session(str(path)))
@@ -202,6 +203,7 @@ def test_lost_samples_split_a_static():
 
 # ---------------------------------------------------------------- calibd noise
 
+@pytest.mark.slow  # an hour standing still simulated (static_capture)
 def test_cli_prints_the_table_and_writes_the_json(static_capture, tmp_path, capsys):
     path, _ = static_capture
     out = tmp_path / "noise.json"
@@ -256,6 +258,7 @@ KALIBR_KEYS = {"gyroscope_noise_density", "gyroscope_random_walk", "acceleromete
                "accelerometer_random_walk", "rostopic", "update_rate"}
 
 
+@pytest.mark.slow  # an hour standing still simulated (static_capture)
 def test_kalibr_figures_of_a_simulated_static_capture(static_capture):
     path, noise = static_capture
     session = load_session(str(path))

@@ -254,6 +254,7 @@ def test_timeline_of_a_unit_without_inclinometers():
     assert [t.get_text() for t in fig.axes[4].texts] == ["no inclinometers in this datagram"]
 
 
+@pytest.mark.slow  # a whole session fitted and drawn
 def test_earth_rate_figure_marks_the_yaw():
     """The phase line sits where the IMU's X axis points North, chi = -yaw (yaw counter-clockwise
     about Up, as chi): there the fitted X term peaks. A heading far from 0 tells the sign."""
@@ -309,6 +310,7 @@ def test_progress_bar_on_a_terminal_only(rendered):
     assert bar.startswith("\rreport [") and "100.0%" in bar and bar.endswith("\n")
 
 
+@pytest.mark.slow  # a whole session fitted and drawn
 @pytest.mark.parametrize("drift", [False, True])
 def test_earth_rate_decomposition_is_the_joint_fit(made, drift):
     """What the Earth-rate figure plots, seen minus fitted term, must be the fit's own residuals:
@@ -335,6 +337,7 @@ def test_allan_guides_pass_through_the_values_read(made):
             assert noise.adev_low.min() < rising[1] < noise.adev_high.max()
 
 
+@pytest.mark.slow  # a whole session fitted and drawn
 def test_analysis_starts_where_the_result_did():
     """A `calibd calibrate --start` result records its offset; without it (older results) its first
     segment says where its data began, and the segments found from there are the result's (an
