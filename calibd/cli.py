@@ -191,7 +191,7 @@ def _session_line(result: CalibrationResult) -> str | None:
                 f"from {stream.get('start_by', 'given')}")
     session = result.session
     if session:
-        return f"session {session['number']} since the daemon started, {session['duration_s']:.1f} s of data"
+        return f"session {session.number} since the daemon started, {session.duration_s:.1f} s of data"
     return None
 
 
@@ -325,7 +325,7 @@ def cmd_replay(args) -> int:
             last[0] = state
 
     def print_stale(result):
-        print(f"[{result.stale['power_up']} power-up] {result.stale['reason']}", file=out, flush=True)
+        print(f"[{result.stale.power_up} power-up] {result.stale.reason}", file=out, flush=True)
 
     listeners = [StateLog(), Callbacks(state=print_state, stale=print_stale)]
     store = None
@@ -419,7 +419,7 @@ def _status(directory: Path, as_json: bool, one_line: bool = False) -> str:
     if result is None:
         return "\n".join(lines + ["no result yet"])
     if result.stale is not None:
-        lines.append(f"result: stale since {result.stale['since']}, from the {result.stale['power_up']} power-up")
+        lines.append(f"result: stale since {result.stale.since}, from the {result.stale.power_up} power-up")
     return "\n".join(lines + [_summary(result)])
 
 

@@ -16,7 +16,7 @@ A result is always written as the current version, whatever version it was read 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
@@ -94,6 +94,29 @@ _OPTIONAL = ("options", "checks", "bias_reference", "error_budget", "platform_ra
 
 
 @dataclass(frozen=True)
+class SessionRecord:
+    """The daemon's session a result was solved on: its number since the daemon started, its
+    length (s) and when it was solved (ISO 8601, UTC)."""
+
+    number: int
+    duration_s: float
+    solved_at: str | None = None
+
+
+@dataclass(frozen=True)
+class StaleRecord:
+    """Why a result no longer applies: the power-up it belongs to ("previous": the sensor
+    restarted after it), the reason in words, since when (ISO 8601, UTC)."""
+
+    power_up: str
+    reason: str
+    since: str
+
+
+_RECORDS = {"session": SessionRecord, "stale": StaleRecord}  # optional fields written as records
+
+
+@dataclass(frozen=True)
 class CalibrationResult:
     """What a method found on a session: estimates by name, the segments and data they rest on,
     and what the reader must know (warnings). Changed by copies (`flag_poor`, `with_warning`,
@@ -118,8 +141,8 @@ class CalibrationResult:
     earth_rate_diagnostic: dict | None = None  # thesis real case
     turns_alpha_beta_deg: list | None = None  # thesis bench: alpha and beta from each full turn
     capture: dict | None = None  # offline: the file it was made from (path, size_bytes, sha256, serial_number)
-    session: dict | None = None  # daemon: which session, how long, when solved
-    stale: dict | None = None  # daemon: why the result no longer applies
+    session: SessionRecord | None = None  # daemon: which session, how long, when solved
+    stale: StaleRecord | None = None  # daemon: why the result no longer applies
     schema: str = SCHEMA  # the version it was read as (it is written as the current one)
 
     def flag_poor(self, names, why: str | None = None) -> CalibrationResult:
@@ -167,7 +190,8 @@ class CalibrationResult:
                "rotation": self.rotation_record(), "covariance": self.covariance,
                "segments": list(self.segments), "warnings": list(self.warnings), "sensor": self.sensor.to_dict(),
                "stream": self.stream}
-        return doc | {name: getattr(self, name) for name in _OPTIONAL if getattr(self, name) is not None}
+        optional = {name: getattr(self, name) for name in _OPTIONAL if getattr(self, name) is not None}
+        return doc | optional | {name: asdict(optional[name]) for name in _RECORDS if name in optional}
 
     @classmethod
     def from_dict(cls, doc, where: str = "result") -> CalibrationResult:
@@ -185,8 +209,9 @@ class CalibrationResult:
         if not isinstance(estimates, dict) or not any(estimates.get(name) is not None for name in ESTIMATES):
             raise ResultError(f"{where}: the result has no estimates (value and unit each)")
         validate(doc, ResultDoc, where, ResultError)
-        known = {"method", "site", "stream", "covariance", "software", "session_id", *_OPTIONAL}
+        known = {"method", "site", "stream", "covariance", "software", "session_id", *_OPTIONAL} - set(_RECORDS)
         return cls(**{key: value for key, value in doc.items() if key in known},
+                   **{name: record(**doc[name]) for name, record in _RECORDS.items() if doc.get(name) is not None},
                    sensor=SensorRecord.from_dict(doc.get("sensor") or {}),
                    estimates={name: Estimate(e["value"], e.get("sigma"), e["unit"], e.get("quality"))
                               for name, e in estimates.items() if name in ESTIMATES and e is not None},

@@ -182,7 +182,7 @@ class ResultStore:
         if self._poor(new):
             return (f"the new result has poor estimates ({', '.join(self._poor(new))}): "
                     "result.json keeps the better one")
-        new_s, kept_s = ((r.session or {}).get("duration_s", 0.0) for r in (new, kept))
+        new_s, kept_s = (0.0 if r.session is None else r.session.duration_s for r in (new, kept))
         new_sigma, kept_sigma = (getattr(r.estimates.get("yaw"), "sigma", None) for r in (new, kept))
         if new_s < kept_s and None not in (new_sigma, kept_sigma) and new_sigma > kept_sigma:
             return (f"the new result's yaw sigma {new_sigma:.2f} deg on {new_s:.0f} s is larger than "

@@ -58,13 +58,11 @@ def stale_text(result: CalibrationResult) -> str | None:
     """Why the result no longer applies, or None while it does."""
     if result.stale is None:
         return None
-    power_up, reason = result.stale.get("power_up", "previous"), result.stale.get("reason", "no reason given")
-    return f"STALE: the {power_up} power-up's result ({reason})"
+    return f"STALE: the {result.stale.power_up} power-up's result ({result.stale.reason})"
 
 
 def _result_head(result: CalibrationResult) -> str:
-    session = result.session or {}
-    span = f", {session['duration_s']:.1f} s of data" if isinstance(session.get("duration_s"), (int, float)) else ""
+    span = "" if result.session is None else f", {result.session.duration_s:.1f} s of data"
     return f"{result.method}{span}"
 
 

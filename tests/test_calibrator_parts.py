@@ -206,14 +206,14 @@ def test_a_solve_says_what_the_protocol_lacks_or_gives_the_result_with_its_sessi
                                    "waiting for: a turn and a static after it on the level static's mounting (+Z up)")
     assert lacking.progress.fields()["missing"] == lacking.detail.split("waiting for: ")[1]
     solved = solve(session, segments, Site(60.0), MethodConfig(), 4)
-    assert solved.result.session["number"] == 4
-    assert solved.result.session["duration_s"] == pytest.approx(float(session.time_s[-1]))
+    assert solved.result.session.number == 4
+    assert solved.result.session.duration_s == pytest.approx(float(session.time_s[-1]))
     yaw = solved.result.estimates["yaw"]
     assert solved.detail == (f"solved on {session.time_s[-1]:.0f} s: yaw {value_sigma(yaw.value, yaw.sigma, 'deg')}; "
                              f"{solved.progress.found()}; protocol complete")
     assert solved.progress.complete and solved.progress.fields()["missing"] is None
     stale = stale_result(solved.result, "why")
-    assert stale.stale["reason"] == "why" and stale.warnings[0] == "stale: why"
+    assert stale.stale.reason == "why" and stale.warnings[0] == "stale: why"
     assert solved.result.stale is None  # a copy: the result itself is unchanged
 
 

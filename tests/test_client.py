@@ -21,7 +21,7 @@ from calibd.cli import main as calibd_main
 from calibd.client import (Client, ClientError, Device, Error, Fault, Message, Overflow, Poll, Result, Samples,
                            ServerGone, State, VersionError, Watch)
 from calibd.frames import Site
-from calibd.results import make_result
+from calibd.results import make_result, SessionRecord, StaleRecord
 from calibd.serve import protocol
 from calibd.serve.protocol import ProtocolError, decode, encode, parse_command
 from calibd.units import DEG
@@ -34,7 +34,7 @@ PROGRESS = {"warm": True, "session_s": 312.5, "statics": 3, "headings": 2, "turn
 STATE = {"class": "STATE", "state": "COLLECTING", "detail": "collecting: 3 statics", "progress": PROGRESS}
 RESULT_DOC = make_result("joint", Site(60.0), {"yaw": (137.2 * DEG, 0.0123 * DEG),
                                                "gyro_bias_x": (3e-6, 1e-7), "acc_bias_z": (0.01, None)},
-                         [], ["a warning"], SensorRecord(serial_number="N1"), session={"number": 1, "duration_s": 312.5}
+                         [], ["a warning"], SensorRecord(serial_number="N1"), session=SessionRecord(1, 312.5)
                          ).to_dict()
 SAMPLES = {"class": "SAMPLES", "corrected": False, "t": [0.0, 0.0005, 0.001], "t_host": [10.0, 10.0, 10.001],
            "counter": [7, 8, 9], "gyro": [[0.1, 0.2, 0.3]] * 3, "acc": [[0.0, 0.0, 1.0]] * 3, "incl": None}
@@ -470,7 +470,7 @@ def test_render_fits_the_terminal_width_without_breaking_words():
 
 def test_stale_result_wording_matches_the_daemon():
     result = make_result("joint", Site(60.0), {"yaw": (0.0, 0.01)}, [], [], SensorRecord())
-    stale = replace(result, stale={"power_up": "previous", "reason": "r", "since": "s"})
+    stale = replace(result, stale=StaleRecord("previous", "r", "s"))
     view = WatchView("x")
     assert "STALE: the previous power-up's result (r)" in view.update(Result(stale), 0.0)
 

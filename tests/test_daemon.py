@@ -83,7 +83,7 @@ def test_no_session_starts_during_the_steep_part_of_the_warm_up(window_s):
     window, the session must leave out at least the first three time constants."""
     truth = json.loads((FIXTURES / "warmup_then_protocol_125hz.bin.truth.json").read_text())
     _, _, results = run_replay("warmup_then_protocol_125hz", WarmupConfig(window_s=window_s))
-    started = truth["duration_s"] - results[-1].session["duration_s"]
+    started = truth["duration_s"] - results[-1].session.duration_s
     assert started >= 3 * truth["warmup"]["time_constant_s"]
 
 
@@ -116,7 +116,7 @@ def test_a_data_gap_starts_a_new_session_and_keeps_the_warm_up():
     after = events[before:]
     assert after[0][0] == State.FAULT and after[1][0] == State.COLLECTING and "gap" in after[1][1]
     assert State.WARMING_UP not in [state for state, _ in after]
-    assert calibrator.sessions == 2 and results and results[-1].session["number"] == 2
+    assert calibrator.sessions == 2 and results and results[-1].session.number == 2
     waiting = [d for state, d in events if state == State.COLLECTING and "waiting for:" in d]
     assert waiting and re.match(r"collecting: \d+ s of data, \d+ static(s)? at \d/4 index headings", waiting[0])
 
@@ -451,7 +451,7 @@ def test_a_replay_solves_at_the_end_of_the_data_as_calibrate_does(source):
     replay(source(data), calibrator)
     result = calibrator.result
     samples = decode_capture(data).samples
-    session_start_s = (len(samples) - 1) / 125 - result.session["duration_s"]  # no sample lost in this capture
+    session_start_s = (len(samples) - 1) / 125 - result.session.duration_s  # no sample lost in this capture
     reference = joint_real_case(load_session(str(HEADING137), session_start_s - 0.004), SITE_137)
     assert calibrator.state == State.SOLVED
     assert [s["kind"] for s in result.segments[-2:]] == ["turn", "static"]
@@ -516,9 +516,9 @@ def test_a_restart_marks_the_last_result_stale_before_anything_else():
     assert kinds[:4] == [State.SOLVED, "result", "stale", State.RESTARTED]
     assert "result" not in kinds[3:]
     final, stale = after[1][1], after[2][1]
-    assert final.session["duration_s"] > 600  # the whole power-up, the final static included
+    assert final.session.duration_s > 600  # the whole power-up, the final static included
     assert final.stale is None and stale.estimates == final.estimates
-    assert stale.stale["power_up"] == "previous" and "restarted" in stale.stale["reason"]
+    assert stale.stale.power_up == "previous" and "restarted" in stale.stale.reason
     assert stale.warnings[0].startswith("stale: the sensor restarted")
     assert calibrator.result is stale and "marked stale" in after[3][1]
 

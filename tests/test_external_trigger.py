@@ -87,7 +87,7 @@ def test_the_daemon_times_the_200hz_capture_in_seconds():
     replay(CaptureSource(FIXTURE.read_bytes()), calibrator)
     result = calibrator.result
     assert result is not None
-    assert result.session["duration_s"] == pytest.approx(TRUTH["duration_s"], abs=0.01)  # no temperatures: no wait
+    assert result.session.duration_s == pytest.approx(TRUTH["duration_s"], abs=0.01)  # no temperatures: no wait
     turns = [p for p in TRUTH["schedule"] if p["kind"] == "turn"]
     found = [s for s in result.segments if s["kind"] == "turn"]
     assert len(found) == len(turns)

@@ -23,7 +23,7 @@ from calibd.daemon import Calibrator, Callbacks, State, StateLog
 from calibd.daemon.solver import stale_result
 from calibd.live import Watchdog, replay
 from calibd.frames import Site
-from calibd.results import CalibrationResult, Estimate, site_record, write_result
+from calibd.results import CalibrationResult, Estimate, site_record, write_result, SessionRecord
 from calibd.statedir import ResultStore, StateDirError
 from captures import plug
 from stim300.bulk import decode_capture
@@ -39,7 +39,7 @@ def result(yaw_sigma_deg: float = 1.0, duration_s: float = 600.0, poor: bool = F
     yaw = Estimate(10.0, yaw_sigma_deg, "deg", "poor" if poor else None)
     estimates = {"yaw": yaw, "pitch": Estimate(0.1, 0.01, "deg")}
     return CalibrationResult("joint", site_record(Site(60.0)), estimates, stream={"capture": "x"},
-                             session={"number": 1, "duration_s": duration_s, "solved_at": "now"})
+                             session=SessionRecord(1, duration_s, "now"))
 
 
 def kept_sigma(state_dir: Path) -> float:
@@ -237,7 +237,7 @@ def test_an_earlier_daemons_result_of_another_sensor_is_marked_stale_once(tmp_pa
     if why is None:
         assert heard == [] and calibrator.result is previous and written.get("stale") is None
         return
-    assert [stale.stale["reason"] for stale in heard] == [why] and calibrator.result is heard[0]
+    assert [stale.stale.reason for stale in heard] == [why] and calibrator.result is heard[0]
     assert written["stale"]["reason"] == why and written["warnings"][0] == f"stale: {why}"
     assert written["estimates"]["yaw"]["value"] == 10.0  # the result as it was, marked
 

@@ -79,4 +79,4 @@ class StateLog(Listener):
                  units={name: e.unit for name, e in result.estimates.items()})
 
     def on_stale(self, result: CalibrationResult) -> None:
-        log.warning("result_stale", reason=result.stale["reason"])
+        log.warning("result_stale", reason=result.stale.reason)

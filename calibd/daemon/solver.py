@@ -14,7 +14,7 @@ from ..config import MethodConfig
 from ..errors import CalibrationError
 from ..frames import Site
 from ..methods import estimator, progress
-from ..results import CalibrationResult
+from ..results import CalibrationResult, SessionRecord, StaleRecord
 from ..session import Session
 from ..units import value_sigma
 
@@ -50,9 +50,8 @@ def solve(session: Session, segments: list[detect.Segment], site: Site, method: 
         log.exception("solve_failed")
         return Attempt(None, f"solve failed: {type(exc).__name__}: {exc} (a fault in calibd; the log has its "
                              "traceback)", record, failed=True)
-    result = replace(result, session_id=session_id,
-                     session={"number": number, "duration_s": duration_s,
-                              "solved_at": datetime.now(timezone.utc).isoformat(timespec="seconds")})
+    solved_at = datetime.now(timezone.utc).isoformat(timespec="seconds")
+    result = replace(result, session_id=session_id, session=SessionRecord(number, duration_s, solved_at))
     yaw = result.estimates["yaw"]
     return Attempt(result, f"solved on {duration_s:.0f} s: yaw {value_sigma(yaw.value, yaw.sigma, yaw.unit)}; "
                            f"{record.words()}", record)
@@ -63,5 +62,5 @@ def stale_result(result: CalibrationResult, reason: str) -> CalibrationResult:
     belongs to the previous power-up) and the reason first among the warnings, so a consumer
     reading only result.json can tell."""
     since = datetime.now(timezone.utc).isoformat(timespec="seconds")
-    return replace(result, stale={"power_up": "previous", "reason": reason, "since": since}).with_warning(
+    return replace(result, stale=StaleRecord("previous", reason, since)).with_warning(
         f"stale: {reason}", first=True)
