@@ -21,11 +21,11 @@ from stim300.bulk import decode_blocks
 from stim300.capture import stream_info
 from stim300.clock import CounterClock
 from stim300.csvtable import write_rows
-from stim300.protocol import INTERNAL_RATE_HZ, NORMAL_LAYOUTS
+from stim300.protocol import CLUSTERS, INTERNAL_RATE_HZ, NORMAL_LAYOUTS
 
 from .errors import CalibdError
 from .results import ROTATIONS, CalibrationResult
-from .correction import CLUSTERS, SI_PER_SENSOR_UNIT, WORDS, other_sensor, si_biases, uncorrectable
+from .correction import SI_PER_SENSOR_UNIT, WORDS, other_sensor, si_biases, uncorrectable
 from .session import PowerUpCuts
 
 APPLIED_SCHEMA = "calibd.applied/1"

@@ -8,13 +8,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from stim300.protocol import NORMAL_LAYOUTS, Format
+from stim300.protocol import CLUSTERS, NORMAL_LAYOUTS, Format
 
 from .frames import STANDARD_GRAVITY
 from .results import CalibrationResult, Estimate
 from .units import DEG
 
-CLUSTERS = ("gyro", "acc", "incl")
 SI_PER_SENSOR_UNIT = {"gyro": DEG, "acc": STANDARD_GRAVITY, "incl": STANDARD_GRAVITY}  # deg/s, g -> rad/s, m/s^2
 WORDS = {"gyro": "gyro", "acc": "accelerometer", "incl": "inclinometer"}
 

@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Annotated, Literal, Union
 
 import msgspec
+import numpy as np
 from msgspec import Meta, Struct
 
 from stim300.cliutil import DOCUMENT_LIMIT_BYTES, read_input
@@ -451,6 +452,14 @@ def site_from_table(t: Table) -> Site:
         t.fail(exc.field, exc.reason)
     t.finish()
     return site
+
+
+def json_value(value):
+    """A numpy number or array that reached a document (a check's flag, a figure) as the JSON
+    value it holds: the hook of every encoder of results (result files, socket messages)."""
+    if isinstance(value, (np.generic, np.ndarray)):
+        return value.tolist()
+    raise TypeError(f"{type(value).__name__} is not JSON serializable")
 
 
 def decode_json(data: str | bytes, where, schema: type, error: type[CalibdError] = DocumentError,

@@ -25,7 +25,7 @@ from stim300.records import SensorRecord
 from stim300.cliutil import DOCUMENT_LIMIT_BYTES, package_version, read_input
 from stim300.errors import UsageError
 
-from .documents import ESTIMATE_BOUNDS, ResultDoc, SchemaError, decode_json, schema_version, validate
+from .documents import ESTIMATE_BOUNDS, ResultDoc, SchemaError, decode_json, json_value, schema_version, validate
 from .errors import CalibdError
 from .frames import EARTH_RATE, Site, int_to_imu, nav_to_imu
 from .units import DEG, M_S2_TO_MG, RAD_S_TO_DEG_H
@@ -261,16 +261,9 @@ def make_result(method: str, site: Site, estimates: dict[str, tuple[float, float
                              software=software_record(), **extra)
 
 
-def _plain(value):
-    """A numpy scalar that reached a result (a check's flag, a figure) as the Python value it holds."""
-    if isinstance(value, np.generic):
-        return value.item()
-    raise TypeError(f"{type(value).__name__} is not JSON serializable")
-
-
 def result_json(result: CalibrationResult) -> bytes:
     """The result file's bytes: JSON, one key a line, no NaN (a result with one is a bug)."""
-    return (json.dumps(result.to_dict(), indent=1, allow_nan=False, default=_plain) + "\n").encode()
+    return (json.dumps(result.to_dict(), indent=1, allow_nan=False, default=json_value) + "\n").encode()
 
 
 def write_result(path, result: CalibrationResult) -> None:

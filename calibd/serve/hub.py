@@ -265,16 +265,20 @@ class Hub(Listener):
                 self.dropped_bytes += lost
 
     def _raw_lines(self) -> list[tuple[str, bytes]]:
-        """The bytes kept since the last cut as RAW messages: one per run of consecutive reads,
-        at most RAW_MAX_BYTES each."""
+        """The bytes kept since the last cut as RAW messages: consecutive reads together, at most
+        RAW_MAX_BYTES a message (a longer read in pieces)."""
         with self._lock:
             kept, self._raw, self._raw_bytes = self._raw, [], 0
-        lines = []
-        while kept:
-            offset, t_host, data = kept.pop(0)
-            while kept and kept[0][0] == offset + len(data) and len(data) + len(kept[0][2]) <= RAW_MAX_BYTES:
-                data += kept.pop(0)[2]
-            lines.append((BYTES, encode(protocol.Raw.of(offset, t_host, data))))
+        lines, k = [], 0
+        while k < len(kept):
+            offset, t_host, first = kept[k]
+            parts, size, k = [first], len(first), k + 1
+            while k < len(kept) and kept[k][0] == offset + size and size + len(kept[k][2]) <= RAW_MAX_BYTES:
+                parts.append(kept[k][2])
+                size, k = size + len(kept[k][2]), k + 1
+            data = b"".join(parts)
+            lines += [(BYTES, encode(protocol.Raw.of(offset + at, t_host, data[at:at + RAW_MAX_BYTES])))
+                      for at in range(0, len(data), RAW_MAX_BYTES)]
         return lines
 
     def _forward(self, request: bytes) -> None:

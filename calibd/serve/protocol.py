@@ -20,6 +20,7 @@ from stim300.cliutil import package_version
 from stim300.records import SensorRecord
 
 from ..errors import CalibdError
+from ..documents import json_value
 
 PROTO_MAJOR = 1
 PROTO_MINOR = 3  # 1.1: ?AUTH and AUTH; 1.2: CORRECTION; 1.3: ?WATCH "raw" and RAW
@@ -274,14 +275,7 @@ MESSAGES = (Version | Error | Auth | Watch | State | Poll | Result | Fault | Ove
             | Raw)
 
 
-def _plain(value):
-    """numpy numbers and arrays in a document (a result's checks) as JSON numbers and lists."""
-    if isinstance(value, (np.generic, np.ndarray)):
-        return value.tolist()
-    raise NotImplementedError(f"a {type(value).__name__} is not JSON")
-
-
-_ENCODER = msgspec.json.Encoder(enc_hook=_plain)
+_ENCODER = msgspec.json.Encoder(enc_hook=json_value)
 
 
 def encode(message: Message | dict) -> bytes:
