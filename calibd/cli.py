@@ -29,7 +29,7 @@ from stim300.errors import UsageError
 from . import spec
 from .errors import CalibdError, CalibrationError
 from .frames import STANDARD_GRAVITY, Site, site_value_error
-from .scenario import READY_MADE, ScenarioError, load_scenario
+from .scenarios import READY_MADE
 from .serve.protocol import MAX_TOKEN_BYTES, SAMPLE_KINDS, ProtocolError, token_of
 from .units import DEG, estimate_rows
 
@@ -85,6 +85,8 @@ def load_session(path: str, start_s: float | None = 0.0, data: bytes | None = No
 
 
 def cmd_simulate(args) -> int:
+    from .scenario import ScenarioError, load_scenario
+
     for output in (args.output, f"{args.output}.truth.json"):  # refused before anything is written
         not_an_input(output, args.scenario)
         if os.path.isdir(output):
@@ -508,6 +510,7 @@ PLAN_NOISE_OPTIONS = {  # calibd plan option -> (calibd.spec.NoiseFigures field,
 def cmd_plan(args) -> int:
     from .planner import (builtin_protocol, noise_from_json, protocol_from_scenario,  # the simulator
                           report, time_to_target)  # only here
+    from .scenario import load_scenario
 
     given = {field: getattr(args, field) for field, _, _ in PLAN_NOISE_OPTIONS.values()
              if getattr(args, field) is not None}
@@ -764,14 +767,15 @@ def _speed(text: str) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .config import METHODS, WARMUP_WINDOW_S
+    from .methods import DAEMON_METHODS
+    from .warmup import WINDOW_RANGE_S
 
     parser = CommandParser(prog="calibd", description="STIM300 calibration: calibrate captures, simulate sessions.")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=CommandParser)
     p = sub.add_parser("calibrate", help="capture -> biases and alignment (result JSON)")
     p.add_argument("capture")
     p.add_argument("-o", "--output", type=path_arg, required=True, help="RESULT.json (replaced atomically)")
-    p.add_argument("--method", choices=METHODS, default="joint",
+    p.add_argument("--method", choices=DAEMON_METHODS, default="joint",
                    help="joint: every segment in one fit, with 1-sigma (default); thesis: the thesis's chain")
     _add_site_options(p, required=True)
     p.add_argument("--alpha", type=_number(-10, 10, "deg"), help="a-priori interface tilt alpha, deg (nominal run)")
@@ -814,7 +818,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="serve the raw bytes on a pty linked at this path (implies --serve)")
     p.add_argument("--corrected-pty", type=path_arg,
                    help="serve corrected datagrams on a pty linked at this path (implies --serve)")
-    p.add_argument("--warmup-window", type=_number(*WARMUP_WINDOW_S, "s"),
+    p.add_argument("--warmup-window", type=_number(*WINDOW_RANGE_S, "s"),
                    help="seconds of settled temperature that end the warm-up (default 600)")
     p.add_argument("--state-dir", type=path_arg, help="also write result.json, history/ and state.json there")
     p.set_defaults(func=cmd_replay)

@@ -18,7 +18,7 @@ from stim300.protocol import DEFAULT_BIT_RATE
 from .methods import DAEMON_METHODS, OptionError, estimator
 from .serve.protocol import IDLE_TIMEOUT_S, MAX_CLIENTS, MAX_CLIENTS_PER_UID, host_port
 from .documents import Table, parse_toml, site_from_table
-from .warmup import WarmupConfig
+from .warmup import WINDOW_RANGE_S, WarmupConfig
 from .errors import CalibdError
 from .frames import Site
 
@@ -142,7 +142,6 @@ class _ConfigTable(Table):
 # Sane ranges: a value far outside is a typo or a unit mistake, and 1e-300 or 1e308 would make the
 # daemon re-solve without pause or never end its warm-up.
 DAY_S = 86400.0
-WARMUP_WINDOW_S = (1.0, DAY_S)  # `calibd replay --warmup-window` takes the same range
 RESOLVE_EVERY_S = (1.0, DAY_S)
 MAX_BIT_RATE = 10_000_000  # far above the STIM300's fastest (1843200 bit/s)
 
@@ -184,8 +183,8 @@ def _warmup(t: _ConfigTable) -> WarmupConfig:
     warmup = WarmupConfig(
         max_slope_c_per_h=t.get("max_slope_c_per_h", d.max_slope_c_per_h, float, _within(0, 100, True),
                                 _range_words("a positive temperature slope", 0, 100, "degC/h", True)),
-        window_s=t.get("window_s", d.window_s, float, _within(*WARMUP_WINDOW_S),
-                       _range_words("a duration", *WARMUP_WINDOW_S, "s")),
+        window_s=t.get("window_s", d.window_s, float, _within(*WINDOW_RANGE_S),
+                       _range_words("a duration", *WINDOW_RANGE_S, "s")),
         min_time_s=t.get("min_time_s", d.min_time_s, float, _within(0, 7 * DAY_S),
                          _range_words("a duration", 0, 7 * DAY_S, "s")))
     t.finish()

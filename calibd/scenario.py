@@ -19,13 +19,13 @@ from stim300.errors import FormatError, UsageError
 from stim300.protocol import ACC_RANGE_LSB_EXP, NORMAL_LAYOUTS, SAMPLE_RATES_HZ
 from stim300.special import PartNumber, SerialNumber
 
-from . import spec
+from . import scenarios, spec
+from .scenarios import READY_MADE
 from .documents import (NOISE_MAX, SchemaError, Table, TruthDoc, decode_json, parse_toml, schema_version,
                         site_from_table, validate)
 from .errors import CalibdError
 from .frames import Site
 
-READY_MADE = ("thesis-real", "thesis-bench", "continuous")
 GYRO_UNITS = ("rate", "average", "incremental")
 ACC_UNITS = ("acceleration", "average", "incremental")
 UP_AXES = ("+Z", "-Z", "+Y", "-Y", "+X", "-X")
@@ -307,7 +307,7 @@ def parse_scenario(data: dict, where: str) -> Scenario:
 def load_scenario(source: str) -> Scenario:
     """A scenario from a TOML file path, or one of READY_MADE by name."""
     if source in READY_MADE:
-        text = resources.files("calibd").joinpath("scenarios", f"{source}.toml").read_text()
+        text = resources.files(scenarios).joinpath(f"{source}.toml").read_text()
         where = f"{source} (ready-made)"
     else:
         ready_made = f"ready-made ones: {', '.join(READY_MADE)}"

@@ -26,6 +26,7 @@ class WarmupConfig:
     min_time_s: float = 0.0  # and at least this long since power-up
 
 
+WINDOW_RANGE_S = (1.0, 86400.0)  # a window_s that makes sense: [warmup] window_s and `calibd replay --warmup-window`
 WARM_UP_RULE = WarmupConfig()  # the daemon's default: calibrate starts a power-up where it is met
 NOT_WARMED_UP = ("every estimate is flagged poor: the data were taken while the IMU warmed up, and biases move "
                  "with temperature (record after the warm-up)")
