@@ -15,7 +15,7 @@ from calibd.serve.sockets import SocketServer
 from captures import calibd
 
 ROOT = Path(__file__).resolve().parents[1]
-CAPTURE = ROOT / "fixtures" / "static_turn_2000hz.bin"
+FIXTURES = ROOT / "fixtures"
 
 
 def test_a_raw_message_carries_the_bytes_and_where_they_are_in_the_stream():
@@ -39,12 +39,15 @@ def test_watch_takes_raw_as_true_or_false_only():
 
 
 @pytest.mark.slow
-def test_two_clients_each_take_every_byte_of_a_replay_from_the_socket(tmp_path):
-    """Two `calibd pipe --bytes` readers of one replayed 2000 Hz sensor: each writes the capture's
-    bytes from the moment it connected to the end, nothing lost, nothing added, neither taking
-    any from the other (a pty would split them)."""
+@pytest.mark.parametrize("name, speed", [("static_turn_2000hz", 4), ("faults_125hz", 12)])
+def test_two_clients_each_take_every_byte_of_a_replay_from_the_socket(tmp_path, name, speed):
+    """Two `calibd pipe --bytes` readers of one replayed sensor: each writes the capture's bytes
+    from the moment it connected to the end, nothing lost, nothing added, neither taking any
+    from the other (a pty would split them); garbage, CRC errors and a sensor restart
+    (faults_125hz) pass as they came."""
+    capture_path = FIXTURES / f"{name}.bin"
     sock = tmp_path / "calibd.sock"
-    daemon = calibd("replay", CAPTURE, "--latitude", "60", "--socket", sock, "--speed", "4")
+    daemon = calibd("replay", capture_path, "--latitude", "60", "--socket", sock, "--speed", str(speed))
     try:
         deadline = time.monotonic() + 60
         while not sock.exists():
@@ -60,7 +63,7 @@ def test_two_clients_each_take_every_byte_of_a_replay_from_the_socket(tmp_path):
         for process in (daemon, *locals().get("pipes", [])):
             if process.poll() is None:
                 process.kill()
-    capture = CAPTURE.read_bytes()
+    capture = capture_path.read_bytes()
     for path in outputs:
         got = path.read_bytes()
         assert len(got) > len(capture) * 0.8  # connected within the first fifth of the replay
