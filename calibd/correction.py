@@ -6,6 +6,8 @@ at hand."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from stim300.protocol import CLUSTERS, NORMAL_LAYOUTS, Format
@@ -16,6 +18,20 @@ from .units import DEG
 
 SI_PER_SENSOR_UNIT = {"gyro": DEG, "acc": STANDARD_GRAVITY, "incl": STANDARD_GRAVITY}  # deg/s, g -> rad/s, m/s^2
 WORDS = {"gyro": "gyro", "acc": "accelerometer", "incl": "inclinometer"}
+
+
+@dataclass(frozen=True, eq=False)
+class ServedCorrection:
+    """The result of this power-up whose biases the corrected outputs subtract, and those biases
+    in the sensor's base units (deg/s, g; float32 as the samples). Compared by identity: each
+    change of the biases is a new one."""
+
+    result: CalibrationResult
+    bias: dict[str, np.ndarray]
+
+    def biases(self) -> dict[str, tuple[float, str]]:
+        """(value, unit) of each bias subtracted, as the result gives them (deg/h, mg)."""
+        return {name: (e.value, e.unit) for name, e in bias_estimates(self.result).items()}
 
 
 def bias_estimates(result: CalibrationResult) -> dict[str, Estimate]:

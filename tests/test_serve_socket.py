@@ -20,7 +20,7 @@ from calibd.daemon import Calibrator, Callbacks, State
 from calibd.frames import Site
 from calibd.results import make_result, result_json, write_result
 from calibd.statedir import ResultStore
-from calibd.serve import hub as hub_module
+from calibd.serve import queue as queue_module
 from calibd.serve import sockets
 from calibd.correction import sample_units, sensor_biases, uncorrectable
 from calibd.serve.hub import Hub
@@ -387,21 +387,21 @@ def test_poll_shows_the_previous_result_marked_once_the_sensor_restarts(served, 
 
 
 def test_the_tap_never_holds_more_than_its_bound(tmp_path, monkeypatch):
-    monkeypatch.setattr(hub_module, "PENDING_SAMPLES", 500)
+    monkeypatch.setattr(queue_module, "PENDING_SAMPLES", 500)
     hub = Hub(ServeConfig(socket=tmp_path / "s.sock"), "port")
     hub.server.close()  # the server thread gone: nobody cuts the samples
     parser = StreamParser(tap=hub.tap)
     with capture_logs() as logs:
         for offset in range(0, 300_000, 4096):
             parser.feed(DATA_2000[offset:offset + 4096])
-        assert hub._pending_count <= 500 + 4096 // 40
-        assert hub.dropped_samples == parser.stats.datagrams - hub._pending_count > 0  # each one counted
+        assert hub.queue._count <= 500 + 4096 // 40
+        assert hub.queue.dropped == parser.stats.datagrams - hub.queue._count > 0  # each one counted
         hub.stream_seen(stream_info(parser), {}, {})
         assert hub._cut_samples({"raw"})  # the server thread catches up: the episode ends
         parser.feed(DATA_2000[300_000:304_096])
     hub.close()
     events = [(entry["event"], entry.get("dropped_samples")) for entry in logs if entry["event"].startswith("samples_")]
-    assert events == [("samples_dropping", None), ("samples_drops_ended", hub.dropped_samples)]  # once per episode
+    assert events == [("samples_dropping", None), ("samples_drops_ended", hub.queue.dropped)]  # once per episode
 
 
 def test_clients_beyond_the_limit_are_told_and_closed(served, tmp_path, monkeypatch):

@@ -22,7 +22,6 @@ import secrets
 import stat
 import threading
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import msgspec
@@ -39,29 +38,16 @@ from ..session import PowerUpCuts
 from . import protocol
 from .protocol import (BYTES, MAX_TOKEN_BYTES, RAW_MAX_BYTES, SAMPLES_MAX_S, Command, ProtocolError, encode,
                        samples_line, token_of)
-from ..correction import bias_estimates, replaces, sample_units, sensor_biases, uncorrectable
+from ..correction import ServedCorrection, replaces, sample_units, sensor_biases, uncorrectable
+from .feeds import Feed, Feeds
 from .ptys import CorrectedPty, PtyError, RawPty, Throttle
+from .queue import SampleQueue
 from .sockets import ServeError, SocketServer
 
 log = structlog.get_logger("calibd")
 
 RESULT_COPY_MODE = 0o640
-PENDING_SAMPLES = 8000  # samples the tap keeps for the server thread at most (4 s at 2000 Hz)
 PENDING_BYTES = 1 << 20  # the sensor's bytes the tap keeps for RAW watchers at most (13 s at 2000 Hz)
-
-
-@dataclass(frozen=True, eq=False)
-class Correction:
-    """The result of this power-up whose biases the corrected outputs subtract, and those biases
-    in the sensor's base units (deg/s, g; float32 as the samples). Compared by identity: each
-    change of the biases is a new one."""
-
-    result: CalibrationResult
-    bias: dict[str, np.ndarray]
-
-    def biases(self) -> dict[str, tuple[float, str]]:
-        """(value, unit) of each bias subtracted, as the result gives them (deg/h, mg)."""
-        return {name: (e.value, e.unit) for name, e in bias_estimates(self.result).items()}
 
 
 class Hub(Listener):
@@ -70,29 +56,28 @@ class Hub(Listener):
     starts it all or raises ServeError (one line) having started nothing; `close()` removes the
     socket file and the pty links."""
 
-    def __init__(self, config: ServeConfig, port: str, previous: CalibrationResult | None = None):
+    def __init__(self, config: ServeConfig, port: str, previous: CalibrationResult | None = None,
+                 feeds: dict[str, Feed] | None = None):
         self.config, self.port = config, port
+        self.feeds = Feeds(feeds) if feeds else None  # ROS 2, Foxglove: theirs from here on (closed by close())
         self.gid = _group_id(config.group)
         self.port_writer = None  # the port's writer, for requests written into the raw pty (`calibd run` sets it)
         self._state = protocol.StateFields(State.STARTING.value, "waiting for data")
         self._result = previous
-        self._kept: Correction | None = None  # what this power-up's corrected outputs subtract ([serve] correction)
-        self._pty_kept: Correction | None = None  # the reader thread's: what the corrected pty was given
-        self._announced: Correction | None = None  # the server thread's: what the last CORRECTION said
-        self._held: list[tuple[np.ndarray, np.ndarray, Correction | None]] = []  # timed, after a change
+        self._kept: ServedCorrection | None = None  # what this power-up's corrected outputs subtract
+        self._pty_kept: ServedCorrection | None = None  # the reader thread's: what the corrected pty was given
+        self._announced: ServedCorrection | None = None  # the server thread's: what the last CORRECTION said
+        self._held: list[tuple[np.ndarray, np.ndarray, ServedCorrection | None]] = []  # timed, after a change
         self._cuts = PowerUpCuts()  # the tap's: where the sensor restarted
         self._restart_unheard = False  # the tap saw a restart the calibrator has not yet said (RESTARTED)
         self._info: StreamInfo | None = None
         self._overrun = 0
-        self._pending: list[tuple[np.ndarray, Correction | None]] = []  # each read's samples, what they take
-        self._pending_count = 0
-        self.dropped_samples = 0  # samples the tap let go because the server thread lagged
+        self.queue = SampleQueue("the socket server's thread lags")  # each read's samples, what they subtract
         self._bytes_wanted = False  # a client watches RAW (the server thread says so at each cut)
         self._bytes_seen = 0  # the stream's bytes so far: a RAW message's offset
         self._raw: list[tuple[int, float, bytes]] = []  # (offset, host time, bytes) of each read, for RAW
         self._raw_bytes = 0
         self.dropped_bytes = 0  # bytes for RAW the tap let go because the server thread lagged
-        self._episode_dropped = 0  # of them, since the server thread last took the queue
         self._lock = threading.Lock()
         self._clock = CounterClock()  # the server thread's: SAMPLES "t"
         self._copy_failing = False  # the result copy's last write failed (logged once until one succeeds)
@@ -121,6 +106,8 @@ class Hub(Listener):
             if config.socket is not None or config.tcp is not None:
                 self.server = SocketServer(config.socket, config.tcp, self.gid, self._answer, self._cut_samples,
                                            token, config.idle_timeout_s, config.max_clients_per_uid).start()
+            if self.feeds is not None:
+                self.feeds.start()
         except BaseException:
             self.close()
             raise
@@ -132,7 +119,7 @@ class Hub(Listener):
         return None if kept is None else kept.bias
 
     def close(self) -> None:
-        for part in (self.server, *self.raw_ptys, self.corrected_pty):
+        for part in (self.server, *self.raw_ptys, self.corrected_pty, self.feeds):
             if part is not None:
                 part.close()
 
@@ -143,6 +130,8 @@ class Hub(Listener):
                 self._kept, self._restart_unheard = None, False
         self._state = protocol.StateFields(state.value, detail, progress or {})
         self._publish(protocol.State(state.value, detail, progress or {}))
+        if self.feeds is not None:
+            self.feeds.state(state.value, detail, progress or {})
 
     def on_result(self, result: CalibrationResult) -> None:
         """Always published; its biases are subtracted only when the tap has seen no restart the
@@ -166,12 +155,14 @@ class Hub(Listener):
                 self._kept = None
             elif bias is not None and replaces(self.config.correction, None if kept is None else kept.result, result):
                 if kept is None or not _same(kept.bias, bias):
-                    self._kept = changed = Correction(result, bias)
+                    self._kept = changed = ServedCorrection(result, bias)
         if changed is not None and self.server is None:  # nothing times the stream: said without from_t
             self._say_correction(kept, changed, None)
         if self.config.result_copy is not None:
             self._write_copy(result)
         self._publish(protocol.Result(result.to_dict()))
+        if self.feeds is not None:
+            self.feeds.result(result)
 
     def stream_seen(self, info: StreamInfo, counts: dict, increases: dict) -> None:
         """The daemon's loop after each batch: the stream as it is (DEVICE) and the faults that
@@ -180,6 +171,8 @@ class Hub(Listener):
         if increases:
             self._overrun += increases.get("overrun", 0)
             self._publish(protocol.Fault({**counts, "overrun": self._overrun}, increases))
+        if self.feeds is not None:
+            self.feeds.stream_seen(info, {**counts, "overrun": self._overrun})
 
     def _publish(self, message: dict) -> None:
         if self.server is not None:
@@ -240,18 +233,9 @@ class Hub(Listener):
         if self.corrected_pty is not None:
             self.corrected_pty.tap(settled)
         if self.server is not None and len(settled.samples):
-            dropped = 0
-            with self._lock:
-                self._pending.append((settled.samples, kept))
-                self._pending_count += len(settled.samples)
-                while self._pending_count > PENDING_SAMPLES and len(self._pending) > 1:
-                    dropped += len(self._pending.pop(0)[0])
-                self._pending_count -= dropped
-                begins = dropped and not self._episode_dropped
-                self._episode_dropped += dropped
-                self.dropped_samples += dropped
-            if begins:
-                log.warning("samples_dropping", why="the socket server's thread lags: the oldest queued samples go")
+            self.queue.put(settled.samples, kept)
+        if self.feeds is not None and len(settled.samples):
+            self.feeds.tap(settled.samples, kept)
 
     def _keep_bytes(self, data: bytes) -> None:
         """A read's bytes kept for the RAW watchers (reader thread); the oldest go, counted, when
@@ -300,11 +284,7 @@ class Hub(Listener):
         info = self._info
         if info is None or not info.rate_hz:
             return raw  # until the rate is known nothing can be timed: the samples wait (bounded)
-        with self._lock:
-            pending, self._pending, self._pending_count = self._pending, [], 0
-            ended, self._episode_dropped = self._episode_dropped, 0
-        if ended:
-            log.info("samples_drops_ended", dropped_samples=ended)
+        pending = self.queue.take()
         timed, self._held = self._held, []
         if pending:
             samples = np.concatenate([piece for piece, _ in pending])
@@ -332,7 +312,7 @@ class Hub(Listener):
         return batches
 
     def _batches(self, kinds: set, info: StreamInfo, samples: np.ndarray, time_s: np.ndarray,
-                 kept: Correction | None) -> list[tuple[str, bytes]]:
+                 kept: ServedCorrection | None) -> list[tuple[str, bytes]]:
         """Timed samples that take the same biases (`kept`) as SAMPLES batches of each kind."""
         bias, hold = None if kept is None else kept.bias, self.config.corrected_before_result == "hold"
         if uncorrectable(info.format):
@@ -355,7 +335,7 @@ class Hub(Listener):
                 batches.append(("corrected", raw))
         return batches
 
-    def _say_correction(self, old: Correction | None, new: Correction, from_t_s: float | None) -> None:
+    def _say_correction(self, old: ServedCorrection | None, new: ServedCorrection, from_t_s: float | None) -> None:
         """CORRECTION to every watcher and `correction_changed` in the log: the subtracted biases
         changed from `old` (None: the power-up's first) to `new` at stream time `from_t_s` (s)."""
         message = protocol.Correction.of(self.config.correction, new.result.session_id, from_t_s,
