@@ -280,14 +280,14 @@ def _replay_serve(args, config) -> ServeConfig | None:
     given = {key: Path(value) for key, value in (("socket", args.socket), ("raw_pty", args.raw_pty),
                                                  ("corrected_pty", args.corrected_pty)) if value is not None}
     if not (args.serve or given):
-        if config and config.serve.serving:
-            print(f"calibd replay: {args.config} has a [serve] table: a replay serves it only with --serve",
-                  file=sys.stderr)
+        if config and config.serving:
+            print(f"calibd replay: {args.config} serves the sensor ({', '.join(config.served_tables)}): a replay "
+                  "serves only with --serve", file=sys.stderr)
         return None
     serve = replace(config.serve if config else ServeConfig(), **given)
-    if not serve.serving:
+    if not (serve.serving or (config and config.serving)):
         raise UsageError("replay --serve: nothing to serve: give --socket, --raw-pty or --corrected-pty, or a "
-                         "[serve] table in --config")
+                         "[serve], [ros2] or [foxglove] table in --config")
     return serve
 
 
@@ -302,7 +302,7 @@ def cmd_replay(args) -> int:
     from .daemon import Calibrator, Callbacks, StateLog
     from .live import configure_logging, replay
     from .statedir import ResultStore
-    from .serve.hub import Hub
+    from .serve.hub import Hub, make_feeds
     from .serve.sockets import ServeError
 
     config = _config(args.config, None) if args.config else None
@@ -341,7 +341,8 @@ def cmd_replay(args) -> int:
     hub = None
     if serve:
         try:
-            hub = Hub(serve, args.capture)
+            hub = Hub(serve, args.capture, feeds=make_feeds(config.ros2, config.foxglove) if config else None,
+                      paced=speed == 1)
         except ServeError as exc:  # as for the daemon: serving that cannot start fails the run
             raise RunError(str(exc)) from None
         listeners.append(hub)

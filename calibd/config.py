@@ -23,7 +23,8 @@ from .errors import CalibdError
 from .frames import Site
 
 METHODS = DAEMON_METHODS  # the estimators (calibd.estimators) the daemon runs
-TABLES = ("serial", "site", "output", "warmup", "detection", "method", "serve")
+TABLES = ("serial", "site", "output", "warmup", "detection", "method", "serve", "ros2", "foxglove")
+SERVED_TABLES = ("serve", "ros2", "foxglove")  # what the daemon serves: started once, kept as started on SIGHUP
 
 
 class ConfigError(CalibdError):
@@ -111,6 +112,31 @@ def parse_tcp(text: str) -> tuple[str, int] | None:
 
 
 @dataclass(frozen=True)
+class Ros2Config:
+    """ROS 2 topics published over DDS (docs/ros2.md); an empty [ros2] table takes these."""
+
+    domain_id: int = 0  # ROS_DOMAIN_ID of the subscribers
+    frame_id: str = "imu_link"  # every message's header.frame_id: the IMU's housing axes
+    data_raw_topic: str = "imu/data_raw"  # sensor_msgs/Imu as the sensor sent it, SI
+    data_topic: str = "imu/data"  # sensor_msgs/Imu with the served correction's biases taken out
+    calibration_topic: str = "imu/calibration"  # std_msgs/String: the result document (latched)
+    alignment_topic: str = "imu/alignment"  # geometry_msgs/QuaternionStamped: the IMU in ENU (latched)
+    diagnostics_topic: str = "diagnostics"  # diagnostic_msgs/DiagnosticArray at 1 Hz
+
+    TOPICS = ("data_raw_topic", "data_topic", "calibration_topic", "alignment_topic", "diagnostics_topic")
+
+
+@dataclass(frozen=True)
+class FoxgloveConfig:
+    """The Foxglove live view's WebSocket server (docs/foxglove.md); an empty [foxglove] table
+    takes these."""
+
+    host: str = "127.0.0.1"  # loopback: the host's own Foxglove (an SSH tunnel from elsewhere)
+    port: int = 8765
+    rate_hz: float = 100.0  # the IMU channels' display rate (block averages of the samples)
+
+
+@dataclass(frozen=True)
 class DaemonConfig:
     serial: SerialConfig
     site: Site
@@ -119,6 +145,18 @@ class DaemonConfig:
     method: MethodConfig
     detection: DetectionConfig = DetectionConfig()
     serve: ServeConfig = ServeConfig()
+    ros2: Ros2Config | None = None  # None: no [ros2] table, nothing published over DDS
+    foxglove: FoxgloveConfig | None = None  # None: no [foxglove] table, no live view
+
+    @property
+    def serving(self) -> bool:
+        """Whether the daemon serves the sensor at all (the socket, ptys, ROS 2, Foxglove)."""
+        return bool(self.served_tables)
+
+    @property
+    def served_tables(self) -> list[str]:
+        """The SERVED_TABLES given, as "[name]"."""
+        return [f"[{name}]" for name in SERVED_TABLES if getattr(self, name) not in (None, ServeConfig())]
 
     def with_port(self, port: str) -> DaemonConfig:
         """A copy on another serial port: one file serves every instance of the systemd
@@ -278,6 +316,49 @@ def _serve(t: _ConfigTable) -> ServeConfig:
     return serve
 
 
+MAX_RATE_HZ = 2000.0  # the sensor's fastest
+
+
+def _ros2(t: _ConfigTable) -> Ros2Config:
+    """[ros2]: domain, frame and topic names, each checked by the ROS 2 rules (calibd.ros2.messages,
+    which needs no DDS package to check them)."""
+    from .ros2.messages import MAX_DOMAIN_ID, Ros2Error, check_frame_id, dds_topic
+
+    def name(key: str, check) -> str:
+        value = t.get(key, getattr(d, key), str)
+        try:
+            check(value)
+        except Ros2Error as exc:
+            why = str(exc).split(": ", 1)[1]
+            t.fail(key, why if repr(value) in why else f"{value!r}: {why}")
+        return value
+
+    d = Ros2Config()
+    ros2 = Ros2Config(domain_id=t.get("domain_id", d.domain_id, int, _within(0, MAX_DOMAIN_ID),
+                                      f"a DDS domain id in [0, {MAX_DOMAIN_ID}]"),
+                      frame_id=name("frame_id", check_frame_id),
+                      **{key: name(key, lambda v, key=key: dds_topic(v, key)) for key in Ros2Config.TOPICS})
+    t.finish()
+    seen: dict[str, str] = {}
+    for key in Ros2Config.TOPICS:
+        topic = dds_topic(getattr(ros2, key), key)
+        if topic in seen:
+            t.fail(key, f"{getattr(ros2, key)!r} is also {seen[topic]}: each topic must be its own")
+        seen[topic] = key
+    return ros2
+
+
+def _foxglove(t: _ConfigTable) -> FoxgloveConfig:
+    d = FoxgloveConfig()
+    foxglove = FoxgloveConfig(
+        host=t.get("host", d.host, str, _nonempty, 'an address to listen on, such as "127.0.0.1"'),
+        port=t.get("port", d.port, int, _within(0, 65535), "a TCP port in [0, 65535] (0: any free port)"),
+        rate_hz=t.get("rate_hz", d.rate_hz, float, _within(0, MAX_RATE_HZ, True),
+                      _range_words("a display rate", 0, MAX_RATE_HZ, "Hz", True)))
+    t.finish()
+    return foxglove
+
+
 def parse_config(data: dict, where: str) -> DaemonConfig:
     """Build a DaemonConfig from TOML data; `where` names the source in error messages."""
     known = ", ".join(f"[{name}]" for name in sorted(TABLES))
@@ -295,7 +376,9 @@ def parse_config(data: dict, where: str) -> DaemonConfig:
     return DaemonConfig(serial=_serial(table("serial")), site=site_from_table(table("site")),
                         state_dir=_state_dir(table("output")), warmup=_warmup(table("warmup")),
                         method=_method(table("method")), detection=_detection(table("detection")),
-                        serve=_serve(table("serve")))
+                        serve=_serve(table("serve")),
+                        ros2=_ros2(table("ros2")) if "ros2" in data else None,
+                        foxglove=_foxglove(table("foxglove")) if "foxglove" in data else None)
 
 
 def load_config(path: str | Path) -> DaemonConfig:

@@ -101,3 +101,15 @@ def other_sensor(result_serial: str | None, serial: str | None) -> bool:
     than the stream's (`serial`): only when both are known and differ. A serial number comes
     only in the sensor's power-up datagrams, so a stream joined later cannot tell."""
     return serial is not None and result_serial is not None and serial != result_serial
+
+
+def bias_covariance(result: CalibrationResult, cluster: str) -> np.ndarray:
+    """The 3 x 3 covariance (SI^2) of a cluster's biases as `si_biases` gives them: the result's
+    covariance block when it has one (axes correlate through the alignment), else each sigma
+    squared (an estimate without a sigma counts as zero)."""
+    names = [f"{cluster}_bias_{axis}" for axis in "xyz"]
+    covariance = result.covariance_matrix(si=True)
+    if covariance is not None and all(name in result.covariance["names"] for name in names):
+        index = [result.covariance["names"].index(name) for name in names]
+        return covariance[np.ix_(index, index)]
+    return np.diag([(result.estimates[name].sigma_si or 0.0) ** 2 for name in names])

@@ -25,10 +25,10 @@ from stim300.codec import fault_bits
 from stim300.errors import PortError
 from stim300.source import PortSource, SampleSource
 
-from .config import ConfigError
+from .config import SERVED_TABLES, ConfigError
 from .daemon import Calibrator, Listener, State, StateLog
 from .statedir import ResultStore, StateDirError
-from .serve.hub import Hub
+from .serve.hub import Hub, make_feeds
 from .serve.sockets import ServeError
 
 log = structlog.get_logger("calibd")
@@ -199,7 +199,8 @@ def run(config, reload_config) -> int:
     try:
         store = ResultStore(config.state_dir, {"port": config.serial.port}, on_health=status.degraded)
         previous = store.previous()
-        hub = Hub(config.serve, config.serial.port, previous) if config.serve.serving else None
+        hub = Hub(config.serve, config.serial.port, previous, make_feeds(config.ros2, config.foxglove)) \
+            if config.serving else None
         try:
             source = PortSource(config.serial.port, config.serial.baudrate, tap=hub and hub.tap)
         except BaseException:
@@ -233,8 +234,9 @@ def run(config, reload_config) -> int:
             try:
                 fresh = reload_config()
                 calibrator.configure(fresh.site, fresh.warmup, fresh.method, fresh.detection)
-                log.info("reloaded", serve="the [serve] table in use is kept (a change of it needs a restart)"
-                         if fresh.serve != config.serve else "unchanged")
+                served = [f"[{name}]" for name in SERVED_TABLES if getattr(fresh, name) != getattr(config, name)]
+                log.info("reloaded", serve=f"changed, kept as started: {', '.join(served)} (a change needs a restart)"
+                         if served else "unchanged")
             except ConfigError as exc:
                 log.error("reload_failed", error=str(exc), detail="keeping the configuration in use")
 

@@ -28,10 +28,13 @@ STEP_S = 0.02  # an envelope this far from the offset used is a new mapping, not
 class WallClock:
     """Counter times (s, `CounterClock`) and their reads' host monotonic times -> realtime
     stamps in integer nanoseconds since the Unix epoch. `realtime` gives (realtime ns,
-    monotonic s) read together (the host's clocks; a test's own)."""
+    monotonic s) read together (the host's clocks; a test's own). `follow=False` for a stream
+    that does not come at the sensor's pace (a capture replayed faster): the offset found at
+    the start is kept, so the stamps keep the sensor's time scale from there."""
 
-    def __init__(self, realtime=None) -> None:
+    def __init__(self, realtime=None, follow: bool = True) -> None:
         self._realtime = realtime or _host_clocks
+        self._follow_host = follow
         self._minima: deque[tuple[float, float]] = deque()  # (counter time, lowest offset of a batch)
         self._offset: float | None = None  # host monotonic minus counter time in use (s)
         self._last_s = 0.0  # the counter time the offset was last moved at
@@ -57,7 +60,7 @@ class WallClock:
     def _follow(self, time_s: np.ndarray, t_host: np.ndarray) -> float | None:
         """Move the offset in use towards the envelope; the step when it was reset."""
         finite = np.isfinite(t_host)
-        if not finite.any():
+        if not finite.any() or (self._offset is not None and not self._follow_host):
             return None
         offsets = t_host[finite] - time_s[finite]
         low = int(np.argmin(offsets))

@@ -258,5 +258,5 @@ def test_replay_with_a_config_that_serves_says_it_serves_only_with_serve(capture
     assert code == 1 and "[serve]" not in capsys.readouterr().err  # too short to solve: replayed, no result
     assert calibd_main(["replay", str(path), "--config", str(served)]) == code
     notes = [line for line in capsys.readouterr().err.splitlines() if "[serve]" in line]
-    assert notes == [f"calibd replay: {served} has a [serve] table: a replay serves it only with --serve"]
+    assert notes == [f"calibd replay: {served} serves the sensor ([serve]): a replay serves only with --serve"]
     assert not (tmp_path / "calibd.sock").exists()

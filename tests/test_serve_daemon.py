@@ -163,7 +163,7 @@ def test_run_shows_the_previous_result_and_marks_it_once_the_sensor_restarts(tmp
         assert not sock_path.exists()
         READERS.pop(sock).close()
         log = daemon.stderr.read().decode()
-        assert "the [serve] table in use is kept" in log
+        assert "changed, kept as started: [serve]" in log
     finally:
         if daemon.poll() is None:
             daemon.kill()

@@ -58,3 +58,20 @@ def test_a_realtime_clock_set_is_a_reported_step():
     assert len(steps) == 1 and abs(steps[0] - 2.0) < STEP_S
     error_s = (stamps - EPOCH_NS) / 1e9 - true_s
     assert abs(error_s[-1] - 2.0) < 1e-3 and abs(error_s[RATE_HZ * 5]) < 1e-3
+
+
+def test_a_replay_faster_than_real_time_keeps_the_sensors_time_scale():
+    """Not following the host (`follow=False`): the stamps step by the counter, whatever the
+    host clock does meanwhile."""
+    state = {"mono": 50.0}
+    wall = WallClock(lambda: (EPOCH_NS + round(state["mono"] * 1e9), state["mono"]), follow=False)
+    clock = CounterClock()
+    counter = np.arange(2000 * 60) % 256  # a minute of 2000 Hz data
+    stamps = []
+    for lo in range(0, len(counter), 400):  # read 100 times faster than real time
+        state["mono"] += 0.002
+        time_s = clock.times(counter[lo:lo + 400], 2000, np.full(400, state["mono"])).time_s
+        got, step = wall.stamps(time_s, np.full(400, state["mono"]))
+        assert step is None
+        stamps.append(got)
+    assert np.all(np.diff(np.concatenate(stamps)) == 500_000)  # ns: exactly the sample interval

@@ -83,9 +83,11 @@ class _Events:
 
 
 class Feeds:
-    """The feeds thread over `feeds` (names: how the log calls them, e.g. "ros2")."""
+    """The feeds thread over `feeds` (names: how the log calls them, e.g. "ros2"). `paced`: the
+    stream comes at the sensor's pace (a port, a replay in real time), so the stamps follow the
+    host's clock; a replay at another speed keeps the sensor's time scale from its start."""
 
-    def __init__(self, feeds: dict[str, Feed]):
+    def __init__(self, feeds: dict[str, Feed], paced: bool = True):
         self.feeds = feeds
         self.queue = SampleQueue("the feeds thread lags (a ROS 2 or Foxglove subscriber?)")
         self._events = _Events()
@@ -93,7 +95,7 @@ class Feeds:
         self._info: StreamInfo | None = None
         self._counts: dict[str, int] = {}
         self._state = ("STARTING", "waiting for data")
-        self._clock, self._wall = CounterClock(), WallClock()
+        self._clock, self._wall = CounterClock(), WallClock(follow=paced)
         self._hidden_gaps = 0
         self._fault_bits, self._flagged = 0, 0
         self._failing: dict[tuple[str, str], int] = {}  # (feed, call) -> calls failed in its present episode
@@ -204,3 +206,4 @@ class Feeds:
         failed = self._failing.pop((name, method), None)
         if failed is not None:
             log.info("feed_recovered", feed=name, call=method, failed_calls=failed)
+

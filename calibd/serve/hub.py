@@ -57,9 +57,9 @@ class Hub(Listener):
     socket file and the pty links."""
 
     def __init__(self, config: ServeConfig, port: str, previous: CalibrationResult | None = None,
-                 feeds: dict[str, Feed] | None = None):
+                 feeds: dict[str, Feed] | None = None, paced: bool = True):
         self.config, self.port = config, port
-        self.feeds = Feeds(feeds) if feeds else None  # ROS 2, Foxglove: theirs from here on (closed by close())
+        self.feeds = Feeds(feeds, paced) if feeds else None  # ROS 2, Foxglove: the hub's from here on
         self.gid = _group_id(config.group)
         self.port_writer = None  # the port's writer, for requests written into the raw pty (`calibd run` sets it)
         self._state = protocol.StateFields(State.STARTING.value, "waiting for data")
@@ -353,6 +353,37 @@ class Hub(Listener):
             configuration = None if info.configuration is None else info.configuration.as_dict()
             return protocol.Device.of(self.port, info.sensor_record(), sample_units(info.format), configuration)
         raise ProtocolError(f"?{command.name} takes no part in this server")
+
+
+def make_feeds(ros2, foxglove) -> dict[str, Feed]:
+    """The feeds the [ros2] and [foxglove] tables ask for (`calibd.config.Ros2Config`,
+    `FoxgloveConfig`, None when absent), started; ServeError (one line, before the daemon says it
+    is ready) when one cannot start, those made before it closed. Their packages are loaded only
+    here, when asked for."""
+    from ..ros2.messages import Ros2Error
+
+    feeds: dict[str, Feed] = {}
+    try:
+        if ros2 is not None:
+            from .rosfeed import Ros2Feed  # here: the ros2 extra is loaded only when [ros2] is given
+
+            feeds["ros2"] = Ros2Feed(ros2)
+        if foxglove is not None:
+            from .foxglove import FoxgloveView
+
+            feeds["foxglove"] = FoxgloveView(foxglove.host, foxglove.port, foxglove.rate_hz)
+    except Ros2Error as exc:
+        _close_all(feeds)
+        raise ServeError(f"[ros2] {exc}") from None
+    except BaseException:
+        _close_all(feeds)
+        raise
+    return feeds
+
+
+def _close_all(feeds: dict[str, Feed]) -> None:
+    for feed in feeds.values():
+        feed.close()
 
 
 def _same(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> bool:
