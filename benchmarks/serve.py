@@ -12,7 +12,15 @@ the served run's result lies from the bare run's (in sigma).
 Targets: CPU <= 2x bare and <= 8 % of a core; latency p99 < 50 ms; RSS flat; every raw reader
 gets every byte; the served run's log under 100 lines for 10 minutes; result unchanged.
 
-    python benchmarks/serve.py [--seconds 600] [--quick]
+With --feeds the second run publishes ROS 2 topics and the Foxglove view instead ([ros2] and
+[foxglove]; DDS on loopback), with a ROS 2 subscriber of both Imu topics in a process of its own
+(benchmarks/ros2_listen.py) and a Foxglove client watching every channel. Printed beside the
+CPU: the share of samples each Imu topic delivered (target >= 99.9 %), whether they came in
+order with strictly increasing stamps, the stamps' jitter against the sensor's clock (each 10 s
+of stamps against a straight line through them; target <= 50 us RMS), whether every corrected
+sample is its raw twin less a constant bias, and the Foxglove messages per channel.
+
+    python benchmarks/serve.py [--seconds 600] [--quick] [--feeds]
 """
 
 from __future__ import annotations
@@ -20,6 +28,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import random
 import signal
 import socket
 import subprocess
@@ -33,7 +42,8 @@ from pathlib import Path
 
 import numpy as np
 
-from live import ENV, capture_2000hz, feed, usage  # benchmarks/live.py: the stream and its real-time feed
+from live import ENV, ROOT, capture_2000hz, feed, usage  # benchmarks/live.py: the stream and its real-time feed
+from ros2_publish import LOOPBACK  # DDS on loopback only, unicast discovery
 
 
 WARMUP_WINDOW_S = 60
@@ -120,6 +130,75 @@ def abuse(path: Path) -> None:
                 pass
 
 
+class FoxgloveCounter(threading.Thread):
+    """A Foxglove WebSocket client subscribed to every channel the view advertises, counting the
+    messages of each (the view does no work for a channel nobody watches)."""
+
+    def __init__(self, port: int):
+        super().__init__(daemon=True)
+        from websockets.sync.client import connect
+
+        deadline = time.monotonic() + 30
+        while True:
+            try:
+                self.ws = connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1"], open_timeout=5)
+                break
+            except OSError:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.2)
+        self.counts: Counter = Counter()
+        self.topics: dict[int, str] = {}
+
+    def run(self) -> None:
+        try:
+            for frame in self.ws:
+                if isinstance(frame, bytes):
+                    self.counts[self.topics[int.from_bytes(frame[1:5], "little")]] += 1
+                    continue
+                message = json.loads(frame)
+                if message["op"] == "advertise":
+                    new = {len(self.topics) + i: c for i, c in enumerate(message["channels"])}
+                    self.topics |= {i: c["topic"] for i, c in new.items()}
+                    self.ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+                        {"id": i, "channelId": c["id"]} for i, c in new.items()]}))
+        except Exception:  # the daemon stopped
+            return
+
+
+def ros2_figures(path: Path, rate_hz: float) -> str:
+    """What the ROS 2 subscriber got (benchmarks/ros2_listen.py's NPZ), in words."""
+    got = np.load(path)
+    lines = []
+    for kind in ("raw", "corrected"):
+        stamps = got[f"{kind}_stamp_ns"]
+        if len(stamps) < 2:
+            lines.append(f"{kind}: {len(stamps)} samples")
+            continue
+        steps = np.diff(stamps) * rate_hz / 1e9
+        expected = int(np.rint(steps).sum()) + 1  # from its first to its last sample
+        t = (stamps - stamps[0]) / 1e9
+        residual = []
+        for lo in range(0, len(t), int(10 * rate_hz)):  # each 10 s against its own straight line
+            part = t[lo:lo + int(10 * rate_hz)]
+            if len(part) > 10:
+                index = np.concatenate([[0], np.cumsum(np.rint(np.diff(part) * rate_hz))])
+                residual.append(part - np.polyval(np.polyfit(index, part, 1), index))
+        jitter_us = 1e6 * np.sqrt(np.mean(np.concatenate(residual) ** 2))
+        lines.append(f"imu/{'data_raw' if kind == 'raw' else 'data'}: {len(stamps):,} samples of the "
+                     f"{expected:,} from its first to its last ({100 * len(stamps) / expected:.3f} %, target >= "
+                     f"99.9 %), stamps {'strictly increasing' if np.all(steps > 0) else 'NOT in order'}, "
+                     f"jitter {jitter_us:.1f} us RMS (target <= 50 us)")
+    raw = dict(zip(got["raw_stamp_ns"].tolist(), got["raw_values"]))
+    pairs = [(raw[s] - v) for s, v in zip(got["corrected_stamp_ns"].tolist(), got["corrected_values"]) if s in raw]
+    if pairs:
+        taken = np.array(pairs)
+        changes = np.flatnonzero(np.any(np.abs(np.diff(taken, axis=0)) > 1e-12, axis=1))
+        lines.append(f"corrected = raw - bias: {len(taken):,} pairs, the bias taken changed {len(changes)} times "
+                     f"(a new result each), constant between")
+    return "\n".join(lines)
+
+
 def event_name(line: str) -> str:
     """The event of one log line (JSON or console rendering), or the line's first word."""
     try:
@@ -129,7 +208,7 @@ def event_name(line: str) -> str:
         return next((w for w in words if w.isidentifier()), line[:20])
 
 
-def measure(data: bytes, seconds: float, serve: bool) -> dict:
+def measure(data: bytes, seconds: float, serve: bool, feeds: bool = False) -> dict:
     master, slave = os.openpty()
     tty.setraw(master)
     tty.setraw(slave)
@@ -139,13 +218,24 @@ def measure(data: bytes, seconds: float, serve: bool) -> dict:
         if serve:
             table += (f'raw_pty = ["{tmp}/raw1", "{tmp}/raw2"]\ncorrected_pty = "{tmp}/corrected"\n'
                       'correction = "best"\n')
+        listener, fox = None, None
+        if feeds:
+            domain, fox_port = random.randint(1, 200), free_port()
+            table += f'[serve]\ncorrection = "best"\n[ros2]\ndomain_id = {domain}\n[foxglove]\nport = {fox_port}\n'
+            listener = subprocess.Popen([sys.executable, str(ROOT / "benchmarks" / "ros2_listen.py"), str(domain),
+                                         f"{tmp}/ros2.npz"], env={**ENV, "CYCLONEDDS_URI": LOOPBACK},
+                                        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+            assert listener.stdout.readline() == "ready\n"
         config = Path(tmp) / "calibd.toml"
         config.write_text(f'[serial]\nport = "{os.ttyname(slave)}"\n[site]\nlatitude_deg = 40.59129\n'
                           f'[output]\nstate_dir = "{tmp}/state"\n[warmup]\nwindow_s = {WARMUP_WINDOW_S}\n{table}')
         log = open(Path(tmp) / "stderr", "w+")
-        process = subprocess.Popen([sys.executable, "-m", "calibd.cli", "run", "--config", str(config)], env=ENV,
-                                   stdout=subprocess.DEVNULL, stderr=log)
+        process = subprocess.Popen([sys.executable, "-m", "calibd.cli", "run", "--config", str(config)],
+                                   env={**ENV, "CYCLONEDDS_URI": LOOPBACK}, stdout=subprocess.DEVNULL, stderr=log)
         time.sleep(2.0)  # imports, port open, socket bound
+        if feeds:
+            fox = FoxgloveCounter(fox_port)
+            fox.start()
         while serve and not sock_path.exists():
             if process.poll() is not None:
                 log.seek(0)
@@ -177,19 +267,34 @@ def measure(data: bytes, seconds: float, serve: bool) -> dict:
             log.close()
             if stalled is not None:
                 stalled.close()
+        ros2 = None
+        if listener is not None:
+            listener.communicate("stop\n", timeout=120)
+            ros2 = ros2_figures(Path(tmp) / "ros2.npz", 2000)
         result_file = Path(tmp) / "state" / "result.json"
         result = json.loads(result_file.read_text()) if result_file.exists() else None
-    return {"usage": samples, "clients": clients, "readers": readers, "result": result, "log": log_lines}
+    return {"usage": samples, "clients": clients, "readers": readers, "result": result, "log": log_lines,
+            "ros2": ros2, "foxglove": None if fox is None else dict(fox.counts)}
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=600.0, help="real-time feed length of each run (default 600 s)")
     ap.add_argument("--quick", action="store_true", help="150 s runs")
+    ap.add_argument("--feeds", action="store_true", help="the second run publishes ROS 2 and Foxglove instead")
     args = ap.parse_args()
     seconds_asked = 150.0 if args.quick else args.seconds
     data, seconds = capture_2000hz(seconds_asked)
-    print(f"2000 Hz stream, {seconds:.0f} s, {len(data) / 1e6:.1f} MB, fed in real time through a pty to each run")
+    print(f"2000 Hz stream, {seconds:.0f} s, {len(data) / 1e6:.1f} MB, fed in real time through a pty to each run; "
+          f"load average {' '.join(f'{v:.2f}' for v in os.getloadavg())} on {os.cpu_count()} cores")
+    if args.feeds:
+        return feeds_main(data, seconds)
     runs = {name: measure(data, seconds, serve) for name, serve in (("bare", False), ("serving", True))}
     cpu, steady = {}, {}
     for name, run in runs.items():
@@ -230,6 +335,30 @@ def main() -> int:
                   for k, e in bare["estimates"].items() if e.get("sigma")]
         print(f"result with serving (and {CYCLES} connect/disconnect cycles, {GARBAGE_BYTES / 1e6:.0f} MB of garbage) "
               f"against bare: largest estimate difference {max(shifts):.3f} sigma")
+    return 0
+
+
+def feeds_main(data: bytes, seconds: float) -> int:
+    """Bare against ROS 2 and Foxglove on."""
+    runs = {"bare": measure(data, seconds, False), "feeds": measure(data, seconds, False, feeds=True)}
+    cpu = {}
+    for name, run in runs.items():
+        (t0, c0, _, _), (t1, c1, _, _) = run["usage"][0], run["usage"][-1]
+        cpu[name] = 100 * (c1 - c0) / (t1 - t0)
+        print(f"{name}: daemon CPU {cpu[name]:.2f} % of one core; RSS every 10 s: "
+              + " ".join(f"{u[2]:.0f}" for u in run["usage"]) + " MB")
+    ratio = cpu["feeds"] / max(cpu["bare"], 1e-6)
+    print(f"ROS 2 and Foxglove on / bare CPU: {ratio:.2f}x (target <= 2x: {'met' if ratio <= 2 else 'NOT met'}); "
+          f"load average now {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
+    print(runs["feeds"]["ros2"])
+    print("Foxglove messages: " + ", ".join(f"{topic} {n}" for topic, n in sorted(runs["feeds"]["foxglove"].items())))
+    log = runs["feeds"]["log"]
+    print(f"log: {len(log)} lines: " + ", ".join(f"{n} {c}" for n, c in Counter(map(event_name, log)).most_common()))
+    bare, fed = runs["bare"]["result"], runs["feeds"]["result"]
+    if bare and fed:
+        shifts = [abs(fed["estimates"][k]["value"] - e["value"]) / e["sigma"]
+                  for k, e in bare["estimates"].items() if e.get("sigma")]
+        print(f"result with ROS 2 and Foxglove against bare: largest estimate difference {max(shifts):.3f} sigma")
     return 0
 
 

@@ -356,3 +356,22 @@ def test_an_estimates_schema_field_exists_for_every_estimate_name_and_a_wrong_pa
     assert schema_has(CHANNELS["/calibd/estimates"], ["pitch", "upper"])
     assert not schema_has(CHANNELS["/calibd/estimates"], ["heading", "value"])
     assert not schema_has(CHANNELS["/imu/raw"], ["gyro", "x"])
+
+
+def test_a_port_in_use_ends_a_served_replay_before_it_starts_with_one_line(tmp_path):
+    """Through the daemon's own start: the [foxglove] table's port taken -> one line, nothing served."""
+    from captures import command_env
+
+    taken = socket.socket()
+    taken.bind(("127.0.0.1", 0))
+    taken.listen()
+    port = taken.getsockname()[1]
+    config = tmp_path / "calibd.toml"
+    config.write_text(f'[serial]\nport = "{tmp_path}/tty"\n[site]\nlatitude_deg = 40\n[output]\n'
+                      f'state_dir = "{tmp_path}/state"\n[foxglove]\nport = {port}\n')
+    capture = Path(__file__).resolve().parents[1] / "fixtures" / "faults_125hz.bin"
+    done = subprocess.run([sys.executable, "-m", "calibd.cli", "replay", str(capture), "--config", str(config),
+                           "--serve"], capture_output=True, text=True, env=command_env(), timeout=60)
+    taken.close()
+    assert done.returncode == 1 and done.stdout == "", done.stdout
+    assert done.stderr.count("\n") == 1 and f"cannot serve Foxglove on 127.0.0.1:{port}" in done.stderr, done.stderr

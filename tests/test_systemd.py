@@ -5,6 +5,7 @@ the stim300 group under /run/calibd/<device>."""
 
 import os
 import re
+from dataclasses import fields
 import shutil
 import subprocess
 import tomllib
@@ -69,6 +70,19 @@ def test_example_config_shows_the_optional_keys_commented_out():
     text = EXAMPLE.read_text()
     for key in ("g0", "alpha_deg", "beta_deg"):
         assert re.search(rf"^# {key} = ", text, re.MULTILINE), key
+
+
+def test_example_configs_ros2_and_foxglove_tables_uncommented_are_the_defaults():
+    """The commented [ros2] and [foxglove] tables say what an empty table gives."""
+    from calibd.config import FoxgloveConfig, Ros2Config, parse_config
+
+    text = EXAMPLE.read_text()
+    for table, default in (("ros2", Ros2Config()), ("foxglove", FoxgloveConfig())):
+        block = text.split(f"# [{table}]\n", 1)[1].split("\n\n", 1)[0]
+        keys = [line[2:].split("#")[0] for line in block.splitlines() if re.match(r"# \w+ = ", line)]
+        assert len(keys) == len(fields(default)), table  # every key shown
+        config = parse_config(tomllib.loads(text + f"\n[{table}]\n" + "\n".join(keys)), "example")
+        assert getattr(config, table) == default
 
 
 # ---- the unit and the udev rule, as text ----------------------------------------------------
