@@ -94,3 +94,21 @@ def test_a_failing_feed_is_logged_once_with_a_count_and_retried(monkeypatch):
     assert "no route to host" in events[0]["error"] and events[1]["failed_calls"] == 5
     assert sum(len(b.samples) for b in healthy.batches) == parser.stats.datagrams  # the other feed lost nothing
     assert failing.batches  # retried: it publishes again once it works
+
+
+def test_stamps_reset_again_and_again_are_one_log_line(monkeypatch):
+    """A stream whose reads all carry one host time (the host clock seems stopped): the mapping
+    resets at tick after tick, and the log says so once."""
+    monkeypatch.setattr(queue_module, "PENDING_SAMPLES", 10**7)
+    feed = Recorder()
+    hub = Hub(ServeConfig(), "port", feeds={"recorder": feed})
+    parser = StreamParser(tap=hub.tap)
+    with capture_logs() as logs:
+        for offset in range(0, len(DATA_2000), 4096):
+            parser.feed(DATA_2000[offset:offset + 4096], 1000.0)
+            hub.stream_seen(stream_info(parser), {}, {})
+            time.sleep(0.002)
+        time.sleep(0.1)
+        hub.close()
+    assert [e["event"] for e in logs if e["event"].startswith("stamps_")] == ["stamps_reset"]
+    assert sum(len(b.samples) for b in feed.batches) == parser.stats.datagrams

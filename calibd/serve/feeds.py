@@ -33,6 +33,7 @@ log = structlog.get_logger("calibd")
 
 TICK_S = 0.02  # how often queued samples are published: 50 batches a second
 HEALTH_S = 1.0  # how often the stream's health is published
+RESETS_QUIET_S = 10.0  # without a reset of the stamps' mapping this long, an episode of resets has ended
 
 
 @dataclass(frozen=True)
@@ -97,6 +98,7 @@ class Feeds:
         self._state = ("STARTING", "waiting for data")
         self._clock, self._wall = CounterClock(), WallClock(follow=paced)
         self._hidden_gaps = 0
+        self._resets, self._last_reset = 0, 0.0  # resets of the stamps' mapping in the present episode, the last
         self._fault_bits, self._flagged = 0, 0
         self._failing: dict[tuple[str, str], int] = {}  # (feed, call) -> calls failed in its present episode
         self._stop = threading.Event()
@@ -161,9 +163,7 @@ class Feeds:
         times = self._clock.times(samples["counter"], info.rate_hz, samples["t_host"])
         self._hidden_gaps += times.hidden_gaps
         stamp_ns, step = self._wall.stamps(times.time_s, samples["t_host"])
-        if step is not None:
-            log.warning("stamps_reset", step_ms=round(step * 1e3, 3),
-                        why="the sensor's clock was mapped onto the host's realtime clock again")
+        self._say_reset(step)
         bits = fault_bits(samples)
         self._flagged += int(np.count_nonzero(bits))
         self._fault_bits |= int(np.bitwise_or.reduce(bits)) if len(bits) else 0
@@ -176,6 +176,21 @@ class Feeds:
             correction = kept if corrects else None
             self._each("samples", FeedBatch(samples[lo:ends[i]], stamp_ns[lo:ends[i]], correction, info))
             lo = ends[i]
+
+    def _say_reset(self, step: float | None) -> None:
+        """A reset of the stamps' mapping logged at the first of an episode (resets again and
+        again: a host clock being set repeatedly, a stream not at the sensor's pace), its end
+        with the count once RESETS_QUIET_S go by without one."""
+        now = time.monotonic()
+        if step is not None:
+            if not self._resets:
+                log.warning("stamps_reset", step_ms=round(step * 1e3, 3),
+                            why="the sensor's clock was mapped onto the host's realtime clock again")
+            self._resets, self._last_reset = self._resets + 1, now
+        elif self._resets and now - self._last_reset > RESETS_QUIET_S:
+            if self._resets > 1:
+                log.info("stamps_steady", resets=self._resets, detail="the stamps follow the host clock smoothly again")
+            self._resets = 0
 
     def _publish_health(self) -> None:
         info = self._info
