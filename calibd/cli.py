@@ -60,15 +60,23 @@ def mapped_input(path: str):
             yield mapped, let_go
 
 
-def open_capture(path: str, data: bytes | None = None) -> CaptureSessions:
+def open_capture(path: str, data: bytes | None = None, topic: str | None = None) -> CaptureSessions:
     """The capture at `path` (its bytes, when already read) decoded, its datagrams stamped by the
-    read log recorded beside it (PATH.reads.npy) when there is one. Capture files are read here
-    only: the rest of calibd takes decoded captures and sessions. A file is mapped, not read, and
-    the pages decoded are let go, so a long capture never sits in memory whole."""
+    read log recorded beside it (PATH.reads.npy) when there is one; or, when `path` is a recording
+    (a ROS bag, rosbag2 or MCAP, by its content), its sensor_msgs/Imu `topic` (None: its only one).
+    Capture files are read here only: the rest of calibd takes decoded captures and sessions. A
+    file is mapped, not read, and the pages decoded are let go, so a long capture never sits in
+    memory whole."""
     from stim300.reads import load_reads
 
+    from .recordings import is_recording, open_recording
     from .session import decode_sessions
 
+    if data is None and is_recording(path):
+        return open_recording(path, topic)
+    if topic is not None:
+        raise UsageError(f"{path}: --topic names a topic of a recording (ROS bag, rosbag2, MCAP), and this is a "
+                         "STIM300 capture")
     reads = load_reads(path)
     if data is not None:
         return decode_sessions(data, str(path), reads)
@@ -77,11 +85,12 @@ def open_capture(path: str, data: bytes | None = None) -> CaptureSessions:
 
 
 def load_session(path: str, start_s: float | None = 0.0, data: bytes | None = None,
-                 power_up: int | None = None) -> Session:
-    """One power-up of a capture (default the last) from `start_s` (None: where the warm-up ends)."""
+                 power_up: int | None = None, topic: str | None = None) -> Session:
+    """One power-up of a capture (default the last) from `start_s` (None: where the warm-up ends);
+    `topic`: a recording's Imu topic (None: its only one)."""
     from .session import power_up_session
 
-    return power_up_session(open_capture(path, data), power_up, start_s)
+    return power_up_session(open_capture(path, data, topic), power_up, start_s)
 
 
 def cmd_simulate(args) -> int:
@@ -213,7 +222,7 @@ def cmd_calibrate(args) -> int:
         raise UsageError("calibrate: --fixed-amplitude and --drift belong to --method joint")
     site = _site(args)
     not_an_input(args.output, args.capture)
-    capture = open_capture(args.capture)  # a refusal names the capture
+    capture = open_capture(args.capture, topic=args.topic)  # a refusal names the capture
 
     method = estimator("thesis-bench" if args.bench else args.method)
     options = method.options({"fixed_amplitude": args.fixed_amplitude, "drift": args.drift, "alpha_deg": args.alpha,
@@ -551,7 +560,7 @@ def cmd_noise(args) -> int:
     if args.output and args.output == args.kalibr:
         raise UsageError(f"noise: -o and --kalibr name the same file {args.output}")
     try:
-        session = load_session(args.capture, args.start)
+        session = load_session(args.capture, args.start, topic=args.topic)
     except CalibrationError as exc:  # a decoding refusal names the capture, a power-up's does not
         text = str(exc)
         raise UsageError(text if text.startswith(f"{args.capture}:") else f"{args.capture}: {text}") from None
@@ -767,6 +776,10 @@ def _speed(text: str) -> str:
                                      f"[{SPEED_RANGE[0]:g}, {SPEED_RANGE[1]:g}]")
 
 
+TOPIC_HELP = ("the sensor_msgs/Imu topic of a recording (ROS bag, rosbag2, MCAP; docs/recordings.md) (default: its "
+              "only one)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from .methods import DAEMON_METHODS
     from .warmup import WINDOW_RANGE_S
@@ -796,6 +809,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "loses the check that the Earth rate is really seen)")
     p.add_argument("--drift", action="store_true",
                    help="joint: fit a linear gyro drift per channel (thermal ramps); costs precision")
+    p.add_argument("--topic", type=_ros_topic, metavar="NAME", help=TOPIC_HELP)
     p.set_defaults(func=cmd_calibrate)
     p = sub.add_parser("run", help="the daemon: read the port, calibrate after every power-up")
     p.add_argument("--config", type=path_arg, required=True,
@@ -871,6 +885,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rostopic", type=_ros_topic, default="/imu0",
                    help="rostopic written to the Kalibr file (default /imu0)")
     p.add_argument("--start", type=_number(0, 1e9, "s"), default=0.0, help="skip the first S seconds (warm-up)")
+    p.add_argument("--topic", type=_ros_topic, metavar="NAME", help=TOPIC_HELP)
     p.set_defaults(func=cmd_noise)
     p = sub.add_parser("apply", help="result + capture -> bias-corrected samples in SI units (NPZ or CSV)")
     p.add_argument("result", help="RESULT.json written by calibd calibrate or the daemon")

@@ -1,0 +1,295 @@
+"""Recordings of sensor_msgs/Imu as captures: ROS 1 bags, rosbag2 directories (SQLite3 or MCAP
+storage), their storage files alone (.db3, plain .mcap), read through rosbags.
+
+What the robotics world shares of a STIM300 is its driver's Imu topic, not the sensor's bytes: the
+angular velocity (rad/s) and linear acceleration (m/s^2), stamped. No inclinometers, no
+temperatures, no counter and no status bytes come with it: a recording is calibrated as a unit
+without inclinometers whose warm-up cannot be checked. Its times are the header stamps (when the
+driver says the sample was taken, not when the recorder got it), its rate the stamps' median step,
+its gaps the steps of more than GAP_STEPS sample intervals. Messages are read in batches of
+BATCH_MESSAGES and decoded with numpy from their serialised bytes (an Imu is fixed-size after its
+frame id), block-averaged as they come: a long recording is never held whole.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import sqlite3
+from pathlib import Path
+
+import numpy as np
+
+from stim300.cliutil import open_regular
+from stim300.codec import SAMPLE_DTYPE
+from stim300.protocol import INTERNAL_RATE_HZ
+from stim300.records import SensorRecord
+
+from .errors import CalibrationError
+from .frames import STANDARD_GRAVITY
+from .session import CaptureSessions, PowerUp, SessionBuilder
+from .units import DEG
+
+IMU_TYPE = "sensor_msgs/msg/Imu"
+NEEDS_EXTRA = "reading a recording needs the recordings extra: pip install 'stim300-calib[recordings]'"
+KINDS = {  # how a file starts -> the name ending rosbags reads it by, and what it is in words
+    b"#ROSBAG V": (".bag", "ROS 1 bag"),
+    b"\x89MCAP0\r\n": (".mcap", "MCAP file"),
+    b"SQLite format 3\x00": (".db3", "rosbag2 SQLite3 file"),
+}
+ROSBAG2_DIRECTORY = "rosbag2 directory"
+BATCH_MESSAGES = 16384  # messages decoded at once; the first batch's stamps also give the rate
+GAP_STEPS = 1.5  # a stamp step longer than this many sample intervals is a gap
+FASTEST_RATE_HZ = 1.05 * INTERNAL_RATE_HZ  # a faster median step is not the sensor's (host stamps of bursts of reads)
+HASH_BLOCK_BYTES = 1 << 20
+
+# An Imu after its header: orientation, angular velocity and linear acceleration (float64 x 4, 3, 3),
+# each followed by its 3x3 covariance: 296 bytes, packed in ROS 1, 8-aligned in CDR. The header
+# starts alike in both (ROS 1: seq; CDR: the encapsulation, then): stamp seconds at byte 4,
+# nanoseconds at 8, the frame id's length at 12 and its characters from 16 (CDR: with a NUL).
+IMU_BODY_BYTES = 296
+GYRO_FROM_END = 192  # angular velocity: the body's bytes 104-128
+ACC_FROM_END = 96  # linear acceleration: 200-224
+ACC_COVARIANCE_FROM_END = 72  # its covariance's first element: -1 when the message carries none (REP 145)
+CDR_LITTLE_ENDIAN = b"\x00\x01"
+
+
+def _kind(path) -> tuple[str, str] | None:
+    """(the name ending rosbags reads it by, what it is in words) of a recording, by its content;
+    None for anything else. UsageError (one line) for an input that is no file or directory."""
+    if os.path.isdir(path):
+        return ("", ROSBAG2_DIRECTORY) if os.path.isfile(os.path.join(path, "metadata.yaml")) else None
+    with open_regular(path) as f:
+        head = f.read(16)
+    return next((kind for magic, kind in KINDS.items() if head.startswith(magic)), None)
+
+
+def is_recording(path) -> bool:
+    """Whether `path` is a recording (by its content, whatever its name) rather than a STIM300 capture."""
+    return _kind(path) is not None
+
+
+def _unreadable(exc: Exception) -> bool:
+    """Whether rosbags raised `exc` for a file it cannot read (a truncated bag, a corrupt chunk, a
+    bad metadata.yaml, a damaged database), not for a fault of the program. lz4 says a corrupt
+    chunk with a RuntimeError of its own words; bz2 (ROS 1 chunks) with an OSError."""
+    from rosbags.highlevel import AnyReaderError
+    from rosbags.rosbag1 import ReaderError as Bag1Error
+    from rosbags.rosbag2 import ReaderError as Bag2Error
+    try:
+        from compression.zstd import ZstdError  # the zstd rosbags decompresses with: the standard library's
+    except ImportError:  # before Python 3.14
+        from backports.zstd import ZstdError
+
+    return (isinstance(exc, (AnyReaderError, Bag1Error, Bag2Error, ZstdError, sqlite3.DatabaseError, EOFError, OSError))
+            or isinstance(exc, RuntimeError) and str(exc).startswith("LZ4"))
+
+
+def open_recording(path, topic: str | None = None) -> CaptureSessions:
+    """The Imu messages of `topic` (None: the recording's only Imu topic) as a capture of one
+    power-up; CalibrationError (one line naming the file) for a recording that cannot be read or
+    has no such messages."""
+    try:
+        from rosbags.highlevel import AnyReader
+        from rosbags.typesys import Stores, get_typestore
+    except ImportError:
+        raise CalibrationError(f"{path}: {NEEDS_EXTRA}") from None
+    ending, words = _kind(path)
+    if ending and Path(path).suffix != ending:
+        raise CalibrationError(f"{path}: a {words} by its content, but recordings are read by the name ending "
+                               f"{ending}: rename it")
+    stream = _ImuStream(str(path))
+    try:  # a bag of ROS 2 Humble or older names no message definitions: the standard ones are taken
+        with AnyReader([Path(path)], default_typestore=get_typestore(Stores.LATEST)) as reader:
+            name, connections = _imu_topic(reader, path, topic)
+            encoding = "ros1" if not reader.is2 else _cdr_only(connections, path, name)
+            batch = []
+            for _, _, data in reader.messages(connections):
+                batch.append(data)
+                if len(batch) == BATCH_MESSAGES:
+                    stream.add(*decode_imu(batch, encoding, path, stream.messages))
+                    batch = []
+            if batch:
+                stream.add(*decode_imu(batch, encoding, path, stream.messages))
+    except Exception as exc:
+        if not _unreadable(exc):
+            raise
+        raise CalibrationError(f"{path}: cannot read the {words}: {' '.join(str(exc).split())}") from None
+    if not stream.messages:
+        raise CalibrationError(f"{path}: topic {name}: no message could be read")
+    return stream.capture(name, words, identity(path))
+
+
+def _imu_topic(reader, path, topic: str | None) -> tuple[str, list]:
+    """The Imu topic asked for (or the only one) and its connections."""
+    topics = reader.topics
+    imu = sorted(name for name, info in topics.items() if info.msgtype == IMU_TYPE)
+    if topic is None:
+        if not imu:
+            raise CalibrationError(f"{path}: no {IMU_TYPE} topic (the recording has "
+                                   f"{', '.join(sorted(topics)) or 'no topics'})")
+        if len(imu) > 1:
+            raise CalibrationError(f"{path}: {len(imu)} {IMU_TYPE} topics ({', '.join(imu)}): choose one with --topic")
+        topic = imu[0]
+    elif topic not in topics:
+        raise CalibrationError(f"{path}: no topic {topic} (its {IMU_TYPE} topics: {', '.join(imu) or 'none'})")
+    elif topics[topic].msgtype != IMU_TYPE:
+        raise CalibrationError(f"{path}: topic {topic} is {topics[topic].msgtype or 'of several types'}, "
+                               f"not {IMU_TYPE}")
+    info = topics[topic]
+    if not info.msgcount:
+        raise CalibrationError(f"{path}: topic {topic} has no messages")
+    return topic, info.connections
+
+
+def _cdr_only(connections, path, topic: str) -> str:
+    """ROS 2 messages are read in CDR (an MCAP channel may say another encoding)."""
+    encodings = {getattr(c.ext, "serialization_format", "cdr") for c in connections} - {"cdr"}
+    if encodings:
+        raise CalibrationError(f"{path}: topic {topic} is encoded as {', '.join(sorted(encodings))}, not cdr")
+    return "cdr"
+
+
+def _gather(buf: np.ndarray, offsets: np.ndarray, dtype: str, count: int = 1) -> np.ndarray:
+    """`count` values of `dtype` at each offset of `buf` (bytes), one row per offset."""
+    size = np.dtype(dtype).itemsize * count
+    return buf[offsets[:, None] + np.arange(size)].view(dtype).reshape(len(offsets), count)
+
+
+def decode_imu(messages: list, encoding: str, where, first: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
+    """Serialised sensor_msgs/Imu messages (`encoding`: "ros1" or "cdr", little-endian) -> (header stamps
+    in ns, angular velocity in rad/s, linear acceleration in m/s^2, the first message's frame id),
+    decoded together: a message's values lie at fixed places from its end. `first`: the first
+    message's number in the topic, for messages that are not Imu as serialised."""
+    lengths = np.fromiter(map(len, messages), np.int64, len(messages))
+    buf = np.frombuffer(b"".join(messages), np.uint8)
+    ends = np.cumsum(lengths)
+    starts = ends - lengths
+    short = np.flatnonzero(lengths < 16 + IMU_BODY_BYTES)
+    if len(short):
+        raise CalibrationError(f"{where}: message {first + short[0] + 1} is {lengths[short[0]]} bytes: too short for "
+                               f"a {IMU_TYPE}")
+    name_bytes = _gather(buf, starts + 12, "<u4")[:, 0].astype(np.int64)
+    if encoding == "cdr":
+        expected = 4 + (12 + name_bytes + 7) // 8 * 8 + IMU_BODY_BYTES
+        foreign = np.flatnonzero((buf[starts] != 0) | (buf[starts + 1] != 1))
+        if len(foreign):
+            k = foreign[0]
+            raise CalibrationError(f"{where}: message {first + k + 1} has CDR encapsulation "
+                                   f"0x{bytes(buf[starts[k]:starts[k] + 2]).hex()}: only little-endian CDR "
+                                   f"(0x{CDR_LITTLE_ENDIAN.hex()}) is read")
+    else:
+        expected = 16 + name_bytes + IMU_BODY_BYTES
+    wrong = np.flatnonzero(lengths != expected)
+    if len(wrong):
+        k = wrong[0]
+        raise CalibrationError(f"{where}: message {first + k + 1} is {lengths[k]} bytes, not the {expected[k]} of a "
+                               f"{IMU_TYPE} with its frame id: not an Imu as serialised")
+    seconds = _gather(buf, starts + 4, "<i4" if encoding == "cdr" else "<u4")[:, 0].astype(np.int64)
+    stamps_ns = seconds * 1_000_000_000 + _gather(buf, starts + 8, "<u4")[:, 0]
+    if np.any(_gather(buf, ends - ACC_COVARIANCE_FROM_END, "<f8")[:, 0] == -1):
+        raise CalibrationError(f"{where}: the messages carry no linear acceleration (its covariance is -1): "
+                               "calibration needs accelerometers")
+    gyro, acc = _gather(buf, ends - GYRO_FROM_END, "<f8", 3), _gather(buf, ends - ACC_FROM_END, "<f8", 3)
+    unfinite = np.flatnonzero(~np.isfinite(gyro).all(axis=1) | ~np.isfinite(acc).all(axis=1))
+    if len(unfinite):
+        k = unfinite[0]
+        raise CalibrationError(f"{where}: message {first + k + 1} has angular velocity {gyro[k].tolist()} rad/s and "
+                               f"linear acceleration {acc[k].tolist()} m/s^2: not numbers")
+    name = bytes(buf[starts[0] + 16:starts[0] + 16 + name_bytes[0]]).rstrip(b"\0").decode(errors="replace")
+    return stamps_ns, gyro, acc, name
+
+
+def imu_samples(gyro_rad_s: np.ndarray, acc_m_s2: np.ndarray) -> np.ndarray:
+    """SAMPLE_DTYPE rows in the sensor's units (deg/s, g): no inclinometers, no temperatures (NaN)."""
+    samples = np.zeros(len(gyro_rad_s), SAMPLE_DTYPE)
+    for name in ("t_host", "incl", "temp_gyro", "temp_acc", "temp_incl", "aux"):
+        samples[name] = np.nan
+    samples["gyro"] = gyro_rad_s / DEG
+    samples["acc"] = acc_m_s2 / STANDARD_GRAVITY
+    return samples
+
+
+def measured_rate_hz(stamps_ns: np.ndarray) -> int | float:
+    """Samples per second from the stamps' median step: a whole number when the step divides a second."""
+    rate = 1e9 / float(np.median(np.diff(stamps_ns)))
+    return int(rate) if rate.is_integer() else rate
+
+
+class _ImuStream:
+    """Decoded batches of one topic, in order -> one SessionBuilder timed by the header stamps
+    (s since the first), with the gaps the stamps show."""
+
+    def __init__(self, where: str):
+        self.where = where
+        self.builder = SessionBuilder()
+        self.rate_hz: int | float | None = None
+        self.first_ns = self.last_ns = None
+        self.messages = self.gaps = self.lost_samples = 0
+        self.frame_id = ""
+
+    def add(self, stamps_ns: np.ndarray, gyro_rad_s: np.ndarray, acc_m_s2: np.ndarray, frame_id: str) -> None:
+        if self.rate_hz is None:  # the first batch: all the messages when there are fewer than a batch
+            if len(stamps_ns) < 2:
+                raise CalibrationError(f"{self.where}: {len(stamps_ns)} message: too few to tell the sample rate")
+            self.rate_hz, self.first_ns, self.frame_id = measured_rate_hz(stamps_ns), stamps_ns[0], frame_id
+            if self.rate_hz > FASTEST_RATE_HZ:
+                raise CalibrationError(f"{self.where}: the header stamps step by {1e3 / self.rate_hz:.3g} ms (median), "
+                                       f"{self.rate_hz:.0f} Hz, faster than a STIM300 samples ({INTERNAL_RATE_HZ} Hz): "
+                                       "they do not time the samples (a driver stamping its reads?)")
+        if self.last_ns is None:
+            steps, later = np.diff(stamps_ns), 2  # step k ends at message k + 2 (counted from 1)
+        else:
+            steps, later = np.diff(stamps_ns, prepend=self.last_ns), 1
+        back = np.flatnonzero(steps <= 0)
+        if len(back):
+            k = self.messages + back[0] + later
+            raise CalibrationError(f"{self.where}: message {k}'s header stamp is {steps[back[0]] / 1e6:g} ms after "
+                                   "the one before: stamps must increase")
+        interval_ns = 1e9 / self.rate_hz
+        gaps = steps[steps > GAP_STEPS * interval_ns]
+        self.gaps += len(gaps)
+        self.lost_samples += int(np.rint(gaps / interval_ns).sum()) - len(gaps)
+        time_s = (stamps_ns - self.first_ns) * 1e-9
+        self.builder.add(imu_samples(gyro_rad_s, acc_m_s2), time_s, self.rate_hz)
+        self.messages += len(stamps_ns)
+        self.last_ns = stamps_ns[-1]
+
+    def capture(self, topic: str, words: str, identity_record: dict) -> CaptureSessions:
+        duration_s = float(self.last_ns - self.first_ns) * 1e-9 + 1 / self.rate_hz
+        warnings = ([f"{self.gaps} gap(s) in the header stamps: {self.lost_samples} sample(s) missing"]
+                    if self.gaps else [])
+        return CaptureSessions(
+            path=self.where,
+            power_ups=[PowerUp(self.builder, 0, self.messages, duration_s, np.zeros(0), np.zeros(0), True)],
+            rate_hz=self.rate_hz,
+            sensor=SensorRecord(sample_rate_hz=self.rate_hz,
+                                sample_rate=f"{self.rate_hz:g} Hz, measured from the header stamps"),
+            stream={"capture": self.where, "recording": words, "topic": topic, "frame_id": self.frame_id,
+                    "messages": self.messages, "datagrams": self.messages, "lost_samples": self.lost_samples,
+                    "gaps": self.gaps, "inferred_missing": 0, "crc_errors": 0, "restarts": 0, "warnings": warnings},
+            identity=identity_record)
+
+
+def recording_files(path) -> list[Path]:
+    """The files a recording is: itself, or a rosbag2 directory's metadata.yaml then its storage files
+    in the order metadata.yaml lists them."""
+    path = Path(path)
+    if not path.is_dir():
+        return [path]
+    from ruamel.yaml import YAML  # rosbags' own YAML reader: it read the same file
+
+    metadata = YAML(typ="safe").load((path / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    return [path / "metadata.yaml", *(path / Path(name).name for name in metadata["relative_file_paths"])]
+
+
+def identity(path) -> dict:
+    """Which recording this is (a result records it, a report checks it): the size and SHA-256 of its
+    files' bytes one after the other (`recording_files`)."""
+    digest, size = hashlib.sha256(), 0
+    for name in recording_files(path):
+        with open_regular(name) as f:
+            while block := f.read(HASH_BLOCK_BYTES):
+                digest.update(block)
+                size += len(block)
+    return {"size_bytes": size, "sha256": digest.hexdigest()}
