@@ -61,6 +61,15 @@ def start_up_rises(samples: np.ndarray, start_up_before: bool = True) -> np.ndar
     return np.flatnonzero(up & ~np.concatenate(([start_up_before], up[:-1])))
 
 
+def join_samples(pieces: list[np.ndarray]) -> np.ndarray:
+    """Rows of one structured dtype (SAMPLE_DTYPE) end to end, as a writable array. The live
+    path joins a tick's reads: np.concatenate promotes a structured dtype piece by piece (about
+    13 us a piece), joining their bytes costs about 1 us in all."""
+    if len(pieces) == 1:
+        return pieces[0]
+    return np.frombuffer(bytearray(b"".join([piece.tobytes() for piece in pieces])), pieces[0].dtype)
+
+
 def empty_columns(n: int) -> dict[str, np.ndarray]:
     """Column-major storage for n samples: SAMPLE_DTYPE's fields as separate arrays, every axis of
     a vector field contiguous (field[:, k] is a contiguous view). Bulk output to files wants this."""

@@ -7,9 +7,13 @@ is where that time scale sits on the host's clock: the host time of a read minus
 time of its newest datagram is the true offset plus a latency that is never negative. So the
 offset is the lower envelope of those differences: the lowest of each second (BIN_S), over the
 last ENVELOPE_S, after taking out the drift between the two crystals (the median slope between
-those minima, tens of ppm). The offset used follows that envelope at most SLEW, so a stamp
-never moves with one read; an envelope more than STEP_S away (the host's realtime clock was set,
-a stall longer than the window) resets it at once, and the step is reported.
+those minima, tens of ppm).
+
+The offset used is a straight line in counter time, so the stamps step by the sensor's own
+intervals: at the end of each second its slope becomes the drift plus what closes the gap to
+the envelope over TAU_S (at most SLEW), never a jump, so no read moves a stamp. An envelope
+more than STEP_S away (the host's realtime clock was set, a stall longer than the window)
+resets it at once, and the step is reported.
 """
 
 from __future__ import annotations
@@ -21,7 +25,8 @@ import numpy as np
 
 BIN_S = 1.0  # sensor seconds whose lowest host-minus-counter offset is one point of the envelope
 ENVELOPE_S = 10.0  # the envelope's span: many reads, while drift and host stalls are told apart
-SLEW = 500e-6  # the most the offset used moves per sensor second (500 ppm)
+TAU_S = 20.0  # sensor seconds over which the offset used closes its gap to the envelope
+SLEW = 500e-6  # the most the offset used moves per sensor second beyond the drift (500 ppm)
 STEP_S = 0.02  # an envelope this far from the offset used is a new mapping, not drift
 
 
@@ -35,9 +40,10 @@ class WallClock:
     def __init__(self, realtime=None, follow: bool = True) -> None:
         self._realtime = realtime or _host_clocks
         self._follow_host = follow
-        self._minima: deque[tuple[float, float]] = deque()  # (counter time, lowest offset of a batch)
-        self._offset: float | None = None  # host monotonic minus counter time in use (s)
-        self._last_s = 0.0  # the counter time the offset was last moved at
+        self._minima: deque[tuple[float, float]] = deque()  # each complete second: (counter time, lowest offset)
+        self._bin: tuple[float, float, float] | None = None  # the second so far: (its start, time, lowest offset)
+        self._line: tuple[float, float, float] | None = None  # the offset used: (at counter time, offset, slope)
+        self._first_s = 0.0  # the counter time of the first host time
         self._epoch_ns: int | None = None  # realtime minus monotonic (ns), as last read
 
     def stamps(self, time_s: np.ndarray, t_host: np.ndarray) -> tuple[np.ndarray, float | None]:
@@ -53,51 +59,61 @@ class WallClock:
         moved = self._follow(np.asarray(time_s, np.float64), np.asarray(t_host, np.float64))
         if moved is not None:
             step = moved if step is None else step + moved
-        if self._offset is None:  # no host time seen yet: the batch is stamped as it is read
-            self._offset = monotonic_s - float(time_s[-1]) if len(time_s) else 0.0
-        return epoch_ns + np.rint((time_s + self._offset) * 1e9).astype(np.int64), step
+        if self._line is None:  # no host time seen yet: the batch is stamped as it is read
+            self._line = (float(time_s[-1]) if len(time_s) else 0.0, monotonic_s - float(time_s[-1])
+                          if len(time_s) else 0.0, 0.0)
+        at, offset, slope = self._line
+        return epoch_ns + np.rint((time_s + offset + slope * (time_s - at)) * 1e9).astype(np.int64), step
 
     def _follow(self, time_s: np.ndarray, t_host: np.ndarray) -> float | None:
-        """Move the offset in use towards the envelope; the step when it was reset."""
+        """Keep each second's lowest offset; at the end of a second, bend the line in use
+        towards the envelope. The step when the mapping was reset."""
         finite = np.isfinite(t_host)
-        if not finite.any() or (self._offset is not None and not self._follow_host):
+        if not finite.any() or (self._line is not None and not self._follow_host):
             return None
         offsets = t_host[finite] - time_s[finite]
         low = int(np.argmin(offsets))
         point = (float(time_s[finite][low]), float(offsets[low]))
-        now = float(time_s[finite][-1])
-        if self._minima and self._minima[-1][0] > now - BIN_S:  # the second so far: keep its lowest
-            if point[1] < self._minima[-1][1]:
-                self._minima[-1] = point
-        else:
-            self._minima.append(point)
-        while self._minima[0][0] < now - ENVELOPE_S:
-            self._minima.popleft()
-        envelope = _envelope(self._minima, now)
-        if self._offset is None:
-            self._offset, self._last_s = envelope, now
+        if self._line is None:
+            self._line, self._first_s, self._bin = (point[0], point[1], 0.0), point[0], (point[0], *point)
             return None
-        if abs(envelope - self._offset) > STEP_S:  # a new mapping
-            step = envelope - self._offset
-            self._minima = deque([point])
-            self._offset, self._last_s = point[1], now
-            return step
-        allowed = SLEW * (now - self._last_s)
-        self._offset += float(np.clip(envelope - self._offset, -allowed, allowed))
-        self._last_s = now
+        if point[0] < self._bin[0] + BIN_S:  # the same second: keep its lowest
+            if point[1] < self._bin[2]:
+                self._bin = (self._bin[0], *point)
+            return None
+        self._minima.append(self._bin[1:])
+        self._bin = (point[0], *point)
+        while self._minima[0][0] < point[0] - ENVELOPE_S:
+            self._minima.popleft()
+        return self._bend(point[0])
+
+    def _bend(self, now: float) -> float | None:
+        """The line in use from counter time `now`: continuous, its slope the drift plus the gap
+        to the envelope over TAU_S (the time so far, early on), at most SLEW beyond the drift;
+        reset to the envelope when the gap is more than STEP_S (returned)."""
+        envelope, drift = _envelope(self._minima, now)
+        at, offset, slope = self._line
+        used = offset + slope * (now - at)
+        gap = envelope - used
+        if abs(gap) > STEP_S:  # a new mapping
+            self._minima.clear()
+            self._line = (now, envelope, drift)
+            return gap
+        closing = gap / min(TAU_S, max(BIN_S, now - self._first_s))
+        self._line = (now, used, drift + float(np.clip(closing, -SLEW, SLEW)))
         return None
 
 
-def _envelope(minima: deque[tuple[float, float]], now: float) -> float:
-    """The offset at counter time `now` below every second's lowest, with the drift between
-    the clocks (the median slope between them, at most SLEW) taken out: a slow host clock
-    leaves no lag of the window's length."""
+def _envelope(minima: deque[tuple[float, float]], now: float) -> tuple[float, float]:
+    """(the offset at counter time `now` below every second's lowest, the drift between the
+    clocks): the drift is the median slope between the seconds' lowest (at most SLEW), taken out
+    so that a slow host clock leaves no lag of the window's length."""
     times, offsets = np.array(minima).T
     drift = 0.0
     if len(times) >= 3:
         i, j = np.triu_indices(len(times), 1)
         drift = float(np.clip(np.median((offsets[j] - offsets[i]) / (times[j] - times[i])), -SLEW, SLEW))
-    return float(np.min(offsets + drift * (now - times)))
+    return float(np.min(offsets + drift * (now - times))), drift
 
 
 def _host_clocks() -> tuple[int, float]:

@@ -3,10 +3,10 @@ inclinometers, written as a ROS 1 bag, rosbag2 SQLite3 and MCAP directories (ros
 and a plain MCAP file (the Foxglove SDK's writer), calibrates as the capture itself does; gaps in
 the header stamps are counted; what cannot be read is one line and exit 2."""
 
-import sys
 import json
 import math
 import shutil
+import sys
 from pathlib import Path
 
 import numpy as np

@@ -49,7 +49,7 @@ def test_stamps_follow_the_sensor_not_the_reads(ppm):
     assert steps == []
     jitter = settled - np.polyval(np.polyfit(true_s[RATE_HZ * 10:], settled, 1), true_s[RATE_HZ * 10:])
     assert np.sqrt(np.mean(jitter ** 2)) < 5e-6  # the reads' latency (0.1 ms, 30 ms stalls) does not reach them
-    assert -1e-5 < settled.min() and settled.max() < 2e-4  # on the host clock, within the quickest read's latency
+    assert -5e-5 < settled.min() and settled.max() < 2e-4  # on the host clock within tens of us, as it settles
     assert np.all(np.diff(stamps) > 0)
 
 

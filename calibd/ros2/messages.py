@@ -138,13 +138,16 @@ class ImuEncoder:
         doubles = self._template["doubles"]
         doubles[0, _ORIENTATION] = (0.0, 0.0, 0.0, 1.0)
         doubles[0, _ORIENTATION_COV.start] = -1.0
+        self._rows = self._template.copy()  # the template's rows, reused batch after batch (grown as needed)
 
     def encode(self, stamp_ns: np.ndarray, gyro_rad_s: np.ndarray, acc_m_s2: np.ndarray,
                gyro_cov: Sequence[float], acc_cov: Sequence[float]) -> list[bytes]:
         """One CDR sample per row: stamps (ns since the epoch, N), rates (rad/s, N x 3),
         accelerations (m/s^2, N x 3), and the covariances of both (9 each, row-major, the same
         for the batch)."""
-        rows = np.repeat(self._template, len(stamp_ns))
+        if len(stamp_ns) > len(self._rows):
+            self._rows = np.repeat(self._template, len(stamp_ns))
+        rows = self._rows[:len(stamp_ns)]  # what the template sets stays; the rest is written anew
         rows["sec"], rows["nanosec"] = stamp(stamp_ns)
         doubles = rows["doubles"]
         doubles[:, _GYRO] = gyro_rad_s

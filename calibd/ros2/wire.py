@@ -198,9 +198,11 @@ class Publisher:
     def imu(self, key: str, stamp_ns: np.ndarray, gyro_rad_s: np.ndarray, acc_m_s2: np.ndarray,
             gyro_cov: Sequence[float], acc_cov: Sequence[float]) -> None:
         """A batch of sensor_msgs/Imu on "imu_raw" or "imu": stamps (ns since the epoch, N),
-        rates (rad/s, N x 3), accelerations (m/s^2, N x 3), covariances (9 each, row-major)."""
+        rates (rad/s, N x 3), accelerations (m/s^2, N x 3), covariances (9 each, row-major).
+        Neither encoded nor written while no reader is matched (best effort, volatile: a reader
+        that comes later gets the samples from then on, as it would anyway)."""
         writer = self._writers.get(key)
-        if writer is not None:
+        if writer is not None and writer.get_publication_matched_status().current_count:  # none: nothing to do
             for cdr in self._imu.encode(stamp_ns, gyro_rad_s, acc_m_s2, gyro_cov, acc_cov):
                 writer.write(_Encoded(cdr))
 

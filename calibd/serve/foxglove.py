@@ -12,12 +12,12 @@ rather than waiting for it. foxglove-sdk is an optional extra, imported only whe
 from __future__ import annotations
 
 import functools
-import json
 import logging
 import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
+import msgspec
 import numpy as np
 
 from stim300.protocol import CLUSTERS
@@ -177,13 +177,13 @@ class FoxgloveView:
             for i, name in enumerate(VECTORS):
                 if row[3 * i] == row[3 * i]:  # NaN: a block this unit's datagrams lack
                     message[name] = dict(zip("xyz", row[3 * i:3 * i + 3]))
-            channel.log(json.dumps(message).encode(), log_time=t)
+            channel.log(msgspec.json.encode(message), log_time=t)
 
     def _publish(self, topic: str, message: Callable[[], dict]) -> None:
         """`message()` as JSON on `topic`, timed now; not even made when nobody subscribes."""
         channel = self._channels[topic]
         if channel.has_sinks():
-            channel.log(json.dumps(message(), default=json_value).encode(), log_time=time.time_ns())
+            channel.log(msgspec.json.encode(message(), enc_hook=json_value), log_time=time.time_ns())
 
 
 def block_means(stamp_ns: np.ndarray, columns: np.ndarray, period_ns: int

@@ -30,6 +30,7 @@ import structlog
 
 from stim300.capture import StreamInfo
 from stim300.clock import CounterClock
+from stim300.codec import join_samples
 
 from ..config import ServeConfig
 from ..daemon import Listener, State
@@ -287,7 +288,7 @@ class Hub(Listener):
         pending = self.queue.take()
         timed, self._held = self._held, []
         if pending:
-            samples = np.concatenate([piece for piece, _ in pending])
+            samples = join_samples([piece for piece, _ in pending])
             time_s = self._clock.times(samples["counter"], info.rate_hz, samples["t_host"]).time_s
             lo = 0
             for piece, kept in pending:
@@ -306,7 +307,7 @@ class Hub(Listener):
             while j < len(timed) and timed[j][2] is kept:
                 j += 1
             run = timed[i:j]
-            batches += self._batches(kinds, info, np.concatenate([p[0] for p in run]),
+            batches += self._batches(kinds, info, join_samples([p[0] for p in run]),
                                      np.concatenate([p[1] for p in run]), kept)
             i = j
         return batches
