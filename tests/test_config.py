@@ -311,7 +311,7 @@ def test_example_config_loads():
 
 def test_example_serve_section_loads_once_uncommented():
     text = EXAMPLE.read_text()
-    section = text[text.index("# [serve]"):]
+    section = text[text.index("# [serve]"):].split("\n\n", 1)[0]  # the [serve] block, up to the next table's
     keys = [line[2:] for line in section.splitlines() if line.startswith("# ") and (" = " in line or "[" in line)]
     config = parse_config(tomllib.loads(text + "\n" + "\n".join(keys) + "\n"), "example")
     assert config.serve.socket == Path("/run/calibd/ttyUSB0/calibd.sock") and config.serve.tcp == ("127.0.0.1", 2950)
