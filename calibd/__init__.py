@@ -10,7 +10,7 @@ The names are imported when first used (PEP 562), not with the package: `import 
 none of calibd's modules, so neither the methods nor scipy (docs/architecture.md, Start-up).
 """
 
-import importlib
+from stim300.lazy import lazy_exports
 
 _HOMES = {  # public name -> the module of calibd that defines it
     "decode_sessions": "session", "CaptureSessions": "session", "Session": "session", "SessionBuilder": "session",
@@ -27,8 +27,4 @@ _HOMES = {  # public name -> the module of calibd that defines it
 
 __all__ = list(_HOMES)
 
-
-def __getattr__(name: str):
-    if name not in _HOMES:
-        raise AttributeError(f"module 'calibd' has no attribute {name!r}")
-    return getattr(importlib.import_module(f".{_HOMES[name]}", __name__), name)
+__getattr__ = lazy_exports(__name__, _HOMES)

@@ -10,7 +10,7 @@ one module of the driver (`stim300.cliutil` for calibd's command line) does not 
 pyserial and the logging with it.
 """
 
-import importlib
+from .lazy import lazy_exports
 
 _HOMES = {  # public name -> the module of stim300 that defines it
     "decode_capture": "bulk", "decode_columns": "bulk", "Capture": "capture", "StreamInfo": "capture",
@@ -27,8 +27,4 @@ _HOMES = {  # public name -> the module of stim300 that defines it
 
 __all__ = list(_HOMES)
 
-
-def __getattr__(name: str):
-    if name not in _HOMES:
-        raise AttributeError(f"module 'stim300' has no attribute {name!r}")
-    return getattr(importlib.import_module(f".{_HOMES[name]}", __name__), name)
+__getattr__ = lazy_exports(__name__, _HOMES)

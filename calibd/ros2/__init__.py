@@ -9,7 +9,7 @@ up when first used (PEP 562), so `import calibd.ros2` loads neither; without the
 `Publisher` raises Ros2Error saying how to install it.
 """
 
-import importlib
+from stim300.lazy import lazy_exports
 
 _HOMES = {  # public name -> the module of calibd.ros2 that defines it
     "Ros2Error": "messages", "Status": "messages", "Level": "messages", "dds_topic": "messages",
@@ -19,8 +19,4 @@ _HOMES = {  # public name -> the module of calibd.ros2 that defines it
 
 __all__ = list(_HOMES)
 
-
-def __getattr__(name: str):
-    if name not in _HOMES:
-        raise AttributeError(f"module 'calibd.ros2' has no attribute {name!r}")
-    return getattr(importlib.import_module(f".{_HOMES[name]}", __name__), name)
+__getattr__ = lazy_exports(__name__, _HOMES)
