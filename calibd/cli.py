@@ -568,8 +568,9 @@ def cmd_noise(args) -> int:
         channels = characterise(session)
     except NoiseError as exc:
         raise UsageError(f"{args.capture}: {exc}") from None
+    rostopic = args.rostopic or session.stream.get("topic", "/imu0")  # a recording's own topic by default
     documents = [(args.output, lambda: json.dumps(noise_record(session, channels, args.capture), indent=1) + "\n"),
-                 (args.kalibr, lambda: kalibr_yaml(session, channels, args.rostopic))]
+                 (args.kalibr, lambda: kalibr_yaml(session, channels, rostopic))]
     for output, document in documents:
         if output:
             try:
@@ -882,8 +883,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--kalibr", type=path_arg, metavar="IMU.yaml",
                    help="Kalibr's imu.yaml: noise densities and random walks in SI units, update_rate (replaced "
                         "atomically; docs/noise.md)")
-    p.add_argument("--rostopic", type=_ros_topic, default="/imu0",
-                   help="rostopic written to the Kalibr file (default /imu0)")
+    p.add_argument("--rostopic", type=_ros_topic,
+                   help="rostopic written to the Kalibr file (default: a recording's topic, else /imu0)")
     p.add_argument("--start", type=_number(0, 1e9, "s"), default=0.0, help="skip the first S seconds (warm-up)")
     p.add_argument("--topic", type=_ros_topic, metavar="NAME", help=TOPIC_HELP)
     p.set_defaults(func=cmd_noise)

@@ -219,6 +219,11 @@ def test_noise_of_a_recording_is_the_noise_of_its_capture(recordings, run_main):
     assert code == 0 and recorded.split(": ", 1)[1] == raw.split(": ", 1)[1]
 
 
+def test_the_kalibr_file_of_a_recording_names_its_topic(recordings, run_main, tmp_path):
+    code, _, _ = run_main(calibd_main, ["noise", recordings["sqlite3"], "--kalibr", tmp_path / "imu.yaml"])
+    assert code == 0 and f"rostopic: {TOPIC}" in (tmp_path / "imu.yaml").read_text()
+
+
 def test_a_dropped_run_of_messages_is_a_gap_in_the_stream_record(tmp_path, fixture_samples):
     stamps, gyro, acc, received = (a[:6000] for a in fixture_samples)
     keep = np.r_[0:2000, 2050:4000, 4003:6000]  # 50 and 3 messages dropped
