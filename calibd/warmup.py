@@ -133,7 +133,7 @@ def warm_up_warnings(time_s: np.ndarray, temperature_c: np.ndarray | None,
     sessions count from their own start, so its results do not say it."""
     verdict = record_settling(time_s, temperature_c, rule)
     if verdict is None:
-        return ["no temperatures in the datagram: warm-up cannot be checked"]
+        return ["no temperatures in the data (its datagrams or messages carry none): warm-up cannot be checked"]
     if not verdict.settled:
         return [f"the temperature never settles in this power-up (calmest trend {verdict.trend_c_per_h:+.1f} degC/h "
                 f"from {verdict.start_s:.0f} s; warmed up means within {rule_words(rule, verdict)}): the IMU is not "

@@ -90,7 +90,8 @@ def test_the_verdict_in_words(warming):
 def test_without_temperatures_the_rule_has_no_verdict(warming):
     t, _ = warming
     assert record_settling(t, None) is None and record_settling(t[:1], np.ones(1)) is None
-    assert warm_up_warnings(t, None) == ["no temperatures in the datagram: warm-up cannot be checked"]
+    assert warm_up_warnings(t, None) == ["no temperatures in the data (its datagrams or messages carry none): "
+                                         "warm-up cannot be checked"]
     assert "no temperatures" in start_words(None)
     assert warm_up_end_s(t, None) == t[0]
 
