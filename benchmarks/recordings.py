@@ -1,0 +1,114 @@
+"""What reading a recording costs: `calibd noise` on a 2000 Hz STIM300 capture against the same
+samples recorded as sensor_msgs/Imu in a rosbag2 with SQLite3 storage and one with MCAP
+storage, each in a process of its own.
+
+Printed for each: the wall time, the peak memory (the process's maximum RSS) and the time per
+message, and the ratio to the raw capture's; and whether the noise table's gyro and accelerometer
+figures are the raw capture's (a recording has no inclinometers). Targets (the recordings issue):
+26.4 M messages (13,210 s) in <= 2 minutes and <= 1 GB; run with --seconds 13210 for that
+(about 10 GB of disk for the recordings). The default, 600 s, is 1.2 M messages.
+
+    python benchmarks/recordings.py [--seconds 600]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from live import ENV, capture_2000hz  # benchmarks/live.py: a simulated 2000 Hz stream
+
+from calibd.frames import STANDARD_GRAVITY
+from calibd.ros2.messages import ImuEncoder
+from calibd.units import DEG
+from stim300.bulk import decode_capture
+
+TOPIC = "/stim300/imu"
+BATCH = 100_000  # messages encoded and written at once
+
+
+def write_rosbag2(path: Path, storage: str, stamps: np.ndarray, gyro: np.ndarray, acc: np.ndarray) -> None:
+    """The samples as sensor_msgs/Imu CDR (calibd's own encoder, the bytes rosbags' serialiser
+    gives: tests/test_ros2_wire.py) in a rosbag2 directory, received 1 ms after their stamps."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    encoder = ImuEncoder("imu_link")
+    plugin = StoragePlugin.SQLITE3 if storage == "sqlite3" else StoragePlugin.MCAP
+    with Writer(path, version=9, storage_plugin=plugin) as writer:
+        connection = writer.add_connection(TOPIC, "sensor_msgs/msg/Imu",
+                                           typestore=get_typestore(Stores.ROS2_JAZZY))
+        for lo in range(0, len(stamps), BATCH):
+            part = slice(lo, lo + BATCH)
+            messages = encoder.encode(stamps[part], gyro[part], acc[part], [0.0] * 9, [0.0] * 9)
+            for when, message in zip((stamps[part] + 1_000_000).tolist(), messages):
+                writer.write(connection, when, message)
+
+
+WRAPPER = ("import resource, subprocess, sys\n"
+           "done = subprocess.run([sys.executable, '-m', 'calibd.cli', 'noise', sys.argv[1]], capture_output=True, "
+           "text=True)\n"
+           "sys.stdout.write(f'{resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss}\\n' + done.stdout)\n"
+           "sys.stderr.write(done.stderr)\n"
+           "sys.exit(done.returncode)\n")
+
+
+def noise(path: Path) -> tuple[float, float, str]:
+    """`calibd noise PATH` started by a small process that reports its maximum RSS (a child forked
+    from this process would count this process's pages too): (wall s, peak RSS MB, its table)."""
+    started = time.monotonic()
+    done = subprocess.run([sys.executable, "-c", WRAPPER, str(path)], env=ENV, capture_output=True, text=True)
+    wall = time.monotonic() - started
+    if done.returncode != 0:
+        raise SystemExit(f"calibd noise {path}: {done.stderr.strip()}")
+    peak_kb, table = done.stdout.split("\n", 1)
+    return wall, int(peak_kb) / 1024, table
+
+
+def figures(table: str) -> list[str]:
+    """The noise table's gyro and accelerometer lines (a recording carries no inclinometers)."""
+    return [line for line in table.splitlines() if line.startswith(("gyro", "acc"))]
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=600.0, help="length of the 2000 Hz stream (default 600 s)")
+    args = ap.parse_args()
+    print(f"load average {' '.join(f'{v:.2f}' for v in os.getloadavg())} on {os.cpu_count()} cores")
+    data, seconds = capture_2000hz(args.seconds)
+    samples = decode_capture(data).samples
+    stamps = 1_790_000_000 * 10**9 + np.arange(len(samples), dtype=np.int64) * 500_000
+    gyro, acc = samples["gyro"].astype(np.float64) * DEG, samples["acc"].astype(np.float64) * STANDARD_GRAVITY
+    del samples
+    print(f"{len(stamps):,} samples ({seconds:.0f} s at 2000 Hz)")
+    with tempfile.TemporaryDirectory() as tmp:
+        inputs = {"raw capture": Path(tmp) / "capture.bin"}
+        inputs["raw capture"].write_bytes(data)
+        del data
+        for storage in ("sqlite3", "mcap"):
+            inputs[f"rosbag2 {storage}"] = Path(tmp) / f"imu_{storage}"
+            started = time.monotonic()
+            write_rosbag2(inputs[f"rosbag2 {storage}"], storage, stamps, gyro, acc)
+            print(f"rosbag2 {storage} written in {time.monotonic() - started:.0f} s")
+        runs = {name: noise(path) for name, path in inputs.items()}
+    raw_wall, raw_rss, raw_table = runs["raw capture"]
+    for name, (wall, rss, table) in runs.items():
+        same = figures(table) == figures(raw_table)
+        print(f"{name:18s} {wall:7.1f} s ({wall / len(stamps) * 1e6:.2f} us a message, {wall / raw_wall:.2f}x the raw "
+              f"capture), peak RSS {rss:.0f} MB ({rss / raw_rss:.2f}x); noise table "
+              f"{'the same as the raw capture' if same else 'DIFFERENT'}")
+    at_target = 26.4e6 / len(stamps)
+    for name, (wall, rss, _) in runs.items():
+        print(f"{name}: at 26.4 M messages about {wall * at_target:.0f} s (target <= 120 s)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
