@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .capture import StreamInfo, stream_info
-from .codec import SAMPLE_DTYPE
+from .codec import SAMPLE_DTYPE, join_samples
 from .port import PortReader
 from .protocol import DEFAULT_BIT_RATE, INTERNAL_RATE_HZ
 from .ringbuffer import RingBuffer
@@ -201,7 +201,7 @@ class CaptureSource(SampleSource):
         times = self._reads["t_host_s"]
         pieces = [self.parser.feed(self._data[lo:hi], float(times[k]) if k < len(times) else np.nan)
                   for k, lo, hi in zip(range(first, first + len(cuts)), cuts, cuts[1:]) if hi > lo]
-        return np.concatenate(pieces) if pieces else np.empty(0, SAMPLE_DTYPE)
+        return join_samples(pieces) if pieces else np.empty(0, SAMPLE_DTYPE)
 
     def close(self) -> None:
         self._data.release()
