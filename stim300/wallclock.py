@@ -59,9 +59,9 @@ class WallClock:
         moved = self._follow(np.asarray(time_s, np.float64), np.asarray(t_host, np.float64))
         if moved is not None:
             step = moved if step is None else step + moved
-        if self._line is None:  # no host time seen yet: the batch is stamped as it is read
-            self._line = (float(time_s[-1]) if len(time_s) else 0.0, monotonic_s - float(time_s[-1])
-                          if len(time_s) else 0.0, 0.0)
+        if self._line is None:  # no host time seen yet: the batch's last sample is taken as read now
+            last_s = float(time_s[-1]) if len(time_s) else 0.0
+            self._line = (last_s, monotonic_s - last_s, 0.0)
         at, offset, slope = self._line
         return epoch_ns + np.rint((time_s + offset + slope * (time_s - at)) * 1e9).astype(np.int64), step
 

@@ -33,6 +33,9 @@ log = structlog.get_logger("calibd")
 
 TICK_S = 0.04  # how often queued samples are published: 25 batches a second, 80 samples each at 2000 Hz
 HEALTH_S = 1.0  # how often the stream's health is published
+# the stream's running counts Health carries (each grows with a fault of the stream)
+STREAM_COUNTS = ("crc_errors", "lost_samples", "skipped_bytes", "overrun", "inferred_missing", "restarts",
+                 "hidden_gaps", "dropped_samples")
 RESETS_QUIET_S = 10.0  # without a reset of the stamps' mapping this long, an episode of resets has ended
 
 
@@ -56,7 +59,7 @@ class Health:
 
     state: str
     detail: str
-    counts: dict[str, int]
+    counts: dict[str, int]  # STREAM_COUNTS
     flagged_datagrams: int = 0
     faults: tuple[str, ...] = ()
 
@@ -194,7 +197,7 @@ class Feeds:
 
     def _publish_health(self) -> None:
         info = self._info
-        counts = dict(self._counts)
+        counts = {name: 0 for name in STREAM_COUNTS} | self._counts
         if info is not None:
             counts |= {"inferred_missing": info.stats.inferred_missing, "restarts": info.stats.restarts}
         counts |= {"hidden_gaps": self._hidden_gaps, "dropped_samples": self.queue.dropped}

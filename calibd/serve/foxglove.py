@@ -25,20 +25,17 @@ from stim300.protocol import CLUSTERS
 from ..correction import uncorrectable
 from ..daemon import State
 from ..documents import ESTIMATE_BOUNDS, json_value
+from .feeds import STREAM_COUNTS, FeedBatch, Health
 from .sockets import ServeError
 
 if TYPE_CHECKING:
     from ..results import CalibrationResult
-    from .feeds import FeedBatch, Health
 
 EXTRA_MISSING = "the Foxglove view needs the foxglove extra: pip install 'stim300-calib[foxglove]'"
 BACKLOG_MESSAGES = 1024  # messages queued per client; a full queue drops its oldest (the SDK's rule)
 VECTORS = ("gyro_deg_h", "acc_mg", "incl_mg")  # the IMU messages' vectors: the sensor's deg/s, g and g shown
 _DISPLAY_FACTORS = np.repeat([3600.0, 1000.0, 1000.0], 3)  # deg/h per deg/s, mg per g, mg per g
 IMU_TOPICS = {"raw": "/imu/raw", "corrected": "/imu/corrected"}
-# the stream's counts the daemon reports (any other count is taken too, as a number)
-HEALTH_COUNTS = ("crc_errors", "lost_samples", "skipped_bytes", "inferred_missing", "restarts", "hidden_gaps",
-                 "dropped_samples", "flagged_datagrams")
 
 _NUMBER = {"type": "number"}
 _MAYBE_NUMBER = {"type": ["number", "null"]}
@@ -77,7 +74,7 @@ CHANNELS: dict[str, dict] = {
     "/calibd/health": {
         "title": "calibd.Health", "type": "object",
         "description": "the stream's fault counts since the start; flagged_datagrams and faults: since the last",
-        "properties": {**{name: {"type": "integer"} for name in HEALTH_COUNTS},
+        "properties": {**{name: {"type": "integer"} for name in (*STREAM_COUNTS, "flagged_datagrams")},
                        "faults": {"type": "array", "items": {"type": "string"},
                                   "description": "the status bits the flagged datagrams set"}}},
     "/calibd/result": {

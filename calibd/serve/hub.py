@@ -32,7 +32,7 @@ from stim300.capture import StreamInfo
 from stim300.clock import CounterClock
 from stim300.codec import join_samples
 
-from ..config import ServeConfig
+from ..config import FoxgloveConfig, Ros2Config, ServeConfig
 from ..daemon import Listener, State
 from ..results import CalibrationResult, result_json
 from ..session import PowerUpCuts
@@ -356,11 +356,10 @@ class Hub(Listener):
         raise ProtocolError(f"?{command.name} takes no part in this server")
 
 
-def make_feeds(ros2, foxglove) -> dict[str, Feed]:
-    """The feeds the [ros2] and [foxglove] tables ask for (`calibd.config.Ros2Config`,
-    `FoxgloveConfig`, None when absent), started; ServeError (one line, before the daemon says it
-    is ready) when one cannot start, those made before it closed. Their packages are loaded only
-    here, when asked for."""
+def make_feeds(ros2: Ros2Config | None, foxglove: FoxgloveConfig | None) -> dict[str, Feed]:
+    """The feeds the [ros2] and [foxglove] tables ask for (None: the table is absent), started;
+    ServeError (one line, before the daemon says it is ready) when one cannot start, those made
+    before it closed. Their packages are loaded only here, when asked for."""
     from ..ros2.messages import Ros2Error
 
     feeds: dict[str, Feed] = {}

@@ -22,19 +22,18 @@ import structlog
 
 
 from ..config import Ros2Config
-from ..correction import bias_covariance, si_biases, uncorrectable
+from ..correction import ServedCorrection, bias_covariance, si_biases, uncorrectable
 from ..results import CalibrationResult, quaternion, result_json
 from ..spec import NoiseFigures
 from ..units import DEG
 from ..frames import STANDARD_GRAVITY
-from .feeds import FeedBatch, Health
+from ..ros2.messages import Level, Status
+from .feeds import STREAM_COUNTS, FeedBatch, Health
 
 log = structlog.get_logger("calibd")
 
 NWU_TO_ENU = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # v_ENU = C v_NWU
 NO_ORIENTATION = -1.0  # orientation_covariance[0] of an Imu without an orientation (REP 145)
-STREAM_FAULTS = ("crc_errors", "lost_samples", "inferred_missing", "restarts", "hidden_gaps", "overrun",
-                 "dropped_samples")  # a count that grows makes the stream's status WARN
 
 
 def white_noise_variance(random_walk_per_sqrt_h: float, rate_hz: float) -> float:
@@ -53,6 +52,8 @@ class Ros2Feed:
             "imu_raw": config.data_raw_topic, "imu": config.data_topic, "calibration": config.calibration_topic,
             "alignment": config.alignment_topic, "diagnostics": config.diagnostics_topic}, config.frame_id)
         self._noise: tuple[tuple, np.ndarray, np.ndarray] | None = None  # (rate, range) -> gyro, acc covariances
+        self._taken: tuple[ServedCorrection, dict, np.ndarray, np.ndarray] | None = None  # a correction's SI biases
+        # and their gyro and accelerometer covariances, worked out once per correction
         self._counts: dict[str, int] = {}
         self._unpublished = False  # the stream's units were said to be unpublishable
         self._serial: str | None = None
@@ -72,11 +73,18 @@ class Ros2Feed:
         acc = batch.samples["acc"].astype(np.float64) * STANDARD_GRAVITY
         self.publisher.imu("imu_raw", batch.stamp_ns, gyro, acc, gyro_noise.ravel(), acc_noise.ravel())
         if batch.correction is not None:
-            result = batch.correction.result
-            bias = si_biases(result)
+            bias, gyro_bias_cov, acc_bias_cov = self._taken_out(batch.correction)
             self.publisher.imu("imu", batch.stamp_ns, gyro - bias.get("gyro", 0.0), acc - bias.get("acc", 0.0),
-                               (gyro_noise + _covariance(result, "gyro", bias)).ravel(),
-                               (acc_noise + _covariance(result, "acc", bias)).ravel())
+                               (gyro_noise + gyro_bias_cov).ravel(), (acc_noise + acc_bias_cov).ravel())
+
+    def _taken_out(self, correction: ServedCorrection) -> tuple[dict, np.ndarray, np.ndarray]:
+        """A correction's biases in SI and their covariances (zero for a cluster none is taken
+        from), kept while the correction lasts: a result's covariance is read once, not per batch."""
+        if self._taken is None or self._taken[0] is not correction:
+            bias = si_biases(correction.result)
+            self._taken = (correction, bias, *(bias_covariance(correction.result, cluster) if cluster in bias
+                                               else np.zeros((3, 3)) for cluster in ("gyro", "acc")))
+        return self._taken[1:]
 
     def _noise_covariances(self, info) -> tuple[np.ndarray, np.ndarray]:
         """The datasheet's white noise of the unit's range at the stream's rate (diagonal, SI^2)."""
@@ -101,9 +109,8 @@ class Ros2Feed:
             self.publisher.alignment(now, (x, y, z, w))
 
     def health(self, health: Health) -> None:
-        from ..ros2.messages import Level, Status
-
-        grew = [name for name in STREAM_FAULTS if health.counts.get(name, 0) > self._counts.get(name, 0)]
+        """Two statuses: the calibration's state, and the stream's counts (WARN while one grows)."""
+        grew = [name for name in STREAM_COUNTS if health.counts.get(name, 0) > self._counts.get(name, 0)]
         self._counts = dict(health.counts)
         state_level = Level.ERROR if health.state == "FAULT" else Level.OK
         if health.flagged_datagrams:
@@ -121,8 +128,3 @@ class Ros2Feed:
 
     def close(self) -> None:
         self.publisher.close()
-
-
-def _covariance(result: CalibrationResult, cluster: str, bias: dict) -> np.ndarray:
-    """The covariance of the biases taken out of a cluster (zero where none are)."""
-    return bias_covariance(result, cluster) if cluster in bias else np.zeros((3, 3))
