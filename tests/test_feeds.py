@@ -4,6 +4,7 @@ handed over; a feed that fails logged once per episode with a count, and retried
 
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 from structlog.testing import capture_logs
@@ -112,3 +113,44 @@ def test_stamps_reset_again_and_again_are_one_log_line(monkeypatch):
         hub.close()
     assert [e["event"] for e in logs if e["event"].startswith("stamps_")] == ["stamps_reset"]
     assert sum(len(b.samples) for b in feed.batches) == parser.stats.datagrams
+
+
+def test_every_state_change_in_order_even_two_in_one_tick(monkeypatch):
+    feed = Recorder()
+    hub = Hub(ServeConfig(), "port", feeds={"recorder": feed})
+    for k in range(3):  # within one tick
+        hub.on_state(State.COLLECTING, f"collecting {k}", {})
+    hub.on_state(State.SOLVED, "solved", {})
+    time.sleep(0.1)
+    hub.close()
+    assert feed.states == [("COLLECTING", f"collecting {k}") for k in range(3)] + [("SOLVED", "solved")]
+
+
+def test_after_a_sensor_restart_no_batch_carries_the_old_power_ups_correction(monkeypatch):
+    """Two power-ups of one capture back to back, a result during the first: its correction goes
+    with the first power-up's samples only; the stamps go on increasing across the restart."""
+    monkeypatch.setattr(queue_module, "PENDING_SAMPLES", 10**7)
+    capture = (Path(__file__).resolve().parents[1] / "fixtures" / "heading137_lat60_125hz.bin").read_bytes()
+    feed = Recorder()
+    hub = Hub(ServeConfig(), "port", feeds={"recorder": feed})
+    parser = StreamParser(tap=hub.tap)
+    first_power_up = 0
+    for power_up in range(2):
+        for offset in range(0, len(capture), 16384):
+            if power_up == 0 and offset == 16384 * 10:
+                hub.on_result(known_result())
+            parser.feed(capture[offset:offset + 16384])
+            hub.stream_seen(stream_info(parser), {}, {})
+        if power_up == 0:
+            first_power_up = parser.stats.datagrams  # the samples before the restart
+        time.sleep(0.1)
+    hub.close()
+    assert parser.stats.restarts == 1
+    counted, corrected_after = 0, 0
+    for batch in feed.batches:
+        corrected_after += (batch.correction is not None) * max(0, counted + len(batch.samples) - first_power_up)
+        counted += len(batch.samples)
+    assert counted == parser.stats.datagrams and corrected_after == 0
+    assert any(b.correction is not None for b in feed.batches)  # the first power-up's samples took it
+    stamps = np.concatenate([b.stamp_ns for b in feed.batches])
+    assert np.all(np.diff(stamps) > 0)

@@ -80,9 +80,10 @@ class Feed(Protocol):
 
 @dataclass
 class _Events:
-    """What the pump thread handed over since the last tick (the latest of each)."""
+    """What the pump thread handed over since the last tick, in order: each state change (two in
+    one tick are two messages) and each result."""
 
-    state: tuple[str, str, dict] | None = None
+    states: list[tuple[str, str, dict]] = field(default_factory=list)
     results: list[CalibrationResult] = field(default_factory=list)
 
 
@@ -118,7 +119,7 @@ class Feeds:
 
     def state(self, state: str, detail: str, progress: dict) -> None:
         with self._lock:
-            self._events.state = (state, detail, progress)
+            self._events.states.append((state, detail, progress))
 
     def result(self, result: CalibrationResult) -> None:
         with self._lock:
@@ -151,9 +152,9 @@ class Feeds:
     def _tick(self) -> None:
         with self._lock:
             events, self._events = self._events, _Events()
-        if events.state is not None:
-            self._state = events.state[:2]
-            self._each("state", *events.state)
+        for state in events.states:
+            self._state = state[:2]
+            self._each("state", *state)
         for result in events.results:
             self._each("result", result)
         info = self._info
