@@ -198,8 +198,6 @@ def test_a_bad_document_is_exit_2_and_one_line_naming_file_and_field(command, de
             "plan --noise": ["plan", "--protocol", "thesis", "--latitude", "40", "--noise", bad],
             "plan --scenario": ["plan", "--scenario", bad],
             "simulate": ["simulate", bad, "-o", out / "c.bin"]}[command]
-    if command == "report":
-        pytest.importorskip("matplotlib")
     code = calibd_main([str(a) for a in argv])
     stdout, err = capsys.readouterr()
     assert code == 2, err

@@ -49,7 +49,6 @@ def test_every_calibd_error_is_a_calibd_error_and_none_is_a_value_error():
     ("ReportError", ["report", "{empty_result}", CAPTURE, "-o", "{tmp}/report.html"], "has no estimates"),
 ])
 def test_each_error_is_one_line_from_the_cli(error, argv, says, tmp_path, capsys):
-    pytest.importorskip("matplotlib")
     garbage = tmp_path / "garbage.bin"
     garbage.write_bytes(b"not a capture, not JSON\n" * 10)
     empty_result = tmp_path / "empty.json"

@@ -190,7 +190,6 @@ def test_calibrate_echoes_the_site(argv, shown, tmp_path, capsys):
 
 @pytest.mark.slow
 def test_the_report_reads_the_power_up_the_result_used(level_only_bytes, tmp_path, capsys):
-    pytest.importorskip("matplotlib")
     from calibd.report import write_report
 
     capture = tmp_path / "two.bin"
