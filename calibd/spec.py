@@ -38,6 +38,9 @@ class Triad:
     misalignment_mrad: float  # each sensing axis to the housing's reference, +- limit
     orthogonality_mrad: float  # between the triad's own axes, +- limit
     bias_trim_range: float  # +- range of the bias trim offset: gyro deg/s, others g (section 7.5.2.3)
+    bias_over_temperature: float  # bias error over the temperature range, rms: gyro deg/h, others mg
+    bias_run_to_run: float | None  # from one power-up to the next (gyro deg/h); None: not stated
+    bias_one_year: float | None  # bias stability over a year (accelerometer mg); None: not stated
 
     @property
     def scale_factor_sigma_ppm(self) -> float:
@@ -52,15 +55,17 @@ class Triad:
 
 
 GYRO = Triad(table="Table 5-3", random_walk=0.15, bias_instability=0.3, scale_factor_ppm=500.0,
-             misalignment_mrad=1.0, orthogonality_mrad=0.2, bias_trim_range=1.0)
+             misalignment_mrad=1.0, orthogonality_mrad=0.2, bias_trim_range=1.0,
+             bias_over_temperature=10.0, bias_run_to_run=4.0, bias_one_year=None)
 ACC = {  # by the accelerometers' range, g
-    5: Triad("Table 5-4", 0.024, 0.005, 200.0, 1.0, 0.2, 0.1),
-    10: Triad("Table 5-5", 0.024, 0.005, 200.0, 1.0, 0.2, 0.1),
-    30: Triad("Table 5-6", 0.04, 0.01, 300.0, 1.0, 0.2, 0.3),
-    80: Triad("Table 5-7", 0.15, 0.03, 1000.0, 1.5, 0.6, 0.8),
+    5: Triad("Table 5-4", 0.024, 0.005, 200.0, 1.0, 0.2, 0.1, 1.1, None, 1.9),
+    10: Triad("Table 5-5", 0.024, 0.005, 200.0, 1.0, 0.2, 0.1, 1.1, None, 1.9),
+    30: Triad("Table 5-6", 0.04, 0.01, 300.0, 1.0, 0.2, 0.3, 1.5, None, 4.0),
+    80: Triad("Table 5-7", 0.15, 0.03, 1000.0, 1.5, 0.6, 0.8, 5.0, None, 12.0),
 }
 INCL = Triad(table="Table 5-8", random_walk=0.08, bias_instability=0.06, scale_factor_ppm=500.0,
-             misalignment_mrad=1.0, orthogonality_mrad=0.2, bias_trim_range=0.02)
+             misalignment_mrad=1.0, orthogonality_mrad=0.2, bias_trim_range=0.02,
+             bias_over_temperature=2.0, bias_run_to_run=None, bias_one_year=None)
 # Linear-acceleration effect on the gyro bias with g-compensation, deg/h/g (Table 5-3): with Z
 # along gravity at every static it is part of the bias calibd estimates, so no term models it
 GYRO_G_SENSITIVITY_DEG_H_PER_G = 1.0
