@@ -22,7 +22,12 @@ bias instability), 125 Hz, turns in a random sense:
 - `limit`: the same with every residual at its datasheet limit, random signs;
 - `tilted axis`: the field set on a platform axis tilted about 5.8 deg from Up (pitch 5, roll
   3 deg), where the statics' forces see some residuals: which terms the data estimated, and how
-  well, is tabled too.
+  well, is tabled too;
+- `temperature ramp`: the field set in a room warming or cooling at 2 degC/h (random sign) after
+  the warm-up, each bias channel's slope with temperature drawn from the datasheet's figure
+  (calibd.spec, `bias_temperature_sigma`), the temperatures in the session, through `calibd
+  calibrate`'s path with its temperature judgement (the ramp never meets the warm-up rule's
+  1 degC/h: a sigma that carries the ramp leaves the estimates unflagged).
 Biases against the housing-frame truth throughout; no lever arm or g-sensitivity is simulated.
 Per estimate it prints the RMS error, RMS(error / reported sigma) and the share of sessions
 within 1, 2 and 3 reported sigma (a Gaussian error: 68, 95, 99.7 %); for the first set also
@@ -49,6 +54,7 @@ import numpy as np
 from calibd.methods.joint import joint_fit, joint_real_case
 from calibd.methods.thesis import thesis_real_case
 from calibd import spec
+from calibd.calibrate import judged_by_temperature
 from calibd.errors import CalibrationError
 from calibd.estimators.joint import white_noise_bound
 from calibd.frames import NORMAL_GRAVITY_SIGMA, STANDARD_GRAVITY, Site, normal_gravity
@@ -56,6 +62,7 @@ from calibd.scenario import Truth, load_scenario
 from calibd.session import Session
 from calibd.sim import simulate, truth_record
 from calibd.units import DEG
+from calibd.warmup import record_settling
 from stim300.records import SensorRecord
 
 NAMES = ["pitch", "roll", "yaw", "alpha", "beta", "gyro_bias_x", "gyro_bias_y", "gyro_bias_z", "acc_bias_x",
@@ -64,14 +71,16 @@ UNITS = {**{n: "deg" for n in NAMES[:5]}, **{n: "deg/h" for n in NAMES[5:8]}, **
 ARW = 0.15 / 60 * DEG  # rad/sqrt(s): the datasheet angle random walk the bound assumes
 GYRO_DRIVEN = ("yaw", "alpha", "beta", "gyro_bias_x", "gyro_bias_y", "gyro_bias_z")  # what the gyro bound covers
 RUN_SETS = ("g0 given", "normal gravity", "one index", "no inclinometers", "vibrating static", "field", "limit",
-            "tilted axis")
+            "tilted axis", "temperature ramp")
 SEED_OFFSET = {"g0 given": 0, "normal gravity": 100_000, "one index": 200_000, "no inclinometers": 300_000,
-               "vibrating static": 400_000, "field": 500_000, "limit": 600_000, "tilted axis": 700_000}
-FACTORY_SETS = ("field", "limit", "tilted axis")  # the sensor with the datasheet's factory residuals
+               "vibrating static": 400_000, "field": 500_000, "limit": 600_000, "tilted axis": 700_000,
+               "temperature ramp": 800_000}
+FACTORY_SETS = ("field", "limit", "tilted axis", "temperature ramp")  # with the datasheet's factory residuals
 CALIBRATE_PATH = ("one index", "vibrating static", *FACTORY_SETS)  # through calibd calibrate: flags count
 TILTED_DEG = (5.0, 3.0)  # the tilted-axis set's pitch and roll: its platform axis about 5.8 deg from Up
 VIBRATION = 12.5  # times the sensor's white noise (scenario.Segment.vibration)
 FIELD_RIPPLE = 0.02  # once-per-revolution rate ripple of the field and limit sets' turns
+RAMP_C_PER_H = 2.0  # the temperature ramp set's room drift, either sign
 
 
 def names(run_set: str) -> list[str]:
@@ -102,7 +111,14 @@ def random_scenario(seed: int, run_set: str = "g0 given"):
         segments = tuple(replace(s, ripple=FIELD_RIPPLE) if s.kind == "turn" else s for s in segments)
     if run_set == "tilted axis":
         truth = replace(truth, pitch_deg=TILTED_DEG[0], roll_deg=TILTED_DEG[1])
-    return replace(base, seed=seed, truth=truth, segments=segments, site=site)
+    warmup = base.warmup
+    if run_set == "temperature ramp":
+        slopes = {name: tuple(rng.normal(0, triad.bias_temperature_sigma, 3))
+                  for name, triad in spec.triads(spec.DEFAULT_ACC_RANGE_G).items()}
+        warmup = replace(warmup, power_on_s=1e7, ramp_c_per_h=rng.choice([-1, 1]) * RAMP_C_PER_H,
+                         gyro_tempco_deg_h_per_c=slopes["gyro"], acc_tempco_mg_per_c=slopes["acc"],
+                         incl_tempco_mg_per_c=slopes["incl"])
+    return replace(base, seed=seed, truth=truth, segments=segments, site=site, warmup=warmup)
 
 
 def factory_residuals(rng: np.random.Generator, run_set: str) -> dict:
@@ -129,7 +145,8 @@ def one_session(seed: int, run_set: str) -> dict:
     session = Session(time_s=np.arange(len(s)) / rate, gyro=s["gyro"].astype(float) * DEG,
                       acc=s["acc"].astype(float) * STANDARD_GRAVITY,
                       incl=None if run_set == "no inclinometers" else s["incl"].astype(float) * STANDARD_GRAVITY,
-                      temperature_c=None, rate_hz=rate, sensor=SensorRecord(), stream={"capture": f"seed {seed}"})
+                      temperature_c=sim.temperature_c if run_set == "temperature ramp" else None, rate_hz=rate,
+                      sensor=SensorRecord(), stream={"capture": f"seed {seed}"})
     given = scenario.site
     site = Site(given.latitude_deg, given.height_m) if run_set == "normal gravity" else given
     truth = scenario.truth.estimates()
@@ -150,7 +167,8 @@ def one_session(seed: int, run_set: str) -> dict:
     out = {"refused": None, "poor": False, "poor_names": []}
     if run_set in CALIBRATE_PATH:
         try:
-            result = joint_real_case(session, site)
+            result = judged_by_temperature(joint_real_case(session, site),
+                                           record_settling(session.time_s, session.temperature_c))
         except CalibrationError as exc:
             return out | {"refused": str(exc)}
         out["poor_names"] = [n for n, e in result.estimates.items() if e.quality == "poor"]

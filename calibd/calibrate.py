@@ -8,7 +8,7 @@ from dataclasses import replace
 from .errors import CalibrationError
 from .results import CalibrationResult
 from .session import CaptureSessions, Session, power_up_session
-from .warmup import NOT_WARMED_UP, record_settling
+from .warmup import NOT_WARMED_UP, RAMP_MODELLED_C_PER_H, TEMPERATURE_POOR_SHARE, Settling, ramp_words, record_settling
 
 
 def calibrate_capture(capture: CaptureSessions, solve, power_up: int | None = None,
@@ -30,13 +30,26 @@ def calibrate_capture(capture: CaptureSessions, solve, power_up: int | None = No
             result = result.with_warning(
                 f"the sensor restarted after this power-up ({number} of {count}){passed_over}: these biases are "
                 "this power-up's, turn-on biases change at every restart")
-        verdict = record_settling(session.time_s, session.temperature_c)
-        if verdict is not None and not verdict.settled:
-            result = result.flag_poor(result.estimates, NOT_WARMED_UP)
+        result = judged_by_temperature(result, record_settling(session.time_s, session.temperature_c))
         return replace(result, session_id=capture_session_id(capture, number, session),
                        capture={"path": capture.path, **capture.identity,
                                 "serial_number": capture.sensor.serial_number})
     raise CalibrationError("; ".join(refusals))
+
+
+def judged_by_temperature(result: CalibrationResult, verdict: Settling | None) -> CalibrationResult:
+    """A power-up whose temperature never settles: a slow ramp (RAMP_MODELLED_C_PER_H) that the
+    result's sigma carries flags only the estimates it moves; a faster one, or a method whose
+    sigma carries no temperature, every estimate."""
+    if verdict is None or verdict.settled:
+        return result
+    budget = (result.error_budget or {}).get("sigma", {})
+    if abs(verdict.trend_c_per_h) > RAMP_MODELLED_C_PER_H or not budget or \
+            not all("temperature" in parts for parts in budget.values()):
+        return result.flag_poor(result.estimates, NOT_WARMED_UP)
+    moved = [name for name, e in result.estimates.items()
+             if e.sigma and budget[name]["temperature"] >= TEMPERATURE_POOR_SHARE * e.sigma]
+    return result.flag_poor(moved, ramp_words(verdict, moved))
 
 
 def capture_session_id(capture: CaptureSessions, number: int, session: Session) -> str:

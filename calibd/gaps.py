@@ -19,8 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .estimators.joint import (FactoryEffects, FactoryPosterior, JointInput, NoiseModel, Underdetermined, alpha_beta,
-                               mean_variance, static_inflation)
+from .estimators.joint import (FactoryEffects, FactoryPosterior, JointInput, NoiseModel, TemperatureEffects,
+                               Underdetermined, alpha_beta, mean_variance, static_inflation)
 from .allan import FLICKER_TAUS_S
 from .frames import int_to_imu, r3
 
@@ -98,7 +98,8 @@ def _model(params: np.ndarray, static_chi: np.ndarray, a: np.ndarray, g0: float,
 
 def check_turn_angles(inp: JointInput, chi: np.ndarray, a: np.ndarray, g0: float,
                       acc_noise: NoiseModel, incl_noise: NoiseModel, u0: np.ndarray,
-                      factory: FactoryEffects | None = None, gyro_noise: NoiseModel | None = None) -> TiltCheck:
+                      factory: FactoryEffects | None = None, gyro_noise: NoiseModel | None = None,
+                      temperature: TemperatureEffects | None = None) -> TiltCheck:
     """Fit (u, b_acc[, b_incl], one angle correction per turn) to the statics' mean forces,
     weighted by the covariance the sensors' noise models give those means (`incl_noise` is
     unused for a unit without inclinometers: `inp.incl` None) and the factory residuals'
@@ -107,8 +108,10 @@ def check_turn_angles(inp: JointInput, chi: np.ndarray, a: np.ndarray, g0: float
     the joint fit's platform angle; `a`: R_int^IMU; `u0`: the joint fit's (u1, u2) to start from.
     `gyro_noise`: the gyros' noise model, whose white noise integrated through the turns puts
     the statics' angles off by a random walk (0.007 deg a 7 s turn): on a platform axis tilted by
-    degrees the quiet accelerometers see it. Raises Underdetermined when the statics do not
-    determine the corrections."""
+    degrees the quiet accelerometers see it. `temperature`: the biases' slope with temperature,
+    which moves each static's mean force by the slope times its mean temperature (a 10 g
+    accelerometer's 0.03 mg/degC over a 2 degC/h ramp: five times a 120 s static's noise).
+    Raises Underdetermined when the statics do not determine the corrections."""
     from scipy.linalg import block_diag  # when used: start-up (docs/architecture.md)
     from scipy.optimize import least_squares
     statics = inp.statics
@@ -125,6 +128,9 @@ def check_turn_angles(inp: JointInput, chi: np.ndarray, a: np.ndarray, g0: float
     u = np.array([*u0, np.sqrt(1.0 - u0[0] ** 2 - u0[1] ** 2)])
     if gyro_noise is not None:
         noise_cov = noise_cov + _angle_walk_covariance(inp, static_chi, a, g0, u, len(forces), gyro_noise)
+    if temperature is not None:
+        moved = temperature_moves(temperature, statics, ("acc", "incl")[:len(forces)])
+        noise_cov = noise_cov + moved @ moved.T
     cov, moves = noise_cov, None
     if factory is not None:
         moves = factory_moves(factory, static_chi, a, g0, u, ("acc", "incl")[:len(forces)])
@@ -170,6 +176,20 @@ def _angle_walk_covariance(inp: JointInput, static_chi: np.ndarray, a: np.ndarra
         derivative[:, k, :, k] = turning[k]
     flat = derivative.reshape(-1, len(static_chi))
     return flat @ angles @ flat.T
+
+
+def temperature_moves(temperature: TemperatureEffects, statics: tuple[tuple[int, int], ...],
+                      sensors: tuple[str, ...]) -> np.ndarray:
+    """(means, channels): each force channel's bias slope at its 1-sigma moves its statics' mean
+    forces (laid out as the misfit: sensor, static, channel) by the slope times each static's
+    mean temperature excursion. The channels' slopes are independent; the gyros' move the
+    statics' angles by micro-radians (they integrate only while turning) and are left out."""
+    excursion = np.array([temperature.excursion_c[s:e].mean() for s, e in statics])
+    moves = np.zeros((len(sensors), len(statics), 3, 3 * len(sensors)))
+    for k, sensor in enumerate(sensors):
+        for c in range(3):
+            moves[k, :, c, 3 * k + c] = excursion * temperature.per_degree[sensor]
+    return moves.reshape(-1, 3 * len(sensors))
 
 
 def factory_posterior(model, theta: np.ndarray, means: np.ndarray, noise_cov: np.ndarray,

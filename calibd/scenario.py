@@ -50,6 +50,7 @@ RANGES = {  # table: {key: (low, high, unit)} for every number of the truth, noi
                           "temperature_noise_c")},
     "warmup": {"power_on_s": (0.0, 1e9, "s"), "time_constant_s": (1.0, 1e7, "s"),
                "ambient_c": (-60.0, 100.0, "degC"), "settled_c": (-60.0, 100.0, "degC"),
+               "ramp_c_per_h": (-60.0, 60.0, "degC/h"),
                "gyro_tempco_deg_h_per_c": (-100.0, 100.0, "deg/h/degC"),
                "acc_tempco_mg_per_c": (-100.0, 100.0, "mg/degC"), "incl_tempco_mg_per_c": (-100.0, 100.0, "mg/degC")},
 }
@@ -130,16 +131,18 @@ class Noise(spec.NoiseFigures):
 
 @dataclass(frozen=True)
 class Warmup:
-    """Temperature T(t) = settled - (settled - ambient) exp(-(t + power_on_s) / time_constant_s).
+    """Temperature T(t) = settled + ramp t - (settled - ambient) exp(-(t + power_on_s) / time_constant_s).
 
     30 min makes 1 h 30 min three time constants (5% of the rise left), matching the thesis's
     warm-up of at least 1 h 30 min (section 5.1). Biases move with temperature by the
-    coefficients, so data taken early gives visibly wrong biases."""
+    coefficients, so data taken early gives visibly wrong biases. `ramp_c_per_h`: the room
+    warming or cooling during the capture, which the sensor follows."""
 
     power_on_s: float = 5400.0  # time since power-on when the capture starts
     time_constant_s: float = 1800.0
     ambient_c: float = 22.0
     settled_c: float = 38.0
+    ramp_c_per_h: float = 0.0
     gyro_tempco_deg_h_per_c: tuple[float, float, float] = (1.5, -2.0, 1.0)
     acc_tempco_mg_per_c: tuple[float, float, float] = (0.05, -0.04, 0.03)
     incl_tempco_mg_per_c: tuple[float, float, float] = (0.02, 0.03, -0.01)

@@ -205,7 +205,8 @@ def simulate(scenario: Scenario) -> Simulation:
 
     w = scenario.warmup
     since_power_on = t_mid + w.power_on_s
-    temperature = w.settled_c - (w.settled_c - w.ambient_c) * np.exp(-since_power_on / w.time_constant_s)
+    temperature = w.settled_c + w.ramp_c_per_h * t_mid / 3600 \
+        - (w.settled_c - w.ambient_c) * np.exp(-since_power_on / w.time_constant_s)
     excess = (temperature - w.settled_c)[:, None]
     sensed = {name: np.eye(3) + truth.triad_error(name) for name in ("gyro", "acc", "incl")}  # factory residuals
     gyro = omega @ sensed["gyro"].T / DEG \

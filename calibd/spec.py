@@ -22,6 +22,7 @@ ACC_RANGES_G = (5, 10, 30, 80)
 GYRO_RANGE_DEG_S = 400.0  # the gyros' input range, +- (Table 5-3)
 INCL_RANGE_G = 1.7  # the inclinometers' input range, +- (Table 5-8)
 DEFAULT_ACC_RANGE_G = 10
+OPERATING_TEMPERATURE_C = (-40.0, 85.0)  # Table 5-1
 # At +-1 g the inclinometers' bias instability and velocity random walk are typically 35 % higher
 # than at 0 g (Table 5-8, notes): an axis along gravity is noisier than a horizontal one.
 INCL_NOISE_AT_1G = 1.35
@@ -45,6 +46,14 @@ class Triad:
     @property
     def scale_factor_sigma_ppm(self) -> float:
         return self.scale_factor_ppm / LIMIT_SIGMAS
+
+    @property
+    def bias_temperature_sigma(self) -> float:
+        """1-sigma of the bias's slope with temperature (gyro deg/h/degC, others mg/degC): the
+        bias error over temperature, an rms over the operating range, taken as a straight line
+        across it (a line over a span L has an rms of its slope times L/sqrt(12))."""
+        low, high = OPERATING_TEMPERATURE_C
+        return self.bias_over_temperature / ((high - low) / np.sqrt(12.0))
 
     @property
     def misalignment_sigma_mrad(self) -> float:

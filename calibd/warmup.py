@@ -30,6 +30,11 @@ WINDOW_RANGE_S = (1.0, 86400.0)  # a window_s that makes sense: [warmup] window_
 WARM_UP_RULE = WarmupConfig()  # the daemon's default: calibrate starts a power-up where it is met
 NOT_WARMED_UP = ("every estimate is flagged poor: the data were taken while the IMU warmed up, and biases move "
                  "with temperature (record after the warm-up)")
+# A trend this slow (degC/h) is the room, not the warm-up: the joint method's error budget carries
+# the biases' slope with temperature at the datasheet's figure (calibd.spec), so the estimates
+# keep their sigma and only those the ramp moves by TEMPERATURE_POOR_SHARE of it are flagged
+RAMP_MODELLED_C_PER_H = 2.0
+TEMPERATURE_POOR_SHARE = 0.5  # of an estimate's sigma: its temperature part beyond this flags it poor
 
 
 @dataclass(frozen=True)
@@ -110,6 +115,15 @@ def record_settling(time_s: np.ndarray, temperature_c: np.ndarray | None,
     if temperature_c is None or len(time_s) < 2:
         return None
     return settling(time_s, temperature_c, rule)
+
+
+def ramp_words(verdict: Settling, moved: list[str]) -> str:
+    """Why a slow ramp's estimates keep their sigma, and which are flagged."""
+    flagged = (f"{', '.join(moved)} flagged poor: the ramp moves them by {TEMPERATURE_POOR_SHARE:g} of their "
+               "sigma or more" if moved else f"none moves by {TEMPERATURE_POOR_SHARE:g} of its sigma")
+    return (f"the temperature ramps at {verdict.trend_c_per_h:+.1f} degC/h, within the {RAMP_MODELLED_C_PER_H:g} "
+            "degC/h a sigma can carry: each sigma carries the biases' slope with temperature at the STIM300 "
+            f"datasheet's figure (error_budget part 'temperature'); {flagged}")
 
 
 def start_words(verdict: Settling | None, rule: WarmupConfig = WARM_UP_RULE) -> str:

@@ -32,6 +32,7 @@ inclinometers has no inclinometer fit: the accelerometers give the tilt.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import partial
 
 import numpy as np
 
@@ -82,6 +83,8 @@ class JointInput:
     rate_hz: float
     # (N,) rad added to the gyro-integrated platform angle: turns whose angle lost datagrams shortened
     chi_correction: np.ndarray | None = None
+    # (N,) degC, the sensor's temperature at each sample; None: the datagrams carry none
+    temperature_c: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -138,7 +141,7 @@ class JointOptions:
 
 
 # The parts a covariance is made of, in the order results list them (`JointResult.budget`)
-BUDGET_PARTS = ("white_noise", "bias_instability", "gravity", "turn_angles", "factory_residuals")
+BUDGET_PARTS = ("white_noise", "bias_instability", "temperature", "gravity", "turn_angles", "factory_residuals")
 
 
 @dataclass
@@ -526,12 +529,17 @@ class ForceFit:
     def cov(self) -> np.ndarray:
         return sum(self.cov_parts.values())
 
-    def refit(self, through: np.ndarray, k: np.ndarray, g0: float, chi: np.ndarray | None = None) -> np.ndarray:
-        """The parameters for the data taken through the 3 x 3 map `through` (the sensor's
-        output is `through` times the data), another axis k, g0 or platform angle `chi` (all
-        samples; None: the fit's), with the same weights: how the error budget sees a change of
-        the data. The sums are linear in the data, so the map acts on them."""
-        sums = self.sums if chi is None else _static_sums(self.sums.force, _angle_basis(chi[self.rows]), self.root)
+    def refit(self, through: np.ndarray, k: np.ndarray, g0: float, chi: np.ndarray | None = None,
+              added: np.ndarray | None = None) -> np.ndarray:
+        """The parameters for the data plus `added` (all samples, N x 3; it needs `chi`) taken
+        through the 3 x 3 map `through` (the sensor's output is `through` times the data),
+        another axis k, g0 or platform angle `chi` (all samples; None: the fit's), with the same
+        weights: how the error budget sees a change of the data. The sums are linear in the
+        data, so the map acts on them."""
+        sums = self.sums
+        if chi is not None:
+            force = sums.force if added is None else sums.force + added[self.rows]
+            sums = _static_sums(force, _angle_basis(chi[self.rows]), self.root)
         return _force_params(replace(sums, cross=sums.cross @ through.T), k, g0)[0]
 
 
@@ -675,6 +683,7 @@ class JointResult:
     jacobian: np.ndarray  # d estimates / d (gyro, [incl,] acc params)
     factory: FactoryEffects | None = None  # the factory residuals the budget's prior covers; None: a perfect sensor
     tilt_from_incl: bool = True  # pitch and roll from the inclinometers' tilt (else the accelerometers')
+    temperature: TemperatureEffects | None = None  # the biases' slope with temperature; None: no temperatures
 
     @property
     def covariance(self) -> np.ndarray:
@@ -732,13 +741,16 @@ def solve(inp: JointInput, site: Site, options: JointOptions = JointOptions(),
     steps = np.sqrt(np.diag(sum(parts.values()))) * 1e-3 + 1e-15
     jac = _jacobian(chain, x, steps)
     budget = {part: jac @ cov @ jac.T for part, cov in parts.items()}
+    temperature = temperature_effects(inp, site, options, gyro, incl, acc, tilt_from_incl)
+    if temperature is not None:
+        budget["temperature"] = temperature.covariance
     factory = None
     if options.factory_residuals:
         sensors = ("gyro", "acc") if incl is None else ("gyro", "acc", "incl")
         terms = spec.factory_terms(options.acc_range_g, sensors)
         factory = factory_effects(inp, site, options, gyro, incl, acc, terms, tilt_from_incl)
         budget["factory_residuals"] = factory.covariance
-    return JointResult(chain(x), budget, gyro, incl, acc, jac, factory, tilt_from_incl)
+    return JointResult(chain(x), budget, gyro, incl, acc, jac, factory, tilt_from_incl, temperature)
 
 
 def _tilt_variance(fit: ForceFit) -> float:
@@ -794,20 +806,11 @@ def factory_effects(inp: JointInput, site: Site, options: JointOptions, gyro: Gy
     misalignment between triads lands in the horizontal biases; a Z scale factor in the Z
     biases), and the fits' weights and platform angles see the data as the sensor gave them."""
     root = _row_weights(inp.gyro, inp)
-    forces = {name: fit for name, fit in (("incl", incl), ("acc", acc)) if fit is not None}
-    identity = np.eye(3)
-
-    def estimates(gyro_params, chi=None, sensor: str | None = None, through: np.ndarray = identity) -> np.ndarray:
-        k = gyro_params[AXIS_PARAMS]
-        params = {name: fit.refit(through if name == sensor else identity, k, site.gravity, chi)
-                  for name, fit in forces.items()}
-        return np.array(list(estimates_from(gyro_params, params.get("incl"), params["acc"], site,
-                                            tilt_from_incl).values()))
-
+    estimates = _Refitted(site, {"incl": incl, "acc": acc}, tilt_from_incl).estimates
     base = estimates(gyro.params)
     columns, refits = [], {}
     for index, term in enumerate(terms):
-        through = identity.copy()
+        through = np.eye(3)
         through[term.row, term.col] += term.sigma
         if term.sensor == "gyro":
             # started where the base fit's axis and non-rotational part go through the same map
@@ -820,6 +823,86 @@ def factory_effects(inp: JointInput, site: Site, options: JointOptions, gyro: Gy
         else:
             columns.append(estimates(gyro.params, None, term.sensor, through) - base)
     return FactoryEffects(terms, np.column_stack(columns), refits)
+
+
+@dataclass(frozen=True)
+class _Refitted:
+    """Every estimate after a change of one sensor's data: the force fits refitted from their
+    sums (linear in the data) for the given gyro parameters and platform angle."""
+
+    site: Site
+    forces: dict[str, ForceFit | None]  # incl (None: no inclinometers), acc
+    tilt_from_incl: bool
+
+    def estimates(self, gyro_params: np.ndarray, chi: np.ndarray | None = None, sensor: str | None = None,
+                  through: np.ndarray = np.eye(3), added: np.ndarray | None = None) -> np.ndarray:
+        """SI, in ESTIMATE_NAMES' order; `sensor`'s data taken through `through` plus `added`."""
+        k = gyro_params[AXIS_PARAMS]
+        params = {name: None if fit is None else
+                  fit.refit(through if name == sensor else np.eye(3), k, self.site.gravity, chi,
+                            added if name == sensor else None)
+                  for name, fit in self.forces.items()}
+        return np.array(list(estimates_from(gyro_params, params["incl"], params["acc"], self.site,
+                                            self.tilt_from_incl).values()))
+
+
+@dataclass(frozen=True)
+class TemperatureEffects:
+    """What the biases' slope with temperature does to the fit (`temperature_effects`)."""
+
+    per_degree: dict[str, float]  # gyro, incl, acc: the slope's datasheet 1-sigma, SI per degC
+    excursion_c: np.ndarray  # (N,) the session's temperature about its mean, degC
+    estimates: np.ndarray  # (estimates, channels): each channel's slope at 1 sigma moves every estimate, SI
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """The slopes' share of the estimates' covariance, SI: independent channels."""
+        return self.estimates @ self.estimates.T
+
+
+def temperature_effects(inp: JointInput, site: Site, options: JointOptions, gyro: GyroFit, incl: ForceFit | None,
+                        acc: ForceFit, tilt_from_incl: bool) -> TemperatureEffects | None:
+    """How each channel's bias slope with temperature, at its datasheet 1-sigma
+    (`spec.Triad.bias_temperature_sigma`), moves every estimate (SI; a column per channel: gyro,
+    [incl,] acc X Y Z): the bias the fit takes as constant follows the session's temperature
+    about its mean, so each channel's data get that slope times the excursion and the chain is
+    refitted. The gyro fit is refitted at its platform angle: the angle integrates the rate only
+    while turning (some seconds), where the excursion's slope moves it by micro-radians. None
+    without temperatures."""
+    if inp.temperature_c is None or not np.isfinite(inp.temperature_c).any():
+        return None
+    temperature = np.nan_to_num(inp.temperature_c, nan=float(np.nanmean(inp.temperature_c)))
+    excursion = temperature - temperature.mean()
+    triads = spec.triads(options.acc_range_g)
+    per_degree = {"gyro": triads["gyro"].bias_temperature_sigma / 3600 * DEG,
+                  "incl": triads["incl"].bias_temperature_sigma * STANDARD_GRAVITY / 1000,
+                  "acc": triads["acc"].bias_temperature_sigma * STANDARD_GRAVITY / 1000}
+    root = _row_weights(inp.gyro, inp)
+    p = len(gyro.params)
+    designs = _scaled(_gyro_designs(gyro.chi, gyro.chi_rate, inp.time_s - inp.time_s.mean(),
+                                    int_to_imu(*alpha_beta(gyro.params[AXIS_PARAMS])), options.drift), root)
+    gram, rhs = _normal_equations(designs, inp.gyro * root[:, None], p)
+    solver = partial(_on_circle, amplitude=EARTH_RATE * np.cos(np.radians(site.latitude_deg))) \
+        if options.fixed_amplitude else _free
+    refitted = _Refitted(site, {"incl": incl, "acc": acc}, tilt_from_incl)
+    fitted = solver(gram, rhs)[0]  # the fit's parameters, at the same arithmetic as the moved ones
+    base = refitted.estimates(fitted, gyro.chi)
+    columns = []
+    for sensor in ("gyro", "incl", "acc"):
+        if sensor == "incl" and incl is None:
+            continue
+        for axis in range(3):
+            added = excursion * per_degree[sensor]
+            if sensor == "gyro":
+                d = designs[axis]
+                moved = rhs.copy()
+                moved[d.params] += d.mix.T @ (d.basis.T @ (added * root))
+                columns.append(refitted.estimates(solver(gram, moved)[0], gyro.chi) - base)
+            else:
+                data = np.zeros((len(added), 3))
+                data[:, axis] = added
+                columns.append(refitted.estimates(fitted, gyro.chi, sensor, added=data) - base)
+    return TemperatureEffects(per_degree, excursion, np.column_stack(columns))
 
 
 def _gyro_refit(inp: JointInput, site: Site, options: JointOptions, root: np.ndarray,

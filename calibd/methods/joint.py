@@ -100,7 +100,8 @@ def joint_fit(session: Session, site: Site, options: joint.JointOptions = joint.
     inp = joint.JointInput(
         time_s=session.time_s[first:stop] - session.time_s[first], gyro=session.gyro[first:stop],
         acc=session.acc[first:stop], incl=None if session.incl is None else session.incl[first:stop],
-        statics=tuple((s.start - first, s.stop - first) for s in statics), rate_hz=session.rate_hz)
+        statics=tuple((s.start - first, s.stop - first) for s in statics), rate_hz=session.rate_hz,
+        temperature_c=None if session.temperature_c is None else session.temperature_c[first:stop])
     try:
         fit = joint.solve(inp, site, options)
     except joint.Underdetermined as exc:
@@ -138,7 +139,8 @@ def tilt_check(inp: joint.JointInput, fit: joint.JointResult, site: Site) -> gap
     a = int_to_imu(fit.estimates["alpha"], fit.estimates["beta"])
     try:
         return gaps.check_turn_angles(inp, fit.gyro.chi, a, site.gravity, fit.acc.noise, fit.incl and fit.incl.noise,
-                                      fit.tilt.params[joint.TILT_PARAMS], fit.factory, fit.gyro.noise)
+                                      fit.tilt.params[joint.TILT_PARAMS], fit.factory, fit.gyro.noise,
+                                      fit.temperature)
     except (joint.Underdetermined, np.linalg.LinAlgError):
         return None
 
