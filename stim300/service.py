@@ -23,7 +23,9 @@ SERVICEMODE_REQUEST = b"SERVICEMODE\r"
 ENTER_SETTLE_S = 0.05  # silence after CR '>' that proves it was the prompt, not datagram bytes
 _ERROR_REPLY = re.compile(r"E(\d{3})\s*(.*)", re.S)
 _EXIT_LINE = re.compile(rb"SYSTEM RETURNING TO (?:NORMAL|INIT) MODE\.?\r")
-_TEXT_TAIL = re.compile(rb"[\t\n\r\x20-\x7e]*\Z")
+# The report: printable ASCII, the Latin-1 signs a real unit prints (0xB0 deg, 0xB1 +-) and line
+# ends, from its first letter on (its first line is a name); any other byte is the datagram's
+_REPORT = re.compile(rb"[A-Za-z][\t\n\r\x20-\x7e\xb0\xb1]*\Z")
 
 
 def _read_until(ser: serial.Serial, done, timeout: float, what: str, command: str) -> bytearray:
@@ -38,8 +40,8 @@ def _read_until(ser: serial.Serial, done, timeout: float, what: str, command: st
 
 
 def _text(raw: bytes) -> str:
-    """Service Mode text with CR / CR LF line ends as '\\n', surrounding blank space removed."""
-    return raw.decode("ascii", "replace").replace("\r\n", "\n").replace("\r", "\n").strip()
+    """Service Mode text (Latin-1) with CR / CR LF line ends as '\\n', surrounding blank space removed."""
+    return raw.decode("latin-1").replace("\r\n", "\n").replace("\r", "\n").strip()
 
 
 def _reply(command: str, body: bytes) -> str:
@@ -58,8 +60,12 @@ def enter_service_mode(ser: serial.Serial, timeout: float = 3.0) -> str:
     """Send SERVICEMODE; return the information report printed before the first prompt.
 
     The unit finishes the datagram in progress first, so binary bytes precede the report; the
-    prompt counts only once the line stays quiet after it, and the report is the text after
-    the last non-text byte (a few printable bytes ending that datagram may remain in front).
+    prompt counts only once the line stays quiet after it. The report is the text after the
+    last byte no report holds (controls but TAB, LF, CR; DEL; Latin-1 bytes other than its deg
+    and +- signs, 0xB0 and 0xB1), from its first letter on: the signs inside it are kept, and
+    datagram bytes that happen to be digits, punctuation or those signs in front of it are not.
+    Only datagram bytes that are letters right before the report cannot be told from it: read
+    `i` for fields (as `stim300.configure` does), not this banner.
     """
     ser.reset_input_buffer()
     ser.write(SERVICEMODE_REQUEST)
@@ -72,7 +78,8 @@ def enter_service_mode(ser: serial.Serial, timeout: float = 3.0) -> str:
 
     buf = _read_until(ser, prompted, timeout, "Service Mode prompt", SERVICEMODE_REQUEST.decode().strip())
     body = bytes(buf[:-len(PROMPT)])
-    return _text(_TEXT_TAIL.search(body)[0])
+    report = _REPORT.search(body)
+    return _text(report[0]) if report else ""
 
 
 def service_command(ser: serial.Serial, command: str, timeout: float = 3.0) -> str:

@@ -24,6 +24,7 @@ from stim300.configure import (Changes, ConfigureError, bit_rate_command, config
                                plan)
 from stim300.errors import FormatError, ServiceError, ServiceTimeout
 from stim300.port import open_serial
+from stim300.service import service_mode
 from stim300.protocol import AccUnit, Format, GyroUnit
 from stim300.stream import StreamParser
 
@@ -45,7 +46,7 @@ def emulated(**kwargs):
 
 
 def report_of(state: State, saves_left: int = 9998):
-    return parse_report(report(state, saves_left).decode().replace("\r", "\n"))
+    return parse_report(report(state, saves_left).decode("latin-1").replace("\r", "\n"))
 
 
 def stderr_line(capsys) -> str:
@@ -105,6 +106,30 @@ def test_bit_rate_commands():
 
 
 # ---------------------------------------------------------------- reading
+
+# Ends of the datagram in progress at SERVICEMODE: bytes a report holds (0xB0, 0xB1, CR, '>',
+# digits, letters) among bytes it does not (controls, other Latin-1), and right before the
+# report bytes that could be its text but for a letter to begin it
+DATAGRAM_TAILS = (bytes([0x93, 0xB0, 0x3E, 0x0D, 0xB1, 0x81, 0xB0, 0x41, 0x7F, 0xB1, 0x02]),
+                  bytes([0x93, 0x41, 0xA5, 0x0D, 0x3E, 0x35, 0xB0, 0xB1, 0x20]),
+                  bytes([0x12, 0x0D, 0x3E, 0x93, 0x7F, 0xA5]))
+
+
+@pytest.mark.parametrize("tail", DATAGRAM_TAILS)
+def test_the_servicemode_report_keeps_its_latin1_signs_and_drops_the_datagram_tail(tail):
+    """A real unit prints deg and +- as the single bytes 0xB0 and 0xB1: the whole report is kept
+    (the text after the last of them is not all there is), the datagram's tail is not."""
+    sensor = emulated(datagram_tail=tail)
+    try:
+        with open_serial(sensor.path) as ser:
+            with service_mode(ser) as banner:
+                pass
+    finally:
+        sensor.stop()
+    expected = report(State(), 9998).decode("latin-1").replace("\r", "\n")
+    assert banner == expected
+    assert banner.startswith("PRODUCT = STIM300\n") and "GYRO RANGE [deg/s] = \u00b1400" in banner
+    assert "GYRO TRIM [\u00b0/s] = +0.000000000" in banner
 
 def test_config_reads_prints_and_leaves_the_sensor_sending_datagrams(sensor, capsys):
     assert main(["config", sensor.path]) == 0
