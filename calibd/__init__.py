@@ -22,7 +22,7 @@ _HOMES = {  # public name -> the module of calibd that defines it
     "Scenario": "scenario", "load_scenario": "scenario",
     "CalibdError": "errors", "CalibrationError": "errors", "ProtocolIncomplete": "methods", "SiteError": "errors",
     "OptionError": "methods", "ConfigError": "config", "ScenarioError": "scenario", "ResultError": "results",
-    "SchemaError": "results",
+    "SchemaError": "documents",
 }
 
 __all__ = list(_HOMES)

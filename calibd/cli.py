@@ -738,6 +738,100 @@ def cmd_watch(args) -> int:
     return _client_program(watch)
 
 
+def cmd_trim(args) -> int:
+    """A result's biases written into the sensor as its bias trim offsets, guarded (docs/trim.md)."""
+    import serial
+
+    from stim300.errors import PortError, Stim300Error
+    from stim300.port import describe_error, open_serial, sigterm_as_ctrl_c
+
+    from .results import load_result
+    from .trim import (RestoreFailed, TrimOptions, VerifyFailed, load_backup, restore_backup, show,
+                       trim_from_result, usage_checks)
+
+    if sum(map(bool, (args.result, args.restore, args.show))) != 1:
+        raise UsageError("trim: give one of --from RESULT.json, --restore BACKUP.json, --show")
+    if args.show and (args.save or args.dry_run or args.force or args.verify is not None):
+        raise UsageError("trim: --show only reads: it takes no --save, --dry-run, --force or --verify")
+    if args.restore and (args.verify is not None or args.sensors is not None):
+        raise UsageError("trim: --restore puts back every offset of the backup: it takes no --verify or --sensors")
+    if args.yes and not args.save:
+        raise UsageError("trim: --yes answers the question --save asks: give it with --save")
+    if args.save and args.dry_run:
+        raise UsageError("trim: --dry-run writes nothing, so there is nothing to --save")
+    if args.save and not args.yes and not sys.stdin.isatty():
+        raise UsageError("trim: --save asks for confirmation on the terminal: give --yes to save without asking")
+    if not Path(args.backup_dir).is_dir():
+        raise UsageError(f"trim: --backup-dir {args.backup_dir}: not a directory")
+    options = TrimOptions(sensors=args.sensors or TrimOptions.sensors, force=args.force, dry_run=args.dry_run,
+                          save=args.save, verify_s=args.verify, backup_dir=Path(args.backup_dir))
+    result = load_result(args.result) if args.result else None
+    backup = load_backup(args.restore) if args.restore else None
+    if result is not None:
+        usage_checks(result, options.sensors, options.verify_s)
+
+    def say(text: str) -> None:
+        print(f"calibd trim: {text}", file=sys.stderr, flush=True)
+
+    def confirm(remaining_saves: int) -> bool:
+        say(f"remaining flash saves: {remaining_saves} saves (rated to 10,000 in all)")
+        if args.yes:
+            return True
+        print("write these trims to the sensor's flash? [y/N] ", end="", file=sys.stderr, flush=True)
+        return sys.stdin.readline().strip().lower() in ("y", "yes")
+
+    try:
+        with sigterm_as_ctrl_c(), open_serial(args.port, args.baud) as ser:  # kill: the backup is put back too
+            if args.show:
+                rows = show(ser, options)
+            elif result is not None:
+                rows = trim_from_result(ser, result, options, say, confirm, say)
+            else:
+                rows = restore_backup(ser, backup, args.restore, options, say, confirm, say)
+    except (PortError, VerifyFailed, RestoreFailed) as exc:
+        raise RunError(f"trim: {exc}") from None
+    except Stim300Error as exc:
+        raise RunError(f"trim: {args.port}: {exc}") from None
+    except (serial.SerialException, OSError) as exc:
+        raise RunError(f"trim: {args.port}: {describe_error(exc)}") from None
+    print("\n".join(rows))
+    return 0
+
+
+def _sensors(text: str) -> tuple[str, ...]:
+    from stim300.trim import SENSORS
+
+    names = tuple(dict.fromkeys(name.strip() for name in text.split(",")))
+    unknown = [name for name in names if name not in SENSORS]
+    if unknown or not names:
+        raise argparse.ArgumentTypeError(f"{text!r}: a comma-separated list of {', '.join(SENSORS)}")
+    return names
+
+
+def _add_trim_parser(sub) -> None:
+    from stim300.protocol import DEFAULT_BIT_RATE
+
+    p = sub.add_parser("trim", help="write a result's biases into the sensor as its bias trim offsets (docs/trim.md)")
+    p.add_argument("port", help="device path (/dev/ttyUSB0) or pyserial URL; the daemon must not hold it")
+    what = p.add_mutually_exclusive_group()
+    what.add_argument("--from", dest="result", metavar="RESULT.json", help="the result whose biases to take off")
+    what.add_argument("--restore", metavar="BACKUP.json", help="put back exactly the offsets of a backup file")
+    what.add_argument("--show", action="store_true", help="print the trims in force, the reference, the saves left")
+    p.add_argument("--sensors", type=_sensors, help="with --from: which triads to trim (default gyro,acc,incl)")
+    p.add_argument("--dry-run", action="store_true", help="print what would be written; write nothing")
+    p.add_argument("--force", action="store_true", help="trim despite the refusals (each is warned)")
+    p.add_argument("--save", action="store_true", help="after the check, save to flash (asks first; uses one of "
+                                                       "the unit's rated saves)")
+    p.add_argument("--yes", action="store_true", help="with --save: do not ask")
+    p.add_argument("--verify", type=_number(1, 3600, "s"), metavar="S",
+                   help="after the volatile trim, check S seconds of static data at the home position "
+                        "(residual gyro biases within 2 sigma); save only when it passes")
+    p.add_argument("--backup-dir", default=".", help="where trim-backup-*.json goes (default: here)")
+    p.add_argument("--baud", type=_positive_int, default=DEFAULT_BIT_RATE,
+                   help=f"bit/s the sensor runs at (default {DEFAULT_BIT_RATE})")
+    p.set_defaults(func=cmd_trim)
+
+
 def _add_client_commands(sub) -> None:
     """`calibd pipe` and `calibd watch`: programs reading the daemon's socket ([serve] socket)."""
     where = "the daemon's socket: a path ([serve] socket, e.g. /run/calibd/ttyUSB0/calibd.sock) or HOST:PORT"
@@ -902,6 +996,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("scenario", help=f"scenario TOML file, or one of: {', '.join(READY_MADE)}")
     p.add_argument("-o", "--output", type=path_arg, required=True, help="capture file to write")
     p.set_defaults(func=cmd_simulate)
+    _add_trim_parser(sub)
     _add_client_commands(sub)
     return parser
 

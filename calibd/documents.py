@@ -73,6 +73,17 @@ def schema_version(schema, name: str, newest: int, what: str, aliases: tuple[str
     return int(number)
 
 
+def document_version(doc, name: str, newest: int, where: str, error: type[CalibdError] = DocumentError) -> int:
+    """The version of a decoded document that must be a JSON object of schema NAME/N (by the
+    version policy), or `error` in one line naming `where`."""
+    if not isinstance(doc, dict):
+        raise error(f"{where}: a JSON {type(doc).__name__}, not an object: not a {name} file")
+    try:
+        return schema_version(doc.get("schema"), name, newest, where)
+    except SchemaError as exc:
+        raise error(str(exc)) from None
+
+
 # ---------------------------------------------------------------- field types
 
 def number(low: float = -FLOAT_MAX, high: float = FLOAT_MAX):

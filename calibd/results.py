@@ -25,7 +25,7 @@ from stim300.records import SensorRecord
 from stim300.cliutil import DOCUMENT_LIMIT_BYTES, package_version, read_input
 from stim300.errors import UsageError
 
-from .documents import ESTIMATE_BOUNDS, ResultDoc, SchemaError, decode_json, json_value, schema_version, validate
+from .documents import ESTIMATE_BOUNDS, ResultDoc, decode_json, document_version, json_value, validate
 from .errors import CalibdError
 from .frames import EARTH_RATE, Site, int_to_imu, nav_to_imu
 from .units import DEG, M_S2_TO_MG, RAD_S_TO_DEG_H
@@ -199,12 +199,7 @@ class CalibrationResult:
         (calibd.documents.ResultDoc); ResultError (one line naming the field) otherwise. What
         follows from the estimates (SI values, the rotation record) is made again, not read, and
         keys the schema does not know are left out."""
-        if not isinstance(doc, dict):
-            raise ResultError(f"{where}: a JSON {type(doc).__name__}, not an object: not a {RESULT_SCHEMA} file")
-        try:
-            schema_version(doc.get("schema"), RESULT_SCHEMA, RESULT_VERSION, where)
-        except SchemaError as exc:
-            raise ResultError(str(exc)) from None
+        document_version(doc, RESULT_SCHEMA, RESULT_VERSION, where, ResultError)
         estimates = doc.get("estimates")
         if not isinstance(estimates, dict) or not any(estimates.get(name) is not None for name in ESTIMATES):
             raise ResultError(f"{where}: the result has no estimates (value and unit each)")

@@ -10,8 +10,9 @@ import pytest
 
 from calibd.frames import Site
 from calibd.report import read_truth
-from calibd.results import (SCHEMA, CalibrationResult, Estimate, ResultError, SchemaError, load_result, make_result,
-                            result_json, schema_version, write_result)
+from calibd.documents import SchemaError, schema_version
+from calibd.results import (SCHEMA, CalibrationResult, Estimate, ResultError, load_result, make_result, result_json,
+                            write_result)
 from calibd.units import DEG
 from stim300.records import SensorRecord
 
