@@ -25,7 +25,7 @@ from stim300.protocol import CLUSTERS, INTERNAL_RATE_HZ, NORMAL_LAYOUTS
 
 from .errors import CalibdError
 from .results import ROTATIONS, CalibrationResult
-from .correction import SI_PER_SENSOR_UNIT, WORDS, other_sensor, si_biases, uncorrectable
+from .correction import SI_PER_SENSOR_UNIT, WORDS, estimated_maps, other_sensor, si_biases, through, uncorrectable
 from .session import PowerUpCuts
 
 APPLIED_SCHEMA = "calibd.applied/1"
@@ -45,13 +45,15 @@ class ApplyError(CalibdError):
 
 @dataclass(frozen=True)
 class Correction:
-    """What apply does to every sample: subtract `biases` (SI per cluster: rad/s, m/s^2), then,
+    """What apply does to every sample: subtract `biases` (SI per cluster: rad/s, m/s^2), take
+    the triad through its `maps` (the factory terms the data estimated, `estimated_maps`), then,
     with `rotation` (R_NAV^IMU at the home position), express the vectors in the home frame.
     `warnings`: what --force let pass, one line each."""
 
     biases: dict[str, np.ndarray]
     rotation: np.ndarray | None = None
     warnings: tuple[str, ...] = ()
+    maps: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def frame(self) -> str:
@@ -82,7 +84,7 @@ def correction(result: CalibrationResult, frame: bool, force: bool) -> Correctio
         if not force:
             raise ApplyError(f"{text}: not applied (--force applies it anyway)")
         warnings = (f"{text}: applied anyway (--force)",)
-    return Correction(biases, rotation, warnings)
+    return Correction(biases, rotation, warnings, estimated_maps(result))
 
 
 @dataclass
@@ -171,7 +173,7 @@ class _Applier:
         for cluster in self.applied.clusters:
             values = samples[cluster].astype(np.float64) * SI_PER_SENSOR_UNIT[cluster]  # float64: float32 would round
             if cluster in self.correction.biases:
-                values -= self.correction.biases[cluster]
+                values = through(values - self.correction.biases[cluster], self.correction.maps.get(cluster))
             if self.correction.rotation is not None:
                 values = values @ self.correction.rotation  # v_home = R_NAV^IMU.T v_imu, row by row
             columns[f"{cluster}_{UNITS[cluster]}"] = values
@@ -228,12 +230,14 @@ def _identity_warnings(applied: Applied, result_serial: str | None, name: str) -
 def meta_record(correction: Correction, result_path: str, result_sha256: str, result: CalibrationResult,
                 capture_path: str, version: str) -> dict:
     """What an output says of itself: the result applied (path, SHA-256, sensor), the frame,
-    the biases subtracted (SI) and the software."""
+    the biases subtracted (SI), the estimated factory maps applied, and the software."""
     record = {"schema": APPLIED_SCHEMA, "software": f"calibd {version}",
               "result": {"path": result_path, "sha256": result_sha256,
                          "serial_number": result.sensor.serial_number},
               "capture": capture_path, "frame": correction.frame,
               "biases_subtracted": {f"{c}_{UNITS[c]}": correction.biases[c].tolist() for c in correction.biases}}
+    if correction.maps:
+        record["estimated_maps"] = {c: m.tolist() for c, m in correction.maps.items()}
     if correction.rotation is not None:
         record["rotation_home_from_imu"] = correction.rotation.T.tolist()
     return record

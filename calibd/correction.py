@@ -1,17 +1,19 @@
 """A result's correction, one home for every output that subtracts it: `calibd apply`, the
 corrected pty, corrected SAMPLES (and whatever publishes corrected data next). What a result's
-biases are in SI and in the sensor's base units, which output units can take them, which of a
+biases are in SI and in the sensor's base units, the factory terms the data estimated and how
+they are taken out (`estimated_maps`, `through`), which output units can take them, which of a
 power-up's results is subtracted ([serve] correction), and whether a result is of the sensor
 at hand."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from stim300.protocol import CLUSTERS, NORMAL_LAYOUTS, Format
 
+from . import spec
 from .frames import STANDARD_GRAVITY
 from .results import CalibrationResult, Estimate
 from .units import DEG
@@ -28,10 +30,52 @@ class ServedCorrection:
 
     result: CalibrationResult
     bias: dict[str, np.ndarray]
+    maps: dict[str, np.ndarray] = field(default_factory=dict)  # `estimated_maps`, float32
+
+    @classmethod
+    def of(cls, result: CalibrationResult) -> ServedCorrection | None:
+        """The correction a result gives the served outputs; None when it has no biases."""
+        bias = {block: b.astype(np.float32) for block, b in sensor_biases(result).items()}
+        if not bias:
+            return None
+        return cls(result, bias, {block: m.astype(np.float32) for block, m in estimated_maps(result).items()})
 
     def biases(self) -> dict[str, tuple[float, str]]:
         """(value, unit) of each bias subtracted, as the result gives them (deg/h, mg)."""
         return {name: (e.value, e.unit) for name, e in bias_estimates(self.result).items()}
+
+    def take_out(self, block: str, values: np.ndarray) -> np.ndarray:
+        """A block's values (N x 3, the sensor's base units) less its bias, through its estimated map."""
+        if block not in self.bias:
+            return values
+        return through(values - self.bias[block], self.maps.get(block))
+
+    def same_as(self, other: ServedCorrection) -> bool:
+        """Whether two corrections take out the same (biases and maps)."""
+        return all(a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
+                   for a, b in ((self.bias, other.bias), (self.maps, other.maps)))
+
+
+def estimated_maps(result: CalibrationResult) -> dict[str, np.ndarray]:
+    """Per triad, (I + E)^-1 of the factory terms the data estimated (the joint method's
+    error_budget terms whose source is "estimated": a scale factor in ppm on the diagonal, a
+    misalignment in mrad off it): what takes the triad's output, its bias off, back to the housing
+    axes. A term its prior set is never applied (a prior is no measurement), so a triad without
+    an estimated term is absent and its output passes as it is."""
+    factory = (result.error_budget or {}).get("factory_residuals") or {}
+    errors: dict[str, np.ndarray] = {}
+    for name, term in (factory.get("terms") or {}).items():
+        if term.get("source") != "estimated":
+            continue
+        element = spec.FactoryTerm.named(name)
+        errors.setdefault(element.sensor, np.zeros((3, 3)))[element.row, element.col] = \
+            term["value"] * element.per_unit
+    return {sensor: np.linalg.inv(np.eye(3) + error) for sensor, error in errors.items()}
+
+
+def through(values: np.ndarray, matrix: np.ndarray | None) -> np.ndarray:
+    """Vectors (N x 3, one per row) through a 3 x 3 map; as they are without one."""
+    return values if matrix is None else values @ matrix.T
 
 
 def bias_estimates(result: CalibrationResult) -> dict[str, Estimate]:

@@ -148,7 +148,7 @@ class FactoryTerm:
 
     @property
     def sigma_in_unit(self) -> float:
-        return self.sigma * (1e6 if self.row == self.col else 1e3)
+        return self.sigma / self.per_unit
 
     @property
     def name(self) -> str:
@@ -156,6 +156,17 @@ class FactoryTerm:
         if self.row == self.col:
             return f"{self.sensor}_scale_{'xyz'[self.row]}"
         return f"{self.sensor}_misalignment_{'xyz'[self.row]}{'xyz'[self.col]}"
+
+    @property
+    def per_unit(self) -> float:
+        """The element per unit of `unit` (ppm: 1e-6, mrad: 1e-3)."""
+        return 1e-6 if self.row == self.col else 1e-3
+
+    @classmethod
+    def named(cls, name: str) -> FactoryTerm:
+        """The element a term's `name` names (its sigma 0: where it sits, not its prior)."""
+        sensor, _, axes = name.split("_")
+        return cls(sensor, "xyz".index(axes[0]), "xyz".index(axes[-1]), 0.0)
 
 
 def factory_terms(acc_range_g: int = DEFAULT_ACC_RANGE_G,

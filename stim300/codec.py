@@ -198,13 +198,16 @@ def _counts(values: np.ndarray, lsb: float, bits: int, signed: bool = True) -> n
     return np.minimum(counts, hi, out=counts).astype(np.int64)
 
 
-def subtract_counts(frames: np.ndarray, offset: int, counts: np.ndarray) -> None:
+def subtract_counts(frames: np.ndarray, offset: int, counts: np.ndarray, matrix: np.ndarray | None = None) -> None:
     """Take `counts` (one per axis) off the three 24-bit values at `offset` of every datagram row
-    of `frames` (N x >= pre_crc + 4 uint8), saturating as the sensor does; `seal` then writes
-    the CRC. A constant offset in counts is a bias taken out without decoding the datagram."""
+    of `frames` (N x >= pre_crc + 4 uint8), then, with `matrix` (3 x 3, in counts), take them
+    through it to the nearest count; saturating as the sensor does; `seal` then writes the CRC.
+    A constant offset in counts is a bias taken out without decoding the datagram."""
     octets = frames[:, offset:offset + 9].reshape(len(frames), 3, 3).astype(np.int32)
     value = ((octets[:, :, 0] << 24) | (octets[:, :, 1] << 16) | (octets[:, :, 2] << 8)) >> 8  # sign-extended
     value -= counts
+    if matrix is not None:
+        value = np.rint(value @ matrix.T).astype(np.int32)
     np.maximum(value, -(1 << 23), out=value)  # not np.clip: its checks cost more than the work here
     np.minimum(value, (1 << 23) - 1, out=value)
     _put_ints(frames, offset, value, 3)

@@ -226,7 +226,7 @@ def test_corrected_samples_are_raw_minus_the_power_ups_biases(served, tmp_path):
         c = np.concatenate([b[block] for b in corrected])
         assert np.allclose(r - c, np.array(BIAS[block]) * scale, atol=1e-6), block
     hub.on_state(State.RESTARTED, "sensor restarted")  # a new power-up: its biases are not known
-    assert hub._bias is None
+    assert hub._kept is None
 
 
 def test_the_bias_conversion_is_deg_per_s_and_g_and_skips_what_a_unit_lacks():
@@ -375,7 +375,7 @@ def test_poll_shows_the_previous_result_marked_once_the_sensor_restarts(served, 
     client.send(b"?POLL;\n")
     poll = client.until("POLL")
     assert poll["result"] == json.loads((state_dir / "result.json").read_text())
-    assert hub._bias is None  # its power-up is unknown: nothing is corrected with it
+    assert hub._kept is None  # its power-up is unknown: nothing is corrected with it
     calibrator.sensor_seen(SensorRecord())
     calibrator.feed(np.zeros(2, SAMPLE_DTYPE), 125, 0, (1,))  # the sensor restarts after the first sample
     client.send(b"?POLL;\n")

@@ -5,6 +5,8 @@ The corrected pty carries the stream a driver already reads, so the correction i
 datagram's own units: a rate or an acceleration loses the bias itself, an incremental angle or
 velocity the bias times the sample interval. Each is rounded to whole counts once per result
 and taken off the datagrams' values without decoding them (within one count of raw - bias).
+A triad with factory terms the data estimated (`correction.estimated_maps`) then goes through
+its map, in counts, to the nearest count.
 An integrated angle or velocity has summed the bias since power-up, which no constant offset
 undoes: those blocks pass unchanged (said once in the log).
 """
@@ -18,7 +20,7 @@ from stim300.codec import seal, subtract_counts
 from stim300.protocol import AccUnit, Format, GyroUnit, Layout
 from stim300.stream import Settled
 
-from ..correction import sensor_biases
+from ..correction import estimated_maps, sensor_biases
 from ..frames import STANDARD_GRAVITY
 from ..results import CalibrationResult
 
@@ -43,8 +45,9 @@ class Corrector:
 
     def __init__(self, result: CalibrationResult):
         self.biases = sensor_biases(result)
+        self.maps = estimated_maps(result)
         self.rate_hz = result.sensor.sample_rate_hz
-        self._counts: dict[tuple[int, Format], list[tuple[int, np.ndarray]]] = {}
+        self._counts: dict[tuple[int, Format], list[tuple[int, np.ndarray, np.ndarray | None]]] = {}
         self._said: set[tuple[str, str]] = set()
 
     def apply(self, settled: Settled) -> bytes | bytearray:
@@ -60,16 +63,17 @@ class Corrector:
                 continue
             rows = offsets[:, None] + np.arange(layout.pre_crc + 4)  # CR LF, when there, stays as it is
             frames = view[rows]
-            for first, counts in subtract:
-                subtract_counts(frames, first, counts)
+            for first, counts, matrix in subtract:
+                subtract_counts(frames, first, counts, matrix)
             seal(frames, layout)
             view[rows] = frames
         return out
 
-    def _counts_for(self, layout: Layout, fmt: Format) -> list[tuple[int, np.ndarray]]:
+    def _counts_for(self, layout: Layout, fmt: Format) -> list[tuple[int, np.ndarray, np.ndarray | None]]:
         """What to subtract from the datagrams of this layout and format: per corrected cluster,
-        its byte offset and the bias in counts of its axes (the nearest: raw - bias within one
-        count); worked out once per format."""
+        its byte offset, the bias in counts of its axes (the nearest: raw - bias within one
+        count) and its estimated map in counts (axes of another count size scale it), or None;
+        worked out once per format."""
         key = (layout.datagram_id, fmt)
         if key not in self._counts:
             rate_hz = fmt.sample_rate_hz or self.rate_hz
@@ -83,8 +87,11 @@ class Corrector:
                 unit, kinds = units[cluster]
                 scale = self._scale(cluster, _gyro_unit(unit) if cluster == "gyro" else unit, kinds, rate_hz)
                 if scale is not None:
+                    lsb = np.broadcast_to(scales[cluster], 3)
+                    matrix = self.maps.get(cluster)
                     counts.append((layout.offsets[cluster],
-                                   np.rint(self.biases[cluster] * scale / scales[cluster]).astype(np.int32)))
+                                   np.rint(self.biases[cluster] * scale / scales[cluster]).astype(np.int32),
+                                   None if matrix is None else matrix * lsb[None, :] / lsb[:, None]))
             self._counts[key] = counts
         return self._counts[key]
 

@@ -121,14 +121,16 @@ class FoxgloveView:
         return self._channels[topic].has_sinks()
 
     def samples(self, batch: FeedBatch) -> None:
-        """A batch of reads on /imu/raw, and less its correction's biases on /imu/corrected when it
-        has one; nothing for a format whose outputs are not rates and accelerations."""
-        corrected = None if batch.correction is None else batch.correction.bias
-        for kind, bias in (("raw", {}), ("corrected", corrected)):
-            if bias is None or not self.watching(IMU_TOPICS[kind]) or uncorrectable(batch.info.format):
+        """A batch of reads on /imu/raw, and with its correction taken out (biases, estimated factory
+        terms) on /imu/corrected when it has one; nothing for a format whose outputs are not rates
+        and accelerations."""
+        for kind, correction in (("raw", None), ("corrected", batch.correction)):
+            if (kind == "corrected" and correction is None) or not self.watching(IMU_TOPICS[kind]) \
+                    or uncorrectable(batch.info.format):
                 self._open.pop(kind, None)  # a block is never made of samples a gap lies between
                 continue
-            columns = np.hstack([batch.samples[c] - bias.get(c, 0) for c in CLUSTERS], dtype=np.float64)
+            columns = np.hstack([batch.samples[c] if correction is None else correction.take_out(c, batch.samples[c])
+                                 for c in CLUSTERS], dtype=np.float64)
             self._average(kind, batch.stamp_ns, columns)
 
     def state(self, state: str, detail: str, progress: dict) -> None:

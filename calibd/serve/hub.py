@@ -39,7 +39,7 @@ from ..session import PowerUpCuts
 from . import protocol
 from .protocol import (BYTES, MAX_TOKEN_BYTES, RAW_MAX_BYTES, SAMPLES_MAX_S, Command, ProtocolError, encode,
                        samples_line, token_of)
-from ..correction import ServedCorrection, replaces, sample_units, sensor_biases, uncorrectable
+from ..correction import ServedCorrection, replaces, sample_units, uncorrectable
 from .feeds import Feed, Feeds
 from .ptys import CorrectedPty, PtyError, RawPty, Throttle
 from .queue import SampleQueue
@@ -113,12 +113,6 @@ class Hub(Listener):
             self.close()
             raise
 
-    @property
-    def _bias(self) -> dict[str, np.ndarray] | None:
-        """The biases subtracted now (deg/s, g), None when none."""
-        kept = self._kept
-        return None if kept is None else kept.bias
-
     def close(self) -> None:
         for part in (self.server, *self.raw_ptys, self.corrected_pty, self.feeds):
             if part is not None:
@@ -139,13 +133,12 @@ class Hub(Listener):
         calibrator has not yet said (the calibrator solves the old power-up to its end after the
         tap has seen the new one: that result's biases are the old power-up's), and when [serve]
         `correction` prefers it to the power-up's kept one (`replaces`)."""
-        bias = {block: bias.astype(np.float32) for block, bias in sensor_biases(result).items()} or None
-        self._new_result(result, bias)
+        self._new_result(result, ServedCorrection.of(result))
 
     def on_stale(self, result: CalibrationResult) -> None:
         self._new_result(result, None)
 
-    def _new_result(self, result: CalibrationResult, bias: dict[str, np.ndarray] | None) -> None:
+    def _new_result(self, result: CalibrationResult, correction: ServedCorrection | None) -> None:
         """The corrected outputs take the new biases at the next read (the tap); the socket
         announces them (CORRECTION) as its SAMPLES reach them."""
         self._result = result
@@ -154,9 +147,10 @@ class Hub(Listener):
             kept = self._kept
             if self._restart_unheard or result.stale:
                 self._kept = None
-            elif bias is not None and replaces(self.config.correction, None if kept is None else kept.result, result):
-                if kept is None or not _same(kept.bias, bias):
-                    self._kept = changed = ServedCorrection(result, bias)
+            elif correction is not None and replaces(self.config.correction, None if kept is None else kept.result,
+                                                     result):
+                if kept is None or not kept.same_as(correction):
+                    self._kept = changed = correction
         if changed is not None and self.server is None:  # nothing times the stream: said without from_t
             self._say_correction(kept, changed, None)
         if self.config.result_copy is not None:
@@ -315,22 +309,22 @@ class Hub(Listener):
     def _batches(self, kinds: set, info: StreamInfo, samples: np.ndarray, time_s: np.ndarray,
                  kept: ServedCorrection | None) -> list[tuple[str, bytes]]:
         """Timed samples that take the same biases (`kept`) as SAMPLES batches of each kind."""
-        bias, hold = None if kept is None else kept.bias, self.config.corrected_before_result == "hold"
+        correction, hold = kept, self.config.corrected_before_result == "hold"
         if uncorrectable(info.format):
-            bias = None  # incremental or integrated units: not corrected (docs/serving.md)
+            correction = None  # incremental or integrated units: not corrected (docs/serving.md)
         batches = []
         step = max(1, int(SAMPLES_MAX_S * info.rate_hz))
         for lo in range(0, len(samples), step):
             piece, t = samples[lo:lo + step], time_s[lo:lo + step]
             raw = None
-            if "raw" in kinds or ("corrected" in kinds and bias is None and not hold):
+            if "raw" in kinds or ("corrected" in kinds and correction is None and not hold):
                 raw = samples_line(False, t, piece["t_host"], piece["counter"], piece["gyro"], piece["acc"],
                                    piece["incl"])
             if "raw" in kinds:
                 batches.append(("raw", raw))
-            if "corrected" in kinds and bias is not None:
+            if "corrected" in kinds and correction is not None:
                 batches.append(("corrected", samples_line(
-                    True, t, piece["t_host"], piece["counter"], *(piece[block] - bias.get(block, 0)
+                    True, t, piece["t_host"], piece["counter"], *(correction.take_out(block, piece[block])
                                                                   for block in ("gyro", "acc", "incl")))))
             elif "corrected" in kinds and not hold:
                 batches.append(("corrected", raw))
@@ -384,11 +378,6 @@ def make_feeds(ros2: Ros2Config | None, foxglove: FoxgloveConfig | None) -> dict
 def _close_all(feeds: dict[str, Feed]) -> None:
     for feed in feeds.values():
         feed.close()
-
-
-def _same(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> bool:
-    """Whether two sets of biases subtract the same."""
-    return a.keys() == b.keys() and all(np.array_equal(a[block], b[block]) for block in a)
 
 
 def _group_id(name: str | None) -> int | None:

@@ -22,7 +22,7 @@ import structlog
 
 
 from ..config import Ros2Config
-from ..correction import ServedCorrection, bias_covariance, si_biases, uncorrectable
+from ..correction import ServedCorrection, bias_covariance, si_biases, through, uncorrectable
 from ..results import CalibrationResult, quaternion, result_json
 from ..spec import NoiseFigures
 from ..units import DEG
@@ -74,7 +74,9 @@ class Ros2Feed:
         self.publisher.imu("imu_raw", batch.stamp_ns, gyro, acc, gyro_noise.ravel(), acc_noise.ravel())
         if batch.correction is not None:
             bias, gyro_bias_cov, acc_bias_cov = self._taken_out(batch.correction)
-            self.publisher.imu("imu", batch.stamp_ns, gyro - bias.get("gyro", 0.0), acc - bias.get("acc", 0.0),
+            maps = batch.correction.maps
+            self.publisher.imu("imu", batch.stamp_ns, through(gyro - bias.get("gyro", 0.0), maps.get("gyro")),
+                               through(acc - bias.get("acc", 0.0), maps.get("acc")),
                                (gyro_noise + gyro_bias_cov).ravel(), (acc_noise + acc_bias_cov).ravel())
 
     def _taken_out(self, correction: ServedCorrection) -> tuple[dict, np.ndarray, np.ndarray]:
