@@ -55,6 +55,12 @@ def r3(angle) -> np.ndarray:
     return _stack([[c, s, zero], [-s, c, zero], [zero, zero, one]])
 
 
+# The bench's mountings: M with M [0, 0, 1] = the named IMU axis, so M v is the housing's input v
+# (as first mounted, +Z up) in the sensor's axes once that axis is up
+MOUNTS = {"+Z": np.eye(3), "-Z": r1(np.pi), "+Y": r1(np.pi / 2), "-Y": r1(-np.pi / 2),
+          "+X": r2(-np.pi / 2), "-X": r2(np.pi / 2)}
+
+
 def nav_to_imu(yaw, pitch, roll) -> np.ndarray:
     """R_NAV^IMU = R1(roll) R2(pitch) R3(yaw) (eq. 3.1)."""
     return r1(roll) @ r2(pitch) @ r3(yaw)

@@ -29,15 +29,13 @@ from stim300.special import Configuration, PartNumber, SerialNumber, encode_spec
 
 from . import spec
 from .allan import FLICKER_TAUS_S, flicker_sigma
-from .frames import EARTH_RATE, STANDARD_GRAVITY, euler_321, int_to_imu, nav_to_imu, r1, r2, r3
+from .frames import EARTH_RATE, MOUNTS, STANDARD_GRAVITY, euler_321, int_to_imu, nav_to_imu, r3
 from .scenario import TRUTH_SCHEMA, TRUTH_VERSION, Scenario, ScenarioError
 from .units import DEG
 
 MAX_SAMPLES = 10_000_000  # about 1.4 h at 2000 Hz, 22 h at 125 Hz: the simulator holds some 1 kB a sample
 START_UP_S = 0.7  # gyro start-up period after power-on: status bit 6 set (DS §7.5.2.1)
 TEMP_OFFSETS_C = {"gyro": 0.6, "acc": 0.0, "incl": 0.3}  # clusters sit at slightly different temperatures
-MOUNTS = {"+Z": np.eye(3), "-Z": r1(np.pi), "+Y": r1(np.pi / 2), "-Y": r1(-np.pi / 2),
-          "+X": r2(-np.pi / 2), "-X": r2(np.pi / 2)}  # M with M·[0,0,1] = the named IMU axis
 
 
 # ---------------------------------------------------------------- motion

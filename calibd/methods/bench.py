@@ -1,6 +1,9 @@
 """The thesis's bench campaign (`thesis-bench`): the IMU re-mounted with each of its six axes up
 for six-position biases of every channel (thesis eq. 5.3), and alpha/beta from every full turn
-(eqs. 5.6-5.8), averaged. Offline only: a re-mounting is not something the daemon waits for."""
+(eqs. 5.6-5.8), averaged. The six positions also show the accelerometers' and inclinometers'
+scale factors and misalignments to the housing (calibd.estimators.sixpos), which the result
+gives as estimated factory terms. Offline only: a re-mounting is not something the daemon waits
+for."""
 
 from __future__ import annotations
 
@@ -9,9 +12,11 @@ from typing import Any
 
 import numpy as np
 
-from .. import detect
+from .. import detect, spec
 from ..estimators import thesis
-from ..frames import Site
+from ..estimators.joint import ESTIMATED_BELOW, NoiseModel, datasheet_noise, mean_variance, sample_variance
+from ..estimators.sixpos import fit_six_positions
+from ..frames import STANDARD_GRAVITY, Site
 from ..results import CalibrationResult, make_result
 from ..segments import segment_record, session_segments
 from ..session import Session
@@ -77,8 +82,43 @@ def thesis_bench(session: Session, site: Site, segments: list[detect.Segment] | 
         estimates |= {f"{name}_bias_{a}": (values[k], None) for k, a in enumerate("xyz")}
     records = ([segment_record(at[axis], f"{axis} up") for axis in thesis.UP_AXES]
                + [segment_record(t, "full turn") for t in turns])
+    acc_range_g = session.sensor.acc_range_g if session.sensor.acc_range_g in spec.ACC else spec.DEFAULT_ACC_RANGE_G
+    warnings.append(INTRINSIC_WARNING)
     return make_result("thesis-bench", site, estimates, records, warnings, session.sensor, stream=session.stream,
-                       turns_alpha_beta_deg=[[a / DEG, b / DEG] for a, b in tilts])
+                       turns_alpha_beta_deg=[[a / DEG, b / DEG] for a, b in tilts],
+                       error_budget={"frame": "housing", "factory_residuals": {
+                           "reference": spec.SPECIFICATIONS, "acc_range_g": acc_range_g, "from": "six positions",
+                           "terms": intrinsic_terms(session, at, site, acc_range_g)}})
+
+
+INTRINSIC_WARNING = ("the accelerometers' and inclinometers' scale factors and misalignments to the housing come "
+                     "from the six positions, the fixture's faces taken as exact (its own error enters the "
+                     "misalignments one for one): error_budget.factory_residuals; calibd apply and the corrected "
+                     "outputs take them out")
+
+
+def intrinsic_terms(session: Session, at: dict[str, detect.Segment], site: Site, acc_range_g: int) -> dict:
+    """Each force triad's factory terms fitted to the six positions' means (value, sigma, the
+    datasheet's prior sigma, in ppm or mrad; `estimated` by the joint method's rule, a sigma at
+    most half the prior's): the noise of a mean from the static's own white noise and the
+    datasheet's flicker (a vibrating position counts as it is)."""
+    terms = {}
+    for sensor, values in (("acc", session.acc), ("incl", session.incl)):
+        means, variances = {}, {}
+        for up, segment in at.items():
+            means[up] = values[segment.start:segment.stop].mean(axis=0)
+            along = means[up] / STANDARD_GRAVITY  # an inclinometer axis along gravity is noisier
+            figures = datasheet_noise(spec.NoiseFigures.datasheet(acc_range_g), session.rate_hz, along)
+            noise = NoiseModel(sample_variance(values, [(segment.start, segment.stop)])[0],
+                               getattr(figures, sensor).flicker)
+            variances[up] = mean_variance(noise, segment.stop - segment.start, session.rate_hz)
+        fit = fit_six_positions(means, variances, site.gravity)
+        for term in spec.factory_terms(acc_range_g, (sensor,)):
+            sigma = fit.term_sigma(term)
+            terms[term.name] = {"value": float(fit.error[term.row, term.col]) / term.per_unit,
+                                "sigma": sigma / term.per_unit, "prior_sigma": term.sigma_in_unit, "unit": term.unit,
+                                "source": "estimated" if sigma <= ESTIMATED_BELOW * term.sigma else "prior"}
+    return terms
 
 
 class ThesisBench:
