@@ -38,7 +38,7 @@ from stim300.trim import (REFERENCE_LIMIT, SENSORS, UNITS, NormalLink, TrimReadi
 from . import spec
 from .documents import decode_json, document_version, validate
 from .errors import CalibdError
-from .frames import Site
+from .frames import Site, nav_to_imu
 from .results import CalibrationResult
 from .units import RAD_S_TO_DEG_H, SQRT_S_PER_SQRT_H, value_sigma
 
@@ -206,18 +206,48 @@ def verify_check(result: CalibrationResult, gyro_mean_deg_s, duration_s: float) 
     """The residual gyro biases of a static read after the trim: the mean less the Earth rate in
     the sensor's axes (the result's attitude at the platform's home position, its site's
     latitude), each against VERIFY_SIGMAS x sigma, where sigma joins the white noise's over
-    `duration_s` (the datasheet's angular random walk) and the result's own 1-sigma."""
+    `duration_s` (the datasheet's angular random walk) and that of what the result expects
+    (`expected_static_sigma`)."""
     rotation = result.rotation_matrix("nav_to_imu")
     earth_deg_h = rotation @ Site(result.site["latitude_deg"]).earth_rate_nav * RAD_S_TO_DEG_H
     white_deg_h = spec.GYRO.random_walk * SQRT_S_PER_SQRT_H / math.sqrt(duration_s)
+    expected_sigma_deg_h = expected_static_sigma(result)
     axes = {}
     for i, axis in enumerate("xyz"):
         residual = float(gyro_mean_deg_s[i] * 3600 - earth_deg_h[i])
-        sigma = math.hypot(white_deg_h, result.estimates[f"gyro_bias_{axis}"].sigma)
+        sigma = math.hypot(white_deg_h, expected_sigma_deg_h[i])
         axes[axis] = {"residual_deg_h": residual, "expected_earth_rate_deg_h": float(earth_deg_h[i]),
                       "sigma_deg_h": sigma, "passed": bool(abs(residual) <= VERIFY_SIGMAS * sigma)}
     return {"schema": f"{VERIFY_SCHEMA}/{VERIFY_VERSION}", "duration_s": duration_s, "sigmas": VERIFY_SIGMAS,
             "session_id": result.session_id, "axes": axes, "passed": all(a["passed"] for a in axes.values())}
+
+
+ATTITUDE = ("yaw", "pitch", "roll")
+
+
+def expected_static_sigma(result: CalibrationResult) -> np.ndarray:
+    """1-sigma (deg/h, per gyro axis) of what the result expects a static gyro to read once its
+    bias is trimmed off: its bias estimate's error plus the Earth rate its attitude's error puts
+    on the axis (a yaw off by 2 deg moves 11 deg/h of horizontal Earth rate by 0.4 deg/h). The
+    joint method's covariance correlates them (both come from the same statics) and is used
+    when the result has it; otherwise they are taken as independent."""
+    site = Site(result.site["latitude_deg"])
+    angles = np.array([result.estimates[name].value_si for name in ATTITUDE])
+
+    def earth(values):
+        return nav_to_imu(*values) @ site.earth_rate_nav * RAD_S_TO_DEG_H
+
+    steps = np.eye(3) * 1e-6
+    turned = np.column_stack([(earth(angles + h) - earth(angles - h)) / 2e-6 for h in steps])  # deg/h per rad
+    names = [*ATTITUDE, *(f"gyro_bias_{axis}" for axis in "xyz")]
+    covariance = result.covariance_matrix(si=True)
+    if covariance is not None and all(name in result.covariance["names"] for name in names):
+        index = [result.covariance["names"].index(name) for name in names]
+        jacobian = np.hstack([turned, np.eye(3) * RAD_S_TO_DEG_H])  # the biases' SI is rad/s
+        return np.sqrt(np.diag(jacobian @ covariance[np.ix_(index, index)] @ jacobian.T))
+    attitude = np.array([result.estimates[name].sigma_si or 0.0 for name in ATTITUDE])
+    bias = np.array([result.estimates[f"gyro_bias_{axis}"].sigma or 0.0 for axis in "xyz"])
+    return np.sqrt(bias**2 + (turned**2) @ attitude**2)
 
 
 def verify_lines(check: dict) -> list[str]:

@@ -396,3 +396,33 @@ def test_docs_trim_gives_the_datasheet_figures_calibd_uses():
     assert f"({acc[5].bias_one_year:g} mg for 5 and 10 g" in text and f"{acc[80].bias_one_year:g} mg for 80 g" in text
     assert f"bias error over temperature ({incl.bias_over_temperature:g} mg rms)" in text
     assert f"angular random walk, {gyro.random_walk:g} deg/sqrt(h)" in text
+
+
+def test_the_verify_sigma_carries_the_attitude_and_its_correlation_with_the_biases():
+    from calibd.frames import nav_to_imu
+    from calibd.results import make_result
+    from calibd.trim import expected_static_sigma
+    from calibd.units import DEG, RAD_S_TO_DEG_H
+    from stim300.records import SensorRecord
+    site = Site(40.0)
+    names = ["yaw", "pitch", "roll", "gyro_bias_x", "gyro_bias_y", "gyro_bias_z"]
+    sigmas = np.array([2 * DEG, 0.01 * DEG, 0.01 * DEG, *(np.full(3, 0.5 / RAD_S_TO_DEG_H))])
+    values = {"yaw": 0.3, "pitch": 0.0, "roll": 0.0, "gyro_bias_x": 0.0, "gyro_bias_y": 0.0, "gyro_bias_z": 0.0}
+    independent = make_result("joint", site, {n: (values[n], s) for n, s in zip(names, sigmas)}, [], [],
+                              SensorRecord())
+    # without a covariance: the bias's 0.5 deg/h and the yaw's 2 deg of 11.2 deg/h of horizontal Earth rate
+    horizontal = np.cos(np.radians(40.0)) * 15.041
+    turned = np.abs((nav_to_imu(0.3 + 1e-6, 0, 0) - nav_to_imu(0.3 - 1e-6, 0, 0)) / 2e-6
+                    @ site.earth_rate_nav * RAD_S_TO_DEG_H)
+    expected = np.hypot(0.5, turned * 2 * DEG)
+    np.testing.assert_allclose(expected_static_sigma(independent), expected, rtol=1e-4)  # and pitch, roll: 1e-5
+    # yaw turns the whole horizontal Earth rate between X and Y
+    assert np.sqrt(np.sum(expected[:2] ** 2 - 0.25)) == pytest.approx(horizontal * 2 * DEG, rel=0.01)
+    # the joint method's yaw and horizontal biases move together: the gyro reading they expect is the statics'
+    jacobian = (nav_to_imu(0.3 + 1e-6, 0, 0) - nav_to_imu(0.3 - 1e-6, 0, 0)) / 2e-6 @ site.earth_rate_nav
+    covariance = np.diag(sigmas**2)
+    covariance[3:, 0] = covariance[0, 3:] = -jacobian * sigmas[0] ** 2  # bias errors that undo the yaw's
+    covariance[3:, 3:] += np.outer(jacobian, jacobian) * sigmas[0] ** 2
+    correlated = make_result("joint", site, {n: (values[n], s) for n, s in zip(names, np.sqrt(np.diag(covariance)))},
+                             [], [], SensorRecord(), covariance)
+    np.testing.assert_allclose(expected_static_sigma(correlated), np.full(3, 0.5), rtol=1e-4)
