@@ -69,7 +69,7 @@ def estimated_maps(result: CalibrationResult) -> dict[str, np.ndarray]:
             continue
         element = spec.FactoryTerm.named(name)
         errors.setdefault(element.sensor, np.zeros((3, 3)))[element.row, element.col] = \
-            term["value"] * element.per_unit
+            term["value"] / element.to_unit
     return {sensor: np.linalg.inv(np.eye(3) + error) for sensor, error in errors.items()}
 
 

@@ -148,7 +148,7 @@ class FactoryTerm:
 
     @property
     def sigma_in_unit(self) -> float:
-        return self.sigma / self.per_unit
+        return self.sigma * self.to_unit
 
     @property
     def name(self) -> str:
@@ -158,9 +158,9 @@ class FactoryTerm:
         return f"{self.sensor}_misalignment_{'xyz'[self.row]}{'xyz'[self.col]}"
 
     @property
-    def per_unit(self) -> float:
-        """The element per unit of `unit` (ppm: 1e-6, mrad: 1e-3)."""
-        return 1e-6 if self.row == self.col else 1e-3
+    def to_unit(self) -> float:
+        """`unit`s per unit of the element (ppm: 1e6, mrad: 1e3)."""
+        return 1e6 if self.row == self.col else 1e3
 
     @classmethod
     def named(cls, name: str) -> FactoryTerm:

@@ -93,10 +93,10 @@ def test_a_served_correction_takes_out_the_bias_and_the_map():
                                                   for a in "xyz"])) is None
 
 
-@pytest.mark.parametrize("name, sensor, row, col, per_unit", [("gyro_scale_z", "gyro", 2, 2, 1e-6),
-                                                              ("incl_misalignment_zx", "incl", 2, 0, 1e-3)])
-def test_a_term_name_gives_its_element(name, sensor, row, col, per_unit):
+@pytest.mark.parametrize("name, sensor, row, col, to_unit", [("gyro_scale_z", "gyro", 2, 2, 1e6),
+                                                             ("incl_misalignment_zx", "incl", 2, 0, 1e3)])
+def test_a_term_name_gives_its_element(name, sensor, row, col, to_unit):
     from calibd.spec import FactoryTerm
     element = FactoryTerm.named(name)
-    assert (element.sensor, element.row, element.col, element.per_unit, element.name) == (sensor, row, col,
-                                                                                         per_unit, name)
+    assert (element.sensor, element.row, element.col, element.to_unit, element.name) == (sensor, row, col,
+                                                                                        to_unit, name)

@@ -48,7 +48,7 @@ def test_a_simulated_bench_recovers_the_force_triads_terms_within_their_sigma():
     z = []
     for name, term in terms.items():
         element = spec.FactoryTerm.named(name)
-        true = truth.triad_error(element.sensor)[element.row, element.col] / element.per_unit
+        true = truth.triad_error(element.sensor)[element.row, element.col] * element.to_unit
         z.append((term["value"] - true) / term["sigma"])
         assert term["sigma"] < term["prior_sigma"], name  # the data, not the datasheet, set it
     z = np.array(z)
@@ -57,5 +57,5 @@ def test_a_simulated_bench_recovers_the_force_triads_terms_within_their_sigma():
     assert all(t["source"] == "estimated" and t["sigma"] < 0.1 * t["prior_sigma"] for t in acc.values())
     # the corrected outputs take the accelerometers' error out: (I + E)^-1 within its sigma
     residual = estimated_maps(result)["acc"] @ (np.eye(3) + truth.triad_error("acc")) - np.eye(3)
-    worst_sigma = max(t["sigma"] * spec.FactoryTerm.named(n).per_unit for n, t in acc.items())
+    worst_sigma = max(t["sigma"] / spec.FactoryTerm.named(n).to_unit for n, t in acc.items())
     assert np.abs(residual).max() < 3 * worst_sigma

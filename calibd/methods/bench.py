@@ -115,8 +115,8 @@ def intrinsic_terms(session: Session, at: dict[str, detect.Segment], site: Site,
         fit = fit_six_positions(means, variances, site.gravity)
         for term in spec.factory_terms(acc_range_g, (sensor,)):
             sigma = fit.term_sigma(term)
-            terms[term.name] = {"value": float(fit.error[term.row, term.col]) / term.per_unit,
-                                "sigma": sigma / term.per_unit, "prior_sigma": term.sigma_in_unit, "unit": term.unit,
+            terms[term.name] = {"value": float(fit.error[term.row, term.col]) * term.to_unit,
+                                "sigma": sigma * term.to_unit, "prior_sigma": term.sigma_in_unit, "unit": term.unit,
                                 "source": "estimated" if sigma <= ESTIMATED_BELOW * term.sigma else "prior"}
     return terms
 
