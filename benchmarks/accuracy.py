@@ -195,10 +195,8 @@ def one_session(seed: int, run_set: str) -> dict:
 
 def _residual(truth: Truth, term: str) -> float:
     """A factory term's simulated value, in its result unit (ppm, mrad), by the term's name."""
-    sensor, kind, axes = term.split("_")
-    error = truth.triad_error(sensor)
-    row, col = ("xyz".index(axes[0]), "xyz".index(axes[-1]))  # scale: one axis, its diagonal element
-    return float(error[row, col] * (1e6 if kind == "scale" else 1e3))
+    element = spec.FactoryTerm.named(term)
+    return float(truth.triad_error(element.sensor)[element.row, element.col] * element.to_unit)
 
 
 def term_table(results: list[dict]) -> str:

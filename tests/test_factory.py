@@ -235,3 +235,42 @@ def test_an_80_g_unit_is_held_to_its_own_datasheet_figures(tmp_path):
     assert budget["factory_residuals"]["terms"]["acc_scale_z"]["prior_sigma"] == 500.0
     assert budget["sigma"]["acc_bias_z"]["factory_residuals"] == pytest.approx(0.5e-3 * 1000 * THESIS.site.gravity
                                                                                / STANDARD_GRAVITY, rel=0.02)
+
+
+def test_the_factory_prior_check_counts_only_the_directions_the_data_saw():
+    posterior = joint.FactoryPosterior(z=np.array([1.0, 2.0, 0.1]), cov=np.diag([0.5, 0.2, 0.95]))
+    chi2, dof = posterior.against_prior()  # I - cov: 0.5, 0.8 seen; 0.05 below SEEN_SHARE
+    assert dof == 2 and chi2 == pytest.approx(1.0 / 0.5 + 4.0 / 0.8)
+
+
+LIMIT_SEED = 4  # signs whose unit the check flags (as 43 % of the benchmark's limit units)
+TILTED_1_DEG = dict(pitch_deg=1.0, roll_deg=-0.9, alpha_deg=0.8, beta_deg=0.7)  # the statics see more tilted
+
+
+def at_limits(seed: int) -> Truth:
+    """Every factory residual at its datasheet limit, signs drawn from `seed`, on a unit tilted
+    by about a degree."""
+    rng = np.random.default_rng(seed)
+    fields = {}
+    for sensor, triad in spec.triads(spec.DEFAULT_ACC_RANGE_G).items():
+        fields[f"{sensor}_scale_ppm"] = tuple(rng.choice([-1, 1], 3) * triad.scale_factor_ppm)
+        fields[f"{sensor}_misalignment_mrad"] = tuple(rng.choice([-1, 1], 6) * triad.misalignment_mrad)
+    return replace(THESIS.truth, **fields, **TILTED_1_DEG)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("truth, flagged",
+                         [(replace(THESIS.truth, **TILTED_1_DEG), False), (at_limits(LIMIT_SEED), True)],
+                         ids=["perfect unit", "every residual at its limit"])
+def test_a_unit_whose_visible_residuals_lie_beyond_the_datasheet_has_what_they_limit_flagged(truth, flagged):
+    result = joint_real_case(noisy_session(replace(THESIS, truth=truth)), THESIS.site)
+    check = result.checks["factory_prior_chi2"]
+    assert check["dof"] > 0
+    poor = [n for n, e in result.estimates.items() if e.quality == "poor"]
+    if not flagged:
+        assert check["p_value"] > 0.05 and poor == []
+        return
+    assert check["p_value"] < 0.01
+    limited = [n for n in result.estimates if n not in ("yaw", "gyro_bias_x", "gyro_bias_y", "gyro_bias_z")]
+    assert poor == limited  # pitch, roll, alpha, beta, the force biases: what the residuals limit
+    assert any("beyond the STIM300 datasheet's spread" in w for w in result.warnings)

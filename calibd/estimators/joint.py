@@ -772,8 +772,20 @@ class FactoryPosterior:
         """Whether the data, not the prior, set term k: its sigma at most half the prior's."""
         return bool(self.cov[k, k] <= ESTIMATED_BELOW**2)
 
+    def against_prior(self) -> tuple[float, int]:
+        """(chi-square, degrees of freedom) of what the data saw of the terms against the prior:
+        with the terms drawn from the prior N(0, I), z is N(0, I - cov) (the prior's variance is
+        the posterior's plus that of its mean), so z' (I - cov)^-1 z over the directions the data
+        saw (an eigenvalue of I - cov of SEEN_SHARE or more) is chi-square. A unit whose visible
+        residuals lie beyond the datasheet's spread makes it large."""
+        seen, directions = np.linalg.eigh(np.eye(len(self.z)) - self.cov)
+        keep = seen >= SEEN_SHARE
+        projected = directions[:, keep].T @ self.z
+        return float(np.sum(projected**2 / seen[keep])), int(keep.sum())
+
 
 ESTIMATED_BELOW = 0.5  # a factory term whose sigma the data bring to this share of the prior's is estimated
+SEEN_SHARE = 0.1  # a direction of the factory terms whose variance the data narrowed by this share is seen
 
 
 @dataclass(frozen=True)

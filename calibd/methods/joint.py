@@ -182,7 +182,29 @@ def joint_real_case(session: Session, site: Site, options: joint.JointOptions = 
         result = result.flag_poor(("yaw",))
     if fitted.final_tilt and fitted.final_tilt.p_value < CHI2_ALARM_P:
         result = result.flag_poor(PLATFORM_ANGLE_ESTIMATES)
-    return result
+    return _judged_by_factory_prior(result, fit)
+
+
+FACTORY_ALARM_P = 0.01  # p-value below which the factory residuals the statics see are beyond the datasheet's
+FACTORY_LIMITED_SHARE = 0.5  # an estimate whose factory part is this share of its sigma is limited by them
+
+
+def _judged_by_factory_prior(result: CalibrationResult, fit: joint.JointResult) -> CalibrationResult:
+    """A unit whose factory residuals, as far as the statics see them, lie beyond the
+    datasheet's spread (`FactoryPosterior.against_prior`, p < FACTORY_ALARM_P; 1 % of units
+    within the datasheet) may be outside its specification in what they cannot see too (a
+    triad's misalignment to the housing): the estimates the residuals limit are flagged poor."""
+    check = result.checks.get("factory_prior_chi2")
+    if check is None or check["p_value"] >= FACTORY_ALARM_P:
+        return result
+    parts = result.error_budget["sigma"]
+    limited = [name for name, e in result.estimates.items()
+               if e.sigma and parts[name].get("factory_residuals", 0.0) >= FACTORY_LIMITED_SHARE * e.sigma]
+    return result.flag_poor(limited, (
+        f"the factory residuals the statics see lie beyond the STIM300 datasheet's spread (chi-square "
+        f"{check['chi2']:.1f} for {check['dof']} directions seen, p = {check['p_value']:.2g}): the unit may be "
+        "outside its specification, in what the data cannot see too (each triad's misalignment to the housing); "
+        f"the estimates they limit are flagged poor: {', '.join(limited)}"))
 
 
 def error_budget_record(fit: joint.JointResult, options: joint.JointOptions) -> dict:
@@ -269,6 +291,9 @@ def _turn_angle_checks(fitted: JointFit, session: Session) -> dict:
                       "sigma_deg": t.sigma_rad / DEG if t.checkable else None, "corrected": t.found})
     final = fitted.final_tilt
     chi2 = {"force_static_chi2": {"chi2": final.chi2, "dof": final.dof, "p_value": final.p_value}} if final else {}
+    if fitted.fit.factory is not None and fitted.fit.factory.posterior is not None:
+        value, dof = fitted.fit.factory.posterior.against_prior()
+        chi2["factory_prior_chi2"] = {"chi2": value, "dof": dof, "p_value": _survival(value, dof)}
     return {"turn_angles": turns} | chi2
 
 
@@ -327,9 +352,14 @@ CHI2_ALARM_P = 1e-3  # p-value below which the statics' residuals say the model 
 
 
 def _chi2_record(fit: joint.JointResult) -> dict:
-    from scipy.special import gammaincc  # when used: start-up (docs/architecture.md)
     value, dof = fit.gyro.static_chi2
-    return {"chi2": value, "dof": dof, "p_value": float(gammaincc(dof / 2, value / 2))}  # chi-square survival
+    return {"chi2": value, "dof": dof, "p_value": _survival(value, dof)}
+
+
+def _survival(chi2: float, dof: int) -> float:
+    """P(a chi-square of `dof` degrees of freedom >= chi2); 1 with no degree of freedom."""
+    from scipy.special import gammaincc  # when used: start-up (docs/architecture.md)
+    return float(gammaincc(dof / 2, chi2 / 2)) if dof > 0 else 1.0
 
 
 def _joint_warnings(fit: joint.JointResult, site: Site) -> list[str]:
