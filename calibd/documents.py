@@ -119,11 +119,12 @@ def _site_range(key: str):
 
 def _estimate(kind: str, unit: str, bound: float) -> type:
     """An estimate as written: value within +-bound, its unit, a finite sigma >= 0 or null. The
-    SI values beside them are made again from these, never read."""
+    SI values and a bias's untrimmed value beside them are made again from these, never read."""
     return msgspec.defstruct(f"Estimate_{kind}", [
         ("value", number(-bound, bound)), ("unit", Literal[unit]),
         ("sigma", Union[NonNegative, None], None), ("quality", Union[str, None], None),
-        ("value_si", Number, 0.0), ("sigma_si", Union[NonNegative, None], None), ("unit_si", str, "")])
+        ("value_si", Number, 0.0), ("sigma_si", Union[NonNegative, None], None), ("unit_si", str, ""),
+        ("untrimmed", Union[number(-bound, bound), None], None)])
 
 
 _KINDS = {name: "angle" if unit == "deg" else name[:-2] for name, (unit, _) in ESTIMATE_BOUNDS.items()}
@@ -182,6 +183,22 @@ class SegmentDoc(Struct):
     up: str = "+Z"
 
 
+def _trims(bound: float):
+    """Three bias trim offsets within +-bound (the triad's trim range, calibd.spec)."""
+    return Annotated[list[number(-bound, bound)], Meta(min_length=3, max_length=3)]
+
+
+class TrimDoc(Struct):
+    """The bias trim offsets in force (stim300.records.TrimRecord); the accelerometers' within the
+    widest range's trim range here, within their unit's in SensorDoc."""
+
+    gyro_deg_s: _trims(spec.GYRO.bias_trim_range)
+    acc_g: _trims(max(triad.bias_trim_range for triad in spec.ACC.values()))
+    incl_g: _trims(spec.INCL.bias_trim_range)
+    reference: Annotated[int, Meta(ge=0, le=(1 << 32) - 1)]
+    remaining_saves: Annotated[int, Meta(ge=0, le=(1 << 16) - 1)]
+
+
 class SensorDoc(Struct):
     serial_number: Union[str, None] = None
     part_number: Union[str, None] = None
@@ -189,6 +206,16 @@ class SensorDoc(Struct):
     sample_rate_hz: Union[number(1e-9), None] = None
     sample_rate: Union[str, None] = None
     acc_range_g: Union[Literal[spec.ACC_RANGES_G], None] = None
+    trim: Union[TrimDoc, None] = None
+
+    def __post_init__(self):
+        """The accelerometer trims within the trim range of the unit's range, when it is known."""
+        if self.trim is None or self.acc_range_g is None:
+            return
+        limit = spec.ACC[self.acc_range_g].bias_trim_range
+        if any(abs(v) > limit for v in self.trim.acc_g):
+            raise ValueError(f"trim.acc_g is {self.trim.acc_g}, beyond the +-{limit:g} g trim range of a "
+                             f"{self.acc_range_g} g unit")
 
 
 class PowerUp(Struct):
@@ -277,7 +304,7 @@ class Stale(Struct):
 
 
 class ResultDoc(Struct):
-    """calibd.result/1 to /4 (docs/result-schema.md); the rotation is made from the estimates."""
+    """calibd.result/1 to /5 (docs/result-schema.md); the rotation is made from the estimates."""
 
     schema: str
     method: str

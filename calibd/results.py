@@ -1,4 +1,4 @@
-"""The calibration result every method writes (schema calibd.result/4), typed, and its safe storage.
+"""The calibration result every method writes (schema calibd.result/5), typed, and its safe storage.
 
 Estimates are kept in SI inside the code; here they become the units people read: degrees,
 deg/h for gyro biases, mg (1e-3 of the sensor's g, 9.80665 m/s^2) for accelerometer and
@@ -34,8 +34,9 @@ RESULT_SCHEMA = "calibd.result"
 # 2: the same content as 1, written from the typed CalibrationResult; 3: SI values, the rotation
 # as matrix and quaternion, the estimates' covariance, software, session_id, the site's g0 sigma;
 # 4: the joint method's error_budget (each sigma by its terms; the factory residuals' prior), its
-# sigmas and covariance now carrying the factory residuals
-RESULT_VERSION = 4
+# sigmas and covariance now carrying the factory residuals; 5: sensor.trim, the bias trim offsets in
+# force, and each bias estimate's untrimmed value beside it
+RESULT_VERSION = 5
 SCHEMA = f"{RESULT_SCHEMA}/{RESULT_VERSION}"
 # display unit -> (display units per SI unit, SI unit): the one conversion of estimates
 DISPLAY_UNITS = {"deg": (1 / DEG, "rad"), "deg/h": (RAD_S_TO_DEG_H, "rad/s"), "mg": (M_S2_TO_MG, "m/s^2")}
@@ -47,6 +48,7 @@ ROTATION_CONVENTION = ("passive: M takes a vector's components in the frame it i
 # rotation -> (the function of frames that makes it, its angles in the order it takes them)
 ROTATIONS = {"nav_to_imu": (nav_to_imu, ("yaw", "pitch", "roll")), "int_to_imu": (int_to_imu, ("alpha", "beta"))}
 SOFTWARE = "stim300-calib"
+TRIM_TO_DISPLAY = {"deg/h": 3600.0, "mg": 1000.0}  # a bias's display units per trim unit (deg/s, g)
 
 
 class ResultError(CalibdError):
@@ -106,7 +108,8 @@ class SessionRecord:
 @dataclass(frozen=True)
 class StaleRecord:
     """Why a result no longer applies: the power-up it belongs to ("previous": the sensor
-    restarted after it), the reason in words, since when (ISO 8601, UTC)."""
+    restarted after it; "current": the bias trim changed under it; "unknown": an earlier daemon's
+    result whose trim is not the one in force), the reason in words, since when (ISO 8601, UTC)."""
 
     power_up: str
     reason: str
@@ -184,9 +187,21 @@ class CalibrationResult:
                                  "poor": [a for a in angles if self.estimates[a].quality == "poor"]}
         return {"convention": ROTATION_CONVENTION, **records} if records else None
 
+    def untrimmed(self, name: str) -> float | None:
+        """A bias estimate less the trim offset in force on its axis (in the estimate's unit): the
+        bias the output would carry without the trim, comparable across trims. None for an
+        estimate that is no bias, or when the trim in force is not known (`sensor.trim`)."""
+        triad, _, axis = name.partition("_bias_")
+        trim, estimate = self.sensor.trim, self.estimates[name]
+        if trim is None or not axis:
+            return None
+        return estimate.value - trim.of(triad)["xyz".index(axis)] * TRIM_TO_DISPLAY[estimate.unit]
+
     def to_dict(self) -> dict:
+        estimates = {name: e.to_dict() | ({} if (u := self.untrimmed(name)) is None else {"untrimmed": u})
+                     for name, e in self.estimates.items()}
         doc = {"schema": SCHEMA, "method": self.method, "software": self.software, "session_id": self.session_id,
-               "site": self.site, "estimates": {name: e.to_dict() for name, e in self.estimates.items()},
+               "site": self.site, "estimates": estimates,
                "rotation": self.rotation_record(), "covariance": self.covariance,
                "segments": list(self.segments), "warnings": list(self.warnings), "sensor": self.sensor.to_dict(),
                "stream": self.stream}

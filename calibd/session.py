@@ -9,6 +9,7 @@ one power-up makes a session, from where its warm-up ends or a given start.
 
 from __future__ import annotations
 
+import bisect
 import hashlib
 from dataclasses import dataclass, replace
 
@@ -16,11 +17,12 @@ import numpy as np
 
 from stim300.bulk import decode_blocks
 from stim300.capture import StreamInfo, stream_info
-from stim300.records import SensorRecord
+from stim300.records import SensorRecord, TrimRecord
 from stim300.clock import counter_times
 from stim300.codec import fault_bits, start_up_flags, start_up_rises
 from stim300.protocol import status_names
 
+from .documents import DocumentError, SensorDoc, validate
 from .errors import CalibrationError
 from .frames import STANDARD_GRAVITY
 from .units import DEG
@@ -56,6 +58,8 @@ class PowerUp:
     gap_time_s: np.ndarray  # where each hidden gap was found (s since the power-up's first sample)
     gap_s: np.ndarray  # the time each added
     checked: bool  # host times were there to look for hidden gaps
+    trim: TrimRecord | None = None  # the last bias trim offsets its stream carried (None: none)
+    trim_changes: int = 0  # how often the offsets carried changed within it
 
 
 @dataclass
@@ -202,6 +206,19 @@ def hidden_gap_record(gap_s: list[float] | np.ndarray | None) -> dict:
     return {"hidden_gaps": len(gap_s), "hidden_gap_s": round(float(np.sum(gap_s)), 3)}
 
 
+def checked_trim(trim: TrimRecord | None, acc_range_g: int | None) -> tuple[TrimRecord | None, list[str]]:
+    """The trim offsets a result can record (a unit clamps its offsets to their triad's trim range,
+    calibd.spec, so one beyond it is no trim of a unit's), and what is wrong with them: (the trim
+    or None, [] or the one-line reason it is not recorded)."""
+    if trim is None:
+        return None, []
+    try:
+        validate({"acc_range_g": acc_range_g, "trim": trim.to_dict()}, SensorDoc, "sensor")
+    except DocumentError as exc:
+        return None, [f"bias trim offset datagram not recorded: {exc}"]
+    return trim, []
+
+
 class PowerUpCuts:
     """Where the sensor restarted in a stream of sample batches: turn-on biases change at every
     power-up, so the data of two power-ups never share a session. A restart is where the stream
@@ -242,6 +259,9 @@ class _PowerUpReader:
         self._waiting: list[np.ndarray] = []  # samples before the rate is known
         self._open: tuple[SessionBuilder, int, list, list] | None = None  # builder, first, counters, host times
         self.refusal: str | None = None  # why the capture cannot be calibrated (raised once the decoder is done)
+        self._bias_trims: tuple = ()  # the scanner's BTO datagrams (stim300.stream.TrimSeen) as of the last block
+        self._trims_placed = 0  # the sequence number of the last one placed in its power-up
+        self._trims: dict[int, tuple[TrimRecord, int]] = {}  # power-up's first datagram -> (last trim, changes)
 
     def consume(self, samples: np.ndarray, scanner) -> None:
         if self.refusal:
@@ -260,12 +280,31 @@ class _PowerUpReader:
                 return
             self._rate_known(info)
         self._cut_and_add(samples, scanner.stats.restart_datagrams)
+        self._bias_trims = scanner.bias_trims
+        self._place_trims()
 
     def finish(self, info: StreamInfo) -> None:
         """The capture is decoded (`info`: the whole stream)."""
         if self.rate_hz is None and self._waiting:
             self._rate_known(info)
         self._close()
+        self._place_trims()
+        for power_up in self.power_ups:
+            power_up.trim, power_up.trim_changes = self._trims.get(power_up.first_datagram, (None, 0))
+
+    def _place_trims(self) -> None:
+        """Each BTO datagram to the power-up holding the datagram after it; one no sample follows
+        yet waits (a restart may come first), one no sample ever follows is nobody's."""
+        firsts = [p.first_datagram for p in self.power_ups] + ([self._open[1]] if self._open else [])
+        for seen in self._bias_trims:
+            if seen.sequence <= self._trims_placed:
+                continue
+            if seen.datagram >= self._seen or not firsts:
+                return
+            first = firsts[bisect.bisect_right(firsts, seen.datagram) - 1]
+            last, changes = self._trims.get(first, (seen.trim, 0))
+            self._trims[first] = (seen.trim, changes + (not last.same_offsets(seen.trim)))
+            self._trims_placed = seen.sequence
 
     def _rate_known(self, info: StreamInfo) -> None:
         """The stream's rate is known: the blocks that waited for it go in."""
@@ -378,11 +417,15 @@ def power_up_session(capture: CaptureSessions, number: int | None = None, start_
         raise CalibrationError(f"start {start_s:g} s is past the end of power-up {number} of {count} "
                                f"({power_up.duration_s - 1 / capture.rate_hz:.1f} s)")
     hidden = power_up.gap_s[power_up.gap_time_s > start_s] if power_up.checked else None
+    trim, trim_warnings = checked_trim(power_up.trim, capture.sensor.acc_range_g)
+    if power_up.trim_changes:
+        trim_warnings.append(f"the bias trim offsets changed {power_up.trim_changes} time(s) during power-up "
+                             f"{number}: its data mix outputs of different trims; sensor.trim is the last")
     return Session(
         time_s=time_s[keep], gyro=data["gyro"][keep], acc=data["acc"][keep], incl=inclinometers(data["incl"][keep]),
         temperature_c=None if temps is None else temps[keep], rate_hz=stored_rate_hz(capture.rate_hz),
-        sensor=capture.sensor,
-        stream=capture.stream | {
+        sensor=replace(capture.sensor, trim=trim),
+        stream=capture.stream | {"warnings": capture.stream["warnings"] + trim_warnings} | {
             "start_s": float(start_s), "start_by": start_by,
             "power_up": {"number": number, "count": count, "first_datagram": power_up.first_datagram,
                          "datagrams": power_up.datagrams, "duration_s": power_up.duration_s},

@@ -16,7 +16,7 @@ samples; the bytes come from `stim300.codec`.
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 from scipy.signal import lfilter
@@ -25,7 +25,7 @@ from stim300.atomic import atomic_file
 from stim300.codec import SAMPLE_DTYPE, encode_samples
 from stim300.protocol import (COUNTER_MODULUS, INTERNAL_RATE_HZ, NORMAL_LAYOUTS, SAMPLE_RATES_HZ, AccUnit, Format,
                               GyroUnit, Status)
-from stim300.special import Configuration, PartNumber, SerialNumber, encode_special
+from stim300.special import BiasTrimOffset, Configuration, PartNumber, SerialNumber, encode_special
 
 from . import spec
 from .allan import FLICKER_TAUS_S, flicker_sigma
@@ -293,11 +293,15 @@ def configuration(scenario: Scenario) -> Configuration:
                                gyro_unit=fmt.gyro_unit, acc_unit=fmt.acc_unit)
 
 
-def power_up_datagrams(scenario: Scenario) -> bytes:
+def power_up_datagrams(scenario: Scenario, trim: BiasTrimOffset | None = None) -> bytes:
+    """The sensor's start-up sequence: part number, serial number, configuration and, with `trim`
+    (the offsets in force), the Bias Trim Offset datagram its configuration then says it sends."""
     s = scenario.sensor
+    told = configuration(scenario) if trim is None else replace(configuration(scenario), bto_at_startup=True)
     return (encode_special(PartNumber(s.part_number, s.revision), s.crlf)
             + encode_special(SerialNumber(s.serial_number), s.crlf)
-            + encode_special(configuration(scenario), s.crlf))
+            + encode_special(told, s.crlf)
+            + (b"" if trim is None else encode_special(trim, s.crlf, s.acc_range_g)))
 
 
 def capture_bytes(sim: Simulation) -> tuple[bytes, dict]:

@@ -4,8 +4,52 @@ module of their own, with nothing heavy to import: reading a result needs them."
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
+
+TRIAD_TRIMS = {"gyro": "gyro_deg_s", "acc": "acc_g", "incl": "incl_g"}  # triad -> its TrimRecord field
+
+
+@dataclass(frozen=True)
+class TrimRecord:
+    """The bias trim offsets in force, as the unit's Bias Trim Offset datagram carries them: the
+    unit adds each after its own compensation (deg/s for the gyros, g for the accelerometers and
+    inclinometers, whatever the output unit), so the output's biases include them. With the
+    32-bit reference stored beside them and the flash saves left."""
+
+    gyro_deg_s: tuple[float, float, float]
+    acc_g: tuple[float, float, float]
+    incl_g: tuple[float, float, float]
+    reference: int
+    remaining_saves: int
+
+    def __post_init__(self):
+        for name in TRIAD_TRIMS.values():
+            values = tuple(float(v) for v in getattr(self, name))
+            if len(values) != 3 or not all(map(math.isfinite, values)):
+                raise ValueError(f"{name}: three finite numbers, got {getattr(self, name)!r}")
+            object.__setattr__(self, name, values)
+
+    @classmethod
+    def of_datagram(cls, bto) -> TrimRecord:
+        """The record of a decoded Bias Trim Offset datagram (`stim300.special.BiasTrimOffset`)."""
+        return cls(bto.gyro, bto.acc, bto.incl, bto.reference_info, bto.remaining_saves)
+
+    def of(self, triad: str) -> tuple[float, float, float]:
+        """One triad's offsets ("gyro": deg/s; "acc", "incl": g)."""
+        return getattr(self, TRIAD_TRIMS[triad])
+
+    def same_offsets(self, other: TrimRecord) -> bool:
+        """Whether both add the same offsets to the output (reference and saves left aside)."""
+        return all(self.of(triad) == other.of(triad) for triad in TRIAD_TRIMS)
+
+    def to_dict(self) -> dict:
+        return {f.name: list(v) if isinstance(v := getattr(self, f.name), tuple) else v for f in fields(self)}
+
+    @classmethod
+    def from_dict(cls, doc: Mapping) -> TrimRecord:
+        return cls(**{f.name: doc[f.name] for f in fields(cls)})
 
 
 @dataclass(frozen=True)
@@ -13,7 +57,9 @@ class SensorRecord:
     """The sensor's identity as its stream names it, typed across the seam from the driver to
     calibd's sessions, results and messages; `to_dict` is the record a result or a status writes
     (JSON-ready, every field, null where the stream did not say). `acc_range_g`: the
-    accelerometers' range from the configuration datagram (the widest axis's)."""
+    accelerometers' range from the configuration datagram (the widest axis's). `trim`: the bias
+    trim offsets in force in the power-up the data are of (None: its stream carried no Bias Trim
+    Offset datagram)."""
 
     serial_number: str | None = None
     part_number: str | None = None
@@ -21,11 +67,14 @@ class SensorRecord:
     sample_rate_hz: int | float | None = None
     sample_rate: str | None = None  # in words (`StreamInfo.rate_words`)
     acc_range_g: int | None = None
+    trim: TrimRecord | None = None
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        return asdict(replace(self, trim=None)) | {"trim": None if self.trim is None else self.trim.to_dict()}
 
     @classmethod
     def from_dict(cls, doc: Mapping) -> SensorRecord:
         """The record of a document's "sensor" object (a field it lacks is null)."""
-        return cls(**{f.name: doc.get(f.name) for f in fields(cls)})
+        record = cls(**{f.name: doc.get(f.name) for f in fields(cls) if f.name != "trim"})
+        trim = doc.get("trim")
+        return record if trim is None else replace(record, trim=TrimRecord.from_dict(trim))

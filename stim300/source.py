@@ -13,7 +13,9 @@ possible) and silence accounting (`silent_s`), while a backend implements `_read
   daemon's own serial path, without a sensor.
 
 A port (and so a pty) takes an optional `tap`, given to its parser (`StreamParser.tap`): every
-byte it reads, settled, for whoever passes the stream on.
+byte it reads, settled, for whoever passes the stream on. A port asks the sensor for its bias trim
+offsets (`T`) once per power-up, when the power-up's own datagrams carried none (`request_trim`):
+the answer takes one normal datagram's place, a gap the counter shows as one datagram lost.
 
 A source that knows its stream ended returns None with `ended` True; a port never ends unless
 its reader thread failed (then `error` holds why).
@@ -33,9 +35,9 @@ import numpy as np
 from .capture import StreamInfo, stream_info
 from .codec import SAMPLE_DTYPE, join_samples
 from .port import PortReader
-from .protocol import DEFAULT_BIT_RATE, INTERNAL_RATE_HZ
+from .protocol import BIAS_TRIM, DEFAULT_BIT_RATE, INTERNAL_RATE_HZ
 from .ringbuffer import RingBuffer
-from .stream import StreamParser
+from .stream import StreamParser, TrimSeen
 
 RING_S = 30  # seconds of samples a port's ring holds at the internal rate
 IDLE_READS_AT_END = 3  # a pty whose writer is done has been read out after this many empty reads
@@ -48,17 +50,19 @@ class Batch:
     `first` is the stream index of samples[0] (samples count from 0 since the source opened);
     `info` the stream as of this batch (`stim300.capture.StreamInfo`: rate, running fault
     counts, each restarted sensor's first stream index, the sensor's identity);
-    `overrun_samples` were lost just before this batch because the consumer read the ring too late.
+    `overrun_samples` were lost just before this batch because the consumer read the ring too late;
+    `trims` the stream's latest Bias Trim Offset datagrams with where they came (`Scanner.bias_trims`).
     """
 
     samples: np.ndarray
     first: int
     info: StreamInfo
     overrun_samples: int = 0
+    trims: tuple[TrimSeen, ...] = ()
 
 
 def _batch(parser: StreamParser, samples: np.ndarray, first: int, overrun_samples: int = 0) -> Batch:
-    return Batch(samples, first, stream_info(parser), overrun_samples)
+    return Batch(samples, first, stream_info(parser), overrun_samples, parser.scanner.bias_trims)
 
 
 class Pacer:
@@ -129,13 +133,16 @@ class SampleSource(ABC):
 class PortSource(SampleSource):
     """A serial port: a `PortReader` thread decodes into a ring of `ring_s` seconds at the internal
     rate; each read drains what arrived over `timeout_s`, so batches hold about that much data
-    (the consumer's cost per batch is fixed). Opening fails with `PortError`."""
+    (the consumer's cost per batch is fixed). Opening fails with `PortError`. With `request_trim`,
+    T is asked for once per power-up whose datagrams carried no BTO datagram (`_ask_trim`)."""
 
     def __init__(self, url: str, baudrate: int = DEFAULT_BIT_RATE, request_config: bool = True,
-                 ring_s: float = RING_S, tap=None):
+                 ring_s: float = RING_S, tap=None, request_trim: bool = True):
         super().__init__(speed=None)  # a port's samples arrive at their own pace
         self.ring = RingBuffer(int(INTERNAL_RATE_HZ * ring_s), SAMPLE_DTYPE)
         self.reader = PortReader(url, self.ring, baudrate=baudrate, request_config=request_config, tap=tap)
+        self.request_trim = request_trim
+        self._trim_asked: int | None = None  # the stream number of the power-up start T was asked for
         self._cursor = 0
         self._bytes_seen = 0
         self.reader.start()
@@ -145,8 +152,23 @@ class PortSource(SampleSource):
         """Samples in the ring that no read has returned yet."""
         return self.ring.total - self._cursor
 
+    def _ask_trim(self) -> None:
+        """Write T once the configuration is known (its range scales the answer's accelerometer
+        offsets) and the power-up's first normal datagram has come without a BTO datagram before
+        it (a unit configured to send one at start-up has sent it): once per power-up whose
+        datagrams the stream shows (the port opened on a running unit counts as one)."""
+        scanner = self.reader.parser.scanner
+        restarts = scanner.stats.restart_datagrams
+        start = restarts[-1] if restarts else 0
+        if (not self.request_trim or self._trim_asked == start or scanner.configuration is None
+                or scanner.stats.datagrams <= start or any(t.datagram >= start for t in scanner.bias_trims)):
+            return
+        self._trim_asked = start
+        self.reader.write(BIAS_TRIM.request)
+
     def _read_internal(self, timeout_s: float) -> Batch | None:
         time.sleep(timeout_s)
+        self._ask_trim()
         samples, self._cursor, lost = self.ring.read_since(self._cursor)
         bytes_read = self.reader.bytes_read
         arrived, self._bytes_seen = bytes_read != self._bytes_seen, bytes_read
@@ -223,7 +245,7 @@ class PtySource(SampleSource):
         tty.setraw(self._master)
         tty.setraw(self._slave)
         try:
-            self._port = PortSource(os.ttyname(self._slave), request_config=False, tap=tap)
+            self._port = PortSource(os.ttyname(self._slave), request_config=False, tap=tap, request_trim=False)
         except BaseException:
             self._close_pty()
             raise

@@ -16,8 +16,9 @@ import numpy as np
 
 from .codec import SAMPLE_DTYPE, START_UP, decode_at
 from .crc import datagram_crc
-from .protocol import (CONFIGURATION, COUNTER_MODULUS, CR_LF, INTERNAL_RATE_HZ, NORMAL_LAYOUTS, PART_NUMBER,
-                       SAMPLE_RATES_HZ, SERIAL_NUMBER, SPECIAL_IDS, Format)
+from .protocol import (BIAS_TRIM, CONFIGURATION, COUNTER_MODULUS, CR_LF, INTERNAL_RATE_HZ, NORMAL_LAYOUTS,
+                       PART_NUMBER, SAMPLE_RATES_HZ, SERIAL_NUMBER, SPECIAL_IDS, Format)
+from .records import TrimRecord
 from .special import decode_special
 
 SPECIAL_HISTORY = 64  # special datagrams remembered (they are rare: power-up and on request)
@@ -141,6 +142,18 @@ class Stats:
 WAIT = -1  # scan result: not enough bytes yet to decide
 
 
+@dataclass(frozen=True)
+class TrimSeen:
+    """A Bias Trim Offset datagram where the stream carried it: `sequence` numbers those seen
+    (from 1), `datagram` is the stream number of the first normal datagram after it, so it tells
+    the trim in force in the power-up holding that datagram (after a restart, the restarted
+    sensor's first: a start-up BTO datagram belongs to the new power-up)."""
+
+    sequence: int
+    datagram: int
+    trim: TrimRecord
+
+
 class Scanner:
     """The framing state machine shared by the stream and bulk decoders.
 
@@ -157,6 +170,9 @@ class Scanner:
         self.configuration = None
         self.part_number = None
         self.serial_number = None
+        self.bias_trims: tuple[TrimSeen, ...] = ()  # the last SPECIAL_HISTORY, replaced whole: a reader in
+        # another thread always gets a consistent tuple
+        self._trims_seen = 0
         self.last_counter: int | None = None
         self.warnings: list[str] = []  # what was refused or kept as read, and why (distinct, oldest first)
         self._on_normal, self._on_special = on_normal, on_special
@@ -294,6 +310,20 @@ class Scanner:
             self.part_number = item
         elif kind is CONFIGURATION:
             self._adopt(item)
+        elif kind is BIAS_TRIM:
+            self._bias_trim(item)
+
+    def _bias_trim(self, item) -> None:
+        """Keep a BTO datagram with where it came. Its accelerometer counts are scaled by the
+        range the configuration datagram gives: without one yet their scale is unknown, so it is
+        not kept."""
+        if self.configuration is None:
+            self.warn("bias trim offset datagram before any configuration datagram: the scale of its "
+                      "accelerometer offsets is unknown, not recorded")
+            return
+        self._trims_seen += 1
+        seen = TrimSeen(self._trims_seen, self.stats.datagrams, TrimRecord.of_datagram(item))
+        self.bias_trims = (*self.bias_trims[1 - SPECIAL_HISTORY:], seen)
 
     def _restart(self) -> None:
         self.stats.restarts += 1

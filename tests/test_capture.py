@@ -26,7 +26,7 @@ def test_a_capture_with_power_up_datagrams_carries_the_sensor_identity():
     assert info.sensor_record().to_dict() == {
         "serial_number": truth["serial_number"], "part_number": f"{truth['part_number']} REV {truth['revision']}",
         "datagram_id": truth["datagram_id"], "sample_rate_hz": truth["sample_rate_hz"], "sample_rate": "125 Hz",
-        "acc_range_g": truth["acc_range_g"]}
+        "acc_range_g": truth["acc_range_g"], "trim": None}
     assert info.configuration is not None and info.configuration.format == info.format
 
 
@@ -37,7 +37,8 @@ def test_without_a_configuration_the_rate_comes_from_the_counter_step(rate_hz):
     assert info.format.sample_rate_hz is None
     assert info.rate_hz == rate_hz and info.stats.counter_step == INTERNAL_RATE_HZ // rate_hz
     assert info.sensor_record().to_dict() == {"serial_number": None, "part_number": None, "datagram_id": "0xA7",
-                                    "sample_rate_hz": rate_hz, "sample_rate": f"{rate_hz} Hz", "acc_range_g": None}
+                                    "sample_rate_hz": rate_hz, "sample_rate": f"{rate_hz} Hz", "acc_range_g": None,
+                                    "trim": None}
 
 
 def test_one_datagram_is_too_few_to_know_the_rate():
