@@ -164,7 +164,7 @@ def pump(source: SampleSource, calibrator: Calibrator, stop=lambda: False, on_st
                 log.warning("stream_warning", detail=text)
             warned = len(info.warnings)
             if len(batch.samples) and info.rate_hz:
-                calibrator.sensor_seen(info.sensor_record(), info.stream_record())
+                calibrator.sensor_seen(info.sensor_record(), info.stream_record(), batch.trims)
                 calibrator.feed(batch.samples, info.rate_hz, batch.first, info.stats.restart_datagrams)
                 fed = True
         silent_s = source.silent_s

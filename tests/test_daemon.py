@@ -409,7 +409,7 @@ class CountingCalibrator:
     def __init__(self):
         self.samples, self.state, self.sensor, self.restarts = 0, State.STARTING, {}, 0
 
-    def sensor_seen(self, identity, stream=None):
+    def sensor_seen(self, identity, stream=None, trims=()):
         self.sensor = identity
 
     def feed(self, samples, rate_hz, first=0, restart_datagrams=()):

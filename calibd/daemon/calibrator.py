@@ -8,7 +8,9 @@ stopped after a turn, and the session's segments hold what the method needs), ag
 `resolve_every_s` of new data, and once more at the end of the data (`finish`: the end of a
 replay, or a sensor restart, which ends the previous power-up's data). A restart marks the
 previous power-up's result stale at once (`stale_result`), and so does a stream naming another
-sensor than an earlier daemon's result does. The work is its collaborators':
+sensor than an earlier daemon's result does, or a bias trim in force other than the one a result
+records (its biases are of the output under that trim). A trim that changes while a session is
+collected moves the output by the difference: a new session starts. The work is its collaborators':
 `Collector` (one power-up's data), `WarmWatch` (the warm-up rule), `SolveTrigger` (when to
 solve), `solve` (the method); the listeners hear what happens.
 """
@@ -17,10 +19,13 @@ from __future__ import annotations
 
 import uuid
 from collections.abc import Sequence
+from dataclasses import replace
 
 import numpy as np
+import structlog
 
-from stim300.records import SensorRecord
+from stim300.records import SensorRecord, TrimRecord
+from stim300.stream import TrimSeen
 
 from .. import detect
 from ..config import DetectionConfig, MethodConfig
@@ -28,13 +33,15 @@ from ..correction import other_sensor
 from ..frames import Site
 from ..methods import estimator, progress
 from ..results import CalibrationResult
-from ..session import PowerUpCuts, Session, missing_sensors
+from ..session import PowerUpCuts, Session, checked_trim, missing_sensors
 from ..warmup import WarmupConfig
 from .collector import Collector
 from .events import Listener, State
 from .solver import solve, stale_result
 from .trigger import SolveTrigger
 from .warmwatch import Warmth, WarmWatch
+
+log = structlog.get_logger("calibd")
 
 
 class Calibrator:
@@ -59,6 +66,9 @@ class Calibrator:
         self.sensor = SensorRecord()
         self.stream_stats: dict = {}
         self._cuts = PowerUpCuts()
+        self._trims: tuple[TrimSeen, ...] = ()  # the stream's latest BTO datagrams (`sensor_seen`)
+        self._trims_taken = 0  # the sequence number of the last one acted on
+        self._power_up_first = 0  # the stream number of this power-up's first sample
         self._new_power_up()
 
     def configure(self, site: Site, warmup: WarmupConfig, method: MethodConfig,
@@ -66,21 +76,33 @@ class Calibrator:
         """New settings (SIGHUP): they apply from the next solution on (detection: the next session)."""
         self.site, self.warmup, self.method, self.detection = site, warmup, method, detection
 
-    def sensor_seen(self, identity: SensorRecord, stream: dict | None = None) -> None:
-        """The sensor as the stream names it (serial and part number, datagram, rate) and the
-        stream's statistics since the daemon began reading (StreamInfo.stream_record): results carry them."""
-        self.sensor, self.stream_stats = identity, stream or {}
+    def sensor_seen(self, identity: SensorRecord, stream: dict | None = None, trims: tuple[TrimSeen, ...] = ()) -> None:
+        """The sensor as the stream names it (serial and part number, datagram, rate), the
+        stream's statistics since the daemon began reading (StreamInfo.stream_record) and its
+        latest Bias Trim Offset datagrams (`stim300.source.Batch.trims`, acted on as the next
+        `feed` reaches where each came): results carry them."""
+        self.sensor, self.stream_stats, self._trims = identity, stream or {}, trims
         self._check_inherited(identity.serial_number)
 
     def feed(self, samples: np.ndarray, rate_hz: int, first: int = 0, restart_datagrams=()) -> None:
         """A batch of decoded samples (stim300.codec.SAMPLE_DTYPE) in stream order: `first` is the
         stream number of its first sample, `restart_datagrams` the stream number of each
-        restarted sensor's first sample (the stream parser's, so far)."""
+        restarted sensor's first sample (the stream parser's, so far). A BTO datagram takes
+        effect where it came: the samples before it are fed first."""
+        at = first
         for restarted, piece in self._cuts.pieces(samples, first, restart_datagrams):
             if restarted:
+                self._power_up_first = at
                 self._power_cycled()
+            for seen in self._trims_before(at + len(piece)):
+                before = max(seen.datagram - at, 0)
+                if before:
+                    self._feed_power_up(piece[:before], rate_hz)
+                piece, at = piece[before:], at + before
+                self._trim_seen(seen.trim)
             if len(piece):
                 self._feed_power_up(piece, rate_hz)
+            at += len(piece)
 
     def finish(self) -> None:
         """The end of the data (a replay's last byte, or the sensor's power-up before a restart):
@@ -94,7 +116,7 @@ class Calibrator:
         may have turned meanwhile, so the platform angle is lost: a session being collected
         starts again when data returns (the warm-up stands unless the sensor restarted)."""
         self._set(State.FAULT, f"no data for {seconds:.0f} s (port lost or sensor off)")
-        self._gap = True
+        self._fresh = "data again after a gap: the platform angle was lost, collecting a new session (warm-up stands)"
 
     def _feed_power_up(self, samples: np.ndarray, rate_hz: int) -> None:
         lacking = missing_sensors(samples, "the sensor")
@@ -103,13 +125,12 @@ class Calibrator:
             return
         t = self.collector.times(samples, rate_hz)
         in_session = self.collector.session_start_s is not None
-        if self._gap and in_session:
-            self._start_session(float(t[0]), "data again after a gap: the platform angle was lost, "
-                                             "collecting a new session (warm-up stands)")
+        if self._fresh and in_session:
+            self._start_session(float(t[0]), self._fresh)
         elif self.state in (State.STARTING, State.RESTARTED, State.FAULT):
             self._set(*((State.COLLECTING, "data again") if in_session
                         else (State.WARMING_UP, "waiting for the temperature to settle")))
-        self._gap = False
+        self._fresh = None
         stored = self.collector.store(samples, t)
         if stored is None:
             return
@@ -147,7 +168,37 @@ class Calibrator:
         self.collector = Collector()  # this power-up's data
         self._warm = WarmWatch()
         self._trigger = SolveTrigger()
-        self._gap = False
+        self._fresh: str | None = None  # why the next data start a new session (a gap, a trim changed)
+        self.trim: TrimRecord | None = None  # the trim in force in this power-up; None until its stream says
+
+    def _trims_before(self, end: int):
+        """The BTO datagrams not yet acted on that came before stream number `end`, this
+        power-up's (a previous power-up's, met late, say nothing of this one's)."""
+        for seen in self._trims:
+            if seen.sequence > self._trims_taken and seen.datagram < end:
+                self._trims_taken = seen.sequence
+                if seen.datagram >= self._power_up_first:
+                    yield seen
+
+    def _trim_seen(self, trim: TrimRecord) -> None:
+        """The trim in force now, as a BTO datagram says: results carry it (sensor.trim). One that
+        changed moves the output: a new session, and a result of the other trim is stale."""
+        trim, refused = checked_trim(trim, self.sensor.acc_range_g)
+        if trim is None:
+            log.warning("bias_trim_refused", detail=refused[0])
+            return
+        changed = self.trim is not None and not self.trim.same_offsets(trim)
+        if self.trim is None or changed:
+            log.info("bias_trim", **trim.to_dict(), detail="changed" if changed else "in force")
+        if changed:
+            self._fresh = "the bias trim offsets changed: the output moved by the difference, collecting a new " \
+                          "session (warm-up stands)"
+        self.trim = trim
+        held = None if self.result is None else self.result.sensor.trim
+        if held is not None and not held.same_offsets(trim):  # of an earlier daemon's, a power-cycle may lie between
+            self._mark_stale("the bias trim offsets in force changed since this result: its biases are of the "
+                             "output under the trim it records (sensor.trim), not the one in force now",
+                             "unknown" if self.result is self._inherited else "current")
 
     def _check_inherited(self, serial: str | None) -> None:
         """An earlier daemon's result of another sensor (a unit swapped on the port) is stale at
@@ -170,12 +221,12 @@ class Calibrator:
         self._set(State.RESTARTED, reason)
         self._new_power_up()
 
-    def _mark_stale(self, reason: str) -> bool:
+    def _mark_stale(self, reason: str, power_up: str = "previous") -> bool:
         """The result held no longer applies: marked stale (once) and the listeners told, so
         result.json, POLL and the corrected pty stop serving it as current. False: nothing to mark."""
         if self.result is None or self.result.stale is not None:
             return False
-        self.result = stale_result(self.result, reason)
+        self.result = stale_result(self.result, reason, power_up)
         for listener in self.listeners:
             listener.on_stale(self.result)
         return True
@@ -190,8 +241,8 @@ class Calibrator:
 
     def _look(self) -> tuple[Session, list[detect.Segment]]:
         """The session so far and its segments."""
-        session = self.collector.session(self.sensor, {"capture": self.source, **self.stream_stats,
-                                                        "session": self.sessions})
+        session = self.collector.session(replace(self.sensor, trim=self.trim),
+                                         {"capture": self.source, **self.stream_stats, "session": self.sessions})
         return session, self.collector.segments(session)
 
     def _solve(self, looked: tuple[Session, list[detect.Segment]] | None = None) -> None:

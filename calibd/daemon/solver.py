@@ -1,6 +1,7 @@
 """One solve of the session being collected: the method from the estimator registry (looked up
 at every solve, so a reload's method applies at once), the result decorated with the daemon's
-session record; and a result marked stale when the sensor restarts after it."""
+session record; and a result marked stale when it no longer applies (a restart after it, a trim
+changed under it)."""
 
 from __future__ import annotations
 
@@ -57,10 +58,11 @@ def solve(session: Session, segments: list[detect.Segment], site: Site, method: 
                            f"{record.words()}", record)
 
 
-def stale_result(result: CalibrationResult, reason: str) -> CalibrationResult:
-    """The result marked as no longer applying: a `stale` record (why, since when, and that it
-    belongs to the previous power-up) and the reason first among the warnings, so a consumer
-    reading only result.json can tell."""
+def stale_result(result: CalibrationResult, reason: str, power_up: str = "previous") -> CalibrationResult:
+    """The result marked as no longer applying: a `stale` record (why, since when, and which
+    power-up it belongs to: "previous" after a restart, "current" when the trim changed under it,
+    "unknown") and the reason first among the warnings, so a consumer reading only result.json
+    can tell."""
     since = datetime.now(timezone.utc).isoformat(timespec="seconds")
-    return replace(result, stale=StaleRecord("previous", reason, since)).with_warning(
+    return replace(result, stale=StaleRecord(power_up, reason, since)).with_warning(
         f"stale: {reason}", first=True)
