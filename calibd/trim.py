@@ -80,11 +80,14 @@ def result_biases(result: CalibrationResult, sensor: str) -> tuple[float, float,
 
 
 def new_offsets(result: CalibrationResult, present: TrimSet, sensors) -> TrimSet:
-    """present - bias for each chosen sensor (the output carries the bias on top of the offsets in
-    force); the others as they are."""
+    """The offsets under which the result was made less its bias, for each chosen sensor (the
+    output carries the bias on top of the offsets in force then: the result's `sensor.trim`,
+    taken to be the present ones when it does not say); the others as they are."""
+    made_under = present if result.sensor.trim is None else TrimSet(
+        result.sensor.trim.gyro_deg_s, result.sensor.trim.acc_g, result.sensor.trim.incl_g)
     trims = present
     for sensor in sensors:
-        trims = trims.replaced(sensor, np.subtract(present.of(sensor), result_biases(result, sensor)))
+        trims = trims.replaced(sensor, np.subtract(made_under.of(sensor), result_biases(result, sensor)))
     return trims
 
 

@@ -426,3 +426,21 @@ def test_the_verify_sigma_carries_the_attitude_and_its_correlation_with_the_bias
     correlated = make_result("joint", site, {n: (values[n], s) for n, s in zip(names, np.sqrt(np.diag(covariance)))},
                              [], [], SensorRecord(), covariance)
     np.testing.assert_allclose(expected_static_sigma(correlated), np.full(3, 0.5), rtol=1e-4)
+
+
+def test_the_new_offsets_start_from_those_the_result_was_made_under():
+    from calibd.results import make_result
+    from calibd.trim import new_offsets
+    from calibd.units import RAD_S_TO_DEG_H
+    from stim300.records import SensorRecord, TrimRecord
+    from stim300.trim import TrimSet
+    bias_deg_h = (36.0, -18.0, 7.2)
+    estimates = {f"gyro_bias_{a}": (b / RAD_S_TO_DEG_H, 0.5 / RAD_S_TO_DEG_H) for a, b in zip("xyz", bias_deg_h)}
+    made_under = TrimRecord((0.01, 0.0, -0.02), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 7, 100)
+    present = TrimSet(gyro_deg_s=(0.5, 0.5, 0.5))  # trimmed again since: not what the output carried
+    result = make_result("joint", Site(40.0), estimates, [], [], SensorRecord(trim=made_under))
+    expected = np.subtract(made_under.gyro_deg_s, np.array(bias_deg_h) / 3600)
+    np.testing.assert_allclose(new_offsets(result, present, ("gyro",)).gyro_deg_s, expected, atol=1e-12)
+    unknown = make_result("joint", Site(40.0), estimates, [], [], SensorRecord())  # says nothing: the present ones
+    np.testing.assert_allclose(new_offsets(unknown, present, ("gyro",)).gyro_deg_s,
+                               np.subtract(present.gyro_deg_s, np.array(bias_deg_h) / 3600), atol=1e-12)
