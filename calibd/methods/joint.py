@@ -181,19 +181,20 @@ def joint_real_case(session: Session, site: Site, options: joint.JointOptions = 
     if fit.sigmas["yaw"] / DEG > YAW_SIGMA_POOR_DEG:
         result = result.flag_poor(("yaw",))
     if fitted.final_tilt and fitted.final_tilt.p_value < CHI2_ALARM_P:
-        result = result.flag_poor(PLATFORM_ANGLE_ESTIMATES)
-    return _judged_by_factory_prior(result, fit)
+        return result.flag_poor(PLATFORM_ANGLE_ESTIMATES)  # the forces' model fails: the factory check means nothing
+    return _judged_by_factory_prior(result)
 
 
 FACTORY_ALARM_P = 0.01  # p-value below which the factory residuals the statics see are beyond the datasheet's
 FACTORY_LIMITED_SHARE = 0.5  # an estimate whose factory part is this share of its sigma is limited by them
 
 
-def _judged_by_factory_prior(result: CalibrationResult, fit: joint.JointResult) -> CalibrationResult:
+def _judged_by_factory_prior(result: CalibrationResult) -> CalibrationResult:
     """A unit whose factory residuals, as far as the statics see them, lie beyond the
     datasheet's spread (`FactoryPosterior.against_prior`, p < FACTORY_ALARM_P; 1 % of units
     within the datasheet) may be outside its specification in what they cannot see too (a
-    triad's misalignment to the housing): the estimates the residuals limit are flagged poor."""
+    triad's misalignment to the housing): the estimates the residuals limit are flagged poor.
+    Asked only when the statics' forces fit their model: a bias jump would pass for residuals."""
     check = result.checks.get("factory_prior_chi2")
     if check is None or check["p_value"] >= FACTORY_ALARM_P:
         return result
