@@ -5,7 +5,9 @@ read with the host clock, feeds one `StreamParser` (kept across reopens, so its 
 cover the whole session) and pushes the samples into a `RingBuffer`. A vanished device is
 closed and reopened with exponential backoff, and every (re)open asks for the configuration
 datagram (`C<CR>`, protocol doc §12) so the parser re-adopts the sensor's format. `write`
-sends a request to the sensor from any thread (a daemon forwarding its clients' requests).
+sends a request to the sensor from any thread (a daemon forwarding its clients' requests);
+`lend` pauses the reading and hands the open port to a function for Service Mode (a daemon
+trimming the sensor between batches).
 
 Service Mode (talking to the unit instead of reading it) is `stim300.service`.
 """
@@ -90,6 +92,11 @@ class PortReader:
     datagram arriving after a quiet spell (low rates) is decoded at once. Added latency is at
     most `batch_s`.
 
+    `lend(use)` pauses the thread between two reads and calls `use(port)` with the open port; what
+    `use` reads is its own, never fed to the parser, and reading goes on when it returns (a
+    partial datagram before the loan and the datagrams the loan took show as skipped bytes and
+    lost samples). `write` refuses meanwhile, so no request lands in the borrower's exchange.
+
     Counters: `reopens`, `read_errors`, `bytes_read`, `parser.stats`; `connected` is False while
     the port is being reopened. An unexpected exception (e.g. from `on_raw`) ends the thread and
     is kept in `error`.
@@ -116,6 +123,10 @@ class PortReader:
         self._thread: threading.Thread | None = None
         self._port: serial.Serial | None = None  # the open port, for `write`; swapped under _port_lock
         self._port_lock = threading.Lock()
+        self._reading = threading.Lock()  # held by the thread for each read, by a borrower for its loan
+        self._not_lent = threading.Event()  # cleared while a borrower waits for the port or holds it
+        self._not_lent.set()
+        self._loans = threading.Lock()  # one borrower at a time
 
     def start(self) -> PortReader:
         if self._thread is not None:
@@ -138,9 +149,9 @@ class PortReader:
         is a client's request, which must not break on a sensor that is gone."""
         with self._port_lock:
             ser = self._port
-            if ser is None:
+            if ser is None or not self._not_lent.is_set():
                 log.warning("request_not_sent", port=self.url, request=request.decode("ascii", "replace"),
-                            error="port not open")
+                            error="port not open" if ser is None else "port lent to Service Mode")
                 return False
             try:
                 ser.write(request)
@@ -149,6 +160,21 @@ class PortReader:
                             error=describe_error(exc))
                 return False
         return True
+
+    def lend(self, use):
+        """`use(port)` with the reading paused (from any thread but the reader's); its return
+        value. PortError when the port is not open (being reopened, or the thread ended)."""
+        with self._loans:
+            self._not_lent.clear()  # the thread stops before its next read and waits
+            try:
+                with self._reading:  # a read under way ends first
+                    with self._port_lock:
+                        ser = self._port
+                    if ser is None:
+                        raise PortError(f"{self.url}: port not open")
+                    return use(ser)
+            finally:
+                self._not_lent.set()
 
     def _publish(self, ser: serial.Serial | None) -> None:
         """The port `write` uses from now on (None: none open)."""
@@ -182,8 +208,11 @@ class PortReader:
         self._publish(ser)
         try:
             while not self._stop.is_set():
+                if not self._not_lent.wait(0.1):
+                    continue  # lent: `stop` is still heard
                 try:
-                    data = _read_available(ser)
+                    with self._reading:
+                        data = _read_available(ser)
                 except (serial.SerialException, OSError) as exc:
                     ser = self._reopen(ser, exc)
                     if ser is None:
