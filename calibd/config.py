@@ -14,6 +14,7 @@ from pathlib import Path, PurePath
 from stim300.cliutil import TEXT_LIMIT_BYTES, read_text
 from stim300.errors import UsageError
 from stim300.protocol import DEFAULT_BIT_RATE
+from stim300.trim import SENSORS
 
 from .methods import DAEMON_METHODS, OptionError, estimator
 from .serve.protocol import IDLE_TIMEOUT_S, MAX_CLIENTS, MAX_CLIENTS_PER_UID, host_port
@@ -23,7 +24,7 @@ from .errors import CalibdError
 from .frames import Site
 
 METHODS = DAEMON_METHODS  # the estimators (calibd.estimators) the daemon runs
-TABLES = ("serial", "site", "output", "warmup", "detection", "method", "serve", "ros2", "foxglove")
+TABLES = ("serial", "site", "output", "warmup", "detection", "method", "trim", "serve", "ros2", "foxglove")
 SERVED_TABLES = ("serve", "ros2", "foxglove")  # what the daemon serves: started once, kept as started on SIGHUP
 
 
@@ -136,6 +137,19 @@ class FoxgloveConfig:
     rate_hz: float = 100.0  # the IMU channels' display rate (block averages of the samples)
 
 
+TRIM_APPLY = ("off", "volatile")  # never "flash": a daemon spends no flash saves (docs/trim.md)
+
+
+@dataclass(frozen=True)
+class TrimConfig:
+    """Whether the daemon writes a good result's biases into the sensor as volatile bias trims
+    (docs/trim.md), and which triads: the gyros by default, whose run-to-run bias is the largest
+    and the best known."""
+
+    apply: str = "off"
+    sensors: tuple[str, ...] = ("gyro",)
+
+
 @dataclass(frozen=True)
 class DaemonConfig:
     serial: SerialConfig
@@ -144,6 +158,7 @@ class DaemonConfig:
     warmup: WarmupConfig
     method: MethodConfig
     detection: DetectionConfig = DetectionConfig()
+    trim: TrimConfig = TrimConfig()
     serve: ServeConfig = ServeConfig()
     ros2: Ros2Config | None = None  # None: no [ros2] table, nothing published over DDS
     foxglove: FoxgloveConfig | None = None  # None: no [foxglove] table, no live view
@@ -264,6 +279,22 @@ def _method(t: _ConfigTable) -> MethodConfig:
     return MethodConfig(name, resolve_every_s=resolve_every_s, **own)
 
 
+def _distinct_triads(value: list) -> bool:
+    names = [v for v in value if isinstance(v, str) and v in SENSORS]
+    return value != [] and len(names) == len(value) == len(set(names))
+
+
+def _trim(t: _ConfigTable) -> TrimConfig:
+    d = TrimConfig()
+    choices = " or ".join(f'"{v}"' for v in TRIM_APPLY)
+    apply = t.get("apply", d.apply, str, lambda v: v in TRIM_APPLY,
+                  f'{choices} (never "flash": a daemon spends no flash saves)')
+    sensors = t.get("sensors", list(d.sensors), list, _distinct_triads,
+                    "a list of distinct triads among " + ", ".join(f'"{v}"' for v in SENSORS))
+    t.finish()
+    return TrimConfig(apply, tuple(sensors))
+
+
 def _path_text(value) -> bool:
     return isinstance(value, str) and _nonempty(value) and "\0" not in value
 
@@ -376,7 +407,7 @@ def parse_config(data: dict, where: str) -> DaemonConfig:
     return DaemonConfig(serial=_serial(table("serial")), site=site_from_table(table("site")),
                         state_dir=_state_dir(table("output")), warmup=_warmup(table("warmup")),
                         method=_method(table("method")), detection=_detection(table("detection")),
-                        serve=_serve(table("serve")),
+                        trim=_trim(table("trim")), serve=_serve(table("serve")),
                         ros2=_ros2(table("ros2")) if "ros2" in data else None,
                         foxglove=_foxglove(table("foxglove")) if "foxglove" in data else None)
 

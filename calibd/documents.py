@@ -303,6 +303,15 @@ class Stale(Struct):
     since: str
 
 
+class Trimmed(TrimDoc):
+    """The daemon's volatile trim made from the result (calibd.results.TrimmedRecord): the offsets
+    and reference read back, and when, which triads, the backup."""
+
+    at: str
+    sensors: Annotated[list[Literal["gyro", "acc", "incl"]], Meta(min_length=1, max_length=3)]
+    backup: str
+
+
 class ResultDoc(Struct):
     """calibd.result/1 to /5 (docs/result-schema.md); the rotation is made from the estimates."""
 
@@ -328,6 +337,7 @@ class ResultDoc(Struct):
     capture: Union[CaptureDoc, None] = None
     session: Union[SessionDoc, None] = None
     stale: Union[Stale, None] = None
+    trimmed: Union[Trimmed, None] = None
 
 
 # ---------------------------------------------------------------- calibd.noise

@@ -4,9 +4,10 @@ One loop, `pump`, feeds the Calibrator from a `stim300.source.SampleSource`, wha
 samples' origin. `run` is `calibd run`: the serial port (`PortSource`), with reports to systemd
 (READY, STATUS, WATCHDOG over $NOTIFY_SOCKET), a clean stop on SIGTERM and a configuration
 reload on SIGHUP; with a `[serve]` table it serves the sensor (`calibd.serve.hub.Hub`: ptys, the
-socket, the result's copy). `replay` is `calibd replay`: a capture (`CaptureSource`, as fast as possible
-or paced) or, for `--pty`, the capture through a pseudo-terminal and the daemon's own port
-reader (`PtySource`).
+socket, the result's copy); with `[trim] apply = "volatile"` it writes each good result into the
+sensor as volatile bias trims on the port its reader lends (`calibd.daemon.Trimmer`). `replay` is
+`calibd replay`: a capture (`CaptureSource`, as fast as possible or paced) or, for `--pty`, the
+capture through a pseudo-terminal and the daemon's own port reader (`PtySource`).
 """
 
 from __future__ import annotations
@@ -23,10 +24,11 @@ import structlog
 
 from stim300.codec import fault_bits
 from stim300.errors import PortError
+from stim300.protocol import SERIAL_NUMBER
 from stim300.source import PortSource, SampleSource
 
 from .config import SERVED_TABLES, ConfigError
-from .daemon import Calibrator, Listener, State, StateLog
+from .daemon import Calibrator, Listener, State, StateLog, Trimmer
 from .statedir import ResultStore, StateDirError
 from .serve.hub import Hub, make_feeds
 from .serve.sockets import ServeError
@@ -211,9 +213,19 @@ def run(config, reload_config) -> int:
         log.error("start_failed", error=str(exc))
         print(f"calibd: {exc}", file=sys.stderr)
         return 1
+    trimmer = Trimmer(config.trim, config.state_dir, config.serial.port, source.reader.lend)
     calibrator = Calibrator(config.site, config.warmup, config.method,
                             [StateLog(), store, status, *([hub] if hub else [])],
-                            source=config.serial.port, detection=config.detection, previous=previous)
+                            source=config.serial.port, detection=config.detection, previous=previous, trim=trimmer)
+
+    def use_trim(trim) -> None:
+        """[trim] from now on; when on and the stream has not named the unit yet, the unit is asked
+        (I): a trim is checked against the unit its result names."""
+        trimmer.config = trim
+        if trim.apply != "off" and calibrator.sensor.serial_number is None:
+            source.reader.write(SERIAL_NUMBER.request)
+
+    use_trim(config.trim)
     if hub is not None:
         hub.port_writer = source.reader.write  # requests written into the raw pty go to the sensor
     stopping = []
@@ -234,6 +246,7 @@ def run(config, reload_config) -> int:
             try:
                 fresh = reload_config()
                 calibrator.configure(fresh.site, fresh.warmup, fresh.method, fresh.detection)
+                use_trim(fresh.trim)
                 served = [f"[{name}]" for name in SERVED_TABLES if getattr(fresh, name) != getattr(config, name)]
                 log.info("reloaded", serve=f"changed, kept as started: {', '.join(served)} (a change needs a restart)"
                          if served else "unchanged")

@@ -35,7 +35,8 @@ RESULT_SCHEMA = "calibd.result"
 # as matrix and quaternion, the estimates' covariance, software, session_id, the site's g0 sigma;
 # 4: the joint method's error_budget (each sigma by its terms; the factory residuals' prior), its
 # sigmas and covariance now carrying the factory residuals; 5: sensor.trim, the bias trim offsets in
-# force, and each bias estimate's untrimmed value beside it
+# force, and each bias estimate's untrimmed value beside it, and trimmed, the daemon's volatile trim
+# made from the result
 RESULT_VERSION = 5
 SCHEMA = f"{RESULT_SCHEMA}/{RESULT_VERSION}"
 # display unit -> (display units per SI unit, SI unit): the one conversion of estimates
@@ -90,9 +91,10 @@ class Estimate:
 
 # optional fields, written only when set: the method's own (joint: options, checks, bias_reference,
 # error_budget; thesis: platform_rate_deg_s, earth_rate_diagnostic; thesis bench:
-# turns_alpha_beta_deg), then the capture's identity (offline), then the daemon's (session, stale)
+# turns_alpha_beta_deg), then the capture's identity (offline), then the daemon's (session, stale,
+# trimmed)
 _OPTIONAL = ("options", "checks", "bias_reference", "error_budget", "platform_rate_deg_s", "earth_rate_diagnostic",
-             "turns_alpha_beta_deg", "capture", "session", "stale")
+             "turns_alpha_beta_deg", "capture", "session", "stale", "trimmed")
 
 
 @dataclass(frozen=True)
@@ -116,7 +118,29 @@ class StaleRecord:
     since: str
 
 
-_RECORDS = {"session": SessionRecord, "stale": StaleRecord}  # optional fields written as records
+@dataclass(frozen=True)
+class TrimmedRecord:
+    """The daemon wrote the result into the sensor as volatile bias trims ([trim] apply =
+    "volatile", docs/trim.md): when (ISO 8601, UTC), which triads, the nine offsets then in force
+    as read back (deg/s, g), the reference naming the result, the flash saves left (none spent)
+    and the backup file of the offsets before."""
+
+    at: str
+    sensors: tuple[str, ...]
+    gyro_deg_s: tuple[float, float, float]
+    acc_g: tuple[float, float, float]
+    incl_g: tuple[float, float, float]
+    reference: int
+    remaining_saves: int
+    backup: str
+
+    def __post_init__(self):
+        for name in ("sensors", "gyro_deg_s", "acc_g", "incl_g"):  # tuples, as read from a file's lists too
+            object.__setattr__(self, name, tuple(getattr(self, name)))
+
+
+# optional fields written as records
+_RECORDS = {"session": SessionRecord, "stale": StaleRecord, "trimmed": TrimmedRecord}
 
 
 @dataclass(frozen=True)
@@ -146,6 +170,7 @@ class CalibrationResult:
     capture: dict | None = None  # offline: the file it was made from (path, size_bytes, sha256, serial_number)
     session: SessionRecord | None = None  # daemon: which session, how long, when solved
     stale: StaleRecord | None = None  # daemon: why the result no longer applies
+    trimmed: TrimmedRecord | None = None  # daemon: the volatile trim written from it
     schema: str = SCHEMA  # the version it was read as (it is written as the current one)
 
     def flag_poor(self, names, why: str | None = None) -> CalibrationResult:

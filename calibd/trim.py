@@ -114,11 +114,23 @@ def refusals(result: CalibrationResult, unit: UnitReading, sensors) -> list[str]
     if result.sensor.serial_number != unit.serial_number:
         found.append(f"the result is of sensor {result.sensor.serial_number or '(not named)'}, the unit on the port "
                      f"is {unit.serial_number}")
+    found += result_refusals(result, sensors, unit.trim.acc_range_g)
+    if result.bias_reference == "turn-on" and unit.starting_up:
+        found.append("the result's biases are turn-on biases and the unit is starting up now (power-up datagrams or "
+                     "its start-up status bit): it restarted after them")
+    return found
+
+
+def result_refusals(result: CalibrationResult, sensors, acc_range_g: int) -> list[str]:
+    """What the result itself says against trimming with it, before the unit is asked (the
+    daemon checks this before it takes the port): stale, an estimate without a trustworthy
+    1-sigma, turn-on biases whose capture goes on into a later power-up."""
+    found = []
     if result.stale is not None:
         found.append(f"the result is stale: {result.stale.reason}")
     for sensor in sensors:
         prefix, unit_text, _ = FROM_RESULT[sensor]
-        figure, figure_name = noise_figure(sensor, unit.trim.acc_range_g)
+        figure, figure_name = noise_figure(sensor, acc_range_g)
         for axis in "xyz":
             name = f"{prefix}_{axis}"
             estimate = result.estimates[name]
@@ -129,22 +141,10 @@ def refusals(result: CalibrationResult, unit: UnitReading, sensors) -> list[str]
             elif estimate.sigma > figure:
                 found.append(f"{name}: 1-sigma {estimate.sigma:.3g} {unit_text} exceeds the datasheet's {figure_name} "
                              f"{figure:g} {unit_text}: the trim would write noise")
-    if result.bias_reference == "turn-on":
-        found += [f"the result's biases are turn-on biases and {why}" for why in _later_power_up(result, unit)]
-    return found
-
-
-def _later_power_up(result: CalibrationResult, unit: UnitReading) -> list[str]:
-    """What shows the unit powered up after the result's data (stale results aside): the result's
-    own capture going on into a later power-up, or the unit starting up as the trim begins."""
-    found = []
     power_up = result.stream.get("power_up") or {}
-    if power_up.get("number", 1) < power_up.get("count", 1):
-        found.append(f"its capture shows the sensor restarted after them (power-up {power_up['number']} of "
-                     f"{power_up['count']})")
-    if unit.starting_up:
-        found.append("the unit is starting up now (power-up datagrams or its start-up status bit): it restarted "
-                     "after them")
+    if result.bias_reference == "turn-on" and power_up.get("number", 1) < power_up.get("count", 1):
+        found.append(f"the result's biases are turn-on biases and its capture shows the sensor restarted after them "
+                     f"(power-up {power_up['number']} of {power_up['count']})")
     return found
 
 

@@ -4,5 +4,6 @@ listeners it tells its states and results to; `calibd.live` wires it to a sample
 from .calibrator import Calibrator
 from .events import Callbacks, Listener, State, StateLog
 from .solver import stale_result
+from .trimmer import Trimmer
 
-__all__ = ["Calibrator", "Callbacks", "Listener", "State", "StateLog", "stale_result"]
+__all__ = ["Calibrator", "Callbacks", "Listener", "State", "StateLog", "Trimmer", "stale_result"]

@@ -10,7 +10,9 @@ replay, or a sensor restart, which ends the previous power-up's data). A restart
 previous power-up's result stale at once (`stale_result`), and so does a stream naming another
 sensor than an earlier daemon's result does, or a bias trim in force other than the one a result
 records (its biases are of the output under that trim). A trim that changes while a session is
-collected moves the output by the difference: a new session starts. The work is its collaborators':
+collected moves the output by the difference: a new session starts. A new result goes through
+`trim` before anyone hears of it (the daemon's `[trim] apply = "volatile"`, `Trimmer`). The work is
+its collaborators':
 `Collector` (one power-up's data), `WarmWatch` (the warm-up rule), `SolveTrigger` (when to
 solve), `solve` (the method); the listeners hear what happens.
 """
@@ -48,13 +50,17 @@ class Calibrator:
     """The daemon's states and their transitions; `listeners` hear every state, result and stale
     result, in their order. `previous` is the result an earlier daemon left (result.json): it
     stands until this one solves, and a sensor restart marks it stale like its own, as does a
-    stream whose serial number is not the result's (another unit on the port)."""
+    stream whose serial number is not the result's (another unit on the port). `trim(result)`
+    returns each new result as it is published and words added to the state's detail ("": none;
+    `calibd.daemon.Trimmer` writes it into the sensor)."""
 
     def __init__(self, site: Site, warmup: WarmupConfig = WarmupConfig(), method: MethodConfig = MethodConfig(),
                  listeners: Sequence[Listener] = (), source: str = "live",
-                 detection: DetectionConfig = DetectionConfig(), previous: CalibrationResult | None = None):
+                 detection: DetectionConfig = DetectionConfig(), previous: CalibrationResult | None = None,
+                 trim=lambda result: (result, "")):
         self.configure(site, warmup, method, detection)
         self.listeners = tuple(listeners)
+        self._trim = trim
         self.source = source  # the port or capture, named in results
         self.state = State.STARTING
         self.detail = "waiting for data"
@@ -252,10 +258,10 @@ class Calibrator:
         attempt = solve(session, segments, self.site, self.method, self.sessions, self.session_id)
         self.progress = attempt.progress
         if attempt.result is not None:
-            self.result = attempt.result
-            self._set(State.SOLVED, attempt.detail)
+            self.result, trimmed = self._trim(attempt.result)
+            self._set(State.SOLVED, f"{attempt.detail}; {trimmed}" if trimmed else attempt.detail)
             for listener in self.listeners:
-                listener.on_result(attempt.result)
+                listener.on_result(self.result)
         elif attempt.failed:
             self._set(self.state, attempt.detail)
         elif self.state != State.SOLVED:
