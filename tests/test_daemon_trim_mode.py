@@ -226,3 +226,20 @@ def test_a_lent_port_is_not_read_and_refuses_requests(samples):
             reader.lend(lambda ser: None)
     finally:
         emulator.stop()
+
+
+def test_failures_are_one_log_line_per_session_with_the_count_said_after(tmp_path, monkeypatch):
+    from stim300.errors import PortError
+
+    def lend(use):
+        raise PortError("port: unplugged")
+
+    trimmer = Trimmer(TrimConfig(apply="volatile"), tmp_path, "port", lend)
+    monkeypatch.setattr(trimmer, "_result_problems", lambda result: [])  # a result the daemon would trim
+    first = replace(make_result("joint", Site(40.0), {}, [], [], SensorRecord()), session_id="s1")
+    second = replace(first, session_id="s2")
+    with capture_logs() as logs:
+        for result in (first, first, first, second):
+            assert trimmer(result) == (result, "")
+    assert [e["event"] for e in logs] == ["trim_failed", "trim_failures_ended", "trim_failed"]
+    assert logs[1]["failures"] == 3 and logs[1]["session_id"] == "s1" and logs[2]["session_id"] == "s2"

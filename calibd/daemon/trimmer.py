@@ -43,6 +43,7 @@ class Trimmer:
         self.config, self.backup_dir, self.port, self.lend, self.timeout = config, backup_dir, port, lend, timeout
         self._written: TrimReading | None = None  # the trims this daemon wrote last, as read back
         self._refused_session: str | None = None  # the session whose refusal was logged
+        self._failed: tuple[str | None, int] = (None, 0)  # the session whose failure was logged, and its failures
 
     def __call__(self, result: CalibrationResult) -> tuple[CalibrationResult, str]:
         if self.config.apply == "off" or self._on_own_trim(result):
@@ -56,7 +57,7 @@ class Trimmer:
             self._refused(result, str(refused))
             return result, ""
         except (Stim300Error, CalibdError, serial.SerialException, OSError) as exc:
-            log.error("trim_failed", error=str(exc) or type(exc).__name__, session_id=result.session_id)
+            self._failure(result, str(exc) or type(exc).__name__)
             return result, ""
         self._written = reading
         sensors = self.config.sensors
@@ -91,6 +92,18 @@ class Trimmer:
             self._refused_session = result.session_id
             log.info("trim_refused", reason=reason, session_id=result.session_id,
                      detail="not trimmed; later results of this session are checked again without a log line")
+
+    def _failure(self, result: CalibrationResult, error: str) -> None:
+        """A failed trim: logged once per session, the session's count said when another begins."""
+        session, count = self._failed
+        if result.session_id == session:
+            self._failed = (session, count + 1)
+            return
+        if count > 1:
+            log.warning("trim_failures_ended", session_id=session, failures=count)
+        self._failed = (result.session_id, 1)
+        log.error("trim_failed", error=error, session_id=result.session_id,
+                  detail="the backup is back in force; later failures of this session are counted, not logged")
 
     def _trim(self, ser, result: CalibrationResult) -> tuple[TrimReading, Path]:
         """On the lent port: read the unit, refuse (TrimRefused) or back up, write, read back
