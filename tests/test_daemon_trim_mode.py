@@ -92,6 +92,7 @@ def test_off_by_default_the_sensor_is_never_written(unit, tmp_path):
     assert untouched(emulator) and not logs and not list(tmp_path.iterdir())
 
 
+@pytest.mark.slow  # two joint solves and a trim through the emulator
 def test_a_solve_is_trimmed_said_everywhere_and_the_next_session_has_no_bias(unit, samples, tmp_path):
     emulator, source = unit
     trimmer = Trimmer(VOLATILE, tmp_path, emulator.path, source.reader.lend)

@@ -44,6 +44,7 @@ def test_the_temperature_prior_is_the_datasheet_figure_over_the_operating_range(
     assert spec.ACC[30].bias_temperature_sigma * 125 / np.sqrt(12) == pytest.approx(1.5)
 
 
+@pytest.mark.slow  # four noisy 19-minute sessions simulated and solved
 def test_a_ramp_moves_the_estimates_as_the_temperature_budget_predicts():
     ramp = 2.0  # with noise, the same draws in both: the fit's weights come from the statics' noise, as on a unit
     flat = ramped(ramp, noise=True)

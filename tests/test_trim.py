@@ -294,6 +294,7 @@ def test_bad_options_are_one_line_and_exit_2(argv, words, capsys):
 
 # ---------------------------------------------------------------- verify
 
+@pytest.mark.slow  # seconds of static data read from the emulator in real time
 def test_verify_passes_on_the_static_and_is_written_beside_the_backup(result_file, unit, tmp_path, capsys):
     emulator = unit()
     assert trim(emulator, "--from", result_file(), "--verify", "4", backup_dir=tmp_path) == 0
@@ -304,6 +305,7 @@ def test_verify_passes_on_the_static_and_is_written_beside_the_backup(result_fil
     assert "verify passed" in capsys.readouterr().err
 
 
+@pytest.mark.slow  # seconds of static data read from the emulator in real time
 def test_a_failed_verify_takes_the_trim_back(result, result_file, unit, tmp_path, capsys):
     wrong = replace(result.estimates["gyro_bias_y"], value=result.estimates["gyro_bias_y"].value + 40)
     emulator = unit(TRIMMED_BEFORE, measured_with=TRIMMED_BEFORE)
@@ -326,6 +328,7 @@ def test_verify_needs_a_rate_output_and_says_so_before_anything_is_written(resul
 
 # ---------------------------------------------------------------- interrupted at every step
 
+@pytest.mark.slow  # a whole trim with --verify and --save, interrupted at each of its steps
 def test_an_interrupt_at_any_step_puts_the_backup_back_in_normal_mode(result, unit, tmp_path):
     """Every step of a trim with --verify and --save, Ctrl-C there: the unit is back in Normal Mode
     with the offsets and reference it had, and no save is spent unless the save went through."""
