@@ -195,3 +195,24 @@ def test_a_result_made_under_another_trim_is_no_longer_subtracted(tmp_path):
         for client in clients.values():
             client.close()
         hub.close()
+
+
+@pytest.mark.parametrize("offsets, dropped", [(A, False), (B, True)], ids=["the same trim", "another trim"])
+def test_the_served_correction_ends_at_the_read_that_carries_another_trim(offsets, dropped):
+    """The hub stops subtracting at the read whose Bias Trim Offset datagram differs from the
+    result's sensor.trim, before the calibrator marks the result stale."""
+    from stim300.codec import SAMPLE_DTYPE
+    from stim300.special import BiasTrimOffset, encode_special
+    from stim300.stream import Settled
+    estimates = {f"gyro_bias_{a}": (1e-5, 1e-6) for a in "xyz"}
+    result = make_result("joint", Site(60.0), estimates, [], [], SensorRecord(acc_range_g=10, trim=A))
+    hub = Hub(ServeConfig(), "port")
+    try:
+        hub.on_result(result)
+        assert hub._kept is not None
+        bto = encode_special(BiasTrimOffset(offsets.gyro_deg_s, offsets.acc_g, offsets.incl_g, offsets.reference,
+                                            offsets.remaining_saves), crlf=False, acc_range_g=10)
+        hub.tap(Settled(bto, np.empty(0, SAMPLE_DTYPE), (), 0, (), (bto,)))
+        assert (hub._kept is None) == dropped
+    finally:
+        hub.close()

@@ -31,8 +31,13 @@ import structlog
 from stim300.capture import StreamInfo
 from stim300.clock import CounterClock
 from stim300.codec import join_samples
+from stim300.errors import FormatError
+from stim300.protocol import BIAS_TRIM, SPECIAL_IDS
+from stim300.records import TrimRecord
+from stim300.special import decode_special
 
 from ..config import FoxgloveConfig, Ros2Config, ServeConfig
+from ..spec import DEFAULT_ACC_RANGE_G
 from ..daemon import Listener, State
 from ..results import CalibrationResult, result_json
 from ..session import PowerUpCuts
@@ -211,11 +216,15 @@ class Hub(Listener):
         """Each settled feed: its bytes to the ptys, its samples queued for the server thread.
         Never blocks or raises (the oldest queued samples go when the server thread lags).
         A sensor restart (`PowerUpCuts`, the calibrator's rule) ends the corrections here, before
-        the calibrator hears of it: the new power-up's turn-on biases are not the last result's."""
+        the calibrator hears of it: the new power-up's turn-on biases are not the last result's.
+        So does a Bias Trim Offset datagram whose offsets are not those the result was made under
+        (its `sensor.trim`): the output from that read on carries the new ones."""
         pieces = self._cuts.pieces(settled.samples, settled.first, settled.restart_datagrams)
         with self._lock:
             if any(restarted for restarted, _ in pieces):
                 self._kept, self._restart_unheard = None, True
+            elif self._kept is not None and _trim_changed(self._kept.result, settled.specials):
+                self._kept = None  # the output moved by the new offsets: the calibrator marks the result stale next
             kept = self._kept  # what this read's corrected outputs take, pty and SAMPLES alike
         if self.corrected_pty is not None and kept is not self._pty_kept:
             self._pty_kept = kept
@@ -378,6 +387,24 @@ def make_feeds(ros2: Ros2Config | None, foxglove: FoxgloveConfig | None) -> dict
 def _close_all(feeds: dict[str, Feed]) -> None:
     for feed in feeds.values():
         feed.close()
+
+
+def _trim_changed(result: CalibrationResult, specials: tuple[bytes, ...]) -> bool:
+    """Whether a Bias Trim Offset datagram among `specials` holds offsets other than the result's
+    `sensor.trim` (the calibrator's rule: a result that records none is not judged by them)."""
+    held = result.sensor.trim
+    if held is None:
+        return False
+    range_g = result.sensor.acc_range_g or DEFAULT_ACC_RANGE_G
+    for frame in specials:
+        if SPECIAL_IDS.get(frame[0], (None,))[0] is BIAS_TRIM:
+            try:
+                item = decode_special(frame, range_g)
+            except FormatError:
+                continue
+            if not held.same_offsets(TrimRecord.of_datagram(item)):
+                return True
+    return False
 
 
 def _group_id(name: str | None) -> int | None:
