@@ -36,6 +36,7 @@ from stim300.trim import (REFERENCE_LIMIT, SENSORS, UNITS, NormalLink, TrimReadi
                           apply_trims, read_trims, save_trims, trim_commands)
 
 from . import spec
+from .correction import sensor_biases
 from .documents import decode_json, document_version, validate
 from .errors import CalibdError
 from .frames import Site, nav_to_imu
@@ -45,9 +46,8 @@ from .units import RAD_S_TO_DEG_H, SQRT_S_PER_SQRT_H, value_sigma
 BACKUP_SCHEMA, BACKUP_VERSION = "calibd.trim-backup", 1
 VERIFY_SCHEMA, VERIFY_VERSION = "calibd.trim-verify", 1
 VERIFY_SIGMAS = 2.0  # a residual gyro bias within this many sigma of zero passes the check
-# sensor -> (the result's estimate names' prefix, its display unit, trim units per display unit)
-FROM_RESULT = {"gyro": ("gyro_bias", "deg/h", 1 / 3600), "acc": ("acc_bias", "mg", 1e-3),
-               "incl": ("incl_bias", "mg", 1e-3)}
+# sensor -> (the result's estimate names' prefix, its display unit)
+FROM_RESULT = {"gyro": ("gyro_bias", "deg/h"), "acc": ("acc_bias", "mg"), "incl": ("incl_bias", "mg")}
 
 
 class TrimRefused(CalibdError):
@@ -73,21 +73,16 @@ def trim_reference(session_id: str) -> int:
     return int.from_bytes(hashlib.sha256(session_id.encode()).digest()[:4], "big")
 
 
-def result_biases(result: CalibrationResult, sensor: str) -> tuple[float, float, float]:
-    """The result's X, Y, Z biases of `sensor` in the trim's unit (deg/s, g)."""
-    prefix, _, factor = FROM_RESULT[sensor]
-    return tuple(result.estimates[f"{prefix}_{axis}"].value * factor for axis in "xyz")
-
-
 def new_offsets(result: CalibrationResult, present: TrimSet, sensors) -> TrimSet:
     """The offsets under which the result was made less its bias, for each chosen sensor (the
     output carries the bias on top of the offsets in force then: the result's `sensor.trim`,
     taken to be the present ones when it does not say); the others as they are."""
     made_under = present if result.sensor.trim is None else TrimSet(
         result.sensor.trim.gyro_deg_s, result.sensor.trim.acc_g, result.sensor.trim.incl_g)
+    biases = sensor_biases(result)  # deg/s and g, the trim's own units
     trims = present
     for sensor in sensors:
-        trims = trims.replaced(sensor, np.subtract(made_under.of(sensor), result_biases(result, sensor)))
+        trims = trims.replaced(sensor, np.subtract(made_under.of(sensor), biases[sensor]))
     return trims
 
 
@@ -129,7 +124,7 @@ def result_refusals(result: CalibrationResult, sensors, acc_range_g: int) -> lis
     if result.stale is not None:
         found.append(f"the result is stale: {result.stale.reason}")
     for sensor in sensors:
-        prefix, unit_text, _ = FROM_RESULT[sensor]
+        prefix, unit_text = FROM_RESULT[sensor]
         figure, figure_name = noise_figure(sensor, acc_range_g)
         for axis in "xyz":
             name = f"{prefix}_{axis}"
@@ -294,7 +289,7 @@ def plan_rows(result: CalibrationResult, present: TrimSet, target: TrimSet, sens
     """Each changed axis: the offset in force, the new one, the bias it takes off."""
     rows = []
     for sensor in sensors:
-        prefix, unit_text, _ = FROM_RESULT[sensor]
+        prefix, unit_text = FROM_RESULT[sensor]
         for axis, old, new in zip("xyz", present.of(sensor), target.of(sensor)):
             e = result.estimates[f"{prefix}_{axis}"]
             rows.append(f"{sensor} {axis}: {old:+.9f} -> {new:+.9f} {UNITS[sensor]} "

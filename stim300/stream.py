@@ -384,6 +384,7 @@ class Settled:
     first: int = 0
     restart_datagrams: tuple[int, ...] = ()
     specials: tuple[bytes, ...] = ()
+    trims: tuple[TrimRecord, ...] = ()  # the Bias Trim Offset datagrams among them, as the scanner decoded them
 
 
 class StreamParser:
@@ -401,6 +402,7 @@ class StreamParser:
         self._specials: list[bytes] = []  # the special datagrams of the feed being settled, for the tap
         self.scanner = Scanner(fmt, self._found_normal, self._specials.append if tap is not None else None)
         self.tap = tap
+        self._trims_tapped = 0  # the scanner's BTO datagrams (by sequence) a tap has been given
 
     def _found_normal(self, offset: int, ident: int) -> None:
         self._found.append((offset, ident, self.scanner.format))
@@ -435,7 +437,9 @@ class StreamParser:
         if self.tap is not None and i:
             first = self.stats.datagrams - len(samples)
             restarts = tuple(k for k in self.stats.restart_datagrams if k >= first)
-            self.tap(Settled(bytes(buf[:i]), samples, runs, first, restarts, tuple(self._specials)))
+            trims = tuple(t.trim for t in scanner.bias_trims if t.sequence > self._trims_tapped)
+            self._trims_tapped = scanner.bias_trims[-1].sequence if scanner.bias_trims else 0
+            self.tap(Settled(bytes(buf[:i]), samples, runs, first, restarts, tuple(self._specials), trims))
             self._specials.clear()
         del buf[:i]
         scanner.advance(i)

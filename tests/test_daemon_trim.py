@@ -210,9 +210,10 @@ def test_the_served_correction_ends_at_the_read_that_carries_another_trim(offset
     try:
         hub.on_result(result)
         assert hub._kept is not None
-        bto = encode_special(BiasTrimOffset(offsets.gyro_deg_s, offsets.acc_g, offsets.incl_g, offsets.reference,
-                                            offsets.remaining_saves), crlf=False, acc_range_g=10)
-        hub.tap(Settled(bto, np.empty(0, SAMPLE_DTYPE), (), 0, (), (bto,)))
+        item = BiasTrimOffset(offsets.gyro_deg_s, offsets.acc_g, offsets.incl_g, offsets.reference,
+                              offsets.remaining_saves)
+        bto = encode_special(item, crlf=False, acc_range_g=10)
+        hub.tap(Settled(bto, np.empty(0, SAMPLE_DTYPE), (), 0, (), (bto,), (TrimRecord.of_datagram(item),)))
         assert (hub._kept is None) == dropped
     finally:
         hub.close()

@@ -156,6 +156,7 @@ class GyroFit:
     amplitude_check: tuple[float, float]  # fitted horizontal Earth rate and its 1-sigma, rad/s
     static_chi2: tuple[float, int]  # chi-square of the statics' mean residuals and its degrees of freedom
     offset: np.ndarray  # (N, 3) the fitted non-rotational part, rad/s: where a refit of changed data starts
+    root: np.ndarray  # (N,) each row's root weight (`_row_weights`): the same weights for every refit
 
     @property
     def cov(self) -> np.ndarray:
@@ -400,7 +401,7 @@ def fit_gyros(inp: JointInput, site: Site, options: JointOptions = JointOptions(
     amplitude_var = radial @ cov[EARTH_RATE_PARAMS, EARTH_RATE_PARAMS] @ radial  # 0 when the amplitude is fixed
     return GyroFit(params, parts, fit.chi, fit.chi_rate, residuals.std(axis=0), scale, noise,
                    (fitted, float(np.sqrt(max(amplitude_var, 0.0)))),
-                   _static_chi2(residuals, inp, len(params) - 3, noise, inflation), fit.offset)
+                   _static_chi2(residuals, inp, len(params) - 3, noise, inflation), fit.offset, root)
 
 
 def _fitted_noise(residuals: np.ndarray, inp: JointInput, least_flicker: np.ndarray,
@@ -817,7 +818,7 @@ def factory_effects(inp: JointInput, site: Site, options: JointOptions, gyro: Gy
     misaligned gyro triad tilts the platform axis, so alpha, beta, pitch and roll; the
     misalignment between triads lands in the horizontal biases; a Z scale factor in the Z
     biases), and the fits' weights and platform angles see the data as the sensor gave them."""
-    root = _row_weights(inp.gyro, inp)
+    root = gyro.root
     estimates = _Refitted(site, {"incl": incl, "acc": acc}, tilt_from_incl).estimates
     base = estimates(gyro.params)
     columns, refits = [], {}
@@ -889,7 +890,7 @@ def temperature_effects(inp: JointInput, site: Site, options: JointOptions, gyro
     per_degree = {"gyro": triads["gyro"].bias_temperature_sigma / 3600 * DEG,
                   "incl": triads["incl"].bias_temperature_sigma * STANDARD_GRAVITY / 1000,
                   "acc": triads["acc"].bias_temperature_sigma * STANDARD_GRAVITY / 1000}
-    root = _row_weights(inp.gyro, inp)
+    root = gyro.root
     p = len(gyro.params)
     designs = _scaled(_gyro_designs(gyro.chi, gyro.chi_rate, inp.time_s - inp.time_s.mean(),
                                     int_to_imu(*alpha_beta(gyro.params[AXIS_PARAMS])), options.drift), root)

@@ -31,13 +31,9 @@ import structlog
 from stim300.capture import StreamInfo
 from stim300.clock import CounterClock
 from stim300.codec import join_samples
-from stim300.errors import FormatError
-from stim300.protocol import BIAS_TRIM, SPECIAL_IDS
 from stim300.records import TrimRecord
-from stim300.special import decode_special
 
 from ..config import FoxgloveConfig, Ros2Config, ServeConfig
-from ..spec import DEFAULT_ACC_RANGE_G
 from ..daemon import Listener, State
 from ..results import CalibrationResult, result_json
 from ..session import PowerUpCuts
@@ -223,7 +219,7 @@ class Hub(Listener):
         with self._lock:
             if any(restarted for restarted, _ in pieces):
                 self._kept, self._restart_unheard = None, True
-            elif self._kept is not None and _trim_changed(self._kept.result, settled.specials):
+            elif self._kept is not None and _trim_changed(self._kept.result, settled.trims):
                 self._kept = None  # the output moved by the new offsets: the calibrator marks the result stale next
             kept = self._kept  # what this read's corrected outputs take, pty and SAMPLES alike
         if self.corrected_pty is not None and kept is not self._pty_kept:
@@ -389,22 +385,11 @@ def _close_all(feeds: dict[str, Feed]) -> None:
         feed.close()
 
 
-def _trim_changed(result: CalibrationResult, specials: tuple[bytes, ...]) -> bool:
-    """Whether a Bias Trim Offset datagram among `specials` holds offsets other than the result's
+def _trim_changed(result: CalibrationResult, trims: tuple[TrimRecord, ...]) -> bool:
+    """Whether a Bias Trim Offset datagram of a read holds offsets other than the result's
     `sensor.trim` (the calibrator's rule: a result that records none is not judged by them)."""
     held = result.sensor.trim
-    if held is None:
-        return False
-    range_g = result.sensor.acc_range_g or DEFAULT_ACC_RANGE_G
-    for frame in specials:
-        if SPECIAL_IDS.get(frame[0], (None,))[0] is BIAS_TRIM:
-            try:
-                item = decode_special(frame, range_g)
-            except FormatError:
-                continue
-            if not held.same_offsets(TrimRecord.of_datagram(item)):
-                return True
-    return False
+    return held is not None and any(not held.same_offsets(trim) for trim in trims)
 
 
 def _group_id(name: str | None) -> int | None:
