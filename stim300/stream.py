@@ -437,8 +437,10 @@ class StreamParser:
         if self.tap is not None and i:
             first = self.stats.datagrams - len(samples)
             restarts = tuple(k for k in self.stats.restart_datagrams if k >= first)
-            trims = tuple(t.trim for t in scanner.bias_trims if t.sequence > self._trims_tapped)
-            self._trims_tapped = scanner.bias_trims[-1].sequence if scanner.bias_trims else 0
+            latest = scanner.bias_trims[-1].sequence if scanner.bias_trims else 0
+            trims = () if latest == self._trims_tapped else \
+                tuple(t.trim for t in scanner.bias_trims if t.sequence > self._trims_tapped)
+            self._trims_tapped = latest
             self.tap(Settled(bytes(buf[:i]), samples, runs, first, restarts, tuple(self._specials), trims))
             self._specials.clear()
         del buf[:i]
