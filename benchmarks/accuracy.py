@@ -36,7 +36,10 @@ deg) and linear run and the white-noise Cramer-Rao bound. Biases are compared wi
 bias: the bias the sensor has at this power-up (the settled bias moved by the warm-up's mean
 temperature excess), which the bias-instability wander moves during the session.
 
-    python benchmarks/accuracy.py [--sessions 200] [--write docs/accuracy.md]
+The sessions are tasks of calibd's batch engine (calibd.engine, Dask): a local cluster of
+--workers processes, or a running cluster with --scheduler (docs/fleet.md).
+
+    python benchmarks/accuracy.py [--sessions 200] [--workers 2 | --scheduler ADDRESS] [--write docs/accuracy.md]
 """
 
 from __future__ import annotations
@@ -44,7 +47,6 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from functools import partial
 from pathlib import Path
@@ -55,6 +57,7 @@ from calibd.methods.joint import joint_fit, joint_real_case
 from calibd.methods.thesis import thesis_real_case
 from calibd import spec
 from calibd.calibrate import judged_by_temperature
+from calibd.engine import TaskFailed, cluster, run_tasks
 from calibd.errors import CalibrationError
 from calibd.estimators.joint import white_noise_bound
 from calibd.frames import NORMAL_GRAVITY_SIGMA, STANDARD_GRAVITY, Site, normal_gravity
@@ -264,18 +267,22 @@ def summary(run_set: str, results: list[dict]) -> str:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sessions", type=int, default=200)
-    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--workers", type=int, default=2, help="local worker processes (default 2)")
+    ap.add_argument("--scheduler", help="a running Dask cluster: tcp://HOST:PORT or a scheduler file")
     ap.add_argument("--sets", nargs="+", choices=RUN_SETS, default=list(RUN_SETS), help="run sets (default: all)")
     ap.add_argument("--write", help="also write the report to this markdown file (docs/accuracy.md)")
     args = ap.parse_args()
     started = time.perf_counter()
     parts = []
-    with ProcessPoolExecutor(args.workers) as pool:
+    with cluster(args.scheduler, None if args.scheduler else args.workers) as client:
         for run_set in args.sets:
-            results = []
-            for k, result in enumerate(pool.map(partial(one_session, run_set=run_set),
-                                                range(1, args.sessions + 1)), 1):
-                results.append(result)
+            results = [None] * args.sessions
+            seeds = range(1, args.sessions + 1)
+            for k, (index, result) in enumerate(run_tasks(client, partial(one_session, run_set=run_set), seeds,
+                                                          names=[f"{run_set}-{seed}" for seed in seeds]), 1):
+                if isinstance(result, TaskFailed):
+                    raise SystemExit(f"{run_set}, seed {index + 1}: {result.reason}")
+                results[index] = result
                 if k % 20 == 0:
                     print(f"{run_set}: {k}/{args.sessions} sessions, {time.perf_counter() - started:.0f} s",
                           file=sys.stderr)

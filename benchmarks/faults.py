@@ -24,7 +24,10 @@ a 360 deg full turn with ramps, 30 s static; 125 Hz, warmed up) unless the case 
   are shown).
 Biases are compared with the sensor's turn-on bias, the bias the result reports.
 
-    python benchmarks/faults.py [--seeds 3] [--write docs/accuracy.md]
+The runs are tasks of calibd's batch engine (calibd.engine, Dask): a local cluster of --workers
+processes, or a running cluster with --scheduler (docs/fleet.md).
+
+    python benchmarks/faults.py [--seeds 3] [--workers 2 | --scheduler ADDRESS] [--write docs/accuracy.md]
 """
 
 from __future__ import annotations
@@ -42,6 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from calibd.cli import main as calibd_main
+from calibd.engine import TaskFailed, cluster, run_tasks
 from calibd.frames import euler_321, int_to_imu, nav_to_int, r3
 from calibd.scenario import Faults, Scenario, Segment, load_scenario
 from calibd.sim import capture_bytes, power_up_datagrams, schedule, sensor_format, simulate, truth_record
@@ -191,6 +195,12 @@ def run_case(name: str, seed: int, folder: Path) -> dict:
             "flagged": flagged, "hidden_gaps": result.get("stream", {}).get("hidden_gaps")}
 
 
+def run_in_own_folder(run: tuple[str, int]) -> dict:
+    """One case and seed in a temporary folder of the worker that runs it."""
+    with tempfile.TemporaryDirectory(prefix="calibd-faults-") as folder:
+        return run_case(*run, Path(folder))
+
+
 def report(rows: list[dict]) -> str:
     """One markdown row per case over its seeds: the worst unflagged ratio, the estimates flagged
     per seed, the refusals."""
@@ -224,14 +234,19 @@ def main() -> int:
     ap.add_argument("--seeds", type=int, default=3, help="seeds per case (default 3)")
     ap.add_argument("--write", type=Path, help="also put the table into this document (docs/accuracy.md)")
     ap.add_argument("--case", action="append", choices=list(CASES), help="only this case (repeatable)")
+    ap.add_argument("--workers", type=int, default=2, help="local worker processes (default 2)")
+    ap.add_argument("--scheduler", help="a running Dask cluster: tcp://HOST:PORT or a scheduler file")
     args = ap.parse_args()
     started = time.perf_counter()
-    rows = []
-    with tempfile.TemporaryDirectory(prefix="calibd-faults-") as folder:
-        for name in args.case or CASES:
-            for seed in range(1, args.seeds + 1):
-                rows.append(run_case(name, seed, Path(folder)))
-                print(f"{name}, seed {seed}: {time.perf_counter() - started:.0f} s", file=sys.stderr)
+    runs = [(name, seed) for name in args.case or CASES for seed in range(1, args.seeds + 1)]
+    rows = [None] * len(runs)
+    with cluster(args.scheduler, None if args.scheduler else args.workers) as client:
+        for index, row in run_tasks(client, run_in_own_folder, runs, names=[f"{n}-{s}" for n, s in runs]):
+            name, seed = runs[index]
+            if isinstance(row, TaskFailed):
+                raise SystemExit(f"{name}, seed {seed}: {row.reason}")
+            rows[index] = row
+            print(f"{name}, seed {seed}: {time.perf_counter() - started:.0f} s", file=sys.stderr)
     table = report(rows)
     print(table)
     if args.write:

@@ -1,8 +1,8 @@
-"""`calibd run | replay | status | calibrate | sensitivity | plan | noise | report | apply | simulate |
-pipe | watch`: the daemon, its pipeline on a capture, its state; one-shot calibration; what
-alpha/beta errors cost; what a protocol will give before it is run; the noise of a capture; a
-report people can look at; a result applied to a capture; captures with known truth; the daemon's
-socket as JSON lines and as a live view.
+"""`calibd run | replay | status | calibrate | batch | sensitivity | plan | noise | report | apply |
+simulate | pipe | watch | trim`: the daemon, its pipeline on a capture, its state; one-shot calibration
+and many captures at once on Dask; what alpha/beta errors cost; what a protocol will give before it
+is run; the noise of a capture; a report people can look at; a result applied to a capture; captures
+with known truth; the daemon's socket as JSON lines and as a live view; the sensor's bias trim.
 
 Errors in files, scenarios or arguments end with one line on stderr and exit status 2.
 """
@@ -206,27 +206,34 @@ def _session_line(result: CalibrationResult) -> str | None:
     return None
 
 
+def _method_settings(args, command: str) -> tuple[str, dict]:
+    """The method and its options `calibrate` and `batch` were given, checked together."""
+    if (args.alpha is None) != (args.beta is None):
+        raise UsageError(f"{command}: give both --alpha and --beta (the nominal run) or neither (the linear run)")
+    if args.bench and args.alpha is not None:
+        raise UsageError(f"{command}: --bench estimates alpha and beta itself; drop --alpha/--beta")
+    if args.method == "joint" and (args.alpha is not None or args.platform_rate is not None or args.bench):
+        raise UsageError(f"{command}: --alpha/--beta, --platform-rate and --bench belong to --method thesis; the "
+                         "joint method estimates alpha and beta itself")
+    if args.method == "thesis" and (args.fixed_amplitude or args.drift):
+        raise UsageError(f"{command}: --fixed-amplitude and --drift belong to --method joint")
+    options = {"fixed_amplitude": args.fixed_amplitude, "drift": args.drift, "alpha_deg": args.alpha,
+               "beta_deg": args.beta, "platform_rate_deg_s": args.platform_rate}
+    return "thesis-bench" if args.bench else args.method, options
+
+
 def cmd_calibrate(args) -> int:
     from .calibrate import calibrate_capture
     from .methods import estimator
     from .results import write_result
 
-    if (args.alpha is None) != (args.beta is None):
-        raise UsageError("calibrate: give both --alpha and --beta (the nominal run) or neither (the linear run)")
-    if args.bench and args.alpha is not None:
-        raise UsageError("calibrate: --bench estimates alpha and beta itself; drop --alpha/--beta")
-    if args.method == "joint" and (args.alpha is not None or args.platform_rate is not None or args.bench):
-        raise UsageError("calibrate: --alpha/--beta, --platform-rate and --bench belong to --method thesis; the "
-                         "joint method estimates alpha and beta itself")
-    if args.method == "thesis" and (args.fixed_amplitude or args.drift):
-        raise UsageError("calibrate: --fixed-amplitude and --drift belong to --method joint")
+    name, settings = _method_settings(args, "calibrate")
     site = _site(args)
     not_an_input(args.output, args.capture)
     capture = open_capture(args.capture, topic=args.topic)  # a refusal names the capture
 
-    method = estimator("thesis-bench" if args.bench else args.method)
-    options = method.options({"fixed_amplitude": args.fixed_amplitude, "drift": args.drift, "alpha_deg": args.alpha,
-                              "beta_deg": args.beta, "platform_rate_deg_s": args.platform_rate})
+    method = estimator(name)
+    options = method.options(settings)
 
     def solve(session):
         return method.solve(session, site, None, options)
@@ -240,6 +247,39 @@ def cmd_calibrate(args) -> int:
     except OSError as exc:
         raise write_error(args.output, exc) from None
     print(_summary(result))
+    return 0
+
+
+def cmd_batch(args) -> int:
+    import signal
+
+    from .batch import BatchSettings, run_batch
+    from .engine import cluster
+    from .fleettable import pyarrow
+    from .methods import estimator
+
+    name, settings = _method_settings(args, "batch")
+    if args.scheduler is not None and args.workers is not None:
+        raise UsageError("batch: --workers sizes the local cluster; a cluster given by --scheduler has its own workers")
+    for given in args.captures:
+        not_an_input(args.output, given)
+    estimator(name).options(settings)  # refused here, not once per capture
+    pyarrow()  # the table's writer, before a cluster is started
+    batch = BatchSettings(name, _site(args), settings, args.start, args.topic)
+
+    def stop(signum, frame):
+        raise KeyboardInterrupt
+    signal.signal(signal.SIGTERM, stop)  # like Ctrl-C: the finished rows are folded into the table first
+    try:
+        with cluster(args.scheduler, args.workers) as client:
+            tally = run_batch(args.captures, batch, args.output, client, redo=args.redo)
+    except KeyboardInterrupt:
+        print(f"batch: stopped; the captures done are in {args.output}, run the same command again for the rest",
+              file=sys.stderr)
+        return 130
+    print(f"{args.output}: {tally.done} captures done ({tally.power_ups} power-ups calibrated, {tally.refused} "
+          f"refused; {tally.failed} captures failed, {tally.duplicates} duplicates), {tally.skipped} already in the "
+          "table")
     return 0
 
 
@@ -875,16 +915,9 @@ TOPIC_HELP = ("the sensor_msgs/Imu topic of a recording (ROS bag, rosbag2, MCAP;
               "only one)")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    from .methods import DAEMON_METHODS
-    from .warmup import WINDOW_RANGE_S
-
-    parser = CommandParser(prog="calibd", description="STIM300 calibration: calibrate captures, simulate sessions.")
-    sub = parser.add_subparsers(dest="command", required=True, parser_class=CommandParser)
-    p = sub.add_parser("calibrate", help="capture -> biases and alignment (result JSON)")
-    p.add_argument("capture")
-    p.add_argument("-o", "--output", type=path_arg, required=True, help="RESULT.json (replaced atomically)")
-    p.add_argument("--method", choices=DAEMON_METHODS, default="joint",
+def _add_method_options(p: argparse.ArgumentParser, methods: tuple[str, ...]) -> None:
+    """The options that say how a capture is calibrated (`calibrate`, `batch`)."""
+    p.add_argument("--method", choices=methods, default="joint",
                    help="joint: every segment in one fit, with 1-sigma (default); thesis: the thesis's chain")
     _add_site_options(p, required=True)
     p.add_argument("--alpha", type=_number(-10, 10, "deg"), help="a-priori interface tilt alpha, deg (nominal run)")
@@ -896,16 +929,42 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--start", type=_number(0, 1e9, "s"),
                    help="start S seconds into the power-up (default: where the warm-up rule says the temperature "
                         "has settled)")
-    p.add_argument("--session", type=_positive_int, metavar="N",
-                   help="calibrate power-up N (1-based) of a capture in which the sensor restarted (default: the "
-                        "last one that has what the method needs)")
     p.add_argument("--fixed-amplitude", action="store_true",
                    help="joint: fix the horizontal Earth rate to Omega_E cos(lat) (better yaw on short data; "
                         "loses the check that the Earth rate is really seen)")
     p.add_argument("--drift", action="store_true",
                    help="joint: fit a linear gyro drift per channel (thermal ramps); costs precision")
     p.add_argument("--topic", type=_ros_topic, metavar="NAME", help=TOPIC_HELP)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from .methods import DAEMON_METHODS
+    from .warmup import WINDOW_RANGE_S
+
+    parser = CommandParser(prog="calibd", description="STIM300 calibration: calibrate captures, simulate sessions.")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=CommandParser)
+    p = sub.add_parser("calibrate", help="capture -> biases and alignment (result JSON)")
+    p.add_argument("capture")
+    p.add_argument("-o", "--output", type=path_arg, required=True, help="RESULT.json (replaced atomically)")
+    _add_method_options(p, DAEMON_METHODS)
+    p.add_argument("--session", type=_positive_int, metavar="N",
+                   help="calibrate power-up N (1-based) of a capture in which the sensor restarted (default: the "
+                        "last one that has what the method needs)")
     p.set_defaults(func=cmd_calibrate)
+    p = sub.add_parser("batch", help="captures and folders of captures -> every power-up calibrated on Dask, one "
+                                     "row each in a fleet table (Parquet; docs/fleet.md)")
+    p.add_argument("captures", nargs="+", metavar="CAPTURE|DIR",
+                   help="capture files (raw or recordings) and folders of them (walked, sorted)")
+    p.add_argument("-o", "--output", type=path_arg, required=True,
+                   help="FLEET.parquet: rows are added; captures already in it are skipped (replaced atomically)")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="a running Dask cluster: tcp://HOST:PORT or the scheduler file of `dask scheduler "
+                        "--scheduler-file` (default: a local cluster)")
+    p.add_argument("--workers", type=_positive_int, metavar="N",
+                   help="worker processes of the local cluster (default: one per core)")
+    p.add_argument("--redo", action="store_true", help="calibrate the captures already in the table again")
+    _add_method_options(p, DAEMON_METHODS)
+    p.set_defaults(func=cmd_batch)
     p = sub.add_parser("run", help="the daemon: read the port, calibrate after every power-up")
     p.add_argument("--config", type=path_arg, required=True,
                    help="TOML configuration: [serial], [site], [output], [warmup], [detection], [method], [serve] "
