@@ -32,7 +32,8 @@ from msgspec import Meta, Struct
 from stim300.atomic import write_atomic
 from stim300.cliutil import DOCUMENT_LIMIT_BYTES, read_input
 from stim300.errors import UsageError
-from stim300.trim import (REFERENCE_LIMIT, SENSORS, UNITS, NormalLink, TrimReading, TrimSet, UnitReading,
+from stim300.records import TrimOffsets
+from stim300.trim import (REFERENCE_LIMIT, SENSORS, UNITS, NormalLink, TrimReading, UnitReading,
                           apply_trims, read_trims, save_trims, trim_commands)
 
 from . import spec
@@ -73,12 +74,11 @@ def trim_reference(session_id: str) -> int:
     return int.from_bytes(hashlib.sha256(session_id.encode()).digest()[:4], "big")
 
 
-def new_offsets(result: CalibrationResult, present: TrimSet, sensors) -> TrimSet:
+def new_offsets(result: CalibrationResult, present: TrimOffsets, sensors) -> TrimOffsets:
     """The offsets under which the result was made less its bias, for each chosen sensor (the
     output carries the bias on top of the offsets in force then: the result's `sensor.trim`,
     taken to be the present ones when it does not say); the others as they are."""
-    made_under = present if result.sensor.trim is None else TrimSet(
-        result.sensor.trim.gyro_deg_s, result.sensor.trim.acc_g, result.sensor.trim.incl_g)
+    made_under = present if result.sensor.trim is None else result.sensor.trim
     biases = sensor_biases(result)  # deg/s and g, the trim's own units
     trims = present
     for sensor in sensors:
@@ -86,7 +86,7 @@ def new_offsets(result: CalibrationResult, present: TrimSet, sensors) -> TrimSet
     return trims
 
 
-def beyond_range(trims: TrimSet, sensors, acc_range_g: int) -> list[str]:
+def beyond_range(trims: TrimOffsets, sensors, acc_range_g: int) -> list[str]:
     """Offsets outside their triad's trim range (the unit would clamp them: E008)."""
     found = []
     for sensor in sensors:
@@ -175,7 +175,7 @@ def write_backup(directory: Path, unit: UnitReading, port: str, now: datetime) -
     never over another backup (a second one within the same second gets -2, -3, ...)."""
     t = unit.trim
     doc = {"schema": f"{BACKUP_SCHEMA}/{BACKUP_VERSION}", "serial_number": unit.serial_number, "port": port,
-           "taken_at": now.isoformat(timespec="seconds"), "acc_range_g": t.acc_range_g, "trims": t.trims.as_dict(),
+           "taken_at": now.isoformat(timespec="seconds"), "acc_range_g": t.acc_range_g, "trims": t.trims.to_dict(),
            "reference": t.reference, "remaining_saves": t.remaining_saves}
     stem = f"trim-backup-{unit.serial_number}-{now.strftime('%Y%m%dT%H%M%SZ')}"
     path = directory / f"{stem}.json"
@@ -193,7 +193,7 @@ def load_backup(path) -> Backup:
     document_version(doc, BACKUP_SCHEMA, BACKUP_VERSION, where, TrimRefused)
     backup = validate(doc, BackupDoc, where, TrimRefused)
     try:
-        trims = TrimSet(backup.trims.gyro_deg_s, backup.trims.acc_g, backup.trims.incl_g)
+        trims = TrimOffsets(backup.trims.gyro_deg_s, backup.trims.acc_g, backup.trims.incl_g)
     except ValueError as exc:
         raise TrimRefused(f"{where}: trims: {exc}") from None
     return Backup(backup.serial_number, TrimReading(trims, backup.reference, backup.remaining_saves,
@@ -285,7 +285,7 @@ def trim_rows(reading: TrimReading) -> list[str]:
                    f"{'remaining saves':<16} {reading.remaining_saves} saves"]
 
 
-def plan_rows(result: CalibrationResult, present: TrimSet, target: TrimSet, sensors) -> list[str]:
+def plan_rows(result: CalibrationResult, present: TrimOffsets, target: TrimOffsets, sensors) -> list[str]:
     """Each changed axis: the offset in force, the new one, the bias it takes off."""
     rows = []
     for sensor in sensors:
@@ -362,7 +362,7 @@ def _can_save(unit: UnitReading, options: TrimOptions) -> None:
         raise TrimRefused("--save: the unit has no flash saves left (0 remaining): nothing was written")
 
 
-def _write(ser, unit: UnitReading, target: TrimSet, sensors, reference: int, options: TrimOptions, step, say,
+def _write(ser, unit: UnitReading, target: TrimOffsets, sensors, reference: int, options: TrimOptions, step, say,
            confirm, verify=None) -> list[str]:
     """What a trim and a restore share once decided: the dry run's commands; or the backup, then,
     guarded, the write, `verify(backup_path)` and the save when asked; the rows then in force."""

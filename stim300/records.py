@@ -8,21 +8,18 @@ import math
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, fields, replace
 
-TRIAD_TRIMS = {"gyro": "gyro_deg_s", "acc": "acc_g", "incl": "incl_g"}  # triad -> its TrimRecord field
+TRIAD_TRIMS = {"gyro": "gyro_deg_s", "acc": "acc_g", "incl": "incl_g"}  # triad -> its TrimOffsets field
 
 
 @dataclass(frozen=True)
-class TrimRecord:
-    """The bias trim offsets in force, as the unit's Bias Trim Offset datagram carries them: the
-    unit adds each after its own compensation (deg/s for the gyros, g for the accelerometers and
-    inclinometers, whatever the output unit), so the output's biases include them. With the
-    32-bit reference stored beside them and the flash saves left."""
+class TrimOffsets:
+    """Nine bias trim offsets, each triad's X, Y, Z in the unit's own terms: the unit adds each
+    after its own compensation (deg/s for the gyros, g for the accelerometers and inclinometers,
+    whatever the output unit), so the output's biases include them."""
 
     gyro_deg_s: tuple[float, float, float]
     acc_g: tuple[float, float, float]
     incl_g: tuple[float, float, float]
-    reference: int
-    remaining_saves: int
 
     def __post_init__(self):
         for name in TRIAD_TRIMS.values():
@@ -31,21 +28,35 @@ class TrimRecord:
                 raise ValueError(f"{name}: three finite numbers, got {getattr(self, name)!r}")
             object.__setattr__(self, name, values)
 
-    @classmethod
-    def of_datagram(cls, bto) -> TrimRecord:
-        """The record of a decoded Bias Trim Offset datagram (`stim300.special.BiasTrimOffset`)."""
-        return cls(bto.gyro, bto.acc, bto.incl, bto.reference_info, bto.remaining_saves)
-
     def of(self, triad: str) -> tuple[float, float, float]:
         """One triad's offsets ("gyro": deg/s; "acc", "incl": g)."""
         return getattr(self, TRIAD_TRIMS[triad])
 
-    def same_offsets(self, other: TrimRecord) -> bool:
-        """Whether both add the same offsets to the output (reference and saves left aside)."""
+    def replaced(self, triad: str, values) -> TrimOffsets:
+        """These offsets with one triad's replaced by `values`."""
+        return TrimOffsets(**{name: tuple(values) if key == triad else self.of(key)
+                              for key, name in TRIAD_TRIMS.items()})
+
+    def same_offsets(self, other: TrimOffsets) -> bool:
+        """Whether both add the same offsets to the output (a record's reference and saves left aside)."""
         return all(self.of(triad) == other.of(triad) for triad in TRIAD_TRIMS)
 
     def to_dict(self) -> dict:
         return {f.name: list(v) if isinstance(v := getattr(self, f.name), tuple) else v for f in fields(self)}
+
+
+@dataclass(frozen=True)
+class TrimRecord(TrimOffsets):
+    """The bias trim offsets in force, as the unit's Bias Trim Offset datagram carries them, with
+    the 32-bit reference stored beside them and the flash saves left."""
+
+    reference: int
+    remaining_saves: int
+
+    @classmethod
+    def of_datagram(cls, bto) -> TrimRecord:
+        """The record of a decoded Bias Trim Offset datagram (`stim300.special.BiasTrimOffset`)."""
+        return cls(bto.gyro, bto.acc, bto.incl, bto.reference_info, bto.remaining_saves)
 
     @classmethod
     def from_dict(cls, doc: Mapping) -> TrimRecord:

@@ -16,7 +16,7 @@ This is the driver's part: it writes what it is given and knows no calibration r
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 import serial
@@ -24,6 +24,7 @@ import serial
 from .errors import ServiceError, Stim300Error
 from .port import _read_available
 from .protocol import GYRO_RATE_LSB, INCL_ACC_LSB, AccUnit, GyroUnit, Status, acc_lsb
+from .records import TrimOffsets
 from .service import save_to_flash, service_command, service_mode
 from .special import BiasTrimOffset, Configuration, SerialNumber
 from .stream import StreamParser
@@ -45,46 +46,16 @@ def trim_lsb(sensor: str, acc_range_g: int) -> float:
 
 
 @dataclass(frozen=True)
-class TrimSet:
-    """Nine offsets: each triad's X, Y, Z, in the unit's own terms (deg/s, g)."""
-
-    gyro_deg_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    acc_g: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    incl_g: tuple[float, float, float] = (0.0, 0.0, 0.0)
-
-    def __post_init__(self):
-        for f in fields(self):
-            values = tuple(float(v) for v in getattr(self, f.name))
-            if len(values) != 3 or not all(np.isfinite(values)):
-                raise ValueError(f"{f.name}: three finite numbers, got {getattr(self, f.name)!r}")
-            object.__setattr__(self, f.name, values)
-
-    def of(self, sensor: str) -> tuple[float, float, float]:
-        return getattr(self, _field(sensor))
-
-    def replaced(self, sensor: str, values) -> TrimSet:
-        return TrimSet(**{f.name: tuple(values) if f.name == _field(sensor) else getattr(self, f.name)
-                          for f in fields(self)})
-
-    def as_dict(self) -> dict[str, list[float]]:
-        return {f.name: list(getattr(self, f.name)) for f in fields(self)}
-
-
-def _field(sensor: str) -> str:
-    return f"{sensor}_{UNITS[sensor].replace('/', '_')}"
-
-
-@dataclass(frozen=True)
 class TrimReading:
     """A Bias Trim Offset datagram as read: the offsets, the 32-bit reference, the flash saves left
     and the accelerometer range (g) its acc counts were scaled by."""
 
-    trims: TrimSet
+    trims: TrimOffsets
     reference: int
     remaining_saves: int
     acc_range_g: int
 
-    def differences(self, trims: TrimSet, reference: int) -> list[str]:
+    def differences(self, trims: TrimOffsets, reference: int) -> list[str]:
         """What differs from `trims` by more than one count, and a reference that differs; [] when none."""
         found = []
         for sensor in SENSORS:
@@ -166,7 +137,7 @@ def read_trims(ser: serial.Serial, timeout: float = 3.0) -> UnitReading:
     configuration = link.ask(b"C", Configuration)
     serial_number = link.ask(b"I", SerialNumber)
     bto = link.ask(b"T", BiasTrimOffset)
-    reading = TrimReading(TrimSet(bto.gyro, bto.acc, bto.incl), bto.reference_info, bto.remaining_saves,
+    reading = TrimReading(TrimOffsets(bto.gyro, bto.acc, bto.incl), bto.reference_info, bto.remaining_saves,
                           max(configuration.acc_range_g))
     return UnitReading(reading, str(serial_number), configuration.gyro_unit, link.starting_up)
 
@@ -177,7 +148,7 @@ def number(value: float) -> str:
     return "0" if text in ("-0", "") else text
 
 
-def trim_commands(trims: TrimSet, sensors=SENSORS, reference: int | None = None) -> list[str]:
+def trim_commands(trims: TrimOffsets, sensors=SENSORS, reference: int | None = None) -> list[str]:
     """The `b` commands that make `sensors`' offsets exactly `trims`, then the reference.
 
     The unit sets one axis only by a delta (`b delta,<g|a|i>,<x|y|z>`); its absolute forms set a
@@ -209,7 +180,7 @@ def write_trims(ser: serial.Serial, commands: list[str], timeout: float = 3.0, s
             raise TrimError(f"{exc}{clamped}") from exc
 
 
-def apply_trims(ser: serial.Serial, trims: TrimSet, sensors, reference: int, timeout: float = 3.0,
+def apply_trims(ser: serial.Serial, trims: TrimOffsets, sensors, reference: int, timeout: float = 3.0,
                 step=lambda text: None) -> TrimReading:
     """Write the volatile trims and the reference, leave Service Mode without saving, read T back
     and check every offset within one count; TrimError when the unit holds something else."""

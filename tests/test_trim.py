@@ -28,7 +28,8 @@ from calibd.sim import capture_bytes, simulate
 from calibd.trim import TrimOptions, trim_from_result, trim_reference
 from stim300.port import open_serial
 from stim300.protocol import GyroUnit
-from stim300.trim import SENSORS, TrimError, TrimSet, read_trims, trim_commands, trim_lsb, write_trims
+from stim300.records import TrimOffsets
+from stim300.trim import SENSORS, TrimError, read_trims, trim_commands, trim_lsb, write_trims
 from stim300.service import service_mode
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -369,7 +370,7 @@ def test_sigterm_mid_trim_puts_the_backup_back(result, result_file, unit, tmp_pa
 # ---------------------------------------------------------------- the driver
 
 def test_each_axis_is_set_from_zero_by_a_delta():
-    trims = TrimSet((0.5, 0.0, -0.25), (0.0, 0.0, 0.0), (1.5e-5, 0.0, 0.0))
+    trims = TrimOffsets((0.5, 0.0, -0.25), (0.0, 0.0, 0.0), (1.5e-5, 0.0, 0.0))
     assert trim_commands(trims, ("gyro", "incl"), 42) == ["b 0,g", "b 0.5,g,x", "b -0.25,g,z", "b 0,i",
                                                           "b 0.000015,i,x", "b 42,r"]
 
@@ -436,11 +437,10 @@ def test_the_new_offsets_start_from_those_the_result_was_made_under():
     from calibd.trim import new_offsets
     from calibd.units import RAD_S_TO_DEG_H
     from stim300.records import SensorRecord, TrimRecord
-    from stim300.trim import TrimSet
     bias_deg_h = (36.0, -18.0, 7.2)
     estimates = {f"gyro_bias_{a}": (b / RAD_S_TO_DEG_H, 0.5 / RAD_S_TO_DEG_H) for a, b in zip("xyz", bias_deg_h)}
     made_under = TrimRecord((0.01, 0.0, -0.02), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 7, 100)
-    present = TrimSet(gyro_deg_s=(0.5, 0.5, 0.5))  # trimmed again since: not what the output carried
+    present = TrimOffsets((0.5, 0.5, 0.5), (0.0,) * 3, (0.0,) * 3)  # trimmed again since: not what the output carried
     result = make_result("joint", Site(40.0), estimates, [], [], SensorRecord(trim=made_under))
     expected = np.subtract(made_under.gyro_deg_s, np.array(bias_deg_h) / 3600)
     np.testing.assert_allclose(new_offsets(result, present, ("gyro",)).gyro_deg_s, expected, atol=1e-12)
