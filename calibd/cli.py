@@ -283,6 +283,14 @@ def cmd_batch(args) -> int:
     return 0
 
 
+def cmd_fleet(args) -> int:
+    from .fleet import run_fleet
+
+    if args.html is not None:
+        not_an_input(args.html, args.table)
+    return run_fleet(args.table, args.html, args.serial)
+
+
 def cmd_sensitivity(args) -> int:
     from .estimators.thesis import sensitivity
 
@@ -965,6 +973,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--redo", action="store_true", help="calibrate the captures already in the table again")
     _add_method_options(p, DAEMON_METHODS)
     p.set_defaults(func=cmd_batch)
+    p = sub.add_parser("fleet", help="a fleet table -> each sensor's history, its run-to-run spread against the "
+                                     "datasheet, units and estimates out of family (docs/fleet.md)")
+    p.add_argument("table", metavar="FLEET.parquet", help="the table calibd batch wrote")
+    p.add_argument("--html", type=path_arg, metavar="REPORT.html",
+                   help="also write a self-contained HTML report with each estimate's history (needs matplotlib)")
+    p.add_argument("--serial", metavar="SN", help="only this serial number")
+    p.set_defaults(func=cmd_fleet)
     p = sub.add_parser("run", help="the daemon: read the port, calibrate after every power-up")
     p.add_argument("--config", type=path_arg, required=True,
                    help="TOML configuration: [serial], [site], [output], [warmup], [detection], [method], [serve] "
