@@ -37,3 +37,24 @@ def pty():
     yield master, os.ttyname(slave)
     os.close(master)
     os.close(slave)
+
+
+@pytest.fixture(scope="session")
+def fleet_batch(tmp_path_factory):
+    """The simulated fleet (tests/fleet_captures.py: 24 captures of three units) and the fleet
+    table `calibd batch` makes of it on a local cluster of two workers, run as users run it:
+    (folder, captures, table, the command's stdout and stderr)."""
+    import subprocess
+    import sys
+
+    from captures import ROOT, command_env
+    from fleet_captures import G0, LATITUDE, simulate_fleet
+
+    directory = tmp_path_factory.mktemp("fleet")
+    captures = simulate_fleet(directory)
+    table = tmp_path_factory.mktemp("fleet-table") / "fleet.parquet"
+    done = subprocess.run([sys.executable, "-m", "calibd.cli", "batch", str(directory), "-o", str(table),
+                           "--workers", "2", "--latitude", LATITUDE, "--g0", G0], cwd=ROOT, env=command_env(),
+                          capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    return directory, captures, table, done.stdout, done.stderr

@@ -13,12 +13,11 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from calibd import batch, fleettable
+from calibd import fleettable
 from calibd.cli import main as calibd_main
 from calibd.fleet import (MIN_OWN_HISTORY, NAMES, Pooled, Unit, analyse, calibrated, datasheet, flags,
                           text_report, unit_rows, verdict)
-from calibd.frames import Site
-from fleet_captures import CAPTURES_PER_UNIT, SERIALS, STEP_ESTIMATE, STEPPED, simulate_fleet
+from fleet_captures import CAPTURES_PER_UNIT, SERIALS, STEP_ESTIMATE, STEPPED
 
 T0 = datetime.datetime(2026, 1, 5, 9, 0, tzinfo=datetime.timezone.utc)
 GYRO_X = NAMES.index("gyro_bias_x")
@@ -196,16 +195,9 @@ def test_html_without_matplotlib_is_one_line(run_main, monkeypatch, small_table,
 # ---------------------------------------------------------------- a simulated fleet
 
 @pytest.fixture(scope="module")
-def fleet_table(tmp_path_factory):
-    """The simulated fleet calibrated in-process, capture by capture, into a fleet table."""
-    directory = tmp_path_factory.mktemp("fleet")
-    captures = simulate_fleet(directory)
-    settings = batch.BatchSettings(method="joint", site=Site(40.59129, 0.0, 9.79956))
-    work = batch.plan([str(c.path) for c in captures], settings, [], redo=False)
-    rows = [row for job in work.jobs for row in batch.calibrate_file(job)]
-    path = directory / "fleet.parquet"
-    fleettable.write_table(path, rows, durable=False)
-    return path
+def fleet_table(fleet_batch):
+    """The simulated fleet's table as `calibd batch` made it (tests/conftest.py)."""
+    return fleet_batch[2]
 
 
 @pytest.mark.slow
