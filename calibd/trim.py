@@ -187,6 +187,21 @@ def write_backup(directory: Path, unit: UnitReading, port: str, now: datetime) -
     return path
 
 
+def prune_backups(directory: Path, serial_number: str, keep: int) -> list[Path]:
+    """Remove all but the `keep` newest backups of one sensor in `directory` (names as
+    `write_backup` makes them, oldest first by their time and number); returns those removed."""
+    prefix = f"trim-backup-{serial_number}-"
+
+    def when(path: Path) -> tuple[str, int]:
+        stamp, _, number = path.stem[len(prefix):].partition("-")
+        return stamp, int(number) if number.isdigit() else 1
+    backups = sorted((p for p in directory.glob(f"{prefix}*.json") if p.is_file() and not p.is_symlink()), key=when)
+    removed = backups[:max(0, len(backups) - keep)]
+    for path in removed:
+        path.unlink(missing_ok=True)
+    return removed
+
+
 def load_backup(path) -> Backup:
     where = str(path)
     doc = decode_json(read_input(path, "trim backup", DOCUMENT_LIMIT_BYTES), where, BackupDoc, TrimRefused)

@@ -447,3 +447,24 @@ def test_the_new_offsets_start_from_those_the_result_was_made_under():
     unknown = make_result("joint", Site(40.0), estimates, [], [], SensorRecord())  # says nothing: the present ones
     np.testing.assert_allclose(new_offsets(unknown, present, ("gyro",)).gyro_deg_s,
                                np.subtract(present.gyro_deg_s, np.array(bias_deg_h) / 3600), atol=1e-12)
+
+
+def test_the_daemon_keeps_only_the_newest_backups_of_each_sensor(tmp_path):
+    from datetime import datetime, timedelta, timezone
+
+    from calibd.trim import prune_backups, write_backup
+    from stim300.trim import TrimReading, UnitReading
+
+    start = datetime(2026, 5, 1, tzinfo=timezone.utc)
+    reading = TrimReading(TrimOffsets((0.0,) * 3, (0.0,) * 3, (0.0,) * 3), 1, 9998, 10)
+    made = [write_backup(tmp_path, UnitReading(reading, serial, GyroUnit.RATE, False), "/dev/x",
+                         start + timedelta(seconds=k // 2)) for k in range(8) for serial in ("A1", "B2")]
+    other = tmp_path / "notes.json"
+    other.write_text("{}")
+    removed = prune_backups(tmp_path, "A1", keep=3)
+    kept = {p.name for p in tmp_path.glob("trim-backup-A1-*")}
+    assert kept == {"trim-backup-A1-20260501T000002Z-2.json", "trim-backup-A1-20260501T000003Z.json",
+                    "trim-backup-A1-20260501T000003Z-2.json"}  # the second of a second is newer than the first
+    assert len(removed) == 5 and all(not p.exists() for p in removed)
+    assert len(list(tmp_path.glob("trim-backup-B2-*"))) == 8 and other.exists()  # another sensor's; not a backup
+    assert len(made) == 16

@@ -5,10 +5,11 @@ The rules are `calibd.trim`'s, as for `calibd trim`, without --force: any refusa
 (logged once a session, with the reason). What the result alone says is checked before the port
 is taken, so a refused result costs no data; the rest (the unit's serial number, its trims in
 force, the trim range) once the unit has been read. Offsets in force go to a backup file in the
-state directory first, what is written is read back within one count, and any failure puts the
-backup back and leaves the unit in Normal Mode. No flash save is ever spent. A result made on
-the output this daemon trimmed (its `sensor.trim` carries the reference written) is not trimmed again:
-once per power-up, as a power-up starts again from flash's trims.
+state directory first (the KEPT_BACKUPS newest of a sensor are kept), what is written is read
+back within one count, and any failure puts the backup back and leaves the unit in Normal Mode.
+No flash save is ever spent. A result made on the output this daemon trimmed (its `sensor.trim`
+carries the reference written) is not trimmed again: once per power-up, as a power-up starts
+again from flash's trims.
 """
 
 from __future__ import annotations
@@ -28,10 +29,11 @@ from stim300.trim import UNITS, TrimReading, apply_trims, read_trims
 from ..config import TrimConfig
 from ..errors import CalibdError
 from ..results import CalibrationResult, TrimmedRecord
-from ..trim import (TrimOptions, TrimRefused, beyond_range, guarded, missing, new_offsets, refusals, result_refusals,
-                    trim_reference, write_backup)
+from ..trim import (TrimOptions, TrimRefused, beyond_range, guarded, missing, new_offsets, prune_backups, refusals,
+                    result_refusals, trim_reference, write_backup)
 
 log = structlog.get_logger("calibd")
+KEPT_BACKUPS = 16  # the daemon's backups of a sensor kept in the state directory: one is written every power-up
 
 
 class Trimmer:
@@ -116,6 +118,7 @@ class Trimmer:
         if problems:
             raise TrimRefused("; ".join(problems))
         backup = write_backup(self.backup_dir, unit, self.port, datetime.now(timezone.utc))
+        prune_backups(self.backup_dir, unit.serial_number, KEPT_BACKUPS)
         try:
             reading = guarded(ser, unit, backup, TrimOptions(timeout=self.timeout),
                               lambda text: log.warning("trim_restored", detail=text),
