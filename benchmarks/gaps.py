@@ -34,7 +34,7 @@ import numpy as np
 
 from accuracy import random_scenario
 from calibd.methods.joint import joint_real_case
-from calibd.cli import load_session
+from calibd.captures import load_session
 from calibd.sim import capture_bytes, simulate, truth_record
 from live import ENV, capture_2000hz
 

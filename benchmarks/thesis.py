@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from calibd.methods.thesis import thesis_real_case
-from calibd.cli import load_session
+from calibd.captures import load_session
 from calibd.frames import Site
 from calibd.scenario import load_scenario
 from calibd.sim import write_capture

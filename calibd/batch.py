@@ -71,7 +71,7 @@ def calibrate_file(job: CaptureJob) -> list[dict]:
     """Every power-up of one capture as rows of the fleet table (runs on a worker): the
     calibration `calibd calibrate --session N` gives, or the one line saying why not."""
     from .calibrate import calibrate_capture
-    from .cli import open_capture
+    from .captures import open_capture
     from .methods import estimator
     from .results import result_json
 

@@ -12,21 +12,20 @@ from __future__ import annotations
 import argparse
 import errno
 import json
-import mmap
 import os
 import select
 import sys
 import time
-from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from stim300.cliutil import (DOCUMENT_LIMIT_BYTES, CommandParser, RunError, input_file, not_an_input, open_regular,
-                             path_arg, read_input, run_command, write_error)
+from stim300.cliutil import (DOCUMENT_LIMIT_BYTES, CommandParser, RunError, input_file, not_an_input, path_arg,
+                             read_input, run_command, write_error)
 from stim300.errors import UsageError
 
 from . import spec
+from .captures import load_session, mapped_input, open_capture
 from .errors import CalibdError, CalibrationError
 from .frames import STANDARD_GRAVITY, Site, site_value_error
 from .scenarios import READY_MADE
@@ -36,61 +35,9 @@ from .units import DEG, estimate_rows
 if TYPE_CHECKING:
     from .config import ServeConfig
     from .results import CalibrationResult
-    from .session import CaptureSessions, Session
 
 # Each command imports what only it needs in its own body (the daemon, the methods and scipy, matplotlib), so
 # that a command pays for its own imports only (docs/architecture.md, Start-up; benchmarks/startup.py).
-
-
-@contextmanager
-def mapped_input(path: str):
-    """The input file at `path` mapped rather than read (b"" when empty), with a function that
-    lets go of the pages before an offset once they are decoded: a long capture's pages never
-    pile up in memory."""
-    with open_regular(path) as f:
-        if not os.fstat(f.fileno()).st_size:
-            yield b"", lambda offset: None
-            return
-        with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as mapped:
-            def let_go(offset: int) -> None:
-                done = offset // mmap.PAGESIZE * mmap.PAGESIZE
-                if done:
-                    mapped.madvise(mmap.MADV_DONTNEED, 0, done)
-
-            yield mapped, let_go
-
-
-def open_capture(path: str, data: bytes | None = None, topic: str | None = None) -> CaptureSessions:
-    """The capture at `path` (its bytes, when already read) decoded, its datagrams stamped by the
-    read log recorded beside it (PATH.reads.npy) when there is one; or, when `path` is a recording
-    (a ROS bag, rosbag2 or MCAP, by its content), its sensor_msgs/Imu `topic` (None: its only one).
-    Capture files are read here only: the rest of calibd takes decoded captures and sessions. A
-    file is mapped, not read, and the pages decoded are let go, so a long capture never sits in
-    memory whole."""
-    from stim300.reads import load_reads
-
-    from .recordings import is_recording, open_recording
-    from .session import decode_sessions
-
-    if data is None and is_recording(path):
-        return open_recording(path, topic)
-    if topic is not None:
-        raise UsageError(f"{path}: --topic names a topic of a recording (ROS bag, rosbag2, MCAP), and this is a "
-                         "STIM300 capture")
-    reads = load_reads(path)
-    if data is not None:
-        return decode_sessions(data, str(path), reads)
-    with mapped_input(path) as (mapped, let_go):
-        return decode_sessions(mapped, str(path), reads, let_go)
-
-
-def load_session(path: str, start_s: float | None = 0.0, data: bytes | None = None,
-                 power_up: int | None = None, topic: str | None = None) -> Session:
-    """One power-up of a capture (default the last) from `start_s` (None: where the warm-up ends);
-    `topic`: a recording's Imu topic (None: its only one)."""
-    from .session import power_up_session
-
-    return power_up_session(open_capture(path, data, topic), power_up, start_s)
 
 
 def cmd_simulate(args) -> int:

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calibd.cli import load_session
+from calibd.captures import load_session
 from calibd.config import MethodConfig, WarmupConfig
 from calibd.daemon import Calibrator, Listener, State, StateLog, stale_result
 from calibd.daemon import collector as collector_module

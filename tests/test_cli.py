@@ -234,7 +234,7 @@ def test_a_bench_capture_refused_by_a_single_mounting_method_points_to_the_bench
 def test_a_refusal_of_what_is_not_the_bench_campaign_has_no_bench_hint():
     from calibd.methods import ProtocolIncomplete
     from calibd.methods.joint import joint_real_case
-    from calibd.cli import load_session
+    from calibd.captures import load_session
     from calibd.frames import Site
 
     session = load_session("fixtures/thesis_real_cw_125hz.bin")

@@ -17,7 +17,7 @@ import pytest
 import stim300.atomic
 from calibd.cli import main as calibd_main
 from calibd.methods.joint import joint_real_case
-from calibd.cli import load_session
+from calibd.captures import load_session
 from calibd.config import MethodConfig, WarmupConfig
 from calibd.daemon import Calibrator, Callbacks, State
 from calibd.frames import Site

@@ -12,7 +12,7 @@ import pytest
 
 from calibd import spec
 from calibd.methods.joint import joint_fit, joint_real_case
-from calibd.cli import load_session
+from calibd.captures import load_session
 from calibd.estimators import joint
 from calibd.frames import STANDARD_GRAVITY
 from calibd.results import result_json

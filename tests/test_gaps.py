@@ -9,7 +9,7 @@ import pytest
 from calibd import gaps
 from calibd.allan import FLICKER_TAUS_S
 from calibd.methods.joint import joint_real_case
-from calibd.cli import load_session
+from calibd.captures import load_session
 from calibd.estimators.joint import JointInput, NoiseModel
 from calibd.frames import Site, int_to_imu, r3
 from calibd.results import CalibrationResult

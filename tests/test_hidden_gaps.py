@@ -14,7 +14,7 @@ import pytest
 
 import stim300.port as port
 from calibd.methods.joint import joint_real_case
-from calibd.cli import load_session
+from calibd.captures import load_session
 from calibd.config import WarmupConfig
 from calibd.daemon import Calibrator, Callbacks
 from calibd.frames import Site

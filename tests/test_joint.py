@@ -11,7 +11,7 @@ import pytest
 from calibd import detect, spec
 from calibd.allan import FLICKER_TAUS_S
 from calibd.methods.joint import _joint_warnings, joint_real_case
-from calibd.cli import load_session
+from calibd.captures import load_session
 from calibd.cli import main as calibd_main
 from calibd.estimators.joint import (JointInput, JointOptions, NoiseModel, SensorNoise, Underdetermined, alpha_beta,
                                      datasheet_noise, fit_force, fit_gyros, solve, white_noise_bound)

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from calibd import config
-from calibd.cli import load_session
+from calibd.captures import load_session
 from calibd.segments import session_segments
 from calibd.config import ConfigError, MethodConfig, WarmupConfig, parse_config
 from calibd.daemon import Calibrator, Callbacks

@@ -15,7 +15,7 @@ from calibd.planner import noise_from_json, plan
 from calibd.scenario import Noise
 from calibd.frames import Site
 from calibd.methods.common import NO_INCLINOMETERS
-from calibd.cli import open_capture
+from calibd.captures import open_capture
 from calibd.live import configure_logging
 from calibd.session import power_up_session
 

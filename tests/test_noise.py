@@ -15,7 +15,7 @@ import pytest
 from calibd.allan import FLICKER_TAUS_S, allan_deviation, allan_edf, allan_gm, confidence_interval, flicker_sigma, \
     pooled_allan_deviation
 from calibd import spec
-from calibd.cli import load_session
+from calibd.captures import load_session
 from calibd.cli import main as calibd_main
 from calibd.detect import Segment as Detected
 from calibd.noise import CHANNELS, NoiseError, characterise, kalibr_yaml

@@ -15,7 +15,8 @@ from rosbags.rosbag1 import Writer as Bag1Writer
 from rosbags.rosbag2 import StoragePlugin, Writer as Bag2Writer
 from rosbags.typesys import Stores, get_typestore
 
-from calibd.cli import main as calibd_main, open_capture
+from calibd.captures import open_capture
+from calibd.cli import main as calibd_main
 from calibd.errors import CalibrationError
 from calibd.recordings import decode_imu, is_recording
 from calibd.session import power_up_session

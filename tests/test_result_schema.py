@@ -17,7 +17,8 @@ from scipy.spatial.transform import Rotation
 
 from calibd.calibrate import calibrate_capture
 from calibd.methods.joint import joint_real_case
-from calibd.cli import load_session, main as calibd_main, open_capture
+from calibd.captures import load_session, open_capture
+from calibd.cli import main as calibd_main
 from calibd.config import WarmupConfig
 from calibd.daemon import Calibrator, Callbacks
 from calibd.frames import STANDARD_GRAVITY, Site, int_to_imu, nav_to_imu

@@ -147,7 +147,7 @@ def test_a_calibrated_capture_names_the_file_it_came_from(tmp_path):
     import hashlib
 
     from calibd.calibrate import calibrate_capture
-    from calibd.cli import open_capture
+    from calibd.captures import open_capture
     from calibd.methods import estimator
 
     path = "fixtures/thesis_real_cw_125hz.bin"

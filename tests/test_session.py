@@ -4,7 +4,7 @@ from pathlib import Path
 
 import numpy as np
 
-from calibd.cli import open_capture
+from calibd.captures import open_capture
 from calibd.frames import STANDARD_GRAVITY
 from calibd.session import STORE_RATE_HZ, PowerUpCuts, SessionBuilder, power_up_session
 from calibd.units import DEG
@@ -113,7 +113,7 @@ def test_a_decoded_capture_knows_its_size_and_sha256(tmp_path):
     """The identity a report or apply checks a capture against is the file's, hashed as decoded."""
     import hashlib
 
-    from calibd.cli import open_capture
+    from calibd.captures import open_capture
 
     path = "fixtures/thesis_real_cw_125hz.bin"
     data = open(path, "rb").read()

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from calibd.cli import main as calibd_main
-from calibd.cli import open_capture
+from calibd.captures import open_capture
 from calibd.frames import normal_gravity
 from calibd.report import read_truth
 from calibd.scenario import Segment, load_scenario

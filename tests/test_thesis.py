@@ -13,7 +13,7 @@ from calibd.methods import ProtocolIncomplete
 from calibd.methods.bench import thesis_bench
 from calibd.methods.common import one_period
 from calibd.methods.thesis import thesis_real_case
-from calibd.cli import load_session
+from calibd.captures import load_session
 from calibd.cli import main as calibd_main
 from calibd.segments import session_segments
 from calibd.session import Session

@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calibd.cli import load_session
+from calibd.captures import load_session
 from calibd.config import WarmupConfig
 from calibd.warmup import (WARM_UP_RULE, record_settling, settling, start_words, warm_up_end_s, warm_up_label,
                            warm_up_warnings)
