@@ -576,11 +576,12 @@ def cmd_noise(args) -> int:
     return 0
 
 
-APPLY_OUTPUTS = (".npz", ".csv")
+APPLY_OUTPUTS = (".npz", ".csv", ".mcap")
+MCAP_FRAME_IDS = {"imu": "imu_link", "home": "imu_home"}  # the Imu messages' frame_id by apply's frame
 
 
 def cmd_apply(args) -> int:
-    """A result's biases taken off a capture's samples, in SI, into NPZ or CSV (docs/apply.md)."""
+    """A result's biases taken off a capture's samples, in SI, into NPZ, CSV or MCAP (docs/apply.md)."""
     import hashlib
 
     from stim300.atomic import atomic_file
@@ -594,7 +595,7 @@ def cmd_apply(args) -> int:
     kind = Path(args.output).suffix.lower()
     if kind not in APPLY_OUTPUTS:
         raise UsageError(f"apply: {args.output}: unknown output type {kind or '(no extension)'!r}: "
-                         f"name it .npz or .csv")
+                         f"name it .npz, .csv or .mcap")
     not_an_input(args.output, args.result, args.capture)
     result_bytes = read_input(args.result, "result file", DOCUMENT_LIMIT_BYTES)
     try:
@@ -608,11 +609,15 @@ def cmd_apply(args) -> int:
     reads = load_reads(args.capture)
     try:
         with mapped_input(args.capture) as (data, let_go), atomic_file(args.output, durable=False) as f:
-            gather = NpzWriter(NpzWriter.capacity_for(len(data))) if kind == ".npz" else None
-            applied = apply_capture(data, args.capture, fix, serial, args.force, gather or CsvWriter(f, meta),
-                                    reads, let_go)
-            if gather:
-                gather.finish(f, meta)
+            if kind == ".mcap":
+                writer = _mcap_writer(f, meta, result, result_bytes, data, MCAP_FRAME_IDS[fix.frame])
+            else:
+                writer = NpzWriter(NpzWriter.capacity_for(len(data))) if kind == ".npz" else CsvWriter(f, meta)
+            applied = apply_capture(data, args.capture, fix, serial, args.force, writer, reads, let_go)
+            if kind == ".npz":
+                writer.finish(f, meta)
+            elif kind == ".mcap":
+                writer.finish()
     except OSError as exc:
         raise write_error(args.output, exc) from None
     for text in applied.warnings:
@@ -621,6 +626,19 @@ def cmd_apply(args) -> int:
     print(f"{args.capture}: {applied.samples} samples, {applied.power_ups} power-up(s), biases of {args.result} "
           f"subtracted, in SI units (rad/s, m/s^2) in {frame} -> {args.output}")
     return 0
+
+
+def _mcap_writer(f, meta: dict, result, result_bytes: bytes, data, frame_id: str):
+    """apply's MCAP writer, its noise covariances at the capture's rate and range (read off the
+    capture's first datagrams)."""
+    from stim300.bulk import decode_capture
+
+    from .correction import noise_covariances
+    from .mcapout import McapImuWriter
+
+    info = decode_capture(bytes(data[:1 << 18])).info
+    ranges = None if info.configuration is None else max(info.configuration.acc_range_g)
+    return McapImuWriter(f, meta, result, result_bytes, noise_covariances(info.rate_hz or 2000, ranges), frame_id)
 
 
 def _client_program(body) -> int:
@@ -1003,10 +1021,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--start", type=_number(0, 1e9, "s"), default=0.0, help="skip the first S seconds (warm-up)")
     p.add_argument("--topic", type=_ros_topic, metavar="NAME", help=TOPIC_HELP)
     p.set_defaults(func=cmd_noise)
-    p = sub.add_parser("apply", help="result + capture -> bias-corrected samples in SI units (NPZ or CSV)")
+    p = sub.add_parser("apply", help="result + capture -> bias-corrected samples in SI units (NPZ, CSV or MCAP)")
     p.add_argument("result", help="RESULT.json written by calibd calibrate or the daemon")
     p.add_argument("capture", help="a capture of the same sensor (and power-up) to correct")
-    p.add_argument("-o", "--output", type=path_arg, required=True, help="OUT.npz or OUT.csv (replaced atomically)")
+    p.add_argument("-o", "--output", type=path_arg, required=True,
+                   help="OUT.npz, OUT.csv or OUT.mcap (ROS 2 sensor_msgs/Imu; replaced atomically)")
     p.add_argument("--frame", action="store_true",
                    help="turn the vectors into the home frame: NWU when the platform is at its home position, "
                         "turning with the platform (needs yaw, pitch and roll)")

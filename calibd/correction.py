@@ -2,8 +2,8 @@
 corrected pty, corrected SAMPLES (and whatever publishes corrected data next). What a result's
 biases are in SI and in the sensor's base units, the factory terms the data estimated and how
 they are taken out (`estimated_maps`, `through`), which output units can take them, which of a
-power-up's results is subtracted ([serve] correction), and whether a result is of the sensor
-at hand."""
+power-up's results is subtracted ([serve] correction), whether a result is of the sensor
+at hand, and the covariances a corrected sample carries (noise and the biases taken out)."""
 
 from __future__ import annotations
 
@@ -145,6 +145,22 @@ def other_sensor(result_serial: str | None, serial: str | None) -> bool:
     than the stream's (`serial`): only when both are known and differ. A serial number comes
     only in the sensor's power-up datagrams, so a stream joined later cannot tell."""
     return serial is not None and result_serial is not None and serial != result_serial
+
+
+def white_noise_variance(random_walk_per_sqrt_h: float, rate_hz: float) -> float:
+    """A random walk's white noise over one sample interval, as a variance: (rad/sqrt(h) or
+    m/s/sqrt(h)) -> per second per sqrt(s), squared, times the rate."""
+    return (random_walk_per_sqrt_h / 60.0) ** 2 * rate_hz
+
+
+def noise_covariances(rate_hz: float, acc_range_g: int | None) -> tuple[np.ndarray, np.ndarray]:
+    """The datasheet's white noise of one sample at `rate_hz` (a unit of `acc_range_g`; None:
+    not known, a 10 g unit's), as the 3 x 3 covariances (SI^2) of the gyros and the
+    accelerometers: what every published sensor_msgs/Imu carries."""
+    figures = spec.NoiseFigures.datasheet() if acc_range_g is None else spec.NoiseFigures.datasheet(acc_range_g)
+    gyro = white_noise_variance(figures.gyro_arw_deg_sqrt_h * DEG, rate_hz)
+    acc = white_noise_variance(figures.acc_vrw_m_s_sqrt_h, rate_hz)
+    return np.eye(3) * gyro, np.eye(3) * acc
 
 
 def bias_covariance(result: CalibrationResult, cluster: str) -> np.ndarray:

@@ -241,10 +241,10 @@ def test_poor_estimates_refused_on_the_command_line_and_applied_with_force(resul
 
 
 @pytest.mark.parametrize("output, says", [
-    ("o.txt", "unknown output type '.txt': name it .npz or .csv"),
+    ("o.txt", "unknown output type '.txt': name it .npz, .csv or .mcap"),
     ("o", "unknown output type '(no extension)'"),
 ])
-def test_an_output_that_is_not_npz_or_csv_is_refused(result_files, tmp_path, run_main, output, says):
+def test_an_output_that_is_not_npz_csv_or_mcap_is_refused(result_files, tmp_path, run_main, output, says):
     code, _, err = run_main(main, ["apply", result_files / "r.json", FIXTURE, "-o", tmp_path / output])
     assert code == 2 and says in err and err.count("\n") == 1, err
 

@@ -22,9 +22,8 @@ import structlog
 
 
 from ..config import Ros2Config
-from ..correction import ServedCorrection, bias_covariance, si_biases, through, uncorrectable
+from ..correction import ServedCorrection, bias_covariance, noise_covariances, si_biases, through, uncorrectable
 from ..results import CalibrationResult, quaternion, result_json
-from ..spec import NoiseFigures
 from ..units import DEG
 from ..frames import STANDARD_GRAVITY
 from ..ros2.messages import Level, Status
@@ -34,12 +33,6 @@ log = structlog.get_logger("calibd")
 
 NWU_TO_ENU = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # v_ENU = C v_NWU
 NO_ORIENTATION = -1.0  # orientation_covariance[0] of an Imu without an orientation (REP 145)
-
-
-def white_noise_variance(random_walk_per_sqrt_h: float, rate_hz: float) -> float:
-    """A random walk's white noise over one sample interval, as a variance: (deg/sqrt(h) or
-    m/s/sqrt(h)) -> per second per sqrt(s), squared, times the rate."""
-    return (random_walk_per_sqrt_h / 60.0) ** 2 * rate_hz
 
 
 class Ros2Feed:
@@ -93,10 +86,7 @@ class Ros2Feed:
         ranges = None if info.configuration is None else info.configuration.acc_range_g
         key = (info.rate_hz, None if ranges is None else max(ranges))
         if self._noise is None or self._noise[0] != key:
-            figures = NoiseFigures.datasheet() if key[1] is None else NoiseFigures.datasheet(key[1])
-            gyro = white_noise_variance(figures.gyro_arw_deg_sqrt_h * DEG, info.rate_hz)
-            acc = white_noise_variance(figures.acc_vrw_m_s_sqrt_h, info.rate_hz)
-            self._noise = (key, np.eye(3) * gyro, np.eye(3) * acc)
+            self._noise = (key, *noise_covariances(*key))
         return self._noise[1], self._noise[2]
 
     def state(self, state: str, detail: str, progress: dict) -> None:
