@@ -26,7 +26,7 @@ import numpy as np
 from live import ENV, capture_2000hz  # benchmarks/live.py: a simulated 2000 Hz stream
 
 from calibd.frames import STANDARD_GRAVITY
-from calibd.ros2.messages import ImuEncoder
+from stim300.rosimu import ImuEncoder
 from calibd.units import DEG
 from stim300.bulk import decode_capture
 

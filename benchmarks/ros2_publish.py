@@ -35,7 +35,7 @@ from cyclonedds.pub import DataWriter  # noqa: E402
 from cyclonedds.topic import Topic  # noqa: E402
 
 from calibd.ros2 import wire  # noqa: E402
-from calibd.ros2.messages import ImuEncoder  # noqa: E402
+from stim300.rosimu import ImuEncoder  # noqa: E402
 
 FRAME_ID = "stim300_link"
 TARGET_US = 7.5

@@ -353,13 +353,16 @@ MAX_RATE_HZ = 2000.0  # the sensor's fastest
 def _ros2(t: _ConfigTable) -> Ros2Config:
     """[ros2]: domain, frame and topic names, each checked by the ROS 2 rules (calibd.ros2.messages,
     which needs no DDS package to check them)."""
-    from .ros2.messages import MAX_DOMAIN_ID, Ros2Error, check_frame_id, dds_topic
+    from stim300.errors import FormatError
+    from stim300.rosimu import check_frame_id
+
+    from .ros2.messages import MAX_DOMAIN_ID, Ros2Error, dds_topic
 
     def name(key: str, check) -> str:
         value = t.get(key, getattr(d, key), str)
         try:
             check(value)
-        except Ros2Error as exc:
+        except (Ros2Error, FormatError) as exc:  # the topic rules are calibd's, the frame_id's the driver's
             why = str(exc).split(": ", 1)[1]
             t.fail(key, why if repr(value) in why else f"{value!r}: {why}")
         return value

@@ -18,9 +18,10 @@ import json
 
 import numpy as np
 
+from stim300.rosimu import IMU, NS_PER_S, ImuEncoder
+
 from .correction import bias_covariance
 from .errors import CalibdError
-from .ros2.messages import IMU, ImuEncoder, NS_PER_S
 
 NEEDS_EXTRA = "writing MCAP needs the recordings extra: pip install 'stim300-calib[recordings]'"
 TOPIC = "/imu/data"

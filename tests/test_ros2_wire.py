@@ -15,7 +15,9 @@ import numpy as np
 import pytest
 
 from calibd.errors import CalibdError
-from calibd.ros2.messages import ImuEncoder, Level, Ros2Error, Status, check_frame_id, dds_topic
+from calibd.ros2.messages import Level, Ros2Error, Status, dds_topic
+from stim300.errors import FormatError, Stim300Error
+from stim300.rosimu import ImuEncoder, check_frame_id
 from ros2_subscriber import LOOPBACK, ros2_qos, subscribe, take
 
 TOPICS = {"imu_raw": "stim300/imu/data_raw", "imu": "/stim300/imu/data", "calibration": "stim300/calibration",
@@ -39,12 +41,12 @@ def _typestore(store: str):
     return get_typestore(getattr(Stores, store))
 
 
-def _one_line_error(call, *args, says: str) -> str:
-    with pytest.raises(Ros2Error) as caught:
+def _one_line_error(call, *args, says: str, error=Ros2Error) -> str:
+    with pytest.raises(error) as caught:
         call(*args)
     message = str(caught.value)
     assert "\n" not in message and says in message, message
-    assert isinstance(caught.value, CalibdError)
+    assert isinstance(caught.value, CalibdError if error is Ros2Error else Stim300Error)
     return message
 
 
@@ -66,16 +68,16 @@ def test_a_bad_topic_name_is_one_line_naming_its_key(name):
 
 @pytest.mark.parametrize("frame_id", ["", "imu link", "imu\n", "imü", "x" * 256, None])
 def test_a_bad_frame_id_is_one_line(frame_id):
-    _one_line_error(check_frame_id, frame_id, says="ros2 frame_id")
+    _one_line_error(check_frame_id, frame_id, says="frame_id", error=FormatError)
 
 
 def test_a_time_before_1970_or_after_2038_is_one_line():
     encoder = ImuEncoder("imu")
     for ns in (-1, (2**31) * 10**9):
         _one_line_error(encoder.encode, np.array([ns]), np.zeros((1, 3)), np.zeros((1, 3)), [0.0] * 9, [0.0] * 9,
-                        says="ros2 time stamp")
+                        says="time stamp", error=FormatError)
     _one_line_error(encoder.encode, np.array([0]), np.zeros((1, 3)), np.zeros((1, 3)), [0.0] * 3, [0.0] * 9,
-                    says="ros2 gyro covariance")
+                    says="gyro covariance", error=FormatError)
 
 
 def test_import_loads_no_dds_and_without_the_extra_publisher_says_how_to_install():

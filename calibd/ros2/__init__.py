@@ -13,7 +13,6 @@ from stim300.lazy import lazy_exports
 
 _HOMES = {  # public name -> the module of calibd.ros2 that defines it
     "Ros2Error": "messages", "Status": "messages", "Level": "messages", "dds_topic": "messages",
-    "check_frame_id": "messages", "ImuEncoder": "messages",
     "Publisher": "wire", "TOPICS": "wire",
 }
 

@@ -6,7 +6,7 @@ The message types are declared here as ROS 2 defines them (rosidl's IDL: final s
 writers announce the same types a ROS 2 node's readers ask for. Iron and later read each writer's
 type hash from its user data ("typehash=RIHS01_<hex>;", as rmw_cyclonedds writes it); rosbags
 computes it from the message definitions. Imu samples are encoded in batches by
-`messages.ImuEncoder` and written through `DataWriter.write` as `_Encoded` samples, whose
+`stim300.rosimu.ImuEncoder` and written through `DataWriter.write` as `_Encoded` samples, whose
 `serialize` returns those bytes; the low-rate messages are written as the structs below.
 (No `from __future__ import annotations` here: cyclonedds reads the fields' types from the
 annotations as objects.)
@@ -18,8 +18,11 @@ from typing import Sequence
 
 import numpy as np
 
-from .messages import (DIAGNOSTIC_ARRAY, IMU, MAX_DOMAIN_ID, NEEDS_EXTRA, QUATERNION_STAMPED, STRING, ImuEncoder,
-                       Ros2Error, Status, dds_topic, dds_type_name, stamp)
+from stim300.errors import FormatError
+from stim300.rosimu import IMU, ImuEncoder, stamp
+
+from .messages import (DIAGNOSTIC_ARRAY, MAX_DOMAIN_ID, NEEDS_EXTRA, QUATERNION_STAMPED, STRING, Ros2Error, Status,
+                       dds_topic, dds_type_name)
 
 try:
     from cyclonedds.core import DDSException, Policy, Qos
@@ -179,7 +182,10 @@ class Publisher:
         if unknown:
             raise Ros2Error(f"ros2 topics: unknown key {unknown[0]!r} (known: {', '.join(TOPICS)})")
         names = {key: dds_topic(name, key) for key, name in topics.items()}
-        self._imu = ImuEncoder(frame_id)
+        try:
+            self._imu = ImuEncoder(frame_id)
+        except FormatError as exc:
+            raise Ros2Error(f"ros2 {exc}") from None
         self.frame_id = frame_id
         if type(domain_id) is not int or not 0 <= domain_id <= MAX_DOMAIN_ID:
             raise Ros2Error(f"ros2 domain_id {domain_id!r}: expected an integer 0 to {MAX_DOMAIN_ID}")
