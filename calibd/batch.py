@@ -12,11 +12,9 @@ the same whatever order the tasks finished in and however many workers ran them.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import shutil
-import stat
 import sys
 import time
 from dataclasses import dataclass, field
@@ -26,11 +24,11 @@ from stim300.cliutil import package_version
 from stim300.errors import UsageError
 
 from . import fleettable
+from .captures import file_identity
 from .errors import CalibdError, CalibrationError
 from .frames import Site
 
 SIDECARS = (".reads.npy", ".truth.json")  # files beside a capture that are not captures
-HASH_CHUNK = 1 << 20
 
 
 @dataclass(frozen=True)
@@ -117,18 +115,6 @@ def capture_paths(inputs: list[str]) -> list[str]:
             paths += [os.path.join(root, name) for name in sorted(files)
                       if not name.startswith(".") and not name.endswith(SIDECARS)]
     return paths
-
-
-def file_identity(path: str) -> tuple[str, int, float]:
-    """SHA-256, size (B) and modification time (s since the epoch) of a regular file; OSError otherwise."""
-    with open(os.open(path, os.O_RDONLY | os.O_NONBLOCK), "rb") as f:  # a FIFO: no wait for a writer
-        info = os.fstat(f.fileno())
-        if not stat.S_ISREG(info.st_mode):
-            raise OSError(0, "not a regular file", path)
-        digest = hashlib.sha256()
-        while chunk := f.read(HASH_CHUNK):
-            digest.update(chunk)
-    return digest.hexdigest(), info.st_size, info.st_mtime
 
 
 @dataclass

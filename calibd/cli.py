@@ -25,7 +25,7 @@ from stim300.cliutil import (DOCUMENT_LIMIT_BYTES, CommandParser, RunError, inpu
 from stim300.errors import UsageError
 
 from . import spec
-from .captures import load_session, mapped_input, open_capture
+from .captures import capture_bytes, first_stream_info, load_session, open_capture
 from .errors import CalibdError, CalibrationError
 from .frames import STANDARD_GRAVITY, Site, site_value_error
 from .scenarios import READY_MADE
@@ -231,11 +231,29 @@ def cmd_batch(args) -> int:
 
 
 def cmd_fleet(args) -> int:
-    from .fleet import run_fleet
+    """The fleet report: the text on stdout, and the HTML page when --html names a file (docs/fleet.md)."""
+    from stim300.atomic import write_atomic
+
+    from .fleet import analyse, text_report
+    from .fleettable import read_rows
 
     if args.html is not None:
         not_an_input(args.html, args.table)
-    return run_fleet(args.table, args.html, args.serial)
+        if Path(args.html).is_dir():
+            raise UsageError(f"{args.html}: is a directory, expected an HTML file name")
+    fleet = analyse(args.table, read_rows(args.table), args.serial)
+    page = None
+    if args.html is not None:
+        from .fleetfigures import render_html
+
+        page = render_html(fleet)  # drawn before the text is printed: a missing matplotlib says so first
+    print(text_report(fleet), end="")
+    if page is not None:
+        try:
+            write_atomic(args.html, page.encode())
+        except OSError as exc:
+            raise write_error(args.html, exc) from None
+    return 0
 
 
 def cmd_sensitivity(args) -> int:
@@ -587,8 +605,6 @@ def cmd_apply(args) -> int:
     from stim300.atomic import atomic_file
     from stim300.cliutil import package_version
 
-    from stim300.reads import load_reads
-
     from .apply import ApplyError, CsvWriter, NpzWriter, apply_capture, correction, meta_record
     from .results import parse_result
 
@@ -606,9 +622,8 @@ def cmd_apply(args) -> int:
     meta = meta_record(fix, args.result, hashlib.sha256(result_bytes).hexdigest(), result, args.capture,
                        package_version())
     serial = result.sensor.serial_number
-    reads = load_reads(args.capture)
     try:
-        with mapped_input(args.capture) as (data, let_go), atomic_file(args.output, durable=False) as f:
+        with capture_bytes(args.capture) as (data, reads, let_go), atomic_file(args.output, durable=False) as f:
             if kind == ".mcap":
                 writer = _mcap_writer(f, meta, result, result_bytes, data, MCAP_FRAME_IDS[fix.frame])
             else:
@@ -631,12 +646,10 @@ def cmd_apply(args) -> int:
 def _mcap_writer(f, meta: dict, result, result_bytes: bytes, data, frame_id: str):
     """apply's MCAP writer, its noise covariances at the capture's rate and range (read off the
     capture's first datagrams)."""
-    from stim300.bulk import decode_capture
-
     from .correction import noise_covariances
     from .mcapout import McapImuWriter
 
-    info = decode_capture(bytes(data[:1 << 18])).info
+    info = first_stream_info(data)
     ranges = None if info.configuration is None else max(info.configuration.acc_range_g)
     return McapImuWriter(f, meta, result, result_bytes, noise_covariances(info.rate_hz or 2000, ranges), frame_id)
 

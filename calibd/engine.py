@@ -16,12 +16,14 @@ import logging
 import os
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
 from .errors import CalibdError
 
 NEEDS_EXTRA = "the batch engine needs the fleet extra: pip install 'stim300-calib[fleet]'"
 CONNECT_TIMEOUT_S = 10
+SCHEDULER_FILE_LIMIT = 1 << 20  # bytes: a scheduler file is a few hundred
 RETRIES = 2  # a task that raised is tried again this often (its worker died: Dask gives it to another one anyway)
 
 
@@ -29,12 +31,12 @@ class EngineError(CalibdError):
     """A cluster that cannot be reached or started; one line."""
 
 
-class TaskFailed(Exception):
-    """A task that raised on every try, or whose workers kept dying: `reason` in one line."""
+@dataclass(frozen=True)
+class TaskFailed:
+    """What `run_tasks` yields for a task that raised on every try, or whose workers kept dying:
+    `reason` in one line (a value in the results, never raised)."""
 
-    def __init__(self, reason: str):
-        super().__init__(reason)
-        self.reason = reason
+    reason: str
 
 
 def _distributed():
@@ -73,10 +75,14 @@ def cluster(scheduler: str | None = None, workers: int | None = None):
 
 def _scheduler_address(path: str) -> str:
     """The address in a scheduler file (JSON that `dask scheduler --scheduler-file` writes)."""
+    from stim300.cliutil import read_input
+    from stim300.errors import UsageError
+
     try:
-        with open(path, "rb") as f:
-            address = json.loads(f.read(1 << 20)).get("address")
-    except (OSError, ValueError, AttributeError) as exc:
+        address = json.loads(read_input(path, "scheduler file", SCHEDULER_FILE_LIMIT)).get("address")
+    except UsageError as exc:
+        raise EngineError(f"--scheduler {exc}") from None
+    except (ValueError, AttributeError) as exc:
         raise EngineError(f"--scheduler {path}: not a Dask scheduler file ({type(exc).__name__})") from None
     if not isinstance(address, str):
         raise EngineError(f"--scheduler {path}: not a Dask scheduler file (no address in it)")

@@ -36,7 +36,6 @@ import datetime
 import json
 import warnings
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
@@ -121,28 +120,6 @@ class Fleet:
     rows: int  # in the table
     not_ok: int  # rows whose status is not "ok"
     repeats: int  # "ok" rows of a session another row stands for
-
-
-def run_fleet(table: str, html: str | None, serial: str | None) -> int:
-    """`calibd fleet`: the text report on stdout, and the HTML report when `html` names a file."""
-    if html is not None and Path(html).is_dir():
-        raise FleetReportError(f"{html}: is a directory, expected an HTML file name")
-    fleet = analyse(table, fleettable.read_rows(table), serial)
-    page = None
-    if html is not None:
-        from .fleetfigures import render_html
-
-        page = render_html(fleet)
-    print(text_report(fleet), end="")
-    if page is not None:
-        from stim300.atomic import write_atomic
-        from stim300.cliutil import write_error
-
-        try:
-            write_atomic(html, page.encode())
-        except OSError as exc:
-            raise write_error(html, exc) from None
-    return 0
 
 
 def analyse(table: str, rows: list[dict], serial: str | None = None) -> Fleet:

@@ -10,10 +10,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from stim300.rosimu import STANDARD_GRAVITY  # noqa: F401 (the sensor's g unit is the driver's)
+
 from .errors import SiteError
 
 EARTH_RATE = 7.2921150e-5  # rad/s (WGS84), = 15.0411 deg/h
-STANDARD_GRAVITY = 9.80665  # m/s^2 per g: the STIM300's g unit (k0 of the datasheet)
 # How far true gravity may lie from normal gravity at a site (1-sigma): the local free-air
 # anomaly, whose worldwide RMS is about 42 mGal (point anomaly variance 1795 mGal^2 in Tscherning
 # and Rapp's 1974 degree-variance model); mountains and trenches reach 100 mGal and more.

@@ -28,6 +28,7 @@ from .errors import UsageError
 from .progress import Progress
 from .protocol import (ACC_RANGE_LSB_EXP, COUNTER_MODULUS, DEFAULT_BIT_RATE, INTERNAL_RATE_HZ, NORMAL_LAYOUTS,
                        SAMPLE_RATES_HZ, STANDARD_BIT_RATES, AccUnit, Format, GyroUnit, Status)
+from .mcaprec import holds_capture, read_capture
 from .reads import load_reads
 from .special import Configuration, UndefinedCode
 
@@ -84,7 +85,11 @@ def _format(args) -> Format:
 
 @contextmanager
 def _mapped(path: str):
-    """The capture's bytes, memory-mapped (no copy of a large file)."""
+    """The capture's bytes, memory-mapped (no copy of a large file); those of the raw channel of
+    an MCAP `stim300 record` wrote (`stim300.mcaprec`)."""
+    if holds_capture(path):
+        yield read_capture(path)[0]
+        return
     with open_regular(path) as f:
         if os.fstat(f.fileno()).st_size == 0:
             raise UsageError(f"{path}: empty file, no STIM300 data")
@@ -204,7 +209,7 @@ def cmd_decode(args) -> int:
         raise UsageError(f"{out}: output must end in .npz or .csv")
     not_an_input(out, args.capture)
     started = time.perf_counter()
-    samples, info = _decode(args.capture, _format(args), load_reads(args.capture))
+    samples, info = _decode(args.capture, _format(args), _reads(args.capture))
     cols = columns(samples, sample_times(samples, info).time_s)
     units = column_units(cols, info.format)
     with _output(out) as f:
@@ -386,8 +391,13 @@ def _configuration_lines(c: Configuration) -> list[str]:
     return lines
 
 
+def _reads(path: str) -> np.ndarray | None:
+    """The capture's read log: beside it (CAPTURE.reads.npy), or in the MCAP `stim300 record` wrote."""
+    return read_capture(path)[1] if holds_capture(path) else load_reads(path)
+
+
 def cmd_info(args) -> int:
-    reads = load_reads(args.capture)
+    reads = _reads(args.capture)
     samples, stream = _decode(args.capture, _format(args), reads)
     info = capture_info(samples, stream, reads)
     print(json.dumps(info, indent=1) if args.json else _describe(info, stream.configuration))
