@@ -309,7 +309,7 @@ def _replay_serve(args, config) -> ServeConfig | None:
     serve = replace(config.serve if config else ServeConfig(), **given)
     if not (serve.serving or (config and config.serving)):
         raise UsageError("replay --serve: nothing to serve: give --socket, --raw-pty or --corrected-pty, or a "
-                         "[serve], [ros2] or [foxglove] table in --config")
+                         "[serve], [ros2], [foxglove] or [record] table in --config")
     return serve
 
 
@@ -364,7 +364,7 @@ def cmd_replay(args) -> int:
     if serve:
         try:
             hub = Hub(serve, args.capture, feeds=make_feeds(config.ros2, config.foxglove) if config else None,
-                      paced=speed == 1)
+                      paced=speed == 1, record=config.record if config else None)
         except ServeError as exc:  # as for the daemon: serving that cannot start fails the run
             raise RunError(str(exc)) from None
         listeners.append(hub)

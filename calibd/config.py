@@ -24,8 +24,9 @@ from .errors import CalibdError
 from .frames import Site
 
 METHODS = DAEMON_METHODS  # the estimators (calibd.estimators) the daemon runs
-TABLES = ("serial", "site", "output", "warmup", "detection", "method", "trim", "serve", "ros2", "foxglove")
-SERVED_TABLES = ("serve", "ros2", "foxglove")  # what the daemon serves: started once, kept as started on SIGHUP
+TABLES = ("serial", "site", "output", "warmup", "detection", "method", "trim", "serve", "ros2", "foxglove", "record")
+# what the daemon serves or records: started once, kept as started on SIGHUP
+SERVED_TABLES = ("serve", "ros2", "foxglove", "record")
 
 
 class ConfigError(CalibdError):
@@ -137,6 +138,19 @@ class FoxgloveConfig:
     rate_hz: float = 100.0  # the IMU channels' display rate (block averages of the samples)
 
 
+@dataclass(frozen=True)
+class RecordConfig:
+    """The daemon's recording of the sensor (docs/recordings.md): its bytes and samples into
+    MCAP files in `directory`, a new file every `rotate_s` or `rotate_mb`, the newest `keep`
+    kept (0: all)."""
+
+    directory: Path
+    rotate_s: float = 3600.0
+    rotate_mb: float = 1024.0
+    keep: int = 24
+    frame_id: str = "imu_link"  # the Imu messages' header.frame_id
+
+
 TRIM_APPLY = ("off", "volatile")  # never "flash": a daemon spends no flash saves (docs/trim.md)
 
 
@@ -162,10 +176,11 @@ class DaemonConfig:
     serve: ServeConfig = ServeConfig()
     ros2: Ros2Config | None = None  # None: no [ros2] table, nothing published over DDS
     foxglove: FoxgloveConfig | None = None  # None: no [foxglove] table, no live view
+    record: RecordConfig | None = None  # None: no [record] table, nothing recorded
 
     @property
     def serving(self) -> bool:
-        """Whether the daemon serves the sensor at all (the socket, ptys, ROS 2, Foxglove)."""
+        """Whether the daemon serves the sensor at all (the socket, ptys, ROS 2, Foxglove, a recording)."""
         return bool(self.served_tables)
 
     @property
@@ -393,6 +408,28 @@ def _foxglove(t: _ConfigTable) -> FoxgloveConfig:
     return foxglove
 
 
+def _record(t: _ConfigTable) -> RecordConfig:
+    from stim300.errors import FormatError
+    from stim300.rosimu import check_frame_id
+
+    d = RecordConfig(Path("."))
+    directory = Path(t.require("directory", str, _path_text, "a directory path for the recordings"))
+    frame_id = t.get("frame_id", d.frame_id, str)
+    try:
+        check_frame_id(frame_id)
+    except FormatError as exc:
+        t.fail("frame_id", str(exc).split(": ", 1)[1])
+    record = RecordConfig(
+        directory=directory,
+        rotate_s=t.get("rotate_s", d.rotate_s, float, _within(60, 7 * DAY_S),
+                       _range_words("a duration", 60, 7 * DAY_S, "s")),
+        rotate_mb=t.get("rotate_mb", d.rotate_mb, float, _within(1, 1 << 20), _range_words("a size", 1, 1 << 20, "MB")),
+        keep=t.get("keep", d.keep, int, _within(0, 1 << 20), "a count of files in [0, 1048576] (0: keep all)"),
+        frame_id=frame_id)
+    t.finish()
+    return record
+
+
 def parse_config(data: dict, where: str) -> DaemonConfig:
     """Build a DaemonConfig from TOML data; `where` names the source in error messages."""
     known = ", ".join(f"[{name}]" for name in sorted(TABLES))
@@ -412,7 +449,8 @@ def parse_config(data: dict, where: str) -> DaemonConfig:
                         method=_method(table("method")), detection=_detection(table("detection")),
                         trim=_trim(table("trim")), serve=_serve(table("serve")),
                         ros2=_ros2(table("ros2")) if "ros2" in data else None,
-                        foxglove=_foxglove(table("foxglove")) if "foxglove" in data else None)
+                        foxglove=_foxglove(table("foxglove")) if "foxglove" in data else None,
+                        record=_record(table("record")) if "record" in data else None)
 
 
 def load_config(path: str | Path) -> DaemonConfig:

@@ -201,8 +201,8 @@ def run(config, reload_config) -> int:
     try:
         store = ResultStore(config.state_dir, {"port": config.serial.port}, on_health=status.degraded)
         previous = store.previous()
-        hub = Hub(config.serve, config.serial.port, previous, make_feeds(config.ros2, config.foxglove)) \
-            if config.serving else None
+        hub = Hub(config.serve, config.serial.port, previous, make_feeds(config.ros2, config.foxglove),
+                  record=config.record) if config.serving else None
         try:
             source = PortSource(config.serial.port, config.serial.baudrate, tap=hub and hub.tap)
         except BaseException:

@@ -41,9 +41,11 @@ _RAW_HEADER = CDR_LE + struct.pack("<II", 0, 0)  # no layout dimensions, data_of
 UNKNOWN = np.zeros(9)  # sensor_msgs/Imu: a covariance of zeros is not known
 ABSENT = np.array([-1.0, *[0.0] * 8])  # a first element of -1: the datagram has no such vector
 PENDING_READS = 4096  # reads whose samples wait until the stream's rate is known (seconds at most)
+IMU_BATCH = 256  # samples turned into Imu messages at once (0.13 s at 2000 Hz, 2 s at 125 Hz)
 
 
-def _mcap():
+def mcap_modules():
+    """The mcap package's modules and rosbags' ROS 2 type store, or a UsageError naming the extra."""
     try:
         import mcap.reader
         import mcap.records
@@ -63,7 +65,7 @@ def holds_capture(path) -> bool:
         with open(path, "rb") as f:
             if f.read(len(MAGIC)) != MAGIC:
                 return False
-            mcap, _ = _mcap()
+            mcap, _ = mcap_modules()
             f.seek(0)
             try:
                 summary = mcap.reader.make_reader(f).get_summary()
@@ -93,7 +95,7 @@ class McapRecorder:
     """Reads of the port in, an MCAP written to the binary file `f`; `finish()` ends it."""
 
     def __init__(self, f, frame_id: str = "imu_link", library: str = "stim300"):
-        mcap, types = _mcap()
+        mcap, types = mcap_modules()
         self.writer = mcap.writer.Writer(f)
         self.writer.start(profile="ros2", library=library)
         schemas = {name: self.writer.register_schema(name, "ros2msg", types.generate_msgdef(name, ros_version=2)[0]
@@ -105,6 +107,7 @@ class McapRecorder:
         self.clock, self.wall = CounterClock(), WallClock()
         self.reads = self.samples = 0
         self.pending: list[np.ndarray] = []
+        self.pending_samples = 0
         self.unpublished: str | None = None  # why the samples are not Imu messages (outputs not rates)
 
     def add(self, data: bytes, t_host_s: float, realtime_ns: int | None = None) -> None:
@@ -113,13 +116,19 @@ class McapRecorder:
         self.writer.add_message(self.raw, realtime_ns, _RAW_HEADER + struct.pack("<I", len(data)) + data,
                                 round(t_host_s * NS_PER_S), self.reads)
         self.reads += 1
-        self._imu(self.parser.feed(data, t_host_s))
-
-    def _imu(self, samples: np.ndarray) -> None:
-        info = stream_info(self.parser)
-        if len(samples):
+        samples = self.parser.feed(data, t_host_s)
+        if len(samples) and not self.unpublished:
             self.pending.append(samples)
-            del self.pending[:-PENDING_READS]
+            self.pending_samples += len(samples)
+            if len(self.pending) > PENDING_READS:  # the rate is still not known: the oldest go
+                self.pending_samples -= len(self.pending.pop(0))
+        if self.pending_samples >= IMU_BATCH:
+            self._imu()
+
+    def _imu(self) -> None:
+        """The pending samples as Imu messages, once the stream's rate is known: in batches, as
+        the counter clock and the encoder cost per call more than per sample."""
+        info = stream_info(self.parser)
         if not info.rate_hz or not self.pending or self.unpublished:
             return
         fmt = info.format
@@ -129,7 +138,7 @@ class McapRecorder:
                                 "sensor_msgs/Imu carries rates and accelerations")
             return
         samples = np.concatenate(self.pending) if len(self.pending) > 1 else self.pending[0]
-        self.pending = []
+        self.pending, self.pending_samples = [], 0
         times = self.clock.times(samples["counter"], info.rate_hz, samples["t_host"])
         stamps, _ = self.wall.stamps(times.time_s, samples["t_host"])
         gyro = samples["gyro"].astype(np.float64) * (math.pi / 180)
@@ -140,13 +149,14 @@ class McapRecorder:
             self.samples += 1
 
     def finish(self) -> None:
+        self._imu()
         self.writer.finish()
 
 
 def read_capture(path) -> tuple[bytes, np.ndarray]:
     """The bytes of the raw channel of a recording `McapRecorder` wrote, in order, and its read log
     (`stim300.reads.READS_DTYPE`); UsageError (one line naming the file) for an MCAP without it."""
-    mcap, _ = _mcap()
+    mcap, _ = mcap_modules()
     chunks = []
     try:
         with open(path, "rb") as f:

@@ -85,6 +85,17 @@ def test_example_configs_ros2_and_foxglove_tables_uncommented_are_the_defaults()
         assert getattr(config, table) == default
 
 
+def test_example_configs_record_table_uncommented_is_its_defaults():
+    from calibd.config import RecordConfig, parse_config
+
+    text = EXAMPLE.read_text()
+    block = text.split("# [record]\n", 1)[1].split("\n\n", 1)[0]
+    keys = [line[2:].split("#")[0] for line in block.splitlines() if re.match(r"# \w+ = ", line)]
+    assert len(keys) == len(fields(RecordConfig))
+    config = parse_config(tomllib.loads(text + "\n[record]\n" + "\n".join(keys)), "example")
+    assert config.record == RecordConfig(Path(f"/var/lib/calibd/{DEVICE}/recordings"))
+
+
 # ---- the unit and the udev rule, as text ----------------------------------------------------
 
 def test_unit_has_the_required_settings():

@@ -33,7 +33,7 @@ from stim300.clock import CounterClock
 from stim300.codec import join_samples
 from stim300.records import TrimRecord
 
-from ..config import FoxgloveConfig, Ros2Config, ServeConfig
+from ..config import FoxgloveConfig, RecordConfig, Ros2Config, ServeConfig
 from ..daemon import Listener, State
 from ..results import CalibrationResult, result_json
 from ..session import PowerUpCuts
@@ -44,6 +44,7 @@ from ..correction import ServedCorrection, replaces, sample_units, uncorrectable
 from .feeds import Feed, Feeds
 from .ptys import CorrectedPty, PtyError, RawPty, Throttle
 from .queue import SampleQueue
+from .recorder import Recorder
 from .sockets import ServeError, SocketServer
 
 log = structlog.get_logger("calibd")
@@ -59,9 +60,10 @@ class Hub(Listener):
     socket file and the pty links."""
 
     def __init__(self, config: ServeConfig, port: str, previous: CalibrationResult | None = None,
-                 feeds: dict[str, Feed] | None = None, paced: bool = True):
+                 feeds: dict[str, Feed] | None = None, paced: bool = True, record: RecordConfig | None = None):
         self.config, self.port = config, port
         self.feeds = Feeds(feeds, paced) if feeds else None  # ROS 2, Foxglove: the hub's from here on
+        self.recorder: Recorder | None = None
         self.gid = _group_id(config.group)
         self.port_writer = None  # the port's writer, for requests written into the raw pty (`calibd run` sets it)
         self._state = protocol.StateFields(State.STARTING.value, "waiting for data")
@@ -110,12 +112,14 @@ class Hub(Listener):
                                            token, config.idle_timeout_s, config.max_clients_per_uid).start()
             if self.feeds is not None:
                 self.feeds.start()
+            if record is not None:
+                self.recorder = Recorder(record).start()
         except BaseException:
             self.close()
             raise
 
     def close(self) -> None:
-        for part in (self.server, *self.raw_ptys, self.corrected_pty, self.feeds):
+        for part in (self.server, *self.raw_ptys, self.corrected_pty, self.feeds, self.recorder):
             if part is not None:
                 part.close()
 
@@ -227,6 +231,8 @@ class Hub(Listener):
             self.corrected_pty.set_result(None if kept is None else kept.result)
         for raw_pty in self.raw_ptys:
             raw_pty.tap(settled)
+        if self.recorder is not None:
+            self.recorder.tap(settled.data)
         if self._bytes_wanted and settled.data:
             self._keep_bytes(settled.data)
         self._bytes_seen += len(settled.data)
