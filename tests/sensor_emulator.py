@@ -114,10 +114,12 @@ class SensorEmulator(threading.Thread):
     received in Service Mode; `refuse` maps a command line to an error code it answers with,
     `silent` holds command lines it never answers; `samples` the source of Normal Mode data
     (None: random exact samples); `datagram_tail` the bytes that end the datagram in progress
-    before the SERVICEMODE report."""
+    before the SERVICEMODE report; `burst` the datagrams sent every 10 ms (4: 400 a second, a
+    125 Hz unit's stream 3.2 times faster than the sensor's)."""
 
     def __init__(self, state: State = State(), saves_left: int = 9998, refuse: dict[str, int] | None = None,
-                 silent: tuple[str, ...] = (), samples: np.ndarray | None = None, datagram_tail: bytes = b""):
+                 silent: tuple[str, ...] = (), samples: np.ndarray | None = None, datagram_tail: bytes = b"",
+                 burst: int = 4):
         super().__init__(daemon=True, name="STIM300 emulator")
         self.master, self.slave = os.openpty()
         tty.setraw(self.master)
@@ -134,6 +136,7 @@ class SensorEmulator(threading.Thread):
         self.datagrams_sent = 0
         self.samples = samples
         self.datagram_tail = datagram_tail
+        self.burst = burst
         self._requests: list[bytes] = []  # special datagrams asked for in Normal Mode, sent next
         self._starting = 0  # datagrams still to be flagged START_UP
         self._line = bytearray()
@@ -177,7 +180,7 @@ class SensorEmulator(threading.Thread):
                 for byte in data:
                     self._byte(byte)
             if self.mode == "normal" and time.monotonic() >= next_datagrams:
-                self._datagrams(4)
+                self._datagrams(self.burst)
                 next_datagrams = time.monotonic() + 0.01
 
     def stop(self) -> None:

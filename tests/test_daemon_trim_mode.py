@@ -7,6 +7,7 @@ default; a refusal writes nothing and is logged once; a failure puts the backup 
 from __future__ import annotations
 
 import json
+import signal
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -244,3 +245,43 @@ def test_failures_are_one_log_line_per_session_with_the_count_said_after(tmp_pat
             assert trimmer(result) == (result, "")
     assert [e["event"] for e in logs] == ["trim_failed", "trim_failures_ended", "trim_failed"]
     assert logs[1]["failures"] == 3 and logs[1]["session_id"] == "s1" and logs[2]["session_id"] == "s2"
+
+
+@pytest.mark.slow  # the whole session through a pty, 32 times faster than the sensor, and a joint solve
+def test_calibd_run_trims_the_unit_it_reads(samples, tmp_path):
+    """`calibd run` as users run it, on the emulated unit: after the first solve the result's gyro
+    biases are written into the unit as volatile trims, said in result.json, backed up in the
+    state directory; nothing is saved to flash, and SIGTERM ends the daemon cleanly."""
+    from captures import calibd
+
+    emulator = SensorEmulator(unit_state(), samples=samples, burst=40)  # 606 s of 125 Hz data in about 19 s
+    emulator.power_cycle()  # the power-up datagrams: the serial number the trim checks
+    emulator.start()
+    state = tmp_path / "state"
+    config = tmp_path / "calibd.toml"
+    config.write_text(f'[serial]\nport = "{emulator.path}"\n[site]\nlatitude_deg = 60.0\n'
+                      f'[output]\nstate_dir = "{state}"\n[warmup]\nwindow_s = 30\nmin_time_s = 0\n'
+                      f'[method]\nresolve_every_s = 86400\n[trim]\napply = "volatile"\n')
+    daemon = calibd("run", "--config", config)
+    try:
+        deadline = time.monotonic() + 120
+        while not ((state / "result.json").exists() and
+                   json.loads((state / "result.json").read_text()).get("trimmed")):
+            assert daemon.poll() is None, daemon.stderr.read().decode()
+            assert time.monotonic() < deadline, "no trimmed result in 120 s"
+            time.sleep(0.5)
+        result = json.loads((state / "result.json").read_text())
+        trimmed = result["trimmed"]
+        assert tuple(trimmed["gyro_deg_s"]) == emulator.state.gyro_trim_deg_s != A.gyro_deg_s
+        untrimmed = [result["estimates"][f"gyro_bias_{axis}"]["untrimmed"] / 3600 for axis in "xyz"]
+        assert trimmed["gyro_deg_s"] == pytest.approx(np.negative(untrimmed), abs=GYRO_RATE_LSB)  # no bias left
+        assert emulator.flash == unit_state() and emulator.saves_left == 9998 and emulator.mode == "normal"
+        assert [p.name for p in state.glob("trim-backup-*.json")] == [Path(trimmed["backup"]).name]
+        daemon.send_signal(signal.SIGTERM)
+        assert daemon.wait(timeout=30) == 0
+        log = daemon.stderr.read().decode()
+        assert log.count('"event": "trimmed"') == 1, log[-2000:]
+    finally:
+        if daemon.poll() is None:
+            daemon.kill()
+        emulator.stop()
