@@ -67,7 +67,7 @@ class CaptureJob:
 
 def calibrate_file(job: CaptureJob) -> list[dict]:
     """Every power-up of one capture as rows of the fleet table (runs on a worker): the
-    calibration `calibd calibrate --session N` gives, or the one line saying why not."""
+    calibration `calibd calibrate --power-up N` gives, or the one line saying why not."""
     from .calibrate import calibrate_capture
     from .captures import open_capture
     from .methods import estimator

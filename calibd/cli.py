@@ -186,7 +186,7 @@ def cmd_calibrate(args) -> int:
         return method.solve(session, site, None, options)
 
     try:
-        result = calibrate_capture(capture, solve, args.session, args.start)
+        result = calibrate_capture(capture, solve, args.power_up, args.start)
     except CalibrationError as exc:
         raise UsageError(f"{args.capture}: {exc}") from None
     try:
@@ -933,9 +933,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("capture")
     p.add_argument("-o", "--output", type=path_arg, required=True, help="RESULT.json (replaced atomically)")
     _add_method_options(p, DAEMON_METHODS)
-    p.add_argument("--session", type=_positive_int, metavar="N",
+    p.add_argument("--power-up", type=_positive_int, metavar="N", dest="power_up",
                    help="calibrate power-up N (1-based) of a capture in which the sensor restarted (default: the "
                         "last one that has what the method needs)")
+    p.add_argument("--session", type=_positive_int, dest="power_up", help=argparse.SUPPRESS)  # its former name
     p.set_defaults(func=cmd_calibrate)
     p = sub.add_parser("batch", help="captures and folders of captures -> every power-up calibrated on Dask, one "
                                      "row each in a fleet table (Parquet; docs/fleet.md)")

@@ -260,3 +260,12 @@ def test_replay_with_a_config_that_serves_says_it_serves_only_with_serve(capture
     notes = [line for line in capsys.readouterr().err.splitlines() if "[serve]" in line]
     assert notes == [f"calibd replay: {served} serves the sensor ([serve]): a replay serves only with --serve"]
     assert not (tmp_path / "calibd.sock").exists()
+
+
+def test_power_up_is_also_taken_by_its_former_name_session():
+    from calibd.cli import build_parser
+
+    for option in ("--power-up", "--session"):
+        args = build_parser().parse_args(["calibrate", "c.bin", "-o", "r.json", "--latitude", "1", option, "2"])
+        assert args.power_up == 2
+    assert "--session" not in build_parser()._subparsers._group_actions[0].choices["calibrate"].format_help()

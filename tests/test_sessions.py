@@ -69,10 +69,10 @@ def test_the_last_power_up_with_the_protocol_wins_and_session_picks_another(leve
     assert_near_truth(result, read_truth(str(FULL))[1])
     assert not any("restarted" in w for w in result["warnings"])
 
-    code, _, _, err = calibrate(capsys, capture, "--session", "1", tmp_path=tmp_path)
+    code, _, _, err = calibrate(capsys, capture, "--power-up", "1", tmp_path=tmp_path)
     assert code == 2 and len(err.strip().splitlines()) == 1
     assert "power-up 1 of 2" in err and "it lacks a turn and a static after it" in err
-    code, _, _, err = calibrate(capsys, capture, "--session", "3", tmp_path=tmp_path)
+    code, _, _, err = calibrate(capsys, capture, "--power-up", "3", tmp_path=tmp_path)
     assert code == 2 and "no power-up 3: the capture has 2" in err and len(err.strip().splitlines()) == 1
 
 
@@ -85,7 +85,7 @@ def test_session_option_picks_the_first_power_up(tmp_path, capsys):
     assert code == 0, err
     assert last["stream"]["power_up"]["number"] == 2
     assert any("no temperatures" in w for w in last["warnings"])
-    code, first, out, err = calibrate(capsys, capture, "--session", "1", tmp_path=tmp_path)
+    code, first, out, err = calibrate(capsys, capture, "--power-up", "1", tmp_path=tmp_path)
     assert code == 0, err
     assert first["stream"]["power_up"]["number"] == 1 and "session: power-up 1 of 2" in out
     assert not any("no temperatures" in w for w in first["warnings"])
