@@ -337,7 +337,8 @@ def cmd_replay(args) -> int:
     serve = _replay_serve(args, config)
     if args.warmup_window is not None:
         warmup = replace(warmup, window_s=args.warmup_window)
-    data = read_input(args.capture)
+    with capture_bytes(args.capture) as (data, _, _):  # a file, or the MCAP stim300 record writes
+        data = bytes(data)  # held whole: the replay paces it out
     _refuse_without_datagrams(data, args.capture)
     bar = Progress("replay", len(data), "B")
     out = bar.above(sys.stdout)  # a state line printed while the bar is drawn goes above it

@@ -18,6 +18,8 @@ calibd read such a file as the raw capture it holds. The `mcap` package writes a
 from __future__ import annotations
 
 import math
+import os
+import stat
 import struct
 import time
 
@@ -62,8 +64,8 @@ def holds_capture(path) -> bool:
     (RAW_TOPIC): in its summary, or for a file whose summary cannot be read (cut short, damaged),
     among the records before the damage (`read_capture` then says what is wrong)."""
     try:
-        with open(path, "rb") as f:
-            if f.read(len(MAGIC)) != MAGIC:
+        with open(os.open(path, os.O_RDONLY | os.O_NONBLOCK), "rb") as f:  # a FIFO: no wait for a writer
+            if not stat.S_ISREG(os.fstat(f.fileno()).st_mode) or f.read(len(MAGIC)) != MAGIC:
                 return False
             mcap, _ = mcap_modules()
             f.seek(0)

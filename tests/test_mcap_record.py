@@ -112,3 +112,14 @@ def test_a_cut_mcap_recording_is_one_line(recorded, tmp_path, run_main):
     assert code == 2 and err.count("\n") == 1 and "cannot read the MCAP recording" in err
     code, _, err = run_main(calibd_main, ["calibrate", cut, "--latitude", "60", "-o", tmp_path / "r.json"])
     assert code == 2 and err.count("\n") == 1 and "cannot read the MCAP recording" in err
+
+
+@pytest.mark.slow
+def test_replay_takes_the_mcap_as_the_capture(recorded, run_main):
+    mcap, raw, _, _ = recorded
+    outs = []
+    for source in (mcap, raw):
+        code, out, err = run_main(calibd_main, ["replay", source, "--latitude", "60", "--speed", "max"])
+        assert code == 0, err
+        outs.append(out.split("joint: ")[-1].split("\n", 1)[1])  # the summary after its first line (the path)
+    assert outs[0] == outs[1] and "yaw" in outs[0]
