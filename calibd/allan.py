@@ -185,17 +185,20 @@ def fit_noise_model(residuals: np.ndarray, rate_hz: float, corr_taus=FLICKER_TAU
     return float(coef[0]), float(coef[1])
 
 
-def correlate(columns: np.ndarray, rate_hz: float, corrs) -> Iterator[np.ndarray]:
-    """K @ columns for each unit Gauss-Markov correlation K_ij = exp(-|i - j| / (corr rate_hz)),
-    one per time constant in `corrs`, in turn: convolutions with the two-sided exponential, by FFT
-    (no N x N matrix; the columns are transformed once for all time constants, and one product at
-    a time is held, each the size of the padded transform)."""
+def gauss_markov_forms(columns: np.ndarray, rate_hz: float, corrs) -> Iterator[np.ndarray]:
+    """columns' K columns for each unit Gauss-Markov correlation K_ij = exp(-|i - j| / (corr
+    rate_hz)), one per time constant in `corrs`, in turn: convolutions with the two-sided
+    exponential, by FFT (no N x N matrix), one column at a time, so what is held is one column's
+    padded transform, not every column's."""
     n = len(columns)
     size = 1 << int(np.ceil(np.log2(2 * n)))
     lags = np.arange(size)
     lags = np.minimum(lags, size - lags)  # circular distance: wraps only beyond n, which is cut off
-    spectrum = np.fft.rfft(columns, size, axis=0)
     for corr in corrs:
         kernel = np.exp(-lags / (corr * rate_hz))
         kernel[n:size - n + 1] = 0.0
-        yield np.fft.irfft(np.fft.rfft(kernel)[:, None] * spectrum, size, axis=0)[:n]
+        spectrum = np.fft.rfft(kernel)
+        form = np.empty((columns.shape[1], columns.shape[1]))
+        for j, column in enumerate(columns.T):
+            form[:, j] = columns.T @ np.fft.irfft(spectrum * np.fft.rfft(column, size), size)[:n]
+        yield form

@@ -38,6 +38,7 @@ NOISE_MULTIPLE = 10.0  # thresholds sit this many noise sigmas above a quiet sen
 MIN_TURN_THRESHOLD_DEG_S = 0.5  # above gyro bias + Earth rate of any navigation-grade gyro
 MIN_REMOUNT_G = 0.05  # a re-mount moves gravity by ~1 g between axes
 LOCAL_NOISE_WIDTHS = 8  # the accelerometers' local noise is measured over this many step widths
+BLOCK = 1 << 16  # samples taken at once where a session-long temporary is not needed
 
 
 @dataclass(frozen=True)
@@ -74,28 +75,39 @@ def _runs(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _cumsum0(x: np.ndarray) -> np.ndarray:
-    return np.concatenate((np.zeros((1,) + x.shape[1:]), np.cumsum(x, axis=0)))
+    c = np.empty((len(x) + 1,) + x.shape[1:])
+    c[0] = 0.0
+    np.cumsum(x, axis=0, out=c[1:])
+    return c
 
 
-def _window_mean(c: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Means over [lo, hi) from the cumulative sum c (0 where the window is empty)."""
+def _window_means(c: np.ndarray, start: int, stop: int, lo_offset: int, hi_offset: int) -> np.ndarray:
+    """For each sample i in [start, stop), the mean over [i + lo_offset, i + hi_offset), cut to
+    the data, from the cumulative sum c (0 where the window is empty): a block at a time, so
+    that only the cumulative sum is as long as the session."""
+    n, i = len(c) - 1, np.arange(start, stop)
+    lo, hi = np.clip(i + lo_offset, 0, n), np.clip(i + hi_offset, 0, n)
     count = (hi - lo).astype(float)[:, None]
     return np.divide(c[hi] - c[lo], count, out=np.zeros((len(lo),) + c.shape[1:]), where=count > 0)
 
 
+def _blocks(n: int):
+    return ((lo, min(lo + BLOCK, n)) for lo in range(0, n, BLOCK))
+
+
 def _moving_average(x: np.ndarray, half: int) -> np.ndarray:
     """Centred moving average over 2*half+1 samples, shrinking at the ends."""
-    n, i = len(x), np.arange(len(x))
-    return _window_mean(_cumsum0(x), np.clip(i - half, 0, n), np.clip(i + half + 1, 0, n))
+    c, mean = _cumsum0(x), np.empty(x.shape)
+    for lo, hi in _blocks(len(x)):
+        mean[lo:hi] = _window_means(c, lo, hi, -half, half + 1)
+    return mean
 
 
 def _step_size(x: np.ndarray, width: int) -> np.ndarray:
     """|mean of the next `width` samples - mean of the previous `width`| at each sample."""
-    n, i = len(x), np.arange(len(x))
-    c = _cumsum0(x)
-    before = _window_mean(c, np.clip(i - width, 0, n), i)
-    after = _window_mean(c, i, np.clip(i + width, 0, n))
-    size = np.linalg.norm(after - before, axis=1)
+    c, size = _cumsum0(x), np.empty(len(x))
+    for lo, hi in _blocks(len(x)):
+        size[lo:hi] = np.linalg.norm(_window_means(c, lo, hi, 0, width) - _window_means(c, lo, hi, -width, 0), axis=1)
     size[:1] = 0.0  # nothing before the first sample: no step to see
     return size
 
@@ -145,7 +157,10 @@ def _local_variance(x: np.ndarray, width: int) -> np.ndarray:
     on a vibrating vehicle averages and steps by its own noise, far above the session's quiet
     noise, and is neither motion nor a re-mount for that. A turn (its rate changes slowly from
     sample to sample) and a re-mount (gravity moving ~1 g) stand well above it."""
-    variance = np.sum(np.diff(x, axis=0, prepend=x[:1]) ** 2, axis=1) / 2
+    variance = np.empty(len(x))
+    for lo, hi in _blocks(len(x)):
+        before = x[lo - 1:hi - 1] if lo else np.concatenate((x[:1], x[:hi - 1]))  # the first has no step
+        variance[lo:hi] = np.sum((x[lo:hi] - before) ** 2, axis=1) / 2
     return _moving_average(variance[:, None], LOCAL_NOISE_WIDTHS * width // 2)[:, 0]
 
 
@@ -157,7 +172,8 @@ def _white_sigma(x: np.ndarray) -> np.ndarray:
     d = np.diff(x, axis=0)
     if len(d) < 2:
         return np.zeros(x.shape[1:])
-    mad = np.median(np.abs(d - np.median(d, axis=0)), axis=0)
+    d -= np.median(d, axis=0, overwrite_input=True)  # a median reorders, which the next one ignores
+    mad = np.median(np.abs(d, out=d), axis=0, overwrite_input=True)
     return 1.4826 * mad / np.sqrt(2.0)
 
 

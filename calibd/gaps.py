@@ -120,7 +120,7 @@ def check_turn_angles(inp: JointInput, chi: np.ndarray, a: np.ndarray, g0: float
         raise Underdetermined(f"statics at fewer than {MIN_HEADINGS} headings")
     forces = [(inp.acc, acc_noise)] + ([] if inp.incl is None else [(inp.incl, incl_noise)])
     first = _corrections_from(len(forces))
-    means = np.stack([[values[s:e].mean(axis=0) for s, e in statics] for values, _ in forces])
+    means = np.stack([[values[s:e].mean(axis=0, dtype=np.float64) for s, e in statics] for values, _ in forces])
     # covariance of the misfit (sensors, statics, channels) flattened: each channel's means as the
     # noise model gives them, and every factory residual's move of them
     noise_cov = block_diag(*[_by_channel(static_means_covariance(noise, inp, static_inflation(values, statics)))

@@ -169,7 +169,7 @@ def characterise(session: Session, segments: list[Segment] | None = None) -> dic
                          f"Allan deviation reads the random walk at 1 s on taus up to a quarter of a static")
     sensors = {"gyro": session.gyro, "acc": session.acc, "incl": session.incl}
     present = [name for name, values in sensors.items() if values is not None]
-    data = np.hstack([sensors[name] * UNITS[name].per_si for name in present])
+    data = np.hstack([np.asarray(sensors[name], dtype=np.float64) * UNITS[name].per_si for name in present])
     names = [c for c in CHANNELS if c.split("_")[0] in present]
     taus, adev, edf = pooled_allan_deviation([data[a:b] for a, b in pieces], session.rate_hz)
     static_s = sum(b - a for a, b in pieces) / session.rate_hz

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import numpy as np
+
 from . import detect
 from .frames import STANDARD_GRAVITY
 from .session import Session
@@ -10,7 +12,15 @@ from .units import DEG
 
 def session_segments(session: Session) -> list[detect.Segment]:
     """The statics and turns of a whole session (the daemon tracks them incrementally instead)."""
-    return detect.find_segments(session.gyro / DEG, session.acc / STANDARD_GRAVITY, session.rate_hz, session.time_s)
+    return detect.find_segments(_in_unit(session.gyro, DEG), _in_unit(session.acc, STANDARD_GRAVITY), session.rate_hz,
+                                session.time_s)
+
+
+def _in_unit(values, unit: float) -> np.ndarray:
+    """`values` / `unit` in float64 (stored float32 taken to float64 first), one array made."""
+    out = np.array(values, dtype=np.float64)
+    out /= unit
+    return out
 
 
 def segment_record(seg: detect.Segment, role: str | None = None) -> dict:

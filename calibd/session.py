@@ -33,13 +33,15 @@ STORE_RATE_HZ = 125  # faster data is block-averaged to this (the thesis's rate)
 
 @dataclass
 class Session:
-    """Decoded data in SI, with what is known of the sensor and the stream."""
+    """Decoded data in SI, with what is known of the sensor and the stream. A capture's session
+    holds its samples as stored (`SessionBuilder`: float32 views, no copy; the daemon's, float64):
+    whatever sums them takes them to float64 first, as the stored values are."""
 
-    time_s: np.ndarray
+    time_s: np.ndarray  # float64
     gyro: np.ndarray  # rad/s
     acc: np.ndarray  # m/s^2
     incl: np.ndarray | None  # m/s^2; None: the unit has no inclinometers (its datagram carries none)
-    temperature_c: np.ndarray | None  # mean of the gyro temperatures, when the datagram has them
+    temperature_c: np.ndarray | None  # float64, mean of the gyro temperatures, when the datagram has them
     rate_hz: int | float  # stored samples per second (an externally triggered sensor's: measured)
     sensor: SensorRecord
     stream: dict
@@ -119,7 +121,7 @@ class SessionBuilder:
         mean = block[:whole].reshape(-1, k, block.shape[1]).mean(axis=1)
         mean[:, 0] = block[:whole:k, 0]  # a block's time is its first sample's
         if len(mean):
-            self._time.append(mean[:, 0])
+            self._time.append(mean[:, 0].copy())  # a column of `mean` would keep all of its 11
             self._values.append(mean[:, 1:].astype(np.float32))
         return mean[:, 0], mean[:, 1:4] / DEG
 
@@ -130,6 +132,13 @@ class SessionBuilder:
         values = np.concatenate(self._values)[keep].astype(np.float64) if self._values else np.zeros((0, 10))
         return {"time_s": time_s[keep], "gyro": values[:, 0:3], "acc": values[:, 3:6], "incl": values[:, 6:9],
                 "temp": values[:, 9]}
+
+    def stored(self) -> tuple[np.ndarray, np.ndarray]:
+        """(times, float32 values: gyro, acc, incl, temperature) as stored, not copied: the batches
+        are joined once and kept joined, so a session of a whole capture costs no second copy."""
+        if len(self._time) > 1:
+            self._time, self._values = [_joined(self._time)], [_joined(self._values)]
+        return (self._time[0], self._values[0]) if self._time else (np.zeros(0), np.zeros((0, 10), np.float32))
 
     @property
     def end_s(self) -> float:
@@ -164,6 +173,18 @@ class SessionBuilder:
         bits = [b[t >= since_s] for t, b in self._flagged]
         count = sum(len(b) for b in bits)
         return count, int(np.bitwise_or.reduce(np.concatenate(bits))) if count else 0
+
+
+def _joined(chunks: list[np.ndarray]) -> np.ndarray:
+    """The chunks as one array, each let go once copied (from the list given): the joined array
+    and one chunk at a time, not the chunks and their copy."""
+    joined = np.empty((sum(len(c) for c in chunks),) + chunks[0].shape[1:], chunks[0].dtype)
+    end = len(joined)
+    while chunks:  # from the last
+        chunk = chunks.pop()
+        joined[end - len(chunk):end] = chunk
+        end -= len(chunk)
+    return joined
 
 
 def _mean_temperature(temp_gyro: np.ndarray) -> np.ndarray:
@@ -404,16 +425,15 @@ def power_up_session(capture: CaptureSessions, number: int | None = None, start_
         raise CalibrationError(f"no power-up {number}: the capture has {count} (the sensor restarted "
                                f"{count - 1} times)")
     power_up = capture.power_ups[number - 1]
-    data = power_up.data.arrays()
-    time_s = data["time_s"]
-    temps = None if np.isnan(data["temp"]).all() else data["temp"]
+    time_s, values = power_up.data.stored()
+    temps = None if np.isnan(values[:, 9]).all() else values[:, 9].astype(np.float64)
     if start_s is not None:
         start_by = "the given start"
     else:
         verdict = record_settling(time_s, temps, WARM_UP_RULE)
         start_s, start_by = (0.0 if verdict is None else verdict.start_s), start_words(verdict, WARM_UP_RULE)
-    keep = time_s >= start_s
-    if not keep.any():
+    first = int(np.searchsorted(time_s, start_s))  # the times only grow
+    if first == len(time_s):
         raise CalibrationError(f"start {start_s:g} s is past the end of power-up {number} of {count} "
                                f"({power_up.duration_s - 1 / capture.rate_hz:.1f} s)")
     hidden = power_up.gap_s[power_up.gap_time_s > start_s] if power_up.checked else None
@@ -422,8 +442,9 @@ def power_up_session(capture: CaptureSessions, number: int | None = None, start_
         trim_warnings.append(f"the bias trim offsets changed {power_up.trim_changes} time(s) during power-up "
                              f"{number}: its data mix outputs of different trims; sensor.trim is the last")
     return Session(
-        time_s=time_s[keep], gyro=data["gyro"][keep], acc=data["acc"][keep], incl=inclinometers(data["incl"][keep]),
-        temperature_c=None if temps is None else temps[keep], rate_hz=stored_rate_hz(capture.rate_hz),
+        time_s=time_s[first:], gyro=values[first:, 0:3], acc=values[first:, 3:6],
+        incl=inclinometers(values[first:, 6:9]),
+        temperature_c=None if temps is None else temps[first:], rate_hz=stored_rate_hz(capture.rate_hz),
         sensor=replace(capture.sensor, trim=trim),
         stream=capture.stream | {"warnings": capture.stream["warnings"] + trim_warnings} | {
             "start_s": float(start_s), "start_by": start_by,

@@ -38,7 +38,7 @@ import numpy as np
 
 from ..errors import CalibdError
 from ..frames import EARTH_RATE, STANDARD_GRAVITY, Site, euler_321, int_to_imu
-from ..allan import FLICKER_TAUS_S, allan_deviation, correlate, fit_noise_model, flicker_sigma
+from ..allan import FLICKER_TAUS_S, allan_deviation, fit_noise_model, flicker_sigma, gauss_markov_forms
 from .. import spec
 from ..units import DEG
 
@@ -50,6 +50,7 @@ CHI_TOLERANCE = 1e-13  # rad: the largest change of chi between passes that coun
 # rad: the same for the error budget's refits, whose changes of chi are 1e-4 rad and more (a
 # Z scale factor's 1-sigma over a turn): a millionth of them is exact enough
 REFIT_TOLERANCE = 1e-10
+BLOCK = 1 << 16  # samples a pass over the session takes at once: its temporaries are this long, not the session
 FLICKER_BIN_S = 0.1  # flicker's fastest component (3 s) barely changes within a bin (3 % at most)
 NOISIER_FROM = 2.0  # a static whose white variance is this many times the reference static's is weighted down
 LOCAL_NOISE_S = 1.0  # outside the statics, the noise around a sample is measured over this window
@@ -76,6 +77,7 @@ class JointInput:
     """A session in SI: samples from the level static (chi = 0 there) to the end of the protocol."""
 
     time_s: np.ndarray  # (N,) s, gaps where datagrams were lost
+    # the samples as stored (float32 from a capture's session): every pass takes them to float64 block by block
     gyro: np.ndarray  # (N, 3) rad/s
     acc: np.ndarray  # (N, 3) m/s^2
     incl: np.ndarray | None  # (N, 3) m/s^2; None: the unit has no inclinometers
@@ -155,12 +157,35 @@ class GyroFit:
     noise: NoiseModel  # the model the covariance assumes: fitted to the residuals, or given
     amplitude_check: tuple[float, float]  # fitted horizontal Earth rate and its 1-sigma, rad/s
     static_chi2: tuple[float, int]  # chi-square of the statics' mean residuals and its degrees of freedom
-    offset: np.ndarray  # (N, 3) the fitted non-rotational part, rad/s: where a refit of changed data starts
+    model: _GyroModel  # the fit's regressors and parameters: its non-rotational part, where a refit starts
     root: np.ndarray  # (N,) each row's root weight (`_row_weights`): the same weights for every refit
 
     @property
     def cov(self) -> np.ndarray:
         return sum(self.cov_parts.values())
+
+
+# ---------------------------------------------------------------- session-long arrays, block by block
+
+def _spans(n: int) -> list[tuple[int, int]]:
+    """[lo, hi) blocks of BLOCK samples that cover n."""
+    return [(lo, min(lo + BLOCK, n)) for lo in range(0, n, BLOCK)]
+
+
+def _f64(values: np.ndarray, lo: int | None = None, hi: int | None = None) -> np.ndarray:
+    """Samples [lo, hi) in float64: stored float32 values taken over exactly."""
+    return np.asarray(values[lo:hi], dtype=np.float64)
+
+
+def _static_blocks(statics, root: np.ndarray) -> list[tuple[int, int, float]]:
+    """The statics' samples as [lo, hi) blocks of at most BLOCK, each with its static's root weight."""
+    return [(lo, min(lo + BLOCK, b), r) for (a, b), r in zip(statics, root) for lo in range(a, b, BLOCK)]
+
+
+def _static_mean(values: np.ndarray, statics) -> np.ndarray:
+    """The mean of every static sample, summed static by static (no copy of them all)."""
+    total = sum(values[a:b].sum(axis=0, dtype=np.float64) for a, b in statics)
+    return total / sum(b - a for a, b in statics)
 
 
 # ---------------------------------------------------------------- statics' own noise
@@ -171,7 +196,7 @@ def sample_variance(values: np.ndarray, statics) -> np.ndarray:
     constant value and slow wander drop out. Vibration that is not white (an engine's few
     frequencies) counts as white noise of the same power: more than it moves a static's mean,
     so sigmas built on it stay on the safe side."""
-    return np.array([np.mean(np.diff(values[a:b], axis=0) ** 2) / 2 for a, b in statics])
+    return np.array([np.mean(np.diff(_f64(values, a, b), axis=0) ** 2) / 2 for a, b in statics])
 
 
 def reference_static(variance: np.ndarray, statics) -> int:
@@ -205,7 +230,9 @@ def _row_weights(values: np.ndarray, inp: JointInput) -> np.ndarray:
     ref = variance[reference_static(variance, inp.statics)]
     inflation = np.ones(len(values))
     if ref > 0:  # noise-free data (planning): nothing to weigh by
-        second = np.mean(np.diff(values, n=2, axis=0) ** 2, axis=1) / 6  # white noise: 6 sigma^2
+        second = np.empty(max(len(values) - 2, 0))  # white noise: 6 sigma^2
+        for lo, hi in _spans(len(second)):
+            second[lo:hi] = np.mean(np.diff(_f64(values, lo, hi + 2), n=2, axis=0) ** 2, axis=1) / 6
         half = max(1, int(LOCAL_NOISE_S * inp.rate_hz / 2))
         window = np.ones(2 * half + 1) / (2 * half + 1)
         local = np.convolve(np.pad(second, half + 1, mode="edge"), window, mode="valid")  # centred, n samples
@@ -227,21 +254,28 @@ def _scaled(designs: list[ChannelDesign], root: np.ndarray) -> list[ChannelDesig
 
 # ---------------------------------------------------------------- gyro fit
 
-def _platform_angle(inp: JointInput, axis: np.ndarray, offset: np.ndarray,
-                    static: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """chi at each sample's mid-interval and chi' (the sample's average rate): the gyro minus its
-    non-rotational part (`offset`), projected on the platform axis, integrated over time (lost
-    datagrams leave gaps in time_s). The platform does not turn in a static: chi' = 0 there,
-    which also anchors the vertical offset (else it trades with a drift of chi)."""
-    rate = (inp.gyro - offset) @ axis
-    rate[static] = 0.0
+def _platform_angle(inp: JointInput, axis: np.ndarray, offset, data) -> tuple[np.ndarray, np.ndarray]:
+    """chi at each sample's mid-interval and chi' (the sample's average rate): the gyro (`data(lo,
+    hi)`, samples [lo, hi)) minus its non-rotational part (`offset(lo, hi)`), projected on the
+    platform axis, integrated over time (lost datagrams leave gaps in time_s). The platform does
+    not turn in a static: chi' = 0 there, which also anchors the vertical offset (else it trades
+    with a drift of chi)."""
+    rate = np.empty(len(inp.time_s))
+    for lo, hi in _spans(len(rate)):
+        rate[lo:hi] = (data(lo, hi) - offset(lo, hi)) @ axis
+    for a, b in inp.statics:
+        rate[a:b] = 0.0
     dt = 1.0 / inp.rate_hz
-    dt_next = np.diff(inp.time_s, append=inp.time_s[-1] + dt)
-    start = np.concatenate(([0.0], np.cumsum(rate * dt_next)[:-1]))
+    chi = np.diff(inp.time_s, append=inp.time_s[-1] + dt)  # each sample's interval, then the angle at its start
+    chi *= rate
+    np.cumsum(chi, out=chi)
+    chi[1:], chi[0] = chi[:-1], 0.0
     # half an interval at a linearly changing rate: r dt/2 less slope dt^2/8 (matters in ramps)
-    slope_term = np.gradient(rate) * dt / 8
-    chi = start + rate * dt / 2 - slope_term
-    return (chi if inp.chi_correction is None else chi + inp.chi_correction), rate
+    chi += rate * dt / 2
+    chi -= np.gradient(rate) * dt / 8
+    if inp.chi_correction is not None:
+        chi += inp.chi_correction
+    return chi, rate
 
 
 @dataclass(frozen=True)
@@ -279,6 +313,43 @@ def _gyro_designs(chi, chi_rate, tau, a, drift: bool) -> list[ChannelDesign]:
                   OFFSET_PARAMS.start + i] + ([DRIFT_PARAMS.start + i] if drift else [])
         designs.append(ChannelDesign(np.array(params), basis, mix))
     return designs
+
+
+@dataclass(frozen=True)
+class _GyroModel:
+    """A gyro fit's regressors (its platform angle, the axis its Earth terms are mixed with) and
+    parameters (None while being fitted): any block of its designs, fitted outputs or
+    non-rotational part is made when needed, so no session-long (N, 3) array is held for them."""
+
+    chi: np.ndarray
+    chi_rate: np.ndarray
+    a: np.ndarray  # R_int^IMU of the axis the Earth terms are mixed with
+    tau_mean_s: float  # the drift's time origin: the mean sample time
+    drift: bool
+    params: np.ndarray | None = None
+
+    def designs(self, time_s: np.ndarray, lo: int, hi: int) -> list[ChannelDesign]:
+        return _gyro_designs(self.chi[lo:hi], self.chi_rate[lo:hi], time_s[lo:hi] - self.tau_mean_s, self.a,
+                             self.drift)
+
+    def fitted(self, time_s: np.ndarray, lo: int, hi: int) -> np.ndarray:
+        return np.column_stack([d @ self.params for d in self.designs(time_s, lo, hi)])
+
+    def offset(self, time_s: np.ndarray, lo: int, hi: int) -> np.ndarray:
+        """The fitted non-rotational part of samples [lo, hi): the fit less its rate term."""
+        out = self.fitted(time_s, lo, hi)
+        out -= np.outer(self.chi_rate[lo:hi], self.params[AXIS_PARAMS])
+        return out
+
+    def normal_equations(self, time_s: np.ndarray, data, root: np.ndarray, p: int) -> tuple[np.ndarray, np.ndarray]:
+        """The weighted normal equations of `data(lo, hi)` (the gyros' samples [lo, hi)), summed block by block."""
+        gram, rhs = np.zeros((p, p)), np.zeros(p)
+        for lo, hi in _spans(len(time_s)):
+            block = _normal_equations(_scaled(self.designs(time_s, lo, hi), root[lo:hi]),
+                                      data(lo, hi) * root[lo:hi, None], p)
+            gram += block[0]
+            rhs += block[1]
+        return gram, rhs
 
 
 def _gram(designs: list[ChannelDesign], p: int) -> np.ndarray:
@@ -338,49 +409,35 @@ def _on_circle(gram, rhs, amplitude: float) -> tuple[np.ndarray, np.ndarray]:
 
 @dataclass
 class _GyroSolution:
-    """The gyro fit's fixed point: parameters, inverse information, the designs and the platform angle."""
+    """The gyro fit's fixed point: parameters, inverse information, and the model they fit."""
 
     params: np.ndarray
     bread: np.ndarray
-    designs: list[ChannelDesign]
-    chi: np.ndarray
-    chi_rate: np.ndarray
-    residuals: np.ndarray
-    offset: np.ndarray
+    model: _GyroModel
 
 
-def _iterate_gyros(inp: JointInput, site: Site, options: JointOptions, root: np.ndarray,
-                   start: GyroFit | None = None, tolerance: float = CHI_TOLERANCE) -> _GyroSolution:
-    """The gyro fit iterated to its fixed point (chi changing by less than `tolerance`, rad):
-    chi needs the platform axis and the Earth terms the fit gives. `start`: a fit of nearly the
-    same data to start from (a few passes, not many)."""
-    static = np.concatenate([np.arange(a, b) for a, b in inp.statics])
-    if start is None:
-        axis, offset = np.array([0.0, 0.0, 1.0]), inp.gyro[static].mean(axis=0)
-        chi = np.zeros(len(inp.time_s))
-    else:
-        k = start.params[AXIS_PARAMS]
-        axis, offset, chi = k / np.linalg.norm(k), start.offset, start.chi
-    tau = inp.time_s - inp.time_s.mean()
+def _iterate_gyros(inp: JointInput, site: Site, options: JointOptions, root: np.ndarray, data, axis: np.ndarray,
+                   offset, chi: np.ndarray, tolerance: float = CHI_TOLERANCE) -> _GyroSolution:
+    """The gyro fit of `data(lo, hi)` (the gyros' samples [lo, hi)) iterated to its fixed point
+    (chi changing by less than `tolerance`, rad): chi needs the platform axis and the Earth terms
+    the fit gives. It starts from `axis`, `offset(lo, hi)` (the non-rotational part) and `chi`: a
+    fit of nearly the same data takes a few passes, not many."""
+    tau_mean_s = float(inp.time_s.mean())
     amplitude = EARTH_RATE * np.cos(np.radians(site.latitude_deg))
+    p = GYRO_PARAM_COUNT[options.drift]
     for _ in range(MAX_ITERATIONS):
         previous = chi
-        chi, chi_rate = _platform_angle(inp, axis, offset, static)
-        designs = residuals = offset = None  # the last pass's session-long arrays go before this pass's are made
-        designs = _gyro_designs(chi, chi_rate, tau, int_to_imu(*alpha_beta(axis)), options.drift)
-        gram, rhs = _normal_equations(_scaled(designs, root), inp.gyro * root[:, None],
-                                      GYRO_PARAM_COUNT[options.drift])
+        chi, chi_rate = _platform_angle(inp, axis, offset, data)
+        model = _GyroModel(chi, chi_rate, int_to_imu(*alpha_beta(axis)), tau_mean_s, options.drift)
+        gram, rhs = model.normal_equations(inp.time_s, data, root, p)
         params, bread = _on_circle(gram, rhs, amplitude) if options.fixed_amplitude else _free(gram, rhs)
-        residuals = inp.gyro.copy()
-        for i, design in enumerate(designs):
-            residuals[:, i] -= design @ params
+        model = replace(model, params=params)
         k = params[AXIS_PARAMS]
         axis = k / np.linalg.norm(k)
-        offset = inp.gyro - residuals  # the fitted non-rotational part: the fit less its rate term
-        offset -= np.outer(chi_rate, k)
+        offset = partial(model.offset, inp.time_s)
         if np.max(np.abs(chi - previous)) < tolerance:
             break
-    return _GyroSolution(params, bread, designs, chi, chi_rate, residuals, offset)
+    return _GyroSolution(params, bread, model)
 
 
 def fit_gyros(inp: JointInput, site: Site, options: JointOptions = JointOptions(),
@@ -389,24 +446,40 @@ def fit_gyros(inp: JointInput, site: Site, options: JointOptions = JointOptions(
     fitted to the static residuals, its flicker at least `least_flicker`)."""
     inflation = static_inflation(inp.gyro, inp.statics)
     root = _row_weights(inp.gyro, inp)
-    fit = _iterate_gyros(inp, site, options, root)
-    params, residuals = fit.params, fit.residuals
-    ref = inp.statics[reference_static(sample_variance(inp.gyro, inp.statics), inp.statics)]
-    noise = noise or _fitted_noise(residuals, inp, least_flicker, ref)
-    parts = _covariance(_scaled(fit.designs, root), np.arange(len(inp.time_s)), inp, fit.bread, noise, root)
+    data = partial(_f64, inp.gyro)
+    mean = _static_mean(inp.gyro, inp.statics)
+    fit = _iterate_gyros(inp, site, options, root, data, np.array([0.0, 0.0, 1.0]), lambda lo, hi: mean,
+                         np.zeros(len(inp.time_s)))
+    params, model = fit.params, fit.model
+
+    def residuals(lo: int, hi: int) -> np.ndarray:
+        return data(lo, hi) - model.fitted(inp.time_s, lo, hi)
+
+    ref = residuals(*inp.statics[reference_static(sample_variance(inp.gyro, inp.statics), inp.statics)])
+    noise = noise or _fitted_noise(ref, inp.rate_hz, least_flicker)
+    scale = _noise_scale(ref, inp.rate_hz)
+    del ref  # a static's residuals: not held through the covariance
+    spans = _spans(len(inp.time_s))
+    parts = _covariance(spans, lambda lo, hi: _scaled(model.designs(inp.time_s, lo, hi), root[lo:hi]),
+                        lambda lo, hi: root[lo:hi], inp, fit.bread, noise)
     cov = sum(parts.values())
-    scale = _noise_scale(residuals, inp, ref)
     fitted = float(np.hypot(*params[EARTH_RATE_PARAMS]))
     radial = params[EARTH_RATE_PARAMS] / fitted
     amplitude_var = radial @ cov[EARTH_RATE_PARAMS, EARTH_RATE_PARAMS] @ radial  # 0 when the amplitude is fixed
-    return GyroFit(params, parts, fit.chi, fit.chi_rate, residuals.std(axis=0), scale, noise,
+    return GyroFit(params, parts, model.chi, model.chi_rate, _rms_about_mean(residuals, spans), scale, noise,
                    (fitted, float(np.sqrt(max(amplitude_var, 0.0)))),
-                   _static_chi2(residuals, inp, len(params) - 3, noise, inflation), fit.offset, root)
+                   _static_chi2(residuals, inp, len(params) - 3, noise, inflation), model, root)
 
 
-def _fitted_noise(residuals: np.ndarray, inp: JointInput, least_flicker: np.ndarray,
-                  static: tuple[int, int]) -> NoiseModel:
-    """White + flicker fitted to the Allan deviation of the reference `static`'s residuals (the
+def _rms_about_mean(residuals, spans: list[tuple[int, int]]) -> np.ndarray:
+    """Per channel, the standard deviation of `residuals(lo, hi)` over all `spans`, two passes block by block."""
+    n = spans[-1][1]
+    mean = sum(residuals(lo, hi).sum(axis=0) for lo, hi in spans) / n
+    return np.sqrt(sum(((residuals(lo, hi) - mean) ** 2).sum(axis=0) for lo, hi in spans) / n)
+
+
+def _fitted_noise(residuals: np.ndarray, rate_hz: float, least_flicker: np.ndarray) -> NoiseModel:
+    """White + flicker fitted to the Allan deviation of the reference static's `residuals` (the
     longest that does not vibrate: `reference_static`), the
     flicker no lower than `least_flicker` (the datasheet's): a static of minutes resolves the
     white noise well but not flicker below it (the gyros' 0.3 deg/h under 0.7 deg/h of white
@@ -417,21 +490,21 @@ def _fitted_noise(residuals: np.ndarray, inp: JointInput, least_flicker: np.ndar
     would scatter its flicker widely), and the shape put back."""
     least = np.broadcast_to(np.asarray(least_flicker, dtype=float), (3,))
     shape = np.sqrt(least / least.min()) if least.min() > 0 else np.ones(3)
-    a, b = static
-    white, flicker = fit_noise_model(residuals[a:b] / shape, inp.rate_hz, FLICKER_TAUS_S)
+    white, flicker = fit_noise_model(residuals / shape, rate_hz, FLICKER_TAUS_S)
     return NoiseModel(white * shape**2, np.maximum(flicker * shape**2, least))
 
 
-def _static_chi2(residuals: np.ndarray, inp: JointInput, fitted: int, noise: NoiseModel,
+def _static_chi2(residuals, inp: JointInput, fitted: int, noise: NoiseModel,
                  inflation: np.ndarray) -> tuple[float, int]:
     """Chi-square of each static's mean residual (per channel) against what the noise model (its
     white noise times the static's `inflation`) lets a mean over that long scatter: large when a
-    bias jumped, the platform moved during a 'static', or the model does not hold."""
+    bias jumped, the platform moved during a 'static', or the model does not hold. `residuals(lo,
+    hi)`: those of samples [lo, hi)."""
     total, count = 0.0, 0
     for (start, stop), factor in zip(inp.statics, inflation):
         var = mean_variance(noise, stop - start, inp.rate_hz, factor)
         if np.all(var > 0):  # a given noise-free model (planning a protocol) leaves nothing to compare with
-            total += float(np.sum(residuals[start:stop].mean(axis=0) ** 2 / var))
+            total += float(np.sum(residuals(start, stop).mean(axis=0) ** 2 / var))
         count += 3
     return total, max(count - fitted, 1)
 
@@ -450,37 +523,51 @@ def _gm_mean_variance(tau: float, corr: float) -> float:
     return 2 / x * (1 - (1 - np.exp(-x)) / x)
 
 
-def _covariance(designs, rows: np.ndarray, inp: JointInput, bread: np.ndarray, noise: NoiseModel,
-                root: np.ndarray) -> dict[str, np.ndarray]:
+def _covariance(spans: list[tuple[int, int]], designs_of, root_of, inp: JointInput, bread: np.ndarray,
+                noise: NoiseModel) -> dict[str, np.ndarray]:
     """Parameter covariance under white noise plus flicker (a sum of Gauss-Markov processes) on
-    the samples `rows`. Flicker correlates the errors over minutes; a white-noise covariance
-    would be optimistic for everything that compares segments far apart. Every component counts,
-    the slowest (30000 s) too: over a session it is a nearly constant wander of the bias, the
-    difference between the bias the session carries and the turn-on bias reported. `bread`
+    the samples of `spans` ([lo, hi) in time order). Flicker correlates the errors over minutes;
+    a white-noise covariance would be optimistic for everything that compares segments far
+    apart. Every component counts, the slowest (30000 s) too: over a session it is a nearly
+    constant wander of the bias, the difference between the bias the session carries and the
+    turn-on bias reported. `bread`
     is the inverse information of the (possibly constrained) fit: cov = bread . (H' Sigma H) . bread.
-    The fit is weighted: `designs` are the rows times their root weights `root` (of the samples
-    `rows`), which whiten the white noise (a static's inflated variance times its weight is the
+    The fit is weighted: `designs_of(lo, hi)` are the rows times their root weights `root_of(lo,
+    hi)`, which whiten the white noise (a static's inflated variance times its weight is the
     model's), while flicker, common to quiet and vibrating samples, sees the weights themselves.
-    The two parts are kept apart (white_noise, bias_instability): their sum is the covariance."""
-    white = sum(noise.white[i] * _gram([d], len(bread)) for i, d in enumerate(designs))
-    meat = np.zeros_like(white)
-    if np.any(noise.flicker > 0):
+    The two parts are kept apart (white_noise, bias_instability): their sum is the covariance.
+    The rows are taken span by span: a span's designs are all that is held of them."""
+    p = len(bread)
+    grams, grid = None, None
+    flicker = np.any(noise.flicker > 0)
+    last_bin = int(np.floor(inp.time_s[spans[-1][1] - 1] / FLICKER_BIN_S))
+    for lo, hi in spans:
+        designs = designs_of(lo, hi)
+        block = [_gram([d], p) for d in designs]
+        grams = block if grams is None else [g + b for g, b in zip(grams, block)]
+        if not flicker:
+            continue
         # Flicker varies over seconds at the fastest, so its quadratic form is taken on sums over
         # FLICKER_BIN_S bins of every channel's columns, laid on a uniform bin grid.
-        bins = np.floor(inp.time_s[rows] / FLICKER_BIN_S).astype(np.int64)
+        bins = np.floor(inp.time_s[lo:hi] / FLICKER_BIN_S).astype(np.int64)
         starts = np.flatnonzero(np.diff(bins, prepend=-1))
-        grid = np.zeros((bins[-1] + 1, sum(len(d.params) for d in designs)))
+        if grid is None:
+            grid = np.zeros((last_bin + 1, sum(len(d.params) for d in designs)))
+        root = root_of(lo, hi)
         binned: dict[int, np.ndarray] = {}  # each shared basis's bin sums, mixed per channel below
         for d in designs:
             if id(d.basis) not in binned:
                 binned[id(d.basis)] = np.add.reduceat(d.basis * root[:, None], starts)
-        grid[bins[starts]] = np.hstack([binned[id(d.basis)] @ d.mix for d in designs])
-        for correlated in correlate(grid, 1.0 / FLICKER_BIN_S, FLICKER_TAUS_S):
-            start = 0
-            for i, d in enumerate(designs):
-                cols = slice(start, start + len(d.params))
-                meat[np.ix_(d.params, d.params)] += noise.flicker[i] * grid[:, cols].T @ correlated[:, cols]
-                start += len(d.params)
+        grid[bins[starts]] += np.hstack([binned[id(d.basis)] @ d.mix for d in designs])
+    white = sum(noise.white[i] * g for i, g in enumerate(grams))
+    meat = np.zeros_like(white)
+    if flicker:
+        start = 0
+        for i, d in enumerate(designs):
+            columns = grid[:, start:start + len(d.params)]
+            for form in gauss_markov_forms(columns, 1.0 / FLICKER_BIN_S, FLICKER_TAUS_S):
+                meat[np.ix_(d.params, d.params)] += noise.flicker[i] * form
+            start += len(d.params)
     return {"white_noise": bread @ white @ bread, "bias_instability": bread @ meat @ bread}
 
 
@@ -496,18 +583,17 @@ def alpha_beta(axis: np.ndarray) -> tuple[float, float]:
     return float(np.arctan2(axis[1], axis[2])), float(-np.arcsin(axis[0] / np.linalg.norm(axis)))
 
 
-def _noise_scale(residuals: np.ndarray, inp: JointInput, static: tuple[int, int]) -> float:
-    """How much the static residuals' Allan deviation exceeds white noise at long averaging
-    times (an eighth and a quarter of the reference `static`): 1 for white noise, more when bias
+def _noise_scale(residuals: np.ndarray, rate_hz: float) -> float:
+    """How much the reference static's `residuals`' Allan deviation exceeds white noise at long
+    averaging times (an eighth and a quarter of the static): 1 for white noise, more when bias
     instability correlates the errors."""
-    a, b = static
-    r = residuals[a:b]
-    taus = np.array([1 / 8, 1 / 4]) * (b - a) / inp.rate_hz
-    taus = taus[taus * inp.rate_hz >= 2]
+    r = residuals
+    taus = np.array([1 / 8, 1 / 4]) * len(r) / rate_hz
+    taus = taus[taus * rate_hz >= 2]
     if not len(taus):
         return 1.0
-    used, adev = allan_deviation(r, inp.rate_hz, taus)
-    white = r.std(axis=0) / np.sqrt(used[:, None] * inp.rate_hz)
+    used, adev = allan_deviation(r, rate_hz, taus)
+    white = r.std(axis=0) / np.sqrt(used[:, None] * rate_hz)
     ratio = np.divide(adev, white, out=np.ones_like(adev), where=white > 0)
     return float(max(1.0, np.max(ratio)))
 
@@ -522,25 +608,25 @@ class ForceFit:
     noise_scale: float
     noise: NoiseModel  # the model the covariance assumes: fitted to the residuals, or given
     sensitivity: np.ndarray  # d params / d (k_x, k_y, k_z, g0): how the axis and g0 errors move them
-    rows: np.ndarray  # the static samples the fit uses
-    root: np.ndarray  # their root weights
+    statics: tuple[tuple[int, int], ...]  # the static samples the fit uses
+    root: np.ndarray  # each static's root weight
     sums: _StaticSums  # of the data, at the fit's platform angles
+    data: np.ndarray  # (N, 3) the sensor's samples: a refit at other platform angles sums them again
 
     @property
     def cov(self) -> np.ndarray:
         return sum(self.cov_parts.values())
 
     def refit(self, through: np.ndarray, k: np.ndarray, g0: float, chi: np.ndarray | None = None,
-              added: np.ndarray | None = None) -> np.ndarray:
-        """The parameters for the data plus `added` (all samples, N x 3; it needs `chi`) taken
-        through the 3 x 3 map `through` (the sensor's output is `through` times the data),
-        another axis k, g0 or platform angle `chi` (all samples; None: the fit's), with the same
-        weights: how the error budget sees a change of the data. The sums are linear in the
-        data, so the map acts on them."""
+              added: tuple[int, np.ndarray] | None = None) -> np.ndarray:
+        """The parameters for the data plus `added` ((channel, values of all N samples) added to
+        that channel; it needs `chi`) taken through the 3 x 3 map `through` (the sensor's output
+        is `through` times the data), another axis k, g0 or platform angle `chi` (all samples;
+        None: the fit's), with the same weights: how the error budget sees a change of the data.
+        The sums are linear in the data, so the map acts on them."""
         sums = self.sums
         if chi is not None:
-            force = sums.force if added is None else sums.force + added[self.rows]
-            sums = _static_sums(force, _angle_basis(chi[self.rows]), self.root)
+            sums = _static_sums(self.data, chi, self.statics, self.root, added)
         return _force_params(replace(sums, cross=sums.cross @ through.T), k, g0)[0]
 
 
@@ -553,7 +639,6 @@ class _StaticSums:
 
     gram: np.ndarray  # B' W B
     cross: np.ndarray  # B' W f, one column per channel
-    force: np.ndarray  # f: n x 3
 
 
 def _channel_map(a_row: np.ndarray, g0: float) -> np.ndarray:
@@ -585,30 +670,39 @@ def fit_force(force: np.ndarray, chi: np.ndarray, inp: JointInput, k: np.ndarray
     """The accelerometer or inclinometer fit at every static sample, for the gyro-derived
     platform axis k (IMU axes). `noise` as in fit_gyros. The fit takes k and g0 as exact; its
     sensitivity to them lets `solve` carry their uncertainty into the biases (an error d_beta
-    moves the X biases by g0 d_beta, one of g0 the Z biases by as much)."""
-    rows = np.concatenate([np.arange(s, e) for s, e in inp.statics])
+    moves the X biases by g0 d_beta, one of g0 the Z biases by as much). The statics are taken
+    one at a time: the fit holds their sums, not their samples."""
     chis = np.array([chi[s:e].mean() for s, e in inp.statics])
     if np.ptp(np.exp(1j * chis).real) < 0.5 and np.ptp(np.exp(1j * chis).imag) < 0.5:
         raise Underdetermined("the statics cover too few platform angles to separate the tilt from the biases "
                               "(index positions about 90 deg apart are needed)")
-    root = _row_weights(force, inp)[rows]
-    basis = _angle_basis(chi[rows])
-    sums = _static_sums(force[rows], basis, root)
+    root = 1.0 / np.sqrt(static_inflation(force, inp.statics))  # a static's rows' `_row_weights`
+    blocks = _static_blocks(inp.statics, root)
+    weight = {(a, b): r for a, b, r in blocks}
+    sums = _static_sums(force, chi, inp.statics, root)
     params, gram, maps, offsets = _force_params(sums, k, g0)
     drivers = np.append(k, g0)
 
     def refit(x):
         return _force_params(sums, x[:3], x[3])[0]
 
+    def designs(a: int, b: int) -> list[ChannelDesign]:
+        basis = _angle_basis(chi[a:b])
+        return [ChannelDesign(np.array([0, 1, 2 + i]), basis, t) for i, t in enumerate(maps)]
+
+    def root_of(a: int, b: int) -> np.ndarray:
+        return np.full(b - a, weight[a, b])
+
     steps = np.diag([1e-6, 1e-6, 1e-6, 1e-4])  # k is near unit length; g0 in m/s^2
     sensitivity = np.column_stack([(refit(drivers + h) - refit(drivers - h)) / (2 * h.max()) for h in steps])
-    designs = [ChannelDesign(np.array([0, 1, 2 + i]), basis, t) for i, t in enumerate(maps)]
-    full = np.zeros_like(force)
-    full[rows] = force[rows] - offsets - np.column_stack([d @ params for d in designs])
-    ref = inp.statics[reference_static(sample_variance(force, inp.statics), inp.statics)]
-    noise = noise or _fitted_noise(full, inp, least_flicker, ref)
-    parts = _covariance(_scaled(designs, root), rows, inp, np.linalg.inv(gram), noise, root)
-    return ForceFit(params, parts, _noise_scale(full, inp, ref), noise, sensitivity, rows, root, sums)
+    a, b = inp.statics[reference_static(sample_variance(force, inp.statics), inp.statics)]
+    ref = _f64(force, a, b) - offsets - np.column_stack([d @ params for d in designs(a, b)])
+    noise = noise or _fitted_noise(ref, inp.rate_hz, least_flicker)
+    scale = _noise_scale(ref, inp.rate_hz)
+    del ref  # a static's residuals: not held through the covariance
+    parts = _covariance(list(weight), lambda a, b: _scaled(designs(a, b), root_of(a, b)), root_of, inp,
+                        np.linalg.inv(gram), noise)
+    return ForceFit(params, parts, scale, noise, sensitivity, inp.statics, root, sums, force)
 
 
 def _angle_basis(chi_rows: np.ndarray) -> np.ndarray:
@@ -616,9 +710,20 @@ def _angle_basis(chi_rows: np.ndarray) -> np.ndarray:
     return np.column_stack([np.cos(chi_rows), np.sin(chi_rows), np.ones(len(chi_rows))])
 
 
-def _static_sums(force_rows: np.ndarray, basis: np.ndarray, root: np.ndarray) -> _StaticSums:
-    weighted = basis * (root**2)[:, None]
-    return _StaticSums(weighted.T @ basis, weighted.T @ force_rows, force_rows)
+def _static_sums(force: np.ndarray, chi: np.ndarray, statics, root: np.ndarray,
+                 added: tuple[int, np.ndarray] | None = None) -> _StaticSums:
+    """The sums over the statics' samples (each static's root weight in `root`), static by
+    static; `added`: (channel, values of all samples) added to that channel of `force`."""
+    gram, cross = np.zeros((3, 3)), np.zeros((3, 3))
+    for a, b, r in _static_blocks(statics, root):
+        basis = _angle_basis(chi[a:b])
+        values = np.array(force[a:b], dtype=np.float64)
+        if added is not None:
+            values[:, added[0]] += added[1][a:b]
+        weighted = basis * r**2
+        gram += weighted.T @ basis
+        cross += weighted.T @ values
+    return _StaticSums(gram, cross)
 
 
 # ---------------------------------------------------------------- from fits to estimates
@@ -723,8 +828,7 @@ def solve(inp: JointInput, site: Site, options: JointOptions = JointOptions(),
           noise: SensorNoise | None = None) -> JointResult:
     """Every estimate and its 1-sigma; `noise` replaces the noise models fitted to the residuals
     (whose flicker is at least the STIM300 datasheet's)."""
-    statics = np.concatenate([np.arange(a, b) for a, b in inp.statics])
-    along = None if inp.incl is None else inp.incl[statics].mean(axis=0) / STANDARD_GRAVITY
+    along = None if inp.incl is None else _static_mean(inp.incl, inp.statics) / STANDARD_GRAVITY
     least = datasheet_noise(spec.NoiseFigures.datasheet(options.acc_range_g), inp.rate_hz, along)
     gyro = fit_gyros(inp, site, options, noise and noise.gyro, least.gyro.flicker)
     k = gyro.params[AXIS_PARAMS]
@@ -827,12 +931,12 @@ def factory_effects(inp: JointInput, site: Site, options: JointOptions, gyro: Gy
         through[term.row, term.col] += term.sigma
         if term.sensor == "gyro":
             # started where the base fit's axis and non-rotational part go through the same map
-            params = gyro.params.copy()
-            params[AXIS_PARAMS] = through @ params[AXIS_PARAMS]
-            start = replace(gyro, params=params, offset=gyro.offset @ through.T)
-            refit_params, refit_chi = _gyro_refit(replace(inp, gyro=inp.gyro @ through.T), site, options, root, start)
+            k = through @ gyro.params[AXIS_PARAMS]
+            refit_params, refit_chi = _gyro_refit(inp, site, options, root, through, k / np.linalg.norm(k),
+                                                  gyro.model, gyro.chi)
             columns.append(estimates(refit_params, refit_chi) - base)
             refits[index] = (refit_params[AXIS_PARAMS], np.array([refit_chi[a:b].mean() for a, b in inp.statics]))
+            del refit_chi  # not held through the next term's refit
         else:
             columns.append(estimates(gyro.params, None, term.sensor, through) - base)
     return FactoryEffects(terms, np.column_stack(columns), refits)
@@ -848,8 +952,9 @@ class _Refitted:
     tilt_from_incl: bool
 
     def estimates(self, gyro_params: np.ndarray, chi: np.ndarray | None = None, sensor: str | None = None,
-                  through: np.ndarray = np.eye(3), added: np.ndarray | None = None) -> np.ndarray:
-        """SI, in ESTIMATE_NAMES' order; `sensor`'s data taken through `through` plus `added`."""
+                  through: np.ndarray = np.eye(3), added: tuple[int, np.ndarray] | None = None) -> np.ndarray:
+        """SI, in ESTIMATE_NAMES' order; `sensor`'s data taken through `through` plus `added`
+        ((channel, values): `ForceFit.refit`)."""
         k = gyro_params[AXIS_PARAMS]
         params = {name: None if fit is None else
                   fit.refit(through if name == sensor else np.eye(3), k, self.site.gravity, chi,
@@ -884,17 +989,19 @@ def temperature_effects(inp: JointInput, site: Site, options: JointOptions, gyro
     without temperatures."""
     if inp.temperature_c is None or not np.isfinite(inp.temperature_c).any():
         return None
-    temperature = np.nan_to_num(inp.temperature_c, nan=float(np.nanmean(inp.temperature_c)))
-    excursion = temperature - temperature.mean()
+    excursion = np.nan_to_num(inp.temperature_c, nan=float(np.nanmean(inp.temperature_c)))
+    excursion -= excursion.mean()  # about the session's mean
     triads = spec.triads(options.acc_range_g)
     per_degree = {"gyro": triads["gyro"].bias_temperature_sigma / 3600 * DEG,
                   "incl": triads["incl"].bias_temperature_sigma * STANDARD_GRAVITY / 1000,
                   "acc": triads["acc"].bias_temperature_sigma * STANDARD_GRAVITY / 1000}
     root = gyro.root
     p = len(gyro.params)
-    designs = _scaled(_gyro_designs(gyro.chi, gyro.chi_rate, inp.time_s - inp.time_s.mean(),
-                                    int_to_imu(*alpha_beta(gyro.params[AXIS_PARAMS])), options.drift), root)
-    gram, rhs = _normal_equations(designs, inp.gyro * root[:, None], p)
+    model = replace(gyro.model, a=int_to_imu(*alpha_beta(gyro.params[AXIS_PARAMS])))
+    gram, rhs = model.normal_equations(inp.time_s, partial(_f64, inp.gyro), root, p)
+    mix = [(d.params, d.mix) for d in model.designs(inp.time_s, 0, 1)]  # each channel's, the same in every block
+    seen = sum(_scaled(model.designs(inp.time_s, lo, hi), root[lo:hi])[0].basis.T
+               @ (excursion[lo:hi] * per_degree["gyro"] * root[lo:hi]) for lo, hi in _spans(len(root)))
     solver = partial(_on_circle, amplitude=EARTH_RATE * np.cos(np.radians(site.latitude_deg))) \
         if options.fixed_amplitude else _free
     refitted = _Refitted(site, {"incl": incl, "acc": acc}, tilt_from_incl)
@@ -905,25 +1012,37 @@ def temperature_effects(inp: JointInput, site: Site, options: JointOptions, gyro
         if sensor == "incl" and incl is None:
             continue
         for axis in range(3):
-            added = excursion * per_degree[sensor]
             if sensor == "gyro":
-                d = designs[axis]
+                params, channel_mix = mix[axis]
                 moved = rhs.copy()
-                moved[d.params] += d.mix.T @ (d.basis.T @ (added * root))
+                moved[params] += channel_mix.T @ seen  # the basis is the channels' shared one
                 columns.append(refitted.estimates(solver(gram, moved)[0], gyro.chi) - base)
             else:
-                data = np.zeros((len(added), 3))
-                data[:, axis] = added
-                columns.append(refitted.estimates(fitted, gyro.chi, sensor, added=data) - base)
+                added = (axis, excursion * per_degree[sensor])
+                columns.append(refitted.estimates(fitted, gyro.chi, sensor, added=added) - base)
     return TemperatureEffects(per_degree, excursion, np.column_stack(columns))
 
 
-def _gyro_refit(inp: JointInput, site: Site, options: JointOptions, root: np.ndarray,
-                start: GyroFit) -> tuple[np.ndarray, np.ndarray]:
-    """The parameters and platform angle of a gyro fit refitted from `start`; its other
-    session-long arrays are let go here, not held through the next term's refit."""
-    solution = _iterate_gyros(inp, site, options, root, start, REFIT_TOLERANCE)
-    return solution.params, solution.chi
+def _gyro_refit(inp: JointInput, site: Site, options: JointOptions, root: np.ndarray, through: np.ndarray,
+                axis: np.ndarray, start: _GyroModel, chi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The parameters and platform angle of a gyro fit of the data taken through `through`,
+    refitted from `axis`, the non-rotational part of the fit `start` taken through the same map
+    and its platform angle `chi`; its other session-long arrays are let go here, not held through
+    the next term's refit."""
+    def data(lo: int, hi: int) -> np.ndarray:
+        return _mapped(_f64(inp.gyro, lo, hi), through)
+
+    def offset(lo: int, hi: int) -> np.ndarray:
+        return _mapped(start.offset(inp.time_s, lo, hi), through)
+
+    solution = _iterate_gyros(inp, site, options, root, data, axis, offset, chi, REFIT_TOLERANCE)
+    return solution.params, solution.model.chi
+
+
+def _mapped(values: np.ndarray, through: np.ndarray) -> np.ndarray:
+    """values @ through.T for (m, 3) values, as three column products: a threaded BLAS spends
+    more on a product this thin than the product costs, once per block of every pass."""
+    return values[:, :1] * through[:, 0] + values[:, 1:2] * through[:, 1] + values[:, 2:3] * through[:, 2]
 
 
 def parameter_covariance(gyro: GyroFit, incl: ForceFit | None, acc: ForceFit, g0_sigma: float) -> dict[str, np.ndarray]:

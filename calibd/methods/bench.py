@@ -74,7 +74,8 @@ def thesis_bench(session: Session, site: Site, segments: list[detect.Segment] | 
         if partial:  # eq. 5.7 assumes the yaw term averaged out; its rest tilts the platform-rate vector
             warnings.append(f"{partial} in the turn at {turn.start_s:.0f} s, up to "
                             f"{earth_bound / abs(turn.rate_deg_s * DEG) / DEG:.4f} deg on its alpha and beta")
-        rate = thesis.bench_platform_rate(session.gyro[window].mean(axis=0), biases["gyro"], pitch, roll, site)
+        turning = session.gyro[window].mean(axis=0, dtype=np.float64)
+        rate = thesis.bench_platform_rate(turning, biases["gyro"], pitch, roll, site)
         tilts.append(thesis.interface_tilt(rate))
     alpha, beta = np.mean(tilts, axis=0)
     estimates = {"alpha": (alpha, None), "beta": (beta, None)}
@@ -106,7 +107,7 @@ def intrinsic_terms(session: Session, at: dict[str, detect.Segment], site: Site,
     for sensor, values in (("acc", session.acc), ("incl", session.incl)):
         means, variances = {}, {}
         for up, segment in at.items():
-            means[up] = values[segment.start:segment.stop].mean(axis=0)
+            means[up] = values[segment.start:segment.stop].mean(axis=0, dtype=np.float64)
             along = means[up] / STANDARD_GRAVITY  # an inclinometer axis along gravity is noisier
             figures = datasheet_noise(spec.NoiseFigures.datasheet(acc_range_g), session.rate_hz, along)
             noise = NoiseModel(sample_variance(values, [(segment.start, segment.stop)])[0],

@@ -86,4 +86,4 @@ def partial_period(covered_deg: float, site: Site) -> tuple[float, str]:
 
 
 def static_mean(values: np.ndarray, seg: detect.Segment) -> np.ndarray:
-    return values[seg.start:seg.stop].mean(axis=0)
+    return values[seg.start:seg.stop].mean(axis=0, dtype=np.float64)  # a capture's session stores float32

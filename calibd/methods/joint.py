@@ -250,7 +250,7 @@ def _vibration_warnings(fitted: JointFit, session: Session) -> list[str]:
     warnings = []
     for k, (start, stop) in enumerate(inp.statics):
         # the datasheet's inclinometer figures are at 0 g: an axis along gravity is noisier
-        along = None if inp.incl is None else inp.incl[start:stop].mean(axis=0) / STANDARD_GRAVITY
+        along = None if inp.incl is None else inp.incl[start:stop].mean(axis=0, dtype=np.float64) / STANDARD_GRAVITY
         figures = joint.datasheet_noise(spec.NoiseFigures.datasheet(fitted.options.acc_range_g), inp.rate_hz, along)
         loud = []
         for sensor, values in (("gyro", inp.gyro), ("acc", inp.acc), ("incl", inp.incl)):

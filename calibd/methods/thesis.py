@@ -91,7 +91,7 @@ def thesis_real_case(session: Session, site: Site, alpha_beta_deg: tuple[float, 
         level_gyro=static_mean(session.gyro, level), level_acc=static_mean(session.acc, level),
         level_incl=static_mean(session.incl, level),
         index_incl=np.array([static_mean(session.incl, s) for s in index]),
-        turn_gyro=session.gyro[window])
+        turn_gyro=np.asarray(session.gyro[window], dtype=np.float64))
     alpha_beta = None if alpha_beta_deg is None else (alpha_beta_deg[0] * DEG, alpha_beta_deg[1] * DEG)
     rate = None if platform_rate_deg_s is None else platform_rate_deg_s * DEG
     est = thesis.real_case(data, site, alpha_beta, rate)
@@ -121,7 +121,7 @@ def thesis_real_case(session: Session, site: Site, alpha_beta_deg: tuple[float, 
     records = ([segment_record(level, "level static")]
                + [segment_record(s, f"index position {k + 1}") for k, s in enumerate(index)]
                + [segment_record(turn, "full turn")])
-    diagnostics = {role: _earth_rate_report(values, session.rate_hz, site)
+    diagnostics = {role: _earth_rate_report(np.asarray(values, dtype=np.float64), session.rate_hz, site)
                    for role, values in (("level static", session.gyro[level.start:level.stop]),
                                         ("full turn", session.gyro[window]))}
     result = make_result(est["method"], site, estimates, records, warnings, session.sensor,
