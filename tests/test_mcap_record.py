@@ -82,8 +82,9 @@ def test_every_sample_is_an_imu_message_in_si(recorded, tmp_path, run_main):
     gyro = np.array([[r.angular_velocity.x, r.angular_velocity.y, r.angular_velocity.z] for _, r in messages])
     acc = np.array([[r.linear_acceleration.x, r.linear_acceleration.y, r.linear_acceleration.z]
                     for _, r in messages])
-    assert np.allclose(gyro, np.column_stack([b[f"gyro_{a}"] for a in "xyz"]).astype(float) * (math.pi / 180), rtol=1e-15, atol=0)
-    assert np.allclose(acc, np.column_stack([b[f"acc_{a}"] for a in "xyz"]).astype(float) * 9.80665, rtol=1e-15, atol=0)
+    decoded = {c: np.column_stack([b[f"{c}_{a}"] for a in "xyz"]).astype(float) for c in ("gyro", "acc")}
+    assert np.allclose(gyro, decoded["gyro"] * (math.pi / 180), rtol=1e-15, atol=0)
+    assert np.allclose(acc, decoded["acc"] * 9.80665, rtol=1e-15, atol=0)
     assert [m.sequence for m, _ in messages] == list(range(len(messages)))
     stamps = np.array([r.header.stamp.sec * 10**9 + r.header.stamp.nanosec for _, r in messages])
     assert np.all(np.diff(stamps) > 0) and np.array_equal(stamps, [m.log_time for m, _ in messages])
