@@ -39,6 +39,7 @@ PEAK_TARGET_MB = 500
 WALL_TARGET_RATIO = 3.0
 AGREE_TARGET_SIGMA = 0.1
 ROOT = Path(__file__).resolve().parent.parent
+GNU_TIME = "/usr/bin/time"
 
 
 def scenario():
@@ -60,15 +61,19 @@ def capture_path(cache: Path) -> Path:
 
 
 def run(argv: list[str]) -> tuple[float, float, int, bytes]:
-    """(wall time in s, peak RSS in MB, exit code, stdout) of one child process: its own rusage
-    from wait4 (ru_maxrss in kB on Linux)."""
+    """(wall time in s, peak RSS in MB, exit code, stdout) of one child process, its peak as GNU
+    time reports it (`/usr/bin/time -f %M`, from its own wait4). Not this process's wait4: Python
+    starts children with vfork, and a vforked child's peak RSS starts at the parent's peak (the
+    kernel keeps the larger across exec), so a benchmark holding 100 MB would read 100 MB for any
+    child; GNU time is a small process that forks the command itself."""
+    if not os.access(GNU_TIME, os.X_OK):
+        raise SystemExit(f"{GNU_TIME} (GNU time) is needed to read a child's peak memory: apt install time")
     started = time.perf_counter()
-    child = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, cwd=ROOT,
-                             env=os.environ | {"PYTHONPATH": str(ROOT)})
-    out = child.stdout.read()
-    _, status, usage = os.wait4(child.pid, 0)
-    child.returncode = os.waitstatus_to_exitcode(status)
-    return time.perf_counter() - started, usage.ru_maxrss / 1024, child.returncode, out
+    with tempfile.NamedTemporaryFile("r") as peak:
+        child = subprocess.run([GNU_TIME, "-f", "%M", "-o", peak.name, *argv], stdout=subprocess.PIPE,
+                               stderr=subprocess.DEVNULL, cwd=ROOT, env=os.environ | {"PYTHONPATH": str(ROOT)})
+        kb = float(peak.read().strip().splitlines()[-1])
+    return time.perf_counter() - started, kb / 1024, child.returncode, child.stdout
 
 
 def full_rate_session(path: Path) -> Session:
