@@ -15,6 +15,7 @@ docs/noise.md has the details and the reasons.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -239,6 +240,9 @@ def kalibr_yaml(session: Session, channels: dict[str, ChannelNoise], rostopic: s
     averaging, the rate they are used at does). docs/noise.md gives the formulas."""
     first = next(iter(channels.values()))
     lines = [f"# Kalibr IMU noise model from {first.static_s:.1f} s of static data (calibd noise)"]
+    rate_hz = float(session.sensor.sample_rate_hz or session.rate_hz)  # made without the sensor's rate: its own
+    discrete_lines = [f"# The same figures discrete, per sample at {rate_hz:g} Hz (imu_utils-style tools, a "
+                      "filter's per-step noise):"]
     for kalibr, ours in KALIBR_SENSORS.items():
         figures = [_si_per_sqrt_s(c) for name, c in channels.items() if name.split("_")[0] == ours]
         density_unit, walk_unit = KALIBR_SI_UNITS[ours]
@@ -248,6 +252,18 @@ def kalibr_yaml(session: Session, channels: dict[str, ChannelNoise], rostopic: s
         lines += [f"{kalibr}_noise_density: {density!r}  # {density_unit}, white noise: Allan deviation at 1 s, "
                   f"largest axis",
                   f"{kalibr}_random_walk: {walk!r}  # {walk_unit}, {walk_how}, largest axis"]
-    rate_hz = session.sensor.sample_rate_hz or session.rate_hz  # a session made without the sensor's rate: its own
-    lines += [f"rostopic: {rostopic}", f"update_rate: {float(rate_hz)!r}  # Hz, the sensor's sample rate"]
+        sample, step = discrete(density, walk, rate_hz)
+        unit = density_unit.split("/sqrt")[0]
+        discrete_lines += [f"#   {kalibr}_noise_discrete: {sample!r}  # {unit}, one sample's white noise = density "
+                           "* sqrt(update_rate)",
+                           f"#   {kalibr}_random_walk_discrete: {step!r}  # {unit}, the bias's step per sample = "
+                           "random walk / sqrt(update_rate)"]
+    lines += [f"rostopic: {rostopic}", f"update_rate: {rate_hz!r}  # Hz, the sensor's sample rate", *discrete_lines]
     return "\n".join(lines) + "\n"
+
+
+def discrete(density: float, random_walk: float, rate_hz: float) -> tuple[float, float]:
+    """Continuous densities (per sqrt(Hz)) -> per-sample figures at `rate_hz`: one sample's white
+    noise sigma_w sqrt(rate) and the bias's random-walk step sigma_b / sqrt(rate), in the
+    signal's own unit (rad/s, m/s^2)."""
+    return density * math.sqrt(rate_hz), random_walk / math.sqrt(rate_hz)

@@ -306,6 +306,13 @@ def test_kalibr_random_walk_is_the_rate_random_walk_in_si():
     # the largest of three axes each scattering by about 15 %: above the truth, not by more than 60 %
     assert 0.9 < values["gyroscope_random_walk"] / (walk / RAD_S_TO_DEG_H) < 1.6
     assert 0.9 < values["accelerometer_random_walk"] / (walk / M_S2_TO_MG) < 1.6
+    # the same figures per sample at 20 Hz, as comments a YAML reader skips
+    discrete = {k.strip("# "): float(v.split("#")[0]) for k, v in
+                (line.split(":", 1) for line in text.splitlines() if line.startswith("#   "))}
+    for sensor in ("gyroscope", "accelerometer"):
+        assert discrete[f"{sensor}_noise_discrete"] == pytest.approx(values[f"{sensor}_noise_density"] * 20 ** 0.5)
+        assert discrete[f"{sensor}_random_walk_discrete"] == pytest.approx(values[f"{sensor}_random_walk"] / 20 ** 0.5)
+    assert "per sample at 20 Hz" in text and "# rad/s, one sample's white noise" in text
 
 
 @pytest.mark.slow
