@@ -11,13 +11,14 @@ from __future__ import annotations
 import collections
 import math
 from dataclasses import asdict, dataclass, field, replace
+from functools import lru_cache
 
 import numpy as np
 
 from .codec import SAMPLE_DTYPE, START_UP, decode_at
-from .crc import datagram_crc
+from .crc import datagram_crc, position_tables
 from .protocol import (BIAS_TRIM, CONFIGURATION, COUNTER_MODULUS, CR_LF, INTERNAL_RATE_HZ, NORMAL_LAYOUTS,
-                       PART_NUMBER, SAMPLE_RATES_HZ, SERIAL_NUMBER, SPECIAL_IDS, Format)
+                       PART_NUMBER, SAMPLE_RATES_HZ, SERIAL_NUMBER, SPECIAL_IDS, Format, Layout)
 from .records import TrimRecord
 from .special import decode_special
 
@@ -140,6 +141,36 @@ class Stats:
 
 
 WAIT = -1  # scan result: not enough bytes yet to decide
+FOLLOW_BLOCK = 128  # datagrams `Scanner.follow` checks at once: more than a live read holds, and the most it
+# checks in vain before a datagram that fails (about what `step` then costs to re-synchronise)
+
+
+@lru_cache(maxsize=None)
+def _check_table(layout: Layout, crlf: bool) -> tuple[np.ndarray, np.ndarray]:
+    """One 256-entry table per byte of a datagram on the wire, such that the XOR of every byte's
+    entry is 0 exactly when it verifies: the low 32 bits add up to its CRC (`position_tables`)
+    XOR the CRC it carries, bit 32 is set by an id other than the layout's, bits 33 and 34 by
+    a CR or LF that is not one. Returns the tables end to end and each byte's first index."""
+    pre = layout.pre_crc
+    tables, constant = position_tables(pre)
+    check = np.zeros((layout.wire_length(crlf), 256), np.uint64)
+    check[:pre] = tables
+    check[0] ^= np.uint64(constant)
+    for k in range(4):  # the CRC sent, most significant byte first
+        check[pre + k] = np.arange(256, dtype=np.uint64) << np.uint64(24 - 8 * k)
+    expected = [(0, layout.datagram_id)] + ([(pre + 4, CR_LF[0]), (pre + 5, CR_LF[1])] if crlf else [])
+    for bit, (position, byte) in enumerate(expected, 32):
+        check[position, np.arange(256) != byte] ^= np.uint64(1 << bit)
+    return check.ravel(), np.arange(len(check), dtype=np.intp) * 256
+
+
+def verified(frames: np.ndarray, layout: Layout, crlf: bool) -> int:
+    """How many leading rows of `frames` (N x wire length uint8) are datagrams of `layout` that
+    verify as `Scanner.step` checks them: id byte, CRC, CR LF when `crlf`. One table entry per
+    byte, all gathered at once (a word per byte: a few rows at a time, FOLLOW_BLOCK at most)."""
+    check, first = _check_table(layout, crlf)
+    valid = np.bitwise_xor.reduce(check[frames + first], axis=1) == 0
+    return len(valid) if valid.all() else int(np.argmin(valid))
 
 
 @dataclass(frozen=True)
@@ -248,38 +279,36 @@ class Scanner:
         self.stats.datagrams += 1
         self.last_counter = counter
 
-    def follow(self, buf, i: int) -> int:
+    def follow(self, buf, i: int) -> range:
         """Accept the datagrams of the current format that lie whole and back to back from offset
-        i, each exactly as `step` would, and return the offset after them. A stream in step is
-        made of little else, and one call for them all costs a fraction of a `step` each; whatever
-        else comes (another id, a CRC or CR LF that fails, a tail still short) is left to `step`.
-        Only once the format is known (its id and CR LF) and no power-up sequence is under way."""
+        i, each exactly as `step` would, and return their offsets (a range: its stop is the offset
+        after them). A stream in step is made of little else: they are checked FOLLOW_BLOCK at
+        a time (`verified`); whatever else comes (another id, a CRC or CR LF that fails, a
+        tail still short) is left to `step`. Only once the format is known (its id and CR LF) and
+        no power-up sequence is under way."""
         fmt = self.format
         if fmt.datagram_id is None or fmt.crlf is None or self._power_up:
-            return i
+            return range(i, i)
         layout = NORMAL_LAYOUTS[fmt.datagram_id]
-        ident, pre, crlf, at_counter = fmt.datagram_id, layout.pre_crc, fmt.crlf, layout.counter_offset
-        length = layout.wire_length(crlf)
-        while i + length <= len(buf) and buf[i] == ident:
-            end = i + pre + 4
-            if datagram_crc(buf[i:i + pre]) != int.from_bytes(buf[i + pre:end], "big"):
+        length = layout.wire_length(fmt.crlf)
+        start = i
+        while count := min(FOLLOW_BLOCK, (len(buf) - i) // length):
+            frames = np.frombuffer(buf, np.uint8, count * length, i).reshape(count, length)
+            good = verified(frames, layout, fmt.crlf)
+            self.count_counters(frames[:good, layout.counter_offset])
+            i += good * length
+            if good < count:
                 break
-            if crlf and buf[end:end + 2] != CR_LF:
-                break
-            self._count(buf[i + at_counter])
-            self._on_normal(i, ident)
-            i += length
-        return i
+        return range(start, i, length)
 
     def count_counters(self, counters: np.ndarray) -> None:
-        """`_accept_normal`'s counter accounting for a run of datagrams at once (uint8 array)."""
+        """`_accept_normal`'s counter accounting for a run of datagrams at once (uint8 array, whose
+        differences wrap modulo COUNTER_MODULUS as the counter does)."""
         if not len(counters):
             return
         if self.last_counter is not None:
-            steps = np.diff(counters.astype(np.int16), prepend=self.last_counter) % COUNTER_MODULUS
-        else:
-            steps = np.diff(counters.astype(np.int16)) % COUNTER_MODULUS
-        self.stats.counter_steps += np.bincount(steps, minlength=COUNTER_MODULUS)
+            self.stats.counter_steps[(int(counters[0]) - self.last_counter) % COUNTER_MODULUS] += 1
+        self.stats.counter_steps += np.bincount(counters[1:] - counters[:-1], minlength=COUNTER_MODULUS)
         self.stats.datagrams += len(counters)
         self.last_counter = int(counters[-1])
         self._power_up = 0
@@ -398,14 +427,29 @@ class StreamParser:
 
     def __init__(self, fmt: Format | None = None, tap=None):
         self._buf = bytearray()
-        self._found: list[tuple[int, int, Format]] = []
+        self._offsets: list[int] = []  # the normal datagrams accepted in the buffer, not yet decoded
+        self._formats: list[tuple[int, Format]] = []  # (index into _offsets, format) where a run of one format starts
         self._specials: list[bytes] = []  # the special datagrams of the feed being settled, for the tap
         self.scanner = Scanner(fmt, self._found_normal, self._specials.append if tap is not None else None)
         self.tap = tap
         self._trims_tapped = 0  # the scanner's BTO datagrams (by sequence) a tap has been given
 
     def _found_normal(self, offset: int, ident: int) -> None:
-        self._found.append((offset, ident, self.scanner.format))
+        self._accepted((offset,))
+
+    def _follow(self, i: int) -> int:
+        """`Scanner.follow` from offset i; the offset after what it accepted."""
+        run = self.scanner.follow(self._buf, i)
+        if run:
+            self._accepted(run)
+        return run.stop
+
+    def _accepted(self, offsets) -> None:
+        """Normal datagrams at `offsets` accepted in the scanner's format (whose id they have)."""
+        fmt = self.scanner.format
+        if not self._formats or self._formats[-1][1] is not fmt:
+            self._formats.append((len(self._offsets), fmt))
+        self._offsets.extend(offsets)
 
     @property
     def stats(self) -> Stats:
@@ -426,13 +470,14 @@ class StreamParser:
         return self._scan(final=True, t_host=t_host)
 
     def _scan(self, final: bool, t_host: float) -> np.ndarray:
-        buf, i, scanner = self._buf, 0, self.scanner
+        buf, scanner = self._buf, self.scanner
+        i = self._follow(0)  # a stream in step: the datagram the last feed left short, and the rest
         while i < len(buf):
             datagrams = scanner.stats.datagrams
             nxt = scanner.step(buf, i, final)
             if nxt == WAIT:
                 break
-            i = nxt if scanner.stats.datagrams == datagrams else scanner.follow(buf, nxt)
+            i = nxt if scanner.stats.datagrams == datagrams else self._follow(nxt)
         samples, runs = self._decode(buf, t_host)
         if self.tap is not None and i:
             first = self.stats.datagrams - len(samples)
@@ -448,13 +493,18 @@ class StreamParser:
         return samples
 
     def _decode(self, buf: bytearray, t_host: float) -> tuple[np.ndarray, tuple]:
-        found, self._found = self._found, []
-        out = np.empty(len(found), SAMPLE_DTYPE)
-        if not found:
+        """The accepted datagrams' samples, and their runs of one format (as `Settled.runs`)."""
+        out = np.empty(len(self._offsets), SAMPLE_DTYPE)
+        if not self._offsets:
             return out, ()
+        offsets = np.array(self._offsets, np.int64)
+        stops = [start for start, _ in self._formats[1:]] + [len(offsets)]
+        runs = tuple((NORMAL_LAYOUTS[fmt.datagram_id], fmt, offsets[start:stop], start, stop)
+                     for (start, fmt), stop in zip(self._formats, stops))
+        self._offsets.clear()
+        self._formats.clear()
         view = np.frombuffer(buf, np.uint8)
-        runs = tuple(format_runs(found))
-        for layout, fmt, offsets, start, stop in runs:
-            decode_at(view, offsets, layout, fmt, out[start:stop], t_host)
+        for layout, fmt, run, start, stop in runs:
+            decode_at(view, run, layout, fmt, out[start:stop], t_host)
         del view
         return out, runs

@@ -14,7 +14,7 @@ from stim300.crc import datagram_crc
 from stim300.codec import SAMPLE_DTYPE, encode_samples
 from stim300.protocol import CONFIGURATION, NORMAL_LAYOUTS, SERIAL_NUMBER, Format, GyroUnit
 from stim300.special import Configuration, PartNumber, SerialNumber, encode_special
-from stim300.stream import Scanner, StreamParser
+from stim300.stream import FOLLOW_BLOCK, Scanner, StreamParser, verified
 
 LONGEST = max(layout.wire_length(True) for layout in NORMAL_LAYOUTS.values())
 
@@ -88,6 +88,30 @@ def test_bit_flip_costs_one_datagram_and_one_crc_error():
     assert same_samples(samples, np.delete(truth, 10))
     s = parser.stats
     assert (s.datagrams, s.crc_errors, s.lost_samples, s.skipped_bytes) == (99, 1, 1, length)
+
+
+@pytest.mark.parametrize("damage", ["id", "crc", "cr", "lf", "payload"])
+@pytest.mark.parametrize("at", [0, 7, FOLLOW_BLOCK - 1, FOLLOW_BLOCK, FOLLOW_BLOCK + 5])
+def test_datagrams_checked_at_once_stop_at_the_first_that_fails_as_the_scanner_does(damage, at):
+    """`verified` gives the valid prefix of a block whatever breaks the first bad datagram, and a
+    stream fed whole (runs checked FOLLOW_BLOCK at a time) decodes as one fed a byte at a time and
+    as the bulk decoder, statistics included."""
+    data, truth, fmt = capture(2 * FOLLOW_BLOCK + 10, 0x93, True, rate=2000)
+    layout = NORMAL_LAYOUTS[0x93]
+    length = layout.wire_length(True)
+    where = {"id": 0, "crc": layout.pre_crc + 2, "cr": length - 2, "lf": length - 1, "payload": 5}[damage]
+    broken = bytearray(data)
+    broken[at * length + where] ^= 0x10
+    frames = np.frombuffer(bytes(broken), np.uint8).reshape(-1, length)
+    assert verified(frames[:at + 3], layout, True) == at
+    assert verified(frames[at + 1:at + 4], layout, True) == 3
+    whole, parser = assert_same_as_bulk(bytes(broken), fmt=fmt)
+    single, _ = assert_same_as_bulk(bytes(broken), range(len(broken)), fmt=fmt)
+    assert same_samples(whole, np.delete(truth, at)) and same_samples(single, whole)
+    s = parser.stats  # the first datagram has no counter before it to tell a loss
+    assert (s.datagrams, s.lost_samples) == (len(truth) - 1, at > 0)
+    if damage != "id":  # an id broken makes the datagram's other bytes candidates, whatever they hold
+        assert s.crc_errors == 1
 
 
 def test_missing_crlf_rejects_the_datagram_when_crlf_is_configured():
