@@ -73,9 +73,22 @@ def open_serial(url: str, baudrate: int = DEFAULT_BIT_RATE, timeout: float = 0.0
 
 
 def _read_available(ser: serial.Serial, limit: int | None = None) -> bytes:
-    """Everything the port holds now, else wait (up to the port timeout) for the first byte."""
-    size = max(1, ser.in_waiting)
-    return ser.read(size if limit is None else min(size, limit))
+    """Everything the port holds now (at most `limit` bytes), else what comes first within the
+    port timeout (`_read_waited`)."""
+    return _read_waited(ser, limit)[0]
+
+
+def _read_waited(ser: serial.Serial, limit: int | None = None) -> tuple[bytes, bool]:
+    """Everything the port holds now (at most `limit` bytes), else wait (up to the port timeout)
+    for the first byte and take whatever came with it: bytes arriving together are one read, not
+    their first byte and then the rest. And whether it had to wait."""
+    limit = sys.maxsize if limit is None else limit
+    waiting = ser.in_waiting
+    if waiting:
+        return ser.read(min(waiting, limit)), False
+    first = ser.read(1)
+    rest = min(ser.in_waiting, limit - 1) if first else 0
+    return (first + ser.read(rest) if rest > 0 else first), True
 
 
 class PortReader:
@@ -86,11 +99,13 @@ class PortReader:
     reopen_backoff[1] s, until it opens or `stop()` is called. `on_raw(bytes)` sees every read
     before the parser (e.g. to record it); `tap` is given to the parser (`StreamParser.tap`).
 
-    Each read takes everything the port holds and is stamped with `clock()` as it returns. A
-    parser call that decodes samples has a fixed cost (~0.1 ms) whatever their number, so after one the
-    thread sleeps `batch_s`: at high rates a call then decodes several datagrams, while a
-    datagram arriving after a quiet spell (low rates) is decoded at once. Added latency is at
-    most `batch_s`.
+    Each read takes everything the port holds (at an empty port, the bytes that arrive together)
+    and is stamped with `clock()` as it returns. A parser call that decodes samples has a fixed
+    cost (~0.1 ms) whatever their number, so after one on bytes that were waiting the thread
+    sleeps `batch_s`: at high rates a call then decodes several datagrams. Bytes it had to wait
+    for (after a quiet spell at low rates, or a burst from a port that delivers in bursts) are
+    decoded at once and the thread goes back to waiting: a sleep would only add a wake-up. Added
+    latency is at most `batch_s`.
 
     `lend(use)` pauses the thread between two reads and calls `use(port)` with the open port; what
     `use` reads is its own, never fed to the parser, and reading goes on when it returns (a
@@ -212,7 +227,7 @@ class PortReader:
                     continue  # lent: `stop` is still heard
                 try:
                     with self._reading:
-                        data = _read_available(ser)
+                        data, waited = _read_waited(ser)
                 except (serial.SerialException, OSError) as exc:
                     ser = self._reopen(ser, exc)
                     if ser is None:
@@ -227,7 +242,8 @@ class PortReader:
                 samples = parser.feed(data, t_host)
                 if len(samples):
                     ring.push(samples)
-                    time.sleep(batch_s)
+                    if not waited:
+                        time.sleep(batch_s)
         except Exception as exc:  # noqa: BLE001 - the thread must report, not vanish silently
             self.error = exc
             log.exception("reader_failed", port=self.url)

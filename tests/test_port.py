@@ -179,6 +179,35 @@ def test_non_termios_bit_rates_open_and_read(pty, baudrate):
         assert got == b"\x93\r\nraw"  # 8 bit clean, no CR/LF translation
 
 
+def test_a_read_takes_bytes_that_came_together_at_once_and_says_whether_it_waited(pty):
+    """Bytes already waiting are one read; bytes arriving at an empty port are one read too (not
+    their first byte and then the rest), and that read says it waited for them."""
+    with open_serial(pty.path, timeout=DEADLINE_S) as ser, ThreadPoolExecutor(1) as pool:
+        pty.write(bytes(range(200)))
+        wait_until(lambda: ser.in_waiting == 200, "bytes in the port")
+        assert port._read_waited(ser) == (bytes(range(200)), False)
+        later = pool.submit(port._read_waited, ser)
+        time.sleep(0.2)  # the read waits at an empty port
+        pty.write(bytes(range(100, 0, -1)))
+        assert later.result(timeout=DEADLINE_S) == (bytes(range(100, 0, -1)), True)
+        pty.write(bytes(range(50)))
+        wait_until(lambda: ser.in_waiting == 50, "bytes in the port")
+        assert port._read_available(ser, limit=20) == bytes(range(20))  # a recording's last read
+
+
+def test_datagrams_after_quiet_spells_are_decoded_at_once_without_a_batch_wait(pty):
+    """The reader sleeps `batch_s` only after bytes that were waiting: a datagram it waited for
+    (a low rate, or a port that delivers in bursts) leaves it waiting for the next at once."""
+    fmt = Format(datagram_id=0xA7, crlf=False, sample_rate_hz=125)
+    frames = encode_samples(exact_samples(3, fmt, 0xA7, np.random.default_rng(0)), 0xA7, fmt, crlf=False)
+    ring = RingBuffer(16, SAMPLE_DTYPE)
+    with PortReader(pty.path, ring, fmt=fmt, request_config=False, batch_s=10.0):
+        for k, frame in enumerate(frames, 1):
+            time.sleep(0.2)
+            pty.write(frame.tobytes())
+            wait_until(lambda: ring.total == k, f"datagram {k} in the ring", timeout=DEADLINE_S)
+
+
 def test_open_errors_are_one_line_naming_the_port(pty, tmp_path):
     missing = str(tmp_path / "ttyUSB7")
     with pytest.raises(PortError, match=f"^{re.escape(missing)}: no such device$"):
