@@ -1,6 +1,8 @@
 """`stim300.csvtable.write_rows` writes the bytes `numpy.savetxt` writes, for every value and
-format the CSV outputs use (`stim300 decode -o OUT.csv`, `calibd apply -o OUT.csv`), in blocks
-of any size; and both commands' writers give today's savetxt files byte for byte."""
+format it takes (those the CSV outputs use, `stim300 decode -o OUT.csv` and `calibd apply -o
+OUT.csv`, and the other "%.Nf" and "%.Pg"), in blocks of any size: exact halves rounded to
+even, powers of ten and their neighbours, texts longer than a cell; and both commands' writers
+give today's savetxt files byte for byte."""
 
 from __future__ import annotations
 
@@ -18,6 +20,7 @@ from stim300.csvtable import ROWS_PER_BLOCK, write_rows
 from stim300.protocol import Format
 
 FLOAT_FORMATS = ("%.6f", TIME_FORMAT, VALUE_FORMAT)  # decode's times, apply's times, every other value
+EVERY_FLOAT_FORMAT = tuple(f"%.{n}f" for n in range(10)) + tuple(f"%.{p}g" for p in range(1, 10))
 ADVERSARIAL = [np.nan, -np.nan, np.inf, -np.inf, 0.0, -0.0, 1e300, -1e300, 1e-300, -1e-300, 5e-324, -5e-324,
                np.finfo(np.float64).max, -np.finfo(np.float64).max, np.finfo(np.float64).tiny,
                float(np.finfo(np.float32).max), float(np.finfo(np.float32).tiny), 1 / 3, -2 / 3, 0.5, 2.5,
@@ -57,15 +60,58 @@ def test_adversarial_floats_in_every_format(fmt, dtype):
 @pytest.mark.parametrize("fmt", FLOAT_FORMATS)
 @pytest.mark.parametrize("dtype", (np.float64, np.float32))
 @pytest.mark.parametrize("rows_per_block", (1, 7, 1000))
-def test_repeated_floats_formatted_once_are_each_values_text(fmt, dtype, rows_per_block):
-    """A column of few distinct values (each formatted once): 0.0 and -0.0, NaNs of either sign
-    and the rest each keep their own text."""
+def test_repeated_floats_keep_each_values_text(fmt, dtype, rows_per_block):
+    """A column of few distinct values: 0.0 and -0.0, NaNs of either sign and the rest each keep
+    their own text."""
     rng = np.random.default_rng(7)
     with np.errstate(over="ignore"):
         values = rng.choice(np.array(ADVERSARIAL, dtype), 1000)
     assert len(np.unique(values.view(f"u{values.itemsize}"))) * 2 <= len(values)
     expected = savetxt_bytes([values], [fmt])
     assert written([values], [fmt], rows_per_block) == expected
+
+
+@pytest.mark.parametrize("fmt", EVERY_FLOAT_FORMAT)
+@pytest.mark.parametrize("dtype", (np.float64, np.float32))
+def test_exact_halves_round_to_even(fmt, dtype):
+    """Binary fractions m / 2^e end in 5: many lie exactly half-way between two texts of the
+    format (the quarter-degree temperatures, the gyros' counts), and `%` takes the even one."""
+    rng = np.random.default_rng(11)
+    values = (rng.integers(-(1 << 24), 1 << 24, 3000) / 2.0 ** rng.integers(0, 34, 3000)).astype(dtype)
+    values[:4] = [0.5, 1.5, 2.5, -0.125]
+    expected = savetxt_bytes([values], [fmt])
+    assert written([values], [fmt], 500) == expected
+    assert fmt != "%.0f" or expected.startswith(b"0\n2\n2\n-0\n")  # halves to even, the sign kept
+
+
+@pytest.mark.parametrize("fmt", EVERY_FLOAT_FORMAT)
+def test_powers_of_ten_and_their_neighbours(fmt):
+    """Where the decimal exponent changes (and log10 may be off by one), and where rounding
+    carries into a new digit (9.9999999996)."""
+    powers = 10.0 ** np.arange(-25, 26)
+    nines = np.concatenate([powers * (1 - 4e-10), powers * (1 - 5e-10), powers * (1 - 6e-10)])
+    values = np.concatenate([powers, np.nextafter(powers, 0), np.nextafter(powers, np.inf), nines])
+    values = np.concatenate([values, -values])
+    assert written([values], [fmt], 64) == savetxt_bytes([values], [fmt])
+
+
+def test_texts_longer_than_a_cell_inside_a_row():
+    """A value `%` formats (out of the arithmetic's range) may need many cells: its row keeps its
+    order, and the rows around it theirs."""
+    times = np.array([1.5, 1e300, -1e22, 2.0 ** 70, 12.25])
+    values = np.array([1e-30, -np.inf, 123456.5, 5e-324, 1.0])
+    counts = np.array([1, -(2**63), 2**63 - 1, 0, -1], np.int64)
+    formats = ["%.6f", "%.9g", "%d"]
+    expected = savetxt_bytes([times, values, counts], formats)
+    assert max(len(line) for line in expected.split(b"\n")) > 300
+    for rows_per_block in (1, 2, 5):
+        assert written([times, values, counts], formats, rows_per_block) == expected
+
+
+@pytest.mark.parametrize("fmt", ["%.10g", "%e", "%s", "%5d", "%.6f,"])
+def test_formats_it_cannot_make_are_refused(fmt):
+    with pytest.raises(ValueError, match="takes %d, %.Nf and %.Pg"):
+        written([np.zeros(3)], [fmt])
 
 
 @pytest.mark.parametrize("dtype", INT_DTYPES)
@@ -107,17 +153,23 @@ def test_random_columns_in_blocks_of_any_size(rows, rows_per_block):
     assert written(cols, formats, rows_per_block) == savetxt_bytes(cols, formats)
 
 
-@given(st.lists(st.floats(width=64), min_size=1, max_size=40), st.sampled_from(FLOAT_FORMATS),
+@given(st.lists(st.floats(width=64), min_size=1, max_size=40), st.sampled_from(EVERY_FLOAT_FORMAT),
        st.integers(1, 50))
 def test_any_float64(values, fmt, rows_per_block):
     values = np.array(values)
     assert written([values], [fmt], rows_per_block) == savetxt_bytes([values], [fmt])
 
 
-@given(st.lists(st.floats(width=32), min_size=1, max_size=40))
-def test_any_float32(values):
+@given(st.lists(st.floats(width=32), min_size=1, max_size=40), st.sampled_from(EVERY_FLOAT_FORMAT))
+def test_any_float32(values, fmt):
     values = np.array(values, np.float32)
-    assert written([values], [VALUE_FORMAT]) == savetxt_bytes([values], [VALUE_FORMAT])
+    assert written([values], [fmt]) == savetxt_bytes([values], [fmt])
+
+
+@given(st.lists(st.integers(-(2**63), 2**63 - 1), min_size=1, max_size=40), st.integers(1, 50))
+def test_any_int64(values, rows_per_block):
+    values = np.array(values, np.int64)
+    assert written([values], ["%d"], rows_per_block) == savetxt_bytes([values], ["%d"])
 
 
 @pytest.mark.parametrize("lengths", ((5, 4), (4, 5)))
