@@ -14,10 +14,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .methods.joint import JointFit, joint_fit
+from . import detect, spec
+from .methods.joint import joint_fit, joint_input
 from .errors import CalibrationError
 from .methods import estimator
-from .estimators.joint import AXIS_PARAMS, DRIFT_PARAMS, EARTH_RATE_PARAMS, OFFSET_PARAMS, alpha_beta, has_drift
+from .estimators.joint import (AXIS_PARAMS, DRIFT_PARAMS, EARTH_RATE_PARAMS, OFFSET_PARAMS, GyroFit, JointInput,
+                               JointOptions, alpha_beta, datasheet_noise, fit_gyros, has_drift)
 from .frames import Site, int_to_imu
 from .noise import UNITS as NOISE_UNITS
 from .results import CalibrationResult
@@ -37,6 +39,16 @@ ROLE_COLOURS = {"static": "#2ca02c", "index turn": "#1f77b4", "full turn": "#ff7
 AXIS_COLOURS = ("#d62728", "#2ca02c", "#1f77b4")  # X, Y, Z
 SENSOR_NAMES = {"gyro": "gyros", "acc": "accelerometers", "incl": "inclinometers"}
 YAW_MARKER = "yaw-marker"  # gid of the Earth-rate figure's phase line (an id in the SVG)
+
+
+def need_matplotlib(missing: str, error: type[Exception]) -> None:
+    """matplotlib with its Agg back end (compiled; the SVG one is Python of the same package), or
+    `error(missing)`: the one line that names the command and the extra that brings it."""
+    try:
+        import matplotlib  # noqa: F401  (the package first: a missing one must say so, not a submodule)
+        import matplotlib.backends.backend_agg  # noqa: F401
+    except ImportError:
+        raise error(missing) from None
 
 
 @dataclass
@@ -243,10 +255,66 @@ def earth_term(params: np.ndarray, chi: np.ndarray) -> np.ndarray:
     return v1 * (a[:, 0] * cos - a[:, 1] * sin) + v2 * (a[:, 0] * sin + a[:, 1] * cos)
 
 
-def earth_rate_seen(fitted: JointFit) -> np.ndarray:
+@dataclass(frozen=True)
+class EarthRateFit:
+    """What the Earth-rate figure draws of the joint fit: the segments it used, the session sample
+    its input starts at (the level static's first), the input, the gyro fit, and yaw with its
+    1-sigma (rad)."""
+
+    segments: list[detect.Segment]
+    first: int
+    inp: JointInput
+    gyro: GyroFit
+    yaw: tuple[float, float]
+
+
+def earth_rate_fit(session: Session, site: Site, options: JointOptions, segments,
+                   result: CalibrationResult | None = None) -> EarthRateFit:
+    """The joint fit on the session. With `result`, a joint result of this session, the gyro fit
+    alone is redone (a seventh of the whole fit's CPU: the force fits and the error budget's
+    refits draw nothing here) and yaw is the result's, once that gyro fit is shown to be the
+    result's own: its Earth rate, 1-sigma and platform axis as the result's checks record them,
+    and no turn's angle corrected by the tilt (which the whole fit alone finds). Otherwise
+    (another method's result; other data, options or software) the whole fit, whose yaw the
+    caption compares with the result's. CalibrationError when the session gives no joint fit."""
+    checks = (result.checks or {}) if result is not None else {}
+    if "earth_rate_horizontal_deg_h" in checks and not any(t["corrected"] for t in checks.get("turn_angles", [])):
+        gyro_only = _gyro_fit(session, site, options, segments)
+        if gyro_only is not None and _as_recorded(gyro_only[-1], checks):
+            yaw = result.estimates["yaw"]
+            return EarthRateFit(*gyro_only, (yaw.value_si, yaw.sigma_si))
+    fitted = joint_fit(session, site, options, segments)
+    return EarthRateFit(fitted.segments, fitted.first, fitted.inp, fitted.fit.gyro,
+                        (fitted.fit.estimates["yaw"], fitted.fit.sigmas["yaw"]))
+
+
+def _gyro_fit(session: Session, site: Site, options: JointOptions, segments):
+    """(segments used, first sample, input, gyro fit): the joint estimator's gyro fit on the input
+    `joint_fit` gives it; None when the segments give no joint fit (the whole fit then says why)."""
+    if estimator("joint").missing(segments):
+        return None
+    used, first, inp = joint_input(session, segments)
+    least = datasheet_noise(spec.NoiseFigures.datasheet(), inp.rate_hz).gyro.flicker  # the same for every range
+    try:
+        return used, first, inp, fit_gyros(inp, site, options, least_flicker=least)
+    except np.linalg.LinAlgError:
+        return None
+
+
+def _as_recorded(gyro: GyroFit, checks: dict) -> bool:
+    """Whether a gyro fit is the one whose checks a joint result records (to 1e-9: JSON keeps a
+    float's every digit, but its units are converted)."""
+    recorded = checks["earth_rate_horizontal_deg_h"]
+    axis = gyro.params[AXIS_PARAMS] / np.linalg.norm(gyro.params[AXIS_PARAMS])
+    return bool(np.allclose(np.array(gyro.amplitude_check) * RAD_S_TO_DEG_H, [recorded["fitted"], recorded["sigma"]],
+                            rtol=1e-9, atol=0.0)
+                and np.allclose(axis, checks.get("platform_axis_in_gyro_axes", np.nan), rtol=0.0, atol=1e-12))
+
+
+def earth_rate_seen(fitted: EarthRateFit) -> np.ndarray:
     """The gyros less every fitted term but the Earth rate's (the platform rate k chi', the
     offsets c, a drift when fitted), N x 3 rad/s: what the model says is Earth rate plus noise."""
-    g, inp = fitted.fit.gyro, fitted.inp
+    g, inp = fitted.gyro, fitted.inp
     p = g.params
     rest = np.outer(g.chi_rate, p[AXIS_PARAMS]) + p[OFFSET_PARAMS]
     if has_drift(p):
@@ -277,10 +345,10 @@ def earth_rate_figure(session: Session, site: Site, segments, result: Calibratio
     options = joint.options((result.options or {}) if joint_result else {})
     title = "Earth rate against the platform angle"
     try:
-        fitted = joint_fit(session, site, options, segments)
+        fitted = earth_rate_fit(session, site, options, segments, result if joint_result else None)
     except CalibrationError as exc:
         return Figure("earth_rate", title, "", missing=f"no joint fit on this capture: {exc}")
-    g = fitted.fit.gyro
+    g = fitted.gyro
     seen = earth_rate_seen(fitted) * RAD_S_TO_DEG_H
     model = earth_term(g.params, g.chi) * RAD_S_TO_DEG_H
     residual = seen - model
@@ -313,7 +381,7 @@ def earth_rate_figure(session: Session, site: Site, segments, result: Calibratio
     bottom.axhline(0.0, color="k", lw=0.8)
     amplitude, sigma = (x * RAD_S_TO_DEG_H for x in g.amplitude_check)
     expected = float(np.hypot(*site.earth_rate_nav[:2])) * RAD_S_TO_DEG_H
-    yaw, yaw_sigma = fitted.fit.estimates["yaw"] / DEG, fitted.fit.sigmas["yaw"] / DEG
+    yaw, yaw_sigma = (x / DEG for x in fitted.yaw)
     seen_amplitude = (f"horizontal Earth rate fixed to Ω_E cos(lat) = {expected:.2f} deg/h"
                       if options.fixed_amplitude else
                       f"fitted horizontal Earth rate {amplitude:.2f} ± {sigma:.2f} deg/h (Ω_E cos(lat) = "

@@ -20,21 +20,13 @@ import numpy as np
 
 from .fleet import (GROUPS, HEADINGS, NAMES, OUT_OF_FAMILY_SIGMAS, UNITS, Fleet, FleetReportError, Unit, Verdict,
                     datasheet, display, flags, pooled_rows, summary, unit_rows, when)
-from .figures import DPI, FIGURE_WIDTH_IN, STYLE
+from .figures import DPI, FIGURE_WIDTH_IN, STYLE, need_matplotlib
 from .report import CSS
 
 MATPLOTLIB_MISSING = "calibd fleet --html needs matplotlib: pip install 'stim300-calib[plot]'"
 PANEL_HEIGHT_IN = 3.2
 COLOURS = {"history": "#1f77b4", "poor": "#999999", "latest": "#222222", "out": "#d62728"}
 FLEET_CSS = "tr.out td { background: #fbd3d3; font-weight: bold; } ul.flags li { margin: 0.3em 0; }\n"
-
-
-def _need_matplotlib() -> None:
-    try:
-        import matplotlib  # noqa: F401  (the package first: a missing one must say so, not a submodule)
-        import matplotlib.backends.backend_agg  # noqa: F401
-    except ImportError:
-        raise FleetReportError(MATPLOTLIB_MISSING) from None
 
 
 def _e(text) -> str:
@@ -137,7 +129,7 @@ def _unit_section(unit: Unit, v: Verdict) -> str:
 
 def render_html(fleet: Fleet) -> str:
     """The whole page (no file or network reference: figures and style inline)."""
-    _need_matplotlib()
+    need_matplotlib(MATPLOTLIB_MISSING, FleetReportError)
     found = flags(fleet)
     flag_items = "".join(f'<li data-serial="{_e(u.serial)}" data-estimate="{_e(name)}">{_e(_pm(text))}</li>'
                          for u, name, text in found) or "<li>none</li>"

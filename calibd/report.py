@@ -34,7 +34,8 @@ from . import detect
 from .warmup import warm_up_end_s, warm_up_label
 from .errors import CalibdError, CalibrationError, SiteError
 from .methods import estimator, progress
-from .figures import DPI, FIGURE_WIDTH_IN, Figure, allan_figure, earth_rate_figure, platform_axis, timeline_figure
+from .figures import (DPI, FIGURE_WIDTH_IN, Figure, allan_figure, earth_rate_figure, need_matplotlib, platform_axis,
+                      timeline_figure)
 from .frames import Site
 from .results import CalibrationResult, parse_result
 from .scenario import ScenarioError, truth_from_json
@@ -62,7 +63,7 @@ def write_report(result_path, capture: CaptureSessions, output, stream=None, svg
     written, the HTML first. A progress bar goes to `stream` (stderr) when it is a terminal.
     ReportError (or UsageError, for a result file that is not a regular file) for inputs it cannot
     use, OSError when the files cannot be written."""
-    _need_matplotlib()
+    need_matplotlib(MATPLOTLIB_MISSING, ReportError)
     # a regular file of bounded size; parse_result checks the schema, the estimates and the site
     result = parse_result(read_input(result_path, "result file", DOCUMENT_LIMIT_BYTES), result_path)
     site = _site(result, result_path)
@@ -113,16 +114,6 @@ def thesis_comparison(session: Session, site: Site, segments: list[detect.Segmen
 
 
 # ---------------------------------------------------------------- inputs
-
-def _need_matplotlib() -> None:
-    """matplotlib with its Agg back end (compiled; the SVG one is Python of the same package), or
-    the one-line reason why not."""
-    try:
-        import matplotlib  # noqa: F401  (the package first: a missing one must say so, not a submodule)
-        import matplotlib.backends.backend_agg  # noqa: F401
-    except ImportError:
-        raise ReportError(MATPLOTLIB_MISSING) from None
-
 
 def _site(result: CalibrationResult, path) -> Site:
     try:

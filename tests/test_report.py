@@ -26,8 +26,8 @@ from calibd.cli import main as calibd_main
 from calibd.estimators.joint import JointOptions
 from calibd.frames import Site
 from calibd import detect
-from calibd.figures import (YAW_MARKER, earth_rate_figure, earth_rate_seen, earth_term, guide_points, north_chi_deg,
-                            platform_axis, timeline_figure)
+from calibd.figures import (YAW_MARKER, earth_rate_figure, earth_rate_fit, earth_rate_seen, earth_term, guide_points,
+                            north_chi_deg, platform_axis, timeline_figure)
 from calibd.noise import characterise
 from calibd.report import (FAR_SIGMAS, MATPLOTLIB_MISSING, _estimates_table, _segments_table, analysis_start_s,
                            read_truth, thesis_comparison, write_report)
@@ -315,13 +315,37 @@ def test_progress_bar_on_a_terminal_only(rendered):
 def test_earth_rate_decomposition_is_the_joint_fit(made, drift):
     """What the Earth-rate figure plots, seen minus fitted term, must be the fit's own residuals:
     a sign or axis slip in the report's reading of the model shows here."""
-    fitted = joint_fit(made["session"], SITE, JointOptions(drift=drift))
-    g = fitted.fit.gyro
+    session = made["session"]
+    fitted = earth_rate_fit(session, SITE, JointOptions(drift=drift), session_segments(session))
+    g = fitted.gyro
     residual = earth_rate_seen(fitted) - earth_term(g.params, g.chi)
     assert np.allclose(residual.std(axis=0), g.residual_rms, rtol=1e-9)
     assert np.abs(residual.mean(axis=0)).max() < 1e-3 * g.residual_rms.min()
     amplitude = np.hypot(*earth_term(g.params, np.array([0.0, np.pi / 2]))[:, 0])
     assert amplitude == pytest.approx(g.amplitude_check[0], rel=1e-3)  # X sees the whole horizontal rate
+
+
+@pytest.mark.slow  # the whole joint fit, twice
+def test_earth_rate_figure_redoes_only_the_gyro_fit_of_a_result_of_the_same_fit(made):
+    """A joint result of this session: the gyro fit alone is redone and yaw is the result's; they
+    equal the whole fit's. A result whose recorded Earth rate differs (other data, options or
+    software) gets the whole fit, whose yaw the caption compares with the result's."""
+    session, result = made["session"], made["result"]
+    segments = session_segments(session)
+    whole = joint_fit(session, SITE, JointOptions(), segments)
+    cheap = earth_rate_fit(session, SITE, JointOptions(), segments, result)
+    assert cheap.yaw == (result.estimates["yaw"].value_si, result.estimates["yaw"].sigma_si)
+    assert cheap.yaw == pytest.approx((whole.fit.estimates["yaw"], whole.fit.sigmas["yaw"]), rel=1e-12)
+    assert (cheap.segments, cheap.first, cheap.inp.statics) == (whole.segments, whole.first, whole.inp.statics)
+    for name in ("params", "chi", "chi_rate"):
+        assert np.array_equal(getattr(cheap.gyro, name), getattr(whole.fit.gyro, name))
+    assert (cheap.gyro.noise_scale, cheap.gyro.amplitude_check) == (whole.fit.gyro.noise_scale,
+                                                                    whole.fit.gyro.amplitude_check)
+    recorded, yaw = result.checks["earth_rate_horizontal_deg_h"], result.estimates["yaw"]
+    other = replace(result, checks=result.checks | {"earth_rate_horizontal_deg_h": recorded | {
+        "fitted": recorded["fitted"] * 1.001}}, estimates=result.estimates | {"yaw": replace(yaw, value=yaw.value + 1)})
+    assert earth_rate_fit(session, SITE, JointOptions(), segments, other).yaw == (whole.fit.estimates["yaw"],
+                                                                                  whole.fit.sigmas["yaw"])
 
 
 def test_allan_guides_pass_through_the_values_read(made):

@@ -80,6 +80,25 @@ class JointFit:
     final_tilt: gaps.TiltCheck | None = None  # the same check on the fit as returned
 
 
+def joint_input(session: Session, segments: list[detect.Segment]) -> tuple[list[detect.Segment], int,
+                                                                          joint.JointInput]:
+    """What the joint fit takes of a session whose segments hold its campaign: the segments used
+    (from the level static to the last static of its mounting), the session sample the input
+    starts at (the level static's first) and the input."""
+    level = detect.level_static(segments)
+    used = _mounted(segments[segments.index(level):])
+    while used[-1].kind != "static":
+        used.pop()
+    first, stop = level.start, used[-1].stop
+    inp = joint.JointInput(
+        time_s=session.time_s[first:stop] - session.time_s[first], gyro=session.gyro[first:stop],
+        acc=session.acc[first:stop], incl=None if session.incl is None else session.incl[first:stop],
+        statics=tuple((s.start - first, s.stop - first) for s in used if s.kind == "static"),
+        rate_hz=session.rate_hz,
+        temperature_c=None if session.temperature_c is None else session.temperature_c[first:stop])
+    return used, first, inp
+
+
 def joint_fit(session: Session, site: Site, options: joint.JointOptions = joint.JointOptions(),
               segments: list[detect.Segment] | None = None) -> JointFit:
     """The joint estimator's fit on every static and turning sample from the level static to the
@@ -91,17 +110,7 @@ def joint_fit(session: Session, site: Site, options: joint.JointOptions = joint.
         options = replace(options, acc_range_g=session.sensor.acc_range_g)
     if lacking := METHOD.missing(segments):
         raise refusal(CAMPAIGN, lacking, segments, bench.hint(segments))
-    level = detect.level_static(segments)
-    used = _mounted(segments[segments.index(level):])
-    while used[-1].kind != "static":
-        used.pop()
-    statics = [s for s in used if s.kind == "static"]
-    first, stop = level.start, used[-1].stop
-    inp = joint.JointInput(
-        time_s=session.time_s[first:stop] - session.time_s[first], gyro=session.gyro[first:stop],
-        acc=session.acc[first:stop], incl=None if session.incl is None else session.incl[first:stop],
-        statics=tuple((s.start - first, s.stop - first) for s in statics), rate_hz=session.rate_hz,
-        temperature_c=None if session.temperature_c is None else session.temperature_c[first:stop])
+    used, first, inp = joint_input(session, segments)
     try:
         fit = joint.solve(inp, site, options)
     except joint.Underdetermined as exc:
