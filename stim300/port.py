@@ -28,7 +28,7 @@ import serial
 import structlog
 
 from .atomic import atomic_file
-from .errors import PortError
+from .errors import PortError, UsageError
 from .protocol import CONFIGURATION, DEFAULT_BIT_RATE
 from .reads import ReadLog, reads_path
 from .ringbuffer import RingBuffer
@@ -284,7 +284,9 @@ def record(url: str, output_path, baudrate: int = DEFAULT_BIT_RATE, duration_s: 
 
     Bytes go to OUT.part, renamed to OUT at the end whatever stopped the recording (a port
     error included), so a file named OUT is always complete. The host time of every read goes
-    to OUT.reads.npy (`stim300.reads`), put in place just before OUT. An OUT that is a symbolic
+    to OUT.reads.npy (`stim300.reads`), put in place just before OUT; an OUT named .mcap holds
+    the bytes, their read times and the samples as sensor_msgs/Imu itself (`stim300.mcaprec`,
+    the `recordings` extra). An OUT that is a symbolic
     link is followed, as every output named on the command line: the recording (and its read
     log) go where it points. OUT.part is the program's own: a file or link of that name is
     removed, never written through. Progress goes to stderr about once a second. Returns the
@@ -300,6 +302,14 @@ def record(url: str, output_path, baudrate: int = DEFAULT_BIT_RATE, duration_s: 
         kind = "a directory" if out.is_dir() else "not a regular file (a device or FIFO)"
         print(f"stim300 record: {output_path}: {kind}: a recording goes to a new or regular file", file=sys.stderr)
         return 2
+    if out.suffix.lower() == ".mcap":
+        from .mcaprec import mcap_modules
+
+        try:
+            mcap_modules()
+        except UsageError as exc:
+            print(f"stim300 record: {exc}", file=sys.stderr)
+            return 2
     try:
         ser = open_serial(url, baudrate)
     except PortError as exc:
@@ -337,42 +347,74 @@ def sigterm_as_ctrl_c():
         signal.signal(signal.SIGTERM, previous)
 
 
+class _CaptureFile:
+    """A recording as a raw capture: the bytes to OUT.part as read, the read log beside OUT
+    (OUT.reads.npy) when it is done."""
+
+    def __init__(self, f):
+        self.f, self.reads, self.total = f, ReadLog(), 0
+
+    def add(self, data: bytes, returned: float) -> None:
+        self.f.write(data)
+        self.total += len(data)
+        self.reads.add(self.total, returned)
+
+    def finish(self, out: Path) -> None:
+        with atomic_file(reads_path(out)) as f:
+            np.save(f, self.reads.table())
+
+
+class _McapFile:
+    """A recording as an MCAP (OUT.mcap): the bytes with their read times, and the samples as
+    sensor_msgs/Imu (`stim300.mcaprec`)."""
+
+    def __init__(self, f):
+        from .mcaprec import McapRecorder
+
+        self.recorder, self.total = McapRecorder(f, library="stim300 record"), 0
+
+    def add(self, data: bytes, returned: float) -> None:
+        self.recorder.add(data, returned)
+        self.total += len(data)
+
+    def finish(self, out: Path) -> None:
+        self.recorder.finish()
+
+
 def _record(ser: serial.Serial, url: str, out: Path, part: Path, duration_s: float | None,
             max_bytes: int | None) -> int:
-    total, status = 0, 0
-    reads = ReadLog()
+    status = 0
     start = time.monotonic()
     next_report = start + 1.0
+    kind = _McapFile if out.suffix.lower() == ".mcap" else _CaptureFile
     try:
         with ser, _create(part) as f:
+            sink = kind(f)
             try:
-                while max_bytes is None or total < max_bytes:
+                while max_bytes is None or sink.total < max_bytes:
                     now = time.monotonic()
                     if duration_s is not None and now - start >= duration_s:
                         break
                     if now >= next_report:
-                        print(f"recorded {total} B in {now - start:.1f} s", file=sys.stderr, flush=True)
+                        print(f"recorded {sink.total} B in {now - start:.1f} s", file=sys.stderr, flush=True)
                         next_report += 1.0
                     try:
-                        data = _read_available(ser, None if max_bytes is None else max_bytes - total)
+                        data = _read_available(ser, None if max_bytes is None else max_bytes - sink.total)
                         returned = time.monotonic()
                     except (serial.SerialException, OSError) as exc:
                         print(f"stim300 record: {url}: {describe_error(exc)}", file=sys.stderr)
                         status = 1
                         break
                     if data:
-                        f.write(data)
-                        total += len(data)
-                        reads.add(total, returned)
+                        sink.add(data, returned)
             except KeyboardInterrupt:
                 pass  # Ctrl-C (or SIGTERM) is how an open-ended recording ends: keep what we have
-        with atomic_file(reads_path(out)) as f:
-            np.save(f, reads.table())
+            sink.finish(out)
         part.replace(out)
     except OSError as exc:
         with suppress(OSError):  # a directory of that name is not ours to remove
             part.unlink()
         print(f"stim300 record: {out}: cannot write: {(exc.strerror or str(exc)).lower()}", file=sys.stderr)
         return 1
-    print(f"recorded {total} B in {time.monotonic() - start:.1f} s to {out}", file=sys.stderr)
+    print(f"recorded {sink.total} B in {time.monotonic() - start:.1f} s to {out}", file=sys.stderr)
     return status

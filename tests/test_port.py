@@ -326,6 +326,46 @@ def test_info_tells_a_read_log_too_fast_to_show_gaps_from_none(pty, opened, tmp_
     assert info["read_log_reads"] == reads and info["hidden_gaps"] is None
 
 
+def test_record_to_mcap_keeps_the_bytes_their_read_times_and_every_sample_as_imu(pty, opened, tmp_path, capsys):
+    """`stim300 record PORT -o OUT.mcap` on a paced 2000 Hz stream: decode of the MCAP is decode
+    of the bytes fed, its read log is in it, and an MCAP reader that is not ours decodes one
+    sensor_msgs/Imu per sample."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    head, frames, _ = sensor_stream(1200)
+    out = tmp_path / "imu.mcap"
+    with ThreadPoolExecutor(1) as pool:
+        writer = pool.submit(lambda: (opened.wait(DEADLINE_S), write_paced(pty, head, frames, 2000)))
+        assert record(pty.path, out, max_bytes=len(head) + frames.nbytes) == 0
+        writer.result(timeout=DEADLINE_S)
+    assert not (tmp_path / "imu.mcap.part").exists() and not (tmp_path / "imu.mcap.reads.npy").exists()
+    capsys.readouterr()
+    assert stim300_main(["decode", str(out), "-o", str(tmp_path / "a.npz")]) == 0
+    fed = tmp_path / "fed.bin"
+    fed.write_bytes(head + frames.tobytes())
+    assert stim300_main(["decode", str(fed), "-o", str(tmp_path / "b.npz")]) == 0
+    a, b = np.load(tmp_path / "a.npz"), np.load(tmp_path / "b.npz")
+    assert set(a.files) == set(b.files) | {"t_host_s"}
+    assert all(np.array_equal(a[k], b[k]) for k in b.files if k != "units")
+    with open(out, "rb") as f:
+        imu = [ros for _, _, _, ros in make_reader(f, decoder_factories=[DecoderFactory()])
+               .iter_decoded_messages(topics=["/imu/data_raw"])]
+    assert len(imu) == len(b["counter"]) == 1200
+    assert imu[0].angular_velocity.x == pytest.approx(float(b["gyro_x"][0]) * np.pi / 180, rel=1e-12)
+
+
+def test_record_to_mcap_without_the_extra_is_one_line(tmp_path, capsys, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "mcap", None)
+    for module in [m for m in sys.modules if m.startswith("mcap.")]:
+        monkeypatch.delitem(sys.modules, module)
+    assert record(str(tmp_path / "ttyUSB7"), tmp_path / "imu.mcap") == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "pip install 'stim300-calib[recordings]'" in err
+
+
 def test_record_reports_a_missing_port_in_one_line(tmp_path, capsys):
     missing = str(tmp_path / "ttyUSB7")
     assert record(missing, tmp_path / "imu.bin") == 1
