@@ -50,6 +50,7 @@ class Work:
     searched: int = 0  # bytes looked at for the next possible datagram start
     fast_runs: int = 0  # vectorised attempts
     checked: int = 0  # datagrams whose CRC the vectorised path computed
+    followed: int = 0  # datagrams the scanner took back to back after one it accepted (`Scanner.follow`)
 
 
 class BulkDecoder:
@@ -99,7 +100,8 @@ class BulkDecoder:
 
     def _scan(self, pos: int) -> int:
         """Scanner decisions from `pos` until it has accepted SYNC_RUN normal datagrams back to back
-        (return the offset after them) or the capture ends."""
+        (return the offset after them) or the capture ends; after each datagram it accepts, those
+        that follow it back to back are taken as the live parser takes them (`Scanner.follow`)."""
         raw, end, scanner, found, work = self._raw, len(self._raw), self.scanner, self._found, self.work
         run = 0
         while pos < end:
@@ -116,6 +118,12 @@ class BulkDecoder:
                 run = 0
                 continue
             run += 1
+            followed = scanner.follow(raw, pos, SYNC_RUN - run)  # checked FOLLOW_BLOCK at a time
+            if followed:
+                fmt = scanner.format
+                found.extend((offset, fmt.datagram_id, fmt) for offset in followed)
+                run, pos = run + len(followed), followed.stop
+                work.followed += len(followed)
             if run >= SYNC_RUN:
                 break
             if len(found) >= BLOCK:

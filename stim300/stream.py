@@ -279,20 +279,21 @@ class Scanner:
         self.stats.datagrams += 1
         self.last_counter = counter
 
-    def follow(self, buf, i: int) -> range:
+    def follow(self, buf, i: int, most: int | None = None) -> range:
         """Accept the datagrams of the current format that lie whole and back to back from offset
-        i, each exactly as `step` would, and return their offsets (a range: its stop is the offset
-        after them). A stream in step is made of little else: they are checked FOLLOW_BLOCK at
-        a time (`verified`); whatever else comes (another id, a CRC or CR LF that fails, a
-        tail still short) is left to `step`. Only once the format is known (its id and CR LF) and
-        no power-up sequence is under way."""
+        i (at most `most` of them), each exactly as `step` would, and return their offsets (a
+        range: its stop is the offset after them). A stream in step is made of little else: they
+        are checked FOLLOW_BLOCK at a time (`verified`); whatever else comes (another id, a CRC
+        or CR LF that fails, a tail still short) is left to `step`. Only once the format is known
+        (its id and CR LF) and no power-up sequence is under way."""
         fmt = self.format
         if fmt.datagram_id is None or fmt.crlf is None or self._power_up:
             return range(i, i)
         layout = NORMAL_LAYOUTS[fmt.datagram_id]
         length = layout.wire_length(fmt.crlf)
         start = i
-        while count := min(FOLLOW_BLOCK, (len(buf) - i) // length):
+        stop = len(buf) if most is None else min(len(buf), i + most * length)
+        while count := min(FOLLOW_BLOCK, (stop - i) // length):
             frames = np.frombuffer(buf, np.uint8, count * length, i).reshape(count, length)
             good = verified(frames, layout, fmt.crlf)
             self.count_counters(frames[:good, layout.counter_offset])

@@ -180,7 +180,8 @@ def test_a_clean_capture_goes_the_vectorised_way():
     data, _, _ = capture(20_000, 0xA7, False)
     decoder = BulkDecoder(data, None, None, lambda n: np.empty(n, SAMPLE_DTYPE))
     decoder.run()
-    assert decoder.work.steps == SYNC_RUN  # the scanner only finds the stream's step
+    assert decoder.work.steps == 1  # the scanner only finds the stream's step, and takes what follows
+    assert decoder.work.followed == SYNC_RUN - 1
     assert decoder.work.fast_runs == 1
     assert decoder.work.checked == 20_000 - SYNC_RUN
 
