@@ -515,10 +515,11 @@ class ExtendedError(_Special):
 
 # ---------------------------------------------------------------- bias trim offset
 
-def _scaled24(values: tuple[float, ...], lsb: float, name: str) -> bytes:
-    """Values as 24-bit big-endian two's complement counts of `lsb`, rounded to the nearest count."""
+def _scaled24(values: tuple[float, ...], lsbs: tuple[float, ...], name: str) -> bytes:
+    """Values as 24-bit big-endian two's complement counts of their axis's LSB, rounded to the
+    nearest count."""
     out = bytearray()
-    for value in values:
+    for value, lsb in zip(values, lsbs):
         try:
             count = round(value / lsb)
         except (TypeError, ValueError, OverflowError):
@@ -529,8 +530,8 @@ def _scaled24(values: tuple[float, ...], lsb: float, name: str) -> bytes:
     return bytes(out)
 
 
-def _unscaled24(chunk: bytes, lsb: float) -> tuple[float, ...]:
-    return tuple(int.from_bytes(chunk[i:i + 3], "big", signed=True) * lsb for i in range(0, len(chunk), 3))
+def _unscaled24(chunk: bytes, lsbs: tuple[float, ...]) -> tuple[float, ...]:
+    return tuple(int.from_bytes(chunk[3 * k:3 * k + 3], "big", signed=True) * lsb for k, lsb in enumerate(lsbs))
 
 
 @dataclass(frozen=True)
@@ -538,7 +539,8 @@ class BiasTrimOffset(_Special):
     """User bias trims: gyro in deg/s, acc and incl in g whatever the output units (DS §7.5.2.3).
 
     The acc counts are in the acceleration LSB of the fitted range, so encoding and decoding
-    need that range (`acc_range_g`, default 10 g).
+    need that range (`acc_range_g`: one for every axis, default 10 g, or one per axis X, Y, Z, as
+    a unit of mixed ranges scales each axis's output by its own).
     """
 
     kind: ClassVar[SpecialKind] = BIAS_TRIM
@@ -555,16 +557,17 @@ class BiasTrimOffset(_Special):
         _uint(self.remaining_saves, 2, "remaining_saves")
 
     @staticmethod
-    def _lsbs(acc_range_g: int) -> dict[str, float]:
-        return {"gyro": GYRO_RATE_LSB, "acc": _acc_lsb(acc_range_g), "incl": INCL_ACC_LSB}
+    def _lsbs(acc_range_g: int | tuple[int, int, int]) -> dict[str, tuple[float, float, float]]:
+        ranges = _triple(acc_range_g, "acc_range_g") if isinstance(acc_range_g, (tuple, list)) else (acc_range_g,) * 3
+        return {"gyro": (GYRO_RATE_LSB,) * 3, "acc": tuple(map(_acc_lsb, ranges)), "incl": (INCL_ACC_LSB,) * 3}
 
-    def to_payload(self, acc_range_g: int = 10) -> bytes:
+    def to_payload(self, acc_range_g: int | tuple[int, int, int] = 10) -> bytes:
         blocks = [_scaled24(getattr(self, name), lsb, name) for name, lsb in self._lsbs(acc_range_g).items()]
         return (b"".join(blocks) + _uint(self.reference_info, 4, "reference_info")
                 + _uint(self.remaining_saves, 2, "remaining_saves") + bytes(2))  # bytes 34-35 reserved
 
     @classmethod
-    def from_payload(cls, payload: bytes, acc_range_g: int = 10) -> BiasTrimOffset:
+    def from_payload(cls, payload: bytes, acc_range_g: int | tuple[int, int, int] = 10) -> BiasTrimOffset:
         lsbs = cls._lsbs(acc_range_g)
         vectors = {name: _unscaled24(payload[9 * i:9 * i + 9], lsb)
                    for i, (name, lsb) in enumerate(lsbs.items())}
@@ -581,7 +584,7 @@ _CLASSES: dict[SpecialKind, type[_Special]] = {
 }
 
 
-def encode_special(obj: SpecialDatagram, crlf: bool, acc_range_g: int = 10) -> bytes:
+def encode_special(obj: SpecialDatagram, crlf: bool, acc_range_g: int | tuple[int, int, int] = 10) -> bytes:
     """The datagram as sent: ID (CR LF variant if `crlf`), payload, big-endian CRC, [CR LF]."""
     if not isinstance(obj, _Special):
         raise TypeError(f"{type(obj).__name__} is not a special datagram class")
@@ -591,7 +594,7 @@ def encode_special(obj: SpecialDatagram, crlf: bool, acc_range_g: int = 10) -> b
     return covered + datagram_crc(covered).to_bytes(4, "big") + (CR_LF if crlf else b"")
 
 
-def decode_special(frame: bytes, acc_range_g: int = 10) -> SpecialDatagram:
+def decode_special(frame: bytes, acc_range_g: int | tuple[int, int, int] = 10) -> SpecialDatagram:
     """Object for a special datagram starting at its ID byte; the CRC is the caller's job."""
     if not frame:
         raise FormatError("empty frame: no special datagram id")

@@ -327,7 +327,7 @@ class Scanner:
             self._restart()
         self._power_up = sequence.get(kind, 0)
         try:
-            item = decode_special(frame, acc_range_g=self.format.acc_ranges_g[0])
+            item = decode_special(frame, acc_range_g=self.format.acc_ranges_g)  # each axis by its own range
         except ValueError as exc:  # e.g. unit codes of firmware the datasheet does not describe
             self.stats.undecodable_specials += 1
             self.warn(f"{kind.name.replace('_', ' ')} datagram refused: {exc}"

@@ -48,7 +48,8 @@ def trim_lsb(sensor: str, acc_range_g: int) -> float:
 @dataclass(frozen=True)
 class TrimReading:
     """A Bias Trim Offset datagram as read: the offsets, the 32-bit reference, the flash saves left
-    and the accelerometer range (g) its acc counts were scaled by."""
+    and the accelerometers' range (g; the widest axis's when they differ, each axis's counts
+    being scaled by its own): the trim range and the read-back tolerance are taken at it."""
 
     trims: TrimOffsets
     reference: int

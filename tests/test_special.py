@@ -449,3 +449,24 @@ def test_decode_special_errors():
         decode_special(frame[:21])
     with pytest.raises(TypeError):
         encode_special(Format(), False)
+
+
+def test_bias_trim_acc_counts_are_scaled_by_each_axis_range():
+    """A unit of mixed accelerometer ranges scales each axis's trim counts by its own range, as its
+    normal datagrams scale each axis; the live parser decodes them with the configuration's."""
+    from stim300.protocol import AccUnit, acc_lsb
+    from stim300.stream import StreamParser
+
+    ranges = (10, 30, 80)
+    counts = (1000, -2000, 3000)
+    acc = tuple(c * acc_lsb(AccUnit.ACCELERATION, r) for c, r in zip(counts, ranges))
+    trim = BiasTrimOffset((163 * 2.0**-14, 0.0, 0.0), acc, (0.0, 0.0, 2.0**-20), 5, 9000)  # whole counts
+    payload = trim.to_payload(ranges)
+    assert [int.from_bytes(payload[9 + 3 * k:12 + 3 * k], "big", signed=True) for k in range(3)] == list(counts)
+    assert BiasTrimOffset.from_payload(payload, ranges) == trim
+    assert BiasTrimOffset.from_payload(payload, 10).acc != acc  # one range for all would misread Y and Z
+    config = dataclasses.replace(Configuration.build(sample_rate_hz=125), acc_range_g=ranges)
+    parser = StreamParser()
+    parser.feed(encode_special(config, False) + encode_special(trim, False, ranges))
+    parser.finish()
+    assert parser.scanner.specials[-1] == trim
