@@ -70,6 +70,7 @@ def test_decode_and_info_of_the_mcap_are_those_of_the_capture(recorded, tmp_path
     assert infos[0] == infos[1]
 
 
+@pytest.mark.slow  # 75,728 messages decoded by mcap-ros2-support, one by one
 def test_every_sample_is_an_imu_message_in_si(recorded, tmp_path, run_main):
     mcap, raw, _, _ = recorded
     assert run_main(stim300_main, ["decode", raw, "-o", tmp_path / "b.npz"])[0] == 0
