@@ -29,7 +29,7 @@ from .captures import capture_bytes, first_stream_info, load_session, open_captu
 from .errors import CalibdError, CalibrationError
 from .frames import STANDARD_GRAVITY, Site, site_value_error
 from .scenarios import READY_MADE
-from .serve.protocol import MAX_TOKEN_BYTES, SAMPLE_KINDS, ProtocolError, token_of
+from .serve import SAMPLE_KINDS
 from .units import DEG, estimate_rows
 
 if TYPE_CHECKING:
@@ -673,6 +673,8 @@ def _client_program(body) -> int:
 
 def _token(path: str | None) -> str | None:
     """The token in a --token-file (the daemon's [serve] tcp_token_file); None without one."""
+    from .serve.protocol import MAX_TOKEN_BYTES, ProtocolError, token_of
+
     if path is None:
         return None
     try:

@@ -32,8 +32,8 @@ import numpy as np
 
 from .errors import CalibdError
 from .results import CalibrationResult, ResultError
-from .serve import protocol
-from .serve.protocol import (MAX_MESSAGE_BYTES, PROTO_MAJOR, SAMPLE_KINDS, Auth, Device, Error, Fault, Overflow,
+from .serve import SAMPLE_KINDS, protocol
+from .serve.protocol import (MAX_MESSAGE_BYTES, PROTO_MAJOR, Auth, Device, Error, Fault, Overflow,
                              ProtocolError, State, StateFields, Version, Watch, decode, host_port)
 
 # the message types: calibd.serve.protocol's, and the richer views this module reads

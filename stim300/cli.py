@@ -28,7 +28,6 @@ from .errors import UsageError
 from .progress import Progress
 from .protocol import (ACC_RANGE_LSB_EXP, COUNTER_MODULUS, DEFAULT_BIT_RATE, INTERNAL_RATE_HZ, NORMAL_LAYOUTS,
                        SAMPLE_RATES_HZ, STANDARD_BIT_RATES, AccUnit, Format, GyroUnit, Status)
-from .mcaprec import holds_capture, read_capture
 from .reads import load_reads
 from .special import Configuration, UndefinedCode
 
@@ -87,6 +86,8 @@ def _format(args) -> Format:
 def _mapped(path: str):
     """The capture's bytes, memory-mapped (no copy of a large file); those of the raw channel of
     an MCAP `stim300 record` wrote (`stim300.mcaprec`)."""
+    from .mcaprec import holds_capture, read_capture
+
     if holds_capture(path):
         yield read_capture(path)[0]
         return
@@ -394,6 +395,8 @@ def _configuration_lines(c: Configuration) -> list[str]:
 
 def _reads(path: str) -> np.ndarray | None:
     """The capture's read log: beside it (CAPTURE.reads.npy), or in the MCAP `stim300 record` wrote."""
+    from .mcaprec import holds_capture, read_capture
+
     return read_capture(path)[1] if holds_capture(path) else load_reads(path)
 
 

@@ -11,9 +11,12 @@ from __future__ import annotations
 
 import importlib
 from functools import cache
+from typing import TYPE_CHECKING
 
-from .. import detect
 from .base import Estimator, OptionError, ProtocolIncomplete, Setting
+
+if TYPE_CHECKING:
+    from .. import detect
 
 MODULES = {"joint": "joint", "thesis": "thesis", "thesis-bench": "bench"}  # method name -> its module here
 DAEMON_METHODS = ("joint", "thesis")  # one mounting, a campaign the daemon sees complete as it happens
@@ -48,4 +51,6 @@ def estimator(name: str) -> Estimator:
 def progress(method: str, segments: list[detect.Segment]) -> detect.Progress:
     """The one progress record of a session's segments through method `method`'s campaign: what
     the daemon's state and `calibd watch` show, and what `calibd report` says of the thesis method."""
+    from .. import detect  # here: the command line builds its choices from this package without it
+
     return detect.Progress.of(segments, estimator(method).missing(segments))

@@ -6,10 +6,12 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
-from .. import detect
 from ..errors import CalibdError, CalibrationError
+
+if TYPE_CHECKING:
+    from .. import detect
 
 
 class OptionError(CalibdError):
@@ -31,6 +33,8 @@ class ProtocolIncomplete(CalibrationError):
 def refusal(campaign: str, lacking: str, segments: list[detect.Segment], hint: str = "") -> ProtocolIncomplete:
     """The refusal of a method whose campaign (`campaign`, in words) the segments do not hold:
     what it lacks, in the words its `missing` gives the daemon's progress, and what was found."""
+    from .. import detect  # here: the command line imports this package for the methods' names
+
     found = detect.protocol_progress(segments)
     return ProtocolIncomplete(f"not the {campaign}: it lacks {lacking}", f"{found}; {hint}" if hint else found)
 

@@ -28,7 +28,6 @@ MAX_LINE_BYTES = 64 * 1024  # a longer command line is refused and skipped to it
 # A server message longer than this is not calibd's: SAMPLES of 0.1 s at 2000 Hz and result
 # documents stay well below (a client's bound on what it buffers).
 MAX_MESSAGE_BYTES = 4 * 1024 * 1024
-SAMPLE_KINDS = ("none", "raw", "corrected")  # what ?WATCH "samples" may ask for
 BYTES = "bytes"  # the kind of the RAW batches the server cuts beside the SAMPLES kinds (?WATCH "raw")
 SAMPLES_MAX_S = 0.1  # a SAMPLES message holds at most this much of the stream
 RAW_MAX_BYTES = 48 * 1024  # a RAW message holds at most this many of the sensor's bytes (base64: 64 kB)

@@ -28,8 +28,9 @@ from pathlib import Path
 import structlog
 
 from ..errors import CalibdError
+from . import SAMPLE_KINDS
 from .protocol import (AUTH_TRIES, BYTES, IDLE_TIMEOUT_S, MAX_CLIENTS, MAX_CLIENTS_PER_UID, MAX_LINE_BYTES,
-                       SAMPLE_KINDS, Auth, Command, Error, Message, Overflow, ProtocolError, Version, Watch, auth_token,
+                       Auth, Command, Error, Message, Overflow, ProtocolError, Version, Watch, auth_token,
                        encode, parse_command)
 
 log = structlog.get_logger("calibd")
