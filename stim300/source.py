@@ -41,6 +41,7 @@ from .stream import StreamParser, TrimSeen
 
 RING_S = 30  # seconds of samples a port's ring holds at the internal rate
 IDLE_READS_AT_END = 3  # a pty whose writer is done has been read out after this many empty reads
+WAIT_FOR_PARSER_S = 1.0  # a paced pty writer waits at most this long for the reader to learn the rate
 
 
 @dataclass(frozen=True)
@@ -266,7 +267,7 @@ class PtySource(SampleSource):
                 time.sleep(0.01)
             if self._stop.is_set():
                 return
-            bytes_per_s = bytes_per_s or _bytes_per_second(port.reader.parser)
+            bytes_per_s = bytes_per_s or self._byte_rate(offset)
             if bytes_per_s:
                 self._writer_pacer.wait(offset / bytes_per_s)
             view = memoryview(data)[offset:offset + size]
@@ -278,6 +279,17 @@ class PtySource(SampleSource):
                     self._write_error = exc
                 return
             self.done_bytes = min(offset + size, len(data))
+
+    def _byte_rate(self, written: int) -> float | None:
+        """The stream's byte rate, once the reader's parser knows it. Paced, the writer first waits
+        (at most WAIT_FOR_PARSER_S) for the parser to have taken in what was written: otherwise a
+        writer scheduled before the reader could pour out the whole capture unpaced."""
+        parser = self._port.reader.parser
+        if self._writer_pacer.speed:
+            deadline = time.monotonic() + WAIT_FOR_PARSER_S
+            while parser.stats.bytes_in < written and time.monotonic() < deadline and not self._stop.is_set():
+                time.sleep(0.001)
+        return _bytes_per_second(parser)
 
     def _read_internal(self, timeout_s: float) -> Batch | None:
         batch = self._port.read(timeout_s)
