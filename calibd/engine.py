@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import secrets
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -96,8 +97,8 @@ def run_tasks(client, function: Callable, items: Iterable, names: Iterable[str] 
     distributed = _distributed()
     items = list(items)
     keys = list(names) if names is not None else [f"task-{k}" for k in range(len(items))]
-    prefix = f"{getattr(function, '__name__', 'task')}-{os.getpid()}-{id(items):x}"
-    futures = {client.submit(function, item, key=f"{prefix}-{k}-{key}", retries=RETRIES, pure=False): k
+    run = secrets.token_hex(4)  # a cluster may run several batches: each task's key is its own
+    futures = {client.submit(function, item, key=f"{key}-{run}", retries=RETRIES, pure=False): k
                for k, (item, key) in enumerate(zip(items, keys))}
     for future in distributed.as_completed(futures):
         index = futures.pop(future)

@@ -60,7 +60,6 @@ _ESTIMATE_COLUMNS = {
         (f"{name}_quality", ("string", None, f"{name}'s quality: poor when not to be used as it is, else null")))}
 COLUMNS = {**_FIXED, **_ESTIMATE_COLUMNS,
            "result": ("string", None, "the result document (JSON), as calibd calibrate writes it")}
-ROW_ORDER = ("capture", "power_up")  # a table is written sorted so, whatever order its rows came in
 
 
 class FleetError(CalibdError):
@@ -117,7 +116,8 @@ def result_row(base: dict, doc: dict, text: str) -> dict:
 
 
 def table(rows: list[dict]):
-    """The rows as an Arrow table of this schema, sorted by ROW_ORDER."""
+    """The rows as an Arrow table of this schema, sorted by capture, then power-up (failed rows of
+    a whole capture first): the same table whatever order its rows came in."""
     pa = pyarrow()
     ordered = sorted(rows, key=lambda r: (r["capture"], r["power_up"] is not None, r["power_up"] or 0))
     return pa.Table.from_pylist([{name: row.get(name) for name in COLUMNS} for row in ordered],

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from stim300.rosimu import STANDARD_GRAVITY  # noqa: F401 (the sensor's g unit is the driver's)
+from stim300.protocol import STANDARD_GRAVITY  # noqa: F401 (the sensor's g unit is the driver's)
 
 from .errors import SiteError
 

@@ -18,7 +18,7 @@ import json
 
 import numpy as np
 
-from stim300.rosimu import IMU, NS_PER_S, ImuEncoder
+from stim300.rosimu import ABSENT, IMU, NS_PER_S, ImuEncoder
 
 from .correction import bias_covariance
 from .errors import CalibdError
@@ -26,7 +26,6 @@ from .errors import CalibdError
 NEEDS_EXTRA = "writing MCAP needs the recordings extra: pip install 'stim300-calib[recordings]'"
 TOPIC = "/imu/data"
 RESULT_ATTACHMENT = "calibd-result.json"
-UNKNOWN = np.array([-1.0, *[0.0] * 8])  # a covariance whose first element is -1: the datagram has no such vector
 
 
 class McapError(CalibdError):
@@ -70,7 +69,7 @@ class McapImuWriter:
     def __call__(self, columns: dict[str, np.ndarray]) -> None:
         stamps = np.round(columns["time_s"] * NS_PER_S).astype(np.int64)
         vectors = [columns.get(name) for name in ("gyro_rad_s", "acc_m_s2")]
-        covariances = [cov if values is not None else UNKNOWN for values, cov in zip(vectors, self.covariances)]
+        covariances = [cov if values is not None else ABSENT for values, cov in zip(vectors, self.covariances)]
         vectors = [np.zeros((len(stamps), 3)) if values is None else values for values in vectors]
         messages = self.encoder.encode(stamps, *vectors, *covariances)
         add = self.writer.add_message

@@ -27,10 +27,11 @@ import numpy as np
 
 from .capture import stream_info
 from .clock import CounterClock
+from .codec import join_samples
 from .errors import FormatError, UsageError
-from .protocol import NORMAL_LAYOUTS
+from .protocol import NORMAL_LAYOUTS, STANDARD_GRAVITY
 from .reads import READS_DTYPE
-from .rosimu import CDR_LE, IMU, NS_PER_S, STANDARD_GRAVITY, ImuEncoder
+from .rosimu import ABSENT, CDR_LE, IMU, NS_PER_S, ImuEncoder
 from .stream import StreamParser
 from .wallclock import WallClock
 
@@ -41,7 +42,6 @@ IMU_TOPIC = "/imu/data_raw"
 MAGIC = b"\x89MCAP0\r\n"
 _RAW_HEADER = CDR_LE + struct.pack("<II", 0, 0)  # no layout dimensions, data_offset 0; then the length
 UNKNOWN = np.zeros(9)  # sensor_msgs/Imu: a covariance of zeros is not known
-ABSENT = np.array([-1.0, *[0.0] * 8])  # a first element of -1: the datagram has no such vector
 PENDING_READS = 4096  # reads whose samples wait until the stream's rate is known (seconds at most)
 IMU_BATCH = 256  # samples turned into Imu messages at once (0.13 s at 2000 Hz, 2 s at 125 Hz)
 
@@ -139,7 +139,7 @@ class McapRecorder:
             self.unpublished = (f"the outputs are {fmt.gyro_unit.name.lower()} and {fmt.acc_unit.name.lower()}: "
                                 "sensor_msgs/Imu carries rates and accelerations")
             return
-        samples = np.concatenate(self.pending) if len(self.pending) > 1 else self.pending[0]
+        samples = join_samples(self.pending)
         self.pending, self.pending_samples = [], 0
         times = self.clock.times(samples["counter"], info.rate_hz, samples["t_host"])
         stamps, _ = self.wall.stamps(times.time_s, samples["t_host"])

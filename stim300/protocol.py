@@ -92,6 +92,7 @@ ACC_RANGE_LSB_EXP = {2: -21, 5: -20, 10: -19, 30: -18, 80: -16}
 GYRO_RATE_LSB = 2.0**-14  # deg/s
 GYRO_ANGLE_LSB = 2.0**-21  # deg
 INCL_ACC_LSB = 2.0**-22  # g
+STANDARD_GRAVITY = 9.80665  # m/s^2 per g: the STIM300's g unit (k0 of the datasheet)
 VELOCITY_LSB_SHIFT = -3  # incremental/integrated velocity LSB = acceleration LSB * 2^-3
 TEMP_LSB = 2.0**-8  # degC
 PPS_FILTERED_LSB = 2.0**-22  # unitless, unsigned

@@ -20,9 +20,9 @@ from .errors import FormatError
 IMU = "sensor_msgs/msg/Imu"
 CDR_LE = b"\x00\x01\x00\x00"  # encapsulation header: plain CDR (XCDR1), little endian, no options
 NS_PER_S = 1_000_000_000
-STANDARD_GRAVITY = 9.80665  # m/s^2 per g: the STIM300's g unit (k0 of the datasheet), as SI messages need it
 MAX_FRAME_ID = 255  # characters of a frame_id
 _FRAME_ID = re.compile(r"[!-~]+")  # printable ASCII, no space
+ABSENT = np.array([-1.0, *[0.0] * 8])  # a covariance whose first element is -1: the message has no such vector
 
 
 def check_frame_id(frame_id: str) -> str:
