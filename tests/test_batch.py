@@ -309,3 +309,15 @@ def test_without_the_fleet_extra_a_batch_is_one_line(run_main, tmp_path, monkeyp
     code, out, err = run_main(calibd_main, ["batch", FIXTURES / "faults_125hz.bin", "-o", tmp_path / "t.parquet",
                                             "--workers", "1", *SITE])
     assert code == 2 and err.count("\n") == 1 and "pip install 'stim300-calib[fleet]'" in err
+
+
+@pytest.mark.slow
+def test_a_capture_with_a_restart_and_garbage_is_a_row_per_power_up(tmp_path):
+    """faults_125hz: garbage, CRC errors, lost datagrams and a sensor restart, one minute of
+    statics: each power-up is its own row, refused in the method's words, never a crash."""
+    done = batch(FIXTURES / "faults_125hz.bin", "-o", tmp_path / "t.parquet", "--workers", "1", timeout=120)
+    assert done.returncode == 0, done.stderr
+    rows = fleettable.read_rows(tmp_path / "t.parquet")
+    assert [(r["power_up"], r["power_ups"], r["status"]) for r in rows] == [(1, 2, "refused"), (2, 2, "refused")]
+    assert all(r["error"].startswith(f"power-up {r['power_up']} of 2: not the joint method's") for r in rows)
+    assert {r["serial_number"] for r in rows} == {"N25582405002002"}
