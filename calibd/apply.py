@@ -5,7 +5,8 @@ One job: a result and decoded samples -> corrected arrays, block by block as the
 hands them over, so a capture of any length streams to a CSV file in one block's memory. The
 command line opens the files; `Correction` says what is subtracted and how vectors turn,
 `apply_capture` runs the decoder and gives each corrected block to a writer (`CsvWriter`,
-`NpzWriter`). Which biases a result has, which outputs can take them and whether the result is
+`NpzWriter`, `calibd.mcapout`); `apply_recording` does the same for a recording of Imu messages,
+batch by batch. Which biases a result has, which outputs can take them and whether the result is
 of the capture's sensor have one home, `calibd.correction`, shared with the daemon's corrected
 outputs.
 """
@@ -24,11 +25,13 @@ from stim300.csvtable import write_rows
 from stim300.protocol import CLUSTERS, INTERNAL_RATE_HZ, NORMAL_LAYOUTS
 
 from .errors import CalibdError
+from .recordings import StampTimes
 from .results import ROTATIONS, CalibrationResult
 from .correction import SI_PER_SENSOR_UNIT, WORDS, estimated_maps, other_sensor, si_biases, through, uncorrectable
 from .session import PowerUpCuts
 
 APPLIED_SCHEMA = "calibd.applied/1"
+RECORDING_CLUSTERS = ("gyro", "acc")  # what a sensor_msgs/Imu carries
 UNITS = {"gyro": "rad_s", "acc": "m_s2", "incl": "m_s2"}  # in column and array names
 ATTITUDE = ROTATIONS["nav_to_imu"][1]  # yaw, pitch, roll
 # 9 significant digits: every STIM300 value is a 24-bit count (exact in float32, which 9 digits
@@ -37,6 +40,10 @@ ATTITUDE = ROTATIONS["nav_to_imu"][1]  # yaw, pitch, roll
 # whole 0.5 ms counter ticks: 4 decimals are exact.
 VALUE_FORMAT = "%.9g"
 TIME_FORMAT = "%.4f"
+CAPTURE_UNITS = (b"# units: time_s s since the power-up's first sample (datagram counter); gyro rad/s; "
+                 b"acc and incl m/s^2; status bytes as the sensor sent them\n")
+RECORDING_UNITS = (b"# units: time_s s since the first message's header stamp (to 0.1 ms); gyro rad/s; acc m/s^2; "
+                   b"stamp_ns the message's header stamp, ns since the epoch\n")
 
 
 class ApplyError(CalibdError):
@@ -58,6 +65,15 @@ class Correction:
     @property
     def frame(self) -> str:
         return "imu" if self.rotation is None else "home"
+
+    def corrected(self, cluster: str, values: np.ndarray) -> np.ndarray:
+        """A cluster's vectors (N x 3, SI, float64) as apply writes them: bias off, through the
+        estimated map, in the asked frame."""
+        if cluster in self.biases:
+            values = through(values - self.biases[cluster], self.maps.get(cluster))
+        if self.rotation is not None:
+            values = values @ self.rotation  # v_home = R_NAV^IMU.T v_imu, row by row
+        return values
 
 
 def correction(result: CalibrationResult, frame: bool, force: bool) -> Correction:
@@ -90,13 +106,27 @@ def correction(result: CalibrationResult, frame: bool, force: bool) -> Correctio
 @dataclass
 class Applied:
     """What apply found in the capture: samples written, power-ups, the sensor's serial number
-    (None: no serial-number datagram) and the warnings to show."""
+    (None: no serial-number datagram), a recording's Imu topic and the warnings to show."""
 
     samples: int = 0
     power_ups: int = 0
     serial_number: str | None = None
     clusters: tuple[str, ...] = ()
     warnings: list[str] = field(default_factory=list)
+    topic: str | None = None
+
+    @property
+    def words(self) -> str:
+        if self.topic is not None:
+            return f"{self.samples} messages of topic {self.topic}"
+        return f"{self.samples} samples, {self.power_ups} power-up(s)"
+
+
+def _without_biases(clusters, correction: Correction) -> str | None:
+    """What to refuse (unless forced) of a capture carrying a cluster the result has no biases
+    for: its columns would pass as measured under a file that says corrected."""
+    missing = [WORDS[c] for c in clusters if c not in correction.biases]
+    return f"the result has no {' or '.join(missing)} biases" if missing else None
 
 
 class _Applier:
@@ -156,27 +186,18 @@ class _Applier:
                 self.refusal = f"{text} (--force applies it anyway)"
 
     def _uncorrected(self) -> None:
-        """Refuse (unless forced) a capture carrying a cluster the result has no biases for:
-        its columns would pass as measured under a file that says corrected."""
-        missing = [WORDS[c] for c in self.applied.clusters if c not in self.correction.biases]
-        if not missing:
-            return
-        text = f"the result has no {' or '.join(missing)} biases"
-        if self.force:
+        text = _without_biases(self.applied.clusters, self.correction)
+        if text and self.force:
             self.applied.warnings.append(f"{text}: those columns are as measured, in SI (--force)")
-        else:
+        elif text:
             self.refusal = f"{text}: those columns would stay uncorrected (--force writes them as measured)"
 
     def _columns(self, samples: np.ndarray, time_s: np.ndarray) -> dict[str, np.ndarray]:
         """One block's output columns: SI vectors, biases off, in the asked frame."""
         columns = {"time_s": time_s}
-        for cluster in self.applied.clusters:
-            values = samples[cluster].astype(np.float64) * SI_PER_SENSOR_UNIT[cluster]  # float64: float32 would round
-            if cluster in self.correction.biases:
-                values = through(values - self.correction.biases[cluster], self.correction.maps.get(cluster))
-            if self.correction.rotation is not None:
-                values = values @ self.correction.rotation  # v_home = R_NAV^IMU.T v_imu, row by row
-            columns[f"{cluster}_{UNITS[cluster]}"] = values
+        for cluster in self.applied.clusters:  # float64: float32 would round
+            columns[f"{cluster}_{UNITS[cluster]}"] = self.correction.corrected(
+                cluster, samples[cluster].astype(np.float64) * SI_PER_SENSOR_UNIT[cluster])
         columns["counter"] = samples["counter"]
         columns["status"] = np.column_stack([samples[f"status_{c}"] for c in CLUSTERS])
         columns["power_up"] = np.full(len(samples), self.applied.power_ups, np.uint16)
@@ -216,6 +237,52 @@ def apply_capture(data, name: str, correction: Correction, result_serial: str | 
     return applied
 
 
+def apply_recording(recording, correction: Correction, result: CalibrationResult, force: bool,
+                    open_writer) -> Applied:
+    """A recording of Imu messages (`calibd.recordings.ImuRecording`) corrected batch by batch:
+    each batch's columns (time_s since the first message, the header stamps, gyro and
+    accelerometer in SI) go to the writer `open_writer(rate_hz, frame_id)` gives at the first
+    batch, once the stamps have told the rate. ApplyError (one line naming the recording) for a
+    recording that cannot take this result; as for a capture, the writer must write to a file
+    replaced only on success."""
+    name = str(recording.path)
+    applied = Applied(power_ups=1, clusters=RECORDING_CLUSTERS)
+    missing = _without_biases(RECORDING_CLUSTERS, correction)
+    if missing and not force:
+        raise ApplyError(f"{name}: {missing}: those columns would stay uncorrected (--force writes them as measured)")
+    if missing:
+        applied.warnings.append(f"{missing}: those columns are as measured, in SI (--force)")
+    stamps, write = StampTimes(name), None
+    for stamps_ns, gyro, acc, frame_id in recording.batches():
+        time_s = stamps.times(stamps_ns, frame_id)
+        if write is None:
+            applied.warnings += _frame_warnings(result, frame_id, name, force)
+            write = open_writer(stamps.rate_hz, frame_id)
+        write({"time_s": time_s, "gyro_rad_s": correction.corrected("gyro", gyro),
+               "acc_m_s2": correction.corrected("acc", acc), "stamp_ns": stamps_ns})
+        applied.samples += len(stamps_ns)
+    applied.topic = recording.topic
+    applied.warnings = [*correction.warnings, *applied.warnings,
+                        *(f"{name}: {text}: no row stands for them" for text in stamps.warnings)]
+    return applied
+
+
+def _frame_warnings(result: CalibrationResult, frame_id: str, name: str, force: bool) -> list[str]:
+    """Whether a result is of the sensor a recording holds, as far as a recording can tell: it
+    names no serial number, only the frame its driver stamped. A result of a recording with another
+    frame id is another sensor's, or the same under another name: refused unless forced."""
+    if result.sensor.serial_number is not None:
+        return [f"{name}: a recording names no serial number: cannot check the result (of sensor "
+                f"{result.sensor.serial_number}) is of this sensor"]
+    result_frame = result.stream.get("frame_id")
+    if result_frame is None or result_frame == frame_id:
+        return []
+    text = f"the recording's frame id is {frame_id!r}, the result's {result_frame!r}: its biases may be another sensor's"
+    if not force:
+        raise ApplyError(f"{name}: {text} (--force applies it anyway)")
+    return [f"{name}: {text}: applied anyway (--force)"]
+
+
 def _identity_warnings(applied: Applied, result_serial: str | None, name: str) -> list[str]:
     """Where the identity check could not be made: a serial-number datagram comes only at a
     power-up, so many captures lack it, and refusing them would refuse most real captures."""
@@ -246,38 +313,49 @@ def meta_record(correction: Correction, result_path: str, result_sha256: str, re
 class CsvWriter:
     """Corrected blocks as CSV: `#` comment lines (what the file is, in JSON; the units), a
     header of column names carrying their units, one row per sample. The columns are known
-    with the first block (which clusters the datagram carries), so the header waits for it."""
+    with the first block (which clusters the datagram carries; a capture's counter and status
+    bytes or a recording's header stamps), so the header waits for it."""
 
     def __init__(self, f, meta: dict):
         self.f, self.meta = f, meta
-        self.clusters: tuple[str, ...] | None = None
+        self.order: list[str] | None = None
         self.formats: list[str] = []
 
     def _header(self, columns: dict[str, np.ndarray]) -> None:
-        self.clusters = tuple(c for c in CLUSTERS if f"{c}_{UNITS[c]}" in columns)
-        names = ["time_s", *(f"{c}_{a}_{UNITS[c]}" for c in self.clusters for a in "xyz"), "counter",
-                 *(f"status_{c}" for c in CLUSTERS), "power_up"]
-        self.formats = [TIME_FORMAT, *[VALUE_FORMAT] * 3 * len(self.clusters), *["%d"] * 5]
+        vectors = {f"{c}_{UNITS[c]}": c for c in CLUSTERS if f"{c}_{UNITS[c]}" in columns}  # in CLUSTERS' order
+        self.order = ["time_s", *vectors, *(name for name in columns if name not in vectors and name != "time_s")]
+        names = []
+        for name in self.order:
+            if name in vectors:
+                names += [f"{vectors[name]}_{a}_{UNITS[vectors[name]]}" for a in "xyz"]
+                self.formats += [VALUE_FORMAT] * 3
+            elif name == "status":
+                names += [f"status_{c}" for c in CLUSTERS]
+                self.formats += ["%d"] * len(CLUSTERS)
+            else:
+                names.append(name)
+                self.formats.append(TIME_FORMAT if name == "time_s" else "%d")
         self.f.write(f"# {APPLIED_SCHEMA}: {json.dumps(self.meta)}\n".encode())
-        self.f.write(b"# units: time_s s since the power-up's first sample (datagram counter); gyro rad/s; "
-                     b"acc and incl m/s^2; status bytes as the sensor sent them\n")
+        self.f.write(RECORDING_UNITS if "stamp_ns" in columns else CAPTURE_UNITS)
         self.f.write((",".join(names) + "\n").encode())
 
     def __call__(self, columns: dict[str, np.ndarray]) -> None:
-        if self.clusters is None:
+        if self.order is None:
             self._header(columns)
-        write_rows(self.f, [columns["time_s"], *(columns[f"{c}_{UNITS[c]}"] for c in self.clusters),
-                            columns["counter"], columns["status"], columns["power_up"]], self.formats)
+        write_rows(self.f, [columns[name] for name in self.order], self.formats)
+
+    def finish(self) -> None:
+        """Nothing is held back: each block was written as it came."""
 
 
 class NpzWriter:
-    """Corrected blocks gathered into one array per column, written as an NPZ at `finish`.
-    Each column is allocated once for the most samples the capture's bytes can hold (pages
-    never written cost address space only), so the samples are held once, not as blocks plus
-    their concatenation."""
+    """Corrected blocks gathered into one array per column, written as an NPZ to `f` at
+    `finish`. Each column is allocated once for the most samples the input can hold (the bytes
+    of a capture, the index's count of a recording; pages never written cost address space
+    only), so the samples are held once, not as blocks plus their concatenation."""
 
-    def __init__(self, capacity: int):
-        self.capacity, self.n = capacity, 0
+    def __init__(self, capacity: int, f, meta: dict):
+        self.capacity, self.n, self.f, self.meta = capacity, 0, f, meta
         self.columns: dict[str, np.ndarray] = {}
 
     @staticmethod
@@ -287,11 +365,16 @@ class NpzWriter:
 
     def __call__(self, columns: dict[str, np.ndarray]) -> None:
         n = len(columns["time_s"])
+        if self.n + n > self.capacity:  # more messages than a recording's index counted
+            self.capacity = 2 * (self.n + n)
+            self.columns = {name: np.resize(values, (self.capacity, *values.shape[1:]))
+                            for name, values in self.columns.items()}
         for name, values in columns.items():
             if name not in self.columns:
                 self.columns[name] = np.empty((self.capacity, *values.shape[1:]), values.dtype)
             self.columns[name][self.n:self.n + n] = values
         self.n += n
 
-    def finish(self, f, meta: dict) -> None:
-        np.savez(f, **{name: values[:self.n] for name, values in self.columns.items()}, meta=np.array(json.dumps(meta)))
+    def finish(self) -> None:
+        np.savez(self.f, **{name: values[:self.n] for name, values in self.columns.items()},
+                 meta=np.array(json.dumps(self.meta)))

@@ -65,25 +65,40 @@ def first_stream_info(data):
     return decode_capture(bytes(data[:1 << 18])).info
 
 
+def is_imu_recording(path) -> bool:
+    """Whether `path` is a recording of Imu messages alone (a ROS bag, rosbag2 or MCAP of
+    sensor_msgs/Imu, by its content) rather than a STIM300 capture (raw, or the MCAP of
+    `stim300 record`, which holds the sensor's bytes)."""
+    from stim300.mcaprec import holds_capture
+
+    from .recordings import is_recording
+
+    return is_recording(path) and not holds_capture(path)
+
+
+def topic_on_capture(path) -> str:
+    """The refusal of --topic given with a STIM300 capture."""
+    return (f"{path}: --topic names a topic of a recording of Imu messages (ROS bag, rosbag2, MCAP), and this is a "
+            "STIM300 capture")
+
+
 def open_capture(path: str, data: bytes | None = None, topic: str | None = None) -> CaptureSessions:
     """The capture at `path` (its bytes, when already read) decoded (`capture_bytes`: a file and
     its read log, or the MCAP `stim300 record` writes); or, when `path` is another recording (a
     ROS bag, rosbag2 or MCAP of sensor_msgs/Imu, by its content), its Imu `topic` (None: its
     only one). A file is mapped, not read, and the pages decoded are let go, so a long capture
     never sits in memory whole."""
-    from stim300.mcaprec import holds_capture
     from stim300.reads import load_reads
 
-    from .recordings import is_recording, open_recording
+    from .recordings import open_recording
     from .session import decode_sessions
 
     if data is not None:
         return decode_sessions(data, str(path), load_reads(path))
-    if is_recording(path) and not holds_capture(path):
+    if is_imu_recording(path):
         return open_recording(path, topic)
     if topic is not None:
-        raise UsageError(f"{path}: --topic names a topic of a recording of Imu messages (ROS bag, rosbag2, MCAP), "
-                         "and this is a STIM300 capture")
+        raise UsageError(topic_on_capture(path))
     with capture_bytes(path) as (data, reads, let_go):
         return decode_sessions(data, str(path), reads, let_go)
 

@@ -25,7 +25,8 @@ from stim300.cliutil import (DOCUMENT_LIMIT_BYTES, CommandParser, RunError, inpu
 from stim300.errors import UsageError
 
 from . import spec
-from .captures import capture_bytes, first_stream_info, load_session, open_capture
+from .captures import (capture_bytes, first_stream_info, is_imu_recording, load_session, open_capture,
+                       topic_on_capture)
 from .errors import CalibdError, CalibrationError
 from .frames import STANDARD_GRAVITY, Site, site_value_error
 from .scenarios import READY_MADE
@@ -606,7 +607,7 @@ def cmd_apply(args) -> int:
     from stim300.atomic import atomic_file
     from stim300.cliutil import package_version
 
-    from .apply import ApplyError, CsvWriter, NpzWriter, apply_capture, correction, meta_record
+    from .apply import ApplyError, correction, meta_record
     from .results import parse_result
 
     kind = Path(args.output).suffix.lower()
@@ -622,37 +623,62 @@ def cmd_apply(args) -> int:
         raise UsageError(f"{args.result}: {exc}") from None
     meta = meta_record(fix, args.result, hashlib.sha256(result_bytes).hexdigest(), result, args.capture,
                        package_version())
-    serial = result.sensor.serial_number
     try:
-        with capture_bytes(args.capture) as (data, reads, let_go), atomic_file(args.output, durable=False) as f:
-            if kind == ".mcap":
-                writer = _mcap_writer(f, meta, result, result_bytes, data, MCAP_FRAME_IDS[fix.frame])
-            else:
-                writer = NpzWriter(NpzWriter.capacity_for(len(data))) if kind == ".npz" else CsvWriter(f, meta)
-            applied = apply_capture(data, args.capture, fix, serial, args.force, writer, reads, let_go)
-            if kind == ".npz":
-                writer.finish(f, meta)
-            elif kind == ".mcap":
-                writer.finish()
+        with atomic_file(args.output, durable=False) as f:
+            applied = _apply_into(f, kind, args, fix, meta, result, result_bytes)
     except OSError as exc:
         raise write_error(args.output, exc) from None
     for text in applied.warnings:
         print(f"calibd apply: warning: {text}", file=sys.stderr)
     frame = "the home frame (NWU at the platform's home position)" if args.frame else "IMU axes"
-    print(f"{args.capture}: {applied.samples} samples, {applied.power_ups} power-up(s), biases of {args.result} "
-          f"subtracted, in SI units (rad/s, m/s^2) in {frame} -> {args.output}")
+    print(f"{args.capture}: {applied.words}, biases of {args.result} subtracted, in SI units (rad/s, m/s^2) in "
+          f"{frame} -> {args.output}")
     return 0
 
 
-def _mcap_writer(f, meta: dict, result, result_bytes: bytes, data, frame_id: str):
-    """apply's MCAP writer, its noise covariances at the capture's rate and range (read off the
-    capture's first datagrams)."""
+def _apply_into(f, kind: str, args, fix, meta: dict, result, result_bytes: bytes):
+    """apply's writing into the open output `f`: a STIM300 capture (decoded block by block, its
+    pages let go), or a recording of Imu messages (batch by batch); the writer of `kind` is
+    made once the stream's rate is known, and finished."""
+    from stim300.protocol import INTERNAL_RATE_HZ
+
+    from .apply import CsvWriter, NpzWriter, apply_capture, apply_recording
+    from .recordings import ImuRecording
+
+    writers = []
+
+    def open_writer(rate_hz: float, acc_range_g: int | None, capacity: int, frame_id: str):
+        if kind == ".mcap":
+            writers.append(_mcap_writer(f, meta, result, result_bytes, rate_hz, acc_range_g, frame_id))
+        else:
+            writers.append(NpzWriter(capacity, f, meta) if kind == ".npz" else CsvWriter(f, meta))
+        return writers[-1]
+
+    if is_imu_recording(args.capture):
+        recording = ImuRecording(args.capture, args.topic)
+        applied = apply_recording(recording, fix, result, args.force, lambda rate_hz, frame_id: open_writer(
+            rate_hz, None, recording.messages, frame_id if fix.frame == "imu" else MCAP_FRAME_IDS["home"]))
+    else:
+        if args.topic is not None:
+            raise UsageError(topic_on_capture(args.capture))
+        with capture_bytes(args.capture) as (data, reads, let_go):
+            info = first_stream_info(data)
+            ranges = None if info.configuration is None else max(info.configuration.acc_range_g)
+            writer = open_writer(info.rate_hz or INTERNAL_RATE_HZ, ranges, NpzWriter.capacity_for(len(data)),
+                                 MCAP_FRAME_IDS[fix.frame])
+            applied = apply_capture(data, args.capture, fix, result.sensor.serial_number, args.force, writer, reads,
+                                    let_go)
+    for writer in writers:
+        writer.finish()
+    return applied
+
+
+def _mcap_writer(f, meta: dict, result, result_bytes: bytes, rate_hz: float, acc_range_g: int | None, frame_id: str):
+    """apply's MCAP writer, its noise covariances at the stream's rate and range (None: not known)."""
     from .correction import noise_covariances
     from .mcapout import McapImuWriter
 
-    info = first_stream_info(data)
-    ranges = None if info.configuration is None else max(info.configuration.acc_range_g)
-    return McapImuWriter(f, meta, result, result_bytes, noise_covariances(info.rate_hz or 2000, ranges), frame_id)
+    return McapImuWriter(f, meta, result, result_bytes, noise_covariances(rate_hz, acc_range_g), frame_id)
 
 
 def _client_program(body) -> int:
@@ -1040,9 +1066,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_noise)
     p = sub.add_parser("apply", help="result + capture -> bias-corrected samples in SI units (NPZ, CSV or MCAP)")
     p.add_argument("result", help="RESULT.json written by calibd calibrate or the daemon")
-    p.add_argument("capture", help="a capture of the same sensor (and power-up) to correct")
+    p.add_argument("capture", help="a capture of the same sensor (and power-up) to correct, or a recording of its "
+                                   "Imu messages (ROS bag, rosbag2, MCAP)")
     p.add_argument("-o", "--output", type=path_arg, required=True,
                    help="OUT.npz, OUT.csv or OUT.mcap (ROS 2 sensor_msgs/Imu; replaced atomically)")
+    p.add_argument("--topic", type=_ros_topic, metavar="NAME", help=TOPIC_HELP)
     p.add_argument("--frame", action="store_true",
                    help="turn the vectors into the home frame: NWU when the platform is at its home position, "
                         "turning with the platform (needs yaw, pitch and roll)")

@@ -44,7 +44,8 @@ def imu_schema_text() -> bytes:
 
 class McapImuWriter:
     """Corrected column blocks (apply's writers' interface: `writer(columns)`) -> Imu messages
-    in an MCAP written to the binary file `f`; `finish()` writes the summary. `noise`: the gyro
+    in an MCAP written to the binary file `f`, stamped with a recording's own stamps (`stamp_ns`)
+    or a capture's `time_s`; `finish()` writes the summary. `noise`: the gyro
     and accelerometer white-noise covariances at the capture's rate (correction.noise_covariances)."""
 
     def __init__(self, f, meta: dict, result, result_bytes: bytes, noise: tuple[np.ndarray, np.ndarray],
@@ -67,7 +68,9 @@ class McapImuWriter:
         self.sequence = 0
 
     def __call__(self, columns: dict[str, np.ndarray]) -> None:
-        stamps = np.round(columns["time_s"] * NS_PER_S).astype(np.int64)
+        stamps = columns.get("stamp_ns")
+        if stamps is None:
+            stamps = np.round(columns["time_s"] * NS_PER_S).astype(np.int64)
         vectors = [columns.get(name) for name in ("gyro_rad_s", "acc_m_s2")]
         covariances = [cov if values is not None else ABSENT for values, cov in zip(vectors, self.covariances)]
         vectors = [np.zeros((len(stamps), 3)) if values is None else values for values in vectors]

@@ -85,43 +85,64 @@ def _unreadable(exc: Exception) -> bool:
             or isinstance(exc, RuntimeError) and str(exc).startswith("LZ4"))
 
 
-def open_recording(path, topic: str | None = None) -> CaptureSessions:
-    """The Imu messages of `topic` (None: the recording's only Imu topic) as a capture of one
-    power-up; CalibrationError (one line naming the file) for a recording that cannot be read or
-    has no such messages."""
-    try:
+class ImuRecording:
+    """The Imu messages of one topic of a recording, read in decoded batches (`batches`): `topic`
+    (None: the recording's only Imu topic; its name once read), `words` what the file is,
+    `messages` how many the recording's index counts (0 until read)."""
+
+    def __init__(self, path, topic: str | None = None):
+        try:
+            from rosbags.highlevel import AnyReader  # noqa: F401 (the extra is there)
+        except ImportError:
+            raise CalibrationError(f"{path}: {NEEDS_EXTRA}") from None
+        self.path, self.topic, self.messages = path, topic, 0
+        ending, self.words = _kind(path)
+        if ending and Path(path).suffix != ending:
+            raise CalibrationError(f"{path}: a {self.words} by its content, but recordings are read by the name "
+                                   f"ending {ending}: rename it")
+
+    def batches(self):
+        """(header stamps in ns, angular velocity in rad/s, linear acceleration in m/s^2, the first
+        message's frame id) of up to BATCH_MESSAGES messages at a time, in the recording's order;
+        CalibrationError (one line naming the file) for a recording that cannot be read."""
         from rosbags.highlevel import AnyReader
         from rosbags.typesys import Stores, get_typestore
-    except ImportError:
-        raise CalibrationError(f"{path}: {NEEDS_EXTRA}") from None
-    ending, words = _kind(path)
-    if ending and Path(path).suffix != ending:
-        raise CalibrationError(f"{path}: a {words} by its content, but recordings are read by the name ending "
-                               f"{ending}: rename it")
-    stream = _ImuStream(str(path))
-    try:  # a bag of ROS 2 Humble or older names no message definitions: the standard ones are taken
-        with AnyReader([Path(path)], default_typestore=get_typestore(Stores.LATEST)) as reader:
-            name, connections = _imu_topic(reader, path, topic)
-            encoding = "ros1" if not reader.is2 else _cdr_only(connections, path, name)
-            batch = []
-            for _, _, data in reader.messages(connections):
-                batch.append(data)
-                if len(batch) == BATCH_MESSAGES:
-                    stream.add(*decode_imu(batch, encoding, path, stream.messages))
-                    batch = []
-            if batch:
-                stream.add(*decode_imu(batch, encoding, path, stream.messages))
-    except Exception as exc:
-        if not _unreadable(exc):
-            raise
-        raise CalibrationError(f"{path}: cannot read the {words}: {' '.join(str(exc).split())}") from None
-    if not stream.messages:
-        raise CalibrationError(f"{path}: topic {name}: no message could be read")
-    return stream.capture(name, words, identity(path))
+
+        path, read = self.path, 0
+        try:  # a bag of ROS 2 Humble or older names no message definitions: the standard ones are taken
+            with AnyReader([Path(path)], default_typestore=get_typestore(Stores.LATEST)) as reader:
+                self.topic, info = _imu_topic(reader, path, self.topic)
+                self.messages, connections = info.msgcount, info.connections
+                encoding = "ros1" if not reader.is2 else _cdr_only(connections, path, self.topic)
+                batch = []
+                for _, _, data in reader.messages(connections):
+                    batch.append(data)
+                    if len(batch) == BATCH_MESSAGES:
+                        yield decode_imu(batch, encoding, path, read)
+                        read, batch = read + len(batch), []
+                if batch:
+                    yield decode_imu(batch, encoding, path, read)
+        except Exception as exc:
+            if not _unreadable(exc):
+                raise
+            raise CalibrationError(f"{path}: cannot read the {self.words}: {' '.join(str(exc).split())}") from None
 
 
-def _imu_topic(reader, path, topic: str | None) -> tuple[str, list]:
-    """The Imu topic asked for (or the only one) and its connections."""
+def open_recording(path, topic: str | None = None) -> CaptureSessions:
+    """The Imu messages of `topic` (None: the recording's only Imu topic) as a capture of one
+    power-up, block-averaged as they come; CalibrationError (one line naming the file) for a
+    recording that cannot be read or has no such messages."""
+    recording, stamps, builder = ImuRecording(path, topic), StampTimes(str(path)), SessionBuilder()
+    for stamps_ns, gyro, acc, frame_id in recording.batches():
+        builder.add(imu_samples(gyro, acc), stamps.times(stamps_ns, frame_id), stamps.rate_hz)
+    if not stamps.messages:
+        raise CalibrationError(f"{path}: topic {recording.topic}: no message could be read")
+    return stamps.capture(builder, recording.topic, recording.words, identity(path))
+
+
+def _imu_topic(reader, path, topic: str | None):
+    """The Imu topic asked for (or the only one) and what the reader knows of it (rosbags'
+    TopicInfo: its message count and connections)."""
     topics = reader.topics
     imu = sorted(name for name, info in topics.items() if info.msgtype == IMU_TYPE)
     if topic is None:
@@ -139,7 +160,7 @@ def _imu_topic(reader, path, topic: str | None) -> tuple[str, list]:
     info = topics[topic]
     if not info.msgcount:
         raise CalibrationError(f"{path}: topic {topic} has no messages")
-    return topic, info.connections
+    return topic, info
 
 
 def _cdr_only(connections, path, topic: str) -> str:
@@ -216,19 +237,19 @@ def measured_rate_hz(stamps_ns: np.ndarray) -> int | float:
     return int(rate) if rate.is_integer() else rate
 
 
-class _ImuStream:
-    """Decoded batches of one topic, in order -> one SessionBuilder timed by the header stamps
-    (s since the first), with the gaps the stamps show."""
+class StampTimes:
+    """The header stamps of one topic's batches, in order -> each message's time (s since the
+    first message), the rate (the first batch's median step) and the gaps the stamps show.
+    Stamps that do not increase, or step faster than a STIM300 samples, are refused."""
 
     def __init__(self, where: str):
         self.where = where
-        self.builder = SessionBuilder()
         self.rate_hz: int | float | None = None
         self.first_ns = self.last_ns = None
         self.messages = self.gaps = self.lost_samples = 0
         self.frame_id = ""
 
-    def add(self, stamps_ns: np.ndarray, gyro_rad_s: np.ndarray, acc_m_s2: np.ndarray, frame_id: str) -> None:
+    def times(self, stamps_ns: np.ndarray, frame_id: str) -> np.ndarray:
         if self.rate_hz is None:  # the first batch: all the messages when there are fewer than a batch
             if len(stamps_ns) < 2:
                 raise CalibrationError(f"{self.where}: {len(stamps_ns)} message: too few to tell the sample rate")
@@ -250,24 +271,26 @@ class _ImuStream:
         gaps = steps[steps > GAP_STEPS * interval_ns]
         self.gaps += len(gaps)
         self.lost_samples += int(np.rint(gaps / interval_ns).sum()) - len(gaps)
-        time_s = (stamps_ns - self.first_ns) * 1e-9
-        self.builder.add(imu_samples(gyro_rad_s, acc_m_s2), time_s, self.rate_hz)
         self.messages += len(stamps_ns)
         self.last_ns = stamps_ns[-1]
+        return (stamps_ns - self.first_ns) * 1e-9
 
-    def capture(self, topic: str, words: str, identity_record: dict) -> CaptureSessions:
+    @property
+    def warnings(self) -> list[str]:
+        return [f"{self.gaps} gap(s) in the header stamps: {self.lost_samples} sample(s) missing"] if self.gaps else []
+
+    def capture(self, builder: SessionBuilder, topic: str, words: str, identity_record: dict) -> CaptureSessions:
+        """The power-up `builder` holds, with what the stamps showed."""
         duration_s = float(self.last_ns - self.first_ns) * 1e-9 + 1 / self.rate_hz
-        warnings = ([f"{self.gaps} gap(s) in the header stamps: {self.lost_samples} sample(s) missing"]
-                    if self.gaps else [])
         return CaptureSessions(
             path=self.where,
-            power_ups=[PowerUp(self.builder, 0, self.messages, duration_s, np.zeros(0), np.zeros(0), True)],
+            power_ups=[PowerUp(builder, 0, self.messages, duration_s, np.zeros(0), np.zeros(0), True)],
             rate_hz=self.rate_hz,
             sensor=SensorRecord(sample_rate_hz=self.rate_hz,
                                 sample_rate=f"{self.rate_hz:g} Hz, measured from the header stamps"),
             stream={"capture": self.where, "recording": words, "topic": topic, "frame_id": self.frame_id,
                     "messages": self.messages, "datagrams": self.messages, "lost_samples": self.lost_samples,
-                    "gaps": self.gaps, "inferred_missing": 0, "crc_errors": 0, "restarts": 0, "warnings": warnings},
+                    "gaps": self.gaps, "inferred_missing": 0, "crc_errors": 0, "restarts": 0, "warnings": self.warnings},
             identity=identity_record)
 
 

@@ -50,7 +50,7 @@ def truth_result(serial: str | None = SERIAL, poor: tuple[str, ...] = (), **chan
 
 def applied_columns(result, frame: bool = False, data: bytes | None = None, force: bool = False):
     data = FIXTURE.read_bytes() if data is None else data
-    gather = NpzWriter(NpzWriter.capacity_for(len(data)))
+    gather = NpzWriter(NpzWriter.capacity_for(len(data)), None, {})
     applied = apply_capture(data, "c.bin", correction(result, frame, force), result.sensor.serial_number,
                             force, gather)
     return {name: values[:gather.n] for name, values in gather.columns.items()}, applied
