@@ -1,5 +1,6 @@
 """Recordings of sensor_msgs/Imu as captures: ROS 1 bags, rosbag2 directories (SQLite3 or MCAP
-storage), their storage files alone (.db3, plain .mcap), read through rosbags.
+storage) and SQLite3 files alone, read through rosbags; plain MCAP files of any profile, with
+ROS 2 (CDR) or ROS 1 messages, through the mcap package.
 
 What the robotics world shares of a STIM300 is its driver's Imu topic, not the sensor's bytes: the
 angular velocity (rad/s) and linear acceleration (m/s^2), stamped. No inclinometers, no
@@ -8,7 +9,8 @@ without inclinometers whose warm-up cannot be checked. Its times are the header 
 driver says the sample was taken, not when the recorder got it), its rate the stamps' median step,
 its gaps the steps of more than GAP_STEPS sample intervals. Messages are read in batches of
 BATCH_MESSAGES and decoded with numpy from their serialised bytes (an Imu is fixed-size after its
-frame id), block-averaged as they come: a long recording is never held whole.
+frame id), and used as they come (block-averaged into a power-up, or corrected by apply): a long
+recording is never held whole.
 """
 
 from __future__ import annotations
@@ -16,6 +18,8 @@ from __future__ import annotations
 import hashlib
 import os
 import sqlite3
+import struct
+from contextlib import ExitStack
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +42,7 @@ KINDS = {  # how a file starts -> the name ending rosbags reads it by, and what 
     b"SQLite format 3\x00": (".db3", "rosbag2 SQLite3 file"),
 }
 ROSBAG2_DIRECTORY = "rosbag2 directory"
+MCAP_FILE = KINDS[b"\x89MCAP0\r\n"][1]  # read by the mcap package: every profile and ROS 1 messages too
 BATCH_MESSAGES = 16384  # messages decoded at once; the first batch's stamps also give the rate
 GAP_STEPS = 1.5  # a stamp step longer than this many sample intervals is a gap
 FASTEST_RATE_HZ = 1.05 * INTERNAL_RATE_HZ  # a faster median step is not the sensor's (host stamps of bursts of reads)
@@ -70,10 +75,13 @@ def is_recording(path) -> bool:
 
 
 def _unreadable(exc: Exception) -> bool:
-    """Whether rosbags raised `exc` for a file it cannot read (a truncated bag, a corrupt chunk, a
-    bad metadata.yaml, a damaged database), not for a fault of the program. lz4 says a corrupt
-    chunk with a RuntimeError of its own words; bz2 (ROS 1 chunks) with an OSError."""
+    """Whether rosbags or mcap raised `exc` for a file it cannot read (a truncated bag, a corrupt
+    chunk, a bad metadata.yaml, a damaged database, a cut record), not for a fault of the program.
+    lz4 says a corrupt chunk with a RuntimeError of its own words; bz2 (ROS 1 chunks) with an
+    OSError; mcap's zstd (the zstandard package) with its own ZstdError."""
+    from mcap.exceptions import McapError
     from rosbags.highlevel import AnyReaderError
+    from zstandard import ZstdError as McapZstdError
     from rosbags.rosbag1 import ReaderError as Bag1Error
     from rosbags.rosbag2 import ReaderError as Bag2Error
     try:
@@ -81,7 +89,8 @@ def _unreadable(exc: Exception) -> bool:
     except ImportError:  # before Python 3.14
         from backports.zstd import ZstdError
 
-    return (isinstance(exc, (AnyReaderError, Bag1Error, Bag2Error, ZstdError, sqlite3.DatabaseError, EOFError, OSError))
+    return (isinstance(exc, (AnyReaderError, Bag1Error, Bag2Error, McapError, ZstdError, McapZstdError, sqlite3.DatabaseError, EOFError,
+                             OSError, struct.error))
             or isinstance(exc, RuntimeError) and str(exc).startswith("LZ4"))
 
 
@@ -97,7 +106,7 @@ class ImuRecording:
             raise CalibrationError(f"{path}: {NEEDS_EXTRA}") from None
         self.path, self.topic, self.messages = path, topic, 0
         ending, self.words = _kind(path)
-        if ending and Path(path).suffix != ending:
+        if ending and self.words != MCAP_FILE and Path(path).suffix != ending:  # rosbags reads by the name
             raise CalibrationError(f"{path}: a {self.words} by its content, but recordings are read by the name "
                                    f"ending {ending}: rename it")
 
@@ -105,17 +114,12 @@ class ImuRecording:
         """(header stamps in ns, angular velocity in rad/s, linear acceleration in m/s^2, the first
         message's frame id) of up to BATCH_MESSAGES messages at a time, in the recording's order;
         CalibrationError (one line naming the file) for a recording that cannot be read."""
-        from rosbags.highlevel import AnyReader
-        from rosbags.typesys import Stores, get_typestore
-
-        path, read = self.path, 0
-        try:  # a bag of ROS 2 Humble or older names no message definitions: the standard ones are taken
-            with AnyReader([Path(path)], default_typestore=get_typestore(Stores.LATEST)) as reader:
-                self.topic, info = _imu_topic(reader, path, self.topic)
-                self.messages, connections = info.msgcount, info.connections
-                encoding = "ros1" if not reader.is2 else _cdr_only(connections, path, self.topic)
-                batch = []
-                for _, _, data in reader.messages(connections):
+        path, read, batch = self.path, 0, []
+        try:
+            with ExitStack() as opened:
+                backend = self._mcap_messages if self.words == MCAP_FILE else self._rosbags_messages
+                messages, encoding = backend(opened)
+                for data in messages:
                     batch.append(data)
                     if len(batch) == BATCH_MESSAGES:
                         yield decode_imu(batch, encoding, path, read)
@@ -126,6 +130,44 @@ class ImuRecording:
             if not _unreadable(exc):
                 raise
             raise CalibrationError(f"{path}: cannot read the {self.words}: {' '.join(str(exc).split())}") from None
+
+    def _rosbags_messages(self, opened: ExitStack):
+        """A bag's or a rosbag2's serialised messages of the topic, and their encoding, read by rosbags
+        (kept open in `opened`)."""
+        from rosbags.highlevel import AnyReader
+        from rosbags.typesys import Stores, get_typestore
+
+        # a bag of ROS 2 Humble or older names no message definitions: the standard ones are taken
+        reader = opened.enter_context(AnyReader([Path(self.path)], default_typestore=get_typestore(Stores.LATEST)))
+        topics = reader.topics
+        self.topic = _imu_topic({name: (info.msgtype, info.msgcount) for name, info in topics.items()},
+                                self.path, self.topic)
+        self.messages, connections = topics[self.topic].msgcount, topics[self.topic].connections
+        encodings = {"ros1"} if not reader.is2 else {getattr(c.ext, "serialization_format", "cdr") for c in connections}
+        return (data for _, _, data in reader.messages(connections)), _one_encoding(encodings, self.path, self.topic)
+
+    def _mcap_messages(self, opened: ExitStack):
+        """A plain MCAP file's serialised messages of the topic, and their encoding, read by the mcap
+        package: any profile, ROS 2 (CDR) or ROS 1 messages (kept open in `opened`)."""
+        from mcap.reader import make_reader
+
+        reader = make_reader(opened.enter_context(open_regular(self.path)))
+        summary = reader.get_summary()
+        if summary is None or summary.statistics is None:
+            raise CalibrationError(f"{self.path}: the MCAP file has no summary (cut short? `mcap recover` rebuilds "
+                                   "one)")
+        topics: dict[str, list] = {}
+        for channel in summary.channels.values():
+            topics.setdefault(channel.topic, []).append(channel)
+        counts = summary.statistics.channel_message_counts
+        schemas = {name: {_ros2_type(summary.schemas[c.schema_id].name) if c.schema_id in summary.schemas else ""
+                          for c in channels} for name, channels in topics.items()}
+        self.topic = _imu_topic({name: (next(iter(types)) if len(types) == 1 else "", sum(
+            counts.get(c.id, 0) for c in topics[name])) for name, types in schemas.items()}, self.path, self.topic)
+        self.messages = sum(counts.get(c.id, 0) for c in topics[self.topic])
+        encodings = {c.message_encoding for c in topics[self.topic]}
+        return ((message.data for _, _, message in reader.iter_messages(topics=[self.topic])),
+                _one_encoding(encodings, self.path, self.topic))
 
 
 def open_recording(path, topic: str | None = None) -> CaptureSessions:
@@ -140,11 +182,10 @@ def open_recording(path, topic: str | None = None) -> CaptureSessions:
     return stamps.capture(builder, recording.topic, recording.words, identity(path))
 
 
-def _imu_topic(reader, path, topic: str | None):
-    """The Imu topic asked for (or the only one) and what the reader knows of it (rosbags'
-    TopicInfo: its message count and connections)."""
-    topics = reader.topics
-    imu = sorted(name for name, info in topics.items() if info.msgtype == IMU_TYPE)
+def _imu_topic(topics: dict[str, tuple[str, int]], path, topic: str | None) -> str:
+    """The Imu topic asked for (or the only one) of `topics` (name -> (message type, "" when of
+    several; message count)), with messages."""
+    imu = sorted(name for name, (msgtype, _) in topics.items() if msgtype == IMU_TYPE)
     if topic is None:
         if not imu:
             raise CalibrationError(f"{path}: no {IMU_TYPE} topic (the recording has "
@@ -154,21 +195,25 @@ def _imu_topic(reader, path, topic: str | None):
         topic = imu[0]
     elif topic not in topics:
         raise CalibrationError(f"{path}: no topic {topic} (its {IMU_TYPE} topics: {', '.join(imu) or 'none'})")
-    elif topics[topic].msgtype != IMU_TYPE:
-        raise CalibrationError(f"{path}: topic {topic} is {topics[topic].msgtype or 'of several types'}, "
-                               f"not {IMU_TYPE}")
-    info = topics[topic]
-    if not info.msgcount:
+    elif topics[topic][0] != IMU_TYPE:
+        raise CalibrationError(f"{path}: topic {topic} is {topics[topic][0] or 'of several types'}, not {IMU_TYPE}")
+    if not topics[topic][1]:
         raise CalibrationError(f"{path}: topic {topic} has no messages")
-    return topic, info
+    return topic
 
 
-def _cdr_only(connections, path, topic: str) -> str:
-    """ROS 2 messages are read in CDR (an MCAP channel may say another encoding)."""
-    encodings = {getattr(c.ext, "serialization_format", "cdr") for c in connections} - {"cdr"}
-    if encodings:
-        raise CalibrationError(f"{path}: topic {topic} is encoded as {', '.join(sorted(encodings))}, not cdr")
-    return "cdr"
+def _ros2_type(name: str) -> str:
+    """A message type by its ROS 2 name (a ROS 1 schema says sensor_msgs/Imu), as rosbags names them."""
+    package, _, message = name.rpartition("/")
+    return name if not package or "/" in package else f"{package}/msg/{message}"
+
+
+def _one_encoding(encodings: set[str], path, topic: str) -> str:
+    """The topic's one message encoding that decode_imu reads (ros1 or cdr)."""
+    if len(encodings) != 1 or not encodings <= {"ros1", "cdr"}:
+        raise CalibrationError(f"{path}: topic {topic} is encoded as {', '.join(sorted(encodings))}: "
+                               "only cdr or ros1 is read")
+    return next(iter(encodings))
 
 
 def _gather(buf: np.ndarray, offsets: np.ndarray, dtype: str, count: int = 1) -> np.ndarray:

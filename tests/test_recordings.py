@@ -30,7 +30,7 @@ IMU = "sensor_msgs/msg/Imu"
 EPOCH_NS = 1_700_000_000_123_456_789  # the first sample's stamp
 ROS1 = get_typestore(Stores.ROS1_NOETIC)  # its Header has seq, as a ROS 1 bag's does
 ROS2 = get_typestore(Stores.ROS2_HUMBLE)
-FORMATS = ("bag", "sqlite3", "mcap", "plain_mcap")
+FORMATS = ("bag", "sqlite3", "mcap", "plain_mcap", "ros1_mcap")
 
 
 def imu_message(store, stamp_ns: int, gyro_rad_s, acc_m_s2, frame_id: str = FRAME_ID, seq: int = 0,
@@ -66,6 +66,20 @@ def write_recording(path: Path, kind: str, messages: list[bytes], received_ns, t
                 connection = writer.add_connection(name, msgtype, typestore=ROS1)
                 for when, raw in zip(received_ns, data):
                     writer.write(connection, int(when), raw)
+    elif kind == "ros1_mcap":  # ROS 1 messages in MCAP, as `mcap convert` makes of a bag
+        from mcap.writer import Writer as McapWriter
+
+        with open(path, "wb") as f:
+            writer = McapWriter(f)
+            writer.start(profile="ros1", library="test")
+            for name, (msgtype, data) in topics.items():
+                ros1_name = msgtype.replace("/msg/", "/")
+                schema = writer.register_schema(ros1_name, "ros1msg",
+                                                ROS1.generate_msgdef(msgtype, ros_version=1)[0].encode())
+                channel = writer.register_channel(name, "ros1", schema)
+                for when, raw in zip(received_ns, data):
+                    writer.add_message(channel, int(when), raw, int(when))
+            writer.finish()
     elif kind == "plain_mcap":
         import foxglove
         from foxglove.mcap import MCAPWriteOptions
@@ -89,7 +103,8 @@ def write_recording(path: Path, kind: str, messages: list[bytes], received_ns, t
 
 
 def recording_name(tmp: Path, kind: str, stem: str = "imu") -> Path:
-    return tmp / {"bag": f"{stem}.bag", "plain_mcap": f"{stem}.mcap"}.get(kind, f"{stem}_{kind}")
+    return tmp / {"bag": f"{stem}.bag", "plain_mcap": f"{stem}.mcap", "ros1_mcap": f"{stem}_ros1.mcap"}.get(
+        kind, f"{stem}_{kind}")
 
 
 @pytest.fixture(scope="module")
@@ -106,8 +121,8 @@ def recordings(tmp_path_factory, fixture_samples):
     tmp = tmp_path_factory.mktemp("recordings")
     stamps, gyro, acc, received = fixture_samples
     ros1, cdr = serialised("bag", stamps, gyro, acc), serialised("cdr", stamps, gyro, acc)
-    return {kind: write_recording(recording_name(tmp, kind), kind, ros1 if kind == "bag" else cdr, received)
-            for kind in FORMATS}
+    return {kind: write_recording(recording_name(tmp, kind), kind, ros1 if kind in ("bag", "ros1_mcap") else cdr,
+                                  received) for kind in FORMATS}
 
 
 @pytest.fixture(scope="module")
@@ -291,11 +306,23 @@ def test_bad_recordings_are_one_line_and_exit_2(tmp_path, run_main):
     corrupt = tmp_path / "corrupt.mcap"
     corrupt.write_bytes(bytes(data))
     cases["corrupt chunk"] = (corrupt, [], "cannot read the MCAP file")
-    foreign = write_recording(tmp_path / "foreign.mcap", "plain_mcap", *small_imu("cdr"), profile="")
-    cases["not a ros2 MCAP"] = (foreign, [], "cannot read the MCAP file: Profile is not ros2.")
+    unsummed = tmp_path / "unsummed.mcap"  # cut short, its summary never written
+    unsummed.write_bytes(plain.read_bytes()[:plain.stat().st_size * 2 // 3] + plain.read_bytes()[-8:])
+    cases["MCAP without a summary"] = (unsummed, [], "cannot read the MCAP file")
     truncated_mcap = tmp_path / "truncated.mcap"
     truncated_mcap.write_bytes(plain.read_bytes()[:plain.stat().st_size // 2])
     cases["truncated MCAP"] = (truncated_mcap, [], "cannot read the MCAP file")
+    json_imu = tmp_path / "json.mcap"
+    with open(json_imu, "wb") as f:
+        from mcap.writer import Writer as McapWriter
+
+        writer = McapWriter(f)
+        writer.start(profile="", library="test")
+        channel = writer.register_channel(TOPIC, "json", writer.register_schema(IMU, "jsonschema", b"{}"))
+        for when in stamps[:3]:
+            writer.add_message(channel, int(when), b"{}", int(when))
+        writer.finish()
+    cases["JSON messages"] = (json_imu, [], f"topic {TOPIC} is encoded as json: only cdr or ros1 is read")
     sqlite = write_recording(tmp_path / "db", "sqlite3", *small_imu("cdr")) / "db.db3"
     damaged = tmp_path / "damaged.db3"
     damaged.write_bytes(sqlite.read_bytes()[:4096] + bytes(8192))
@@ -312,12 +339,23 @@ def test_bad_recordings_are_one_line_and_exit_2(tmp_path, run_main):
     renamed = tmp_path / "recording.bin"
     shutil.copy(whole, renamed)
     cases["misnamed"] = (renamed, [], "a ROS 1 bag by its content, but recordings are read by the name ending .bag")
+    misnamed_mcap = tmp_path / "imu.bin"  # the mcap package reads by content: its name does not matter
+    shutil.copy(plain, misnamed_mcap)
+    assert open_capture(str(misnamed_mcap)).stream["messages"] == 300
     for what, (path, options, words) in cases.items():
         out = tmp_path / f"{what}.json"
         for command in (["calibrate", path, "--latitude", "40", "-o", out], ["noise", path, "-o", out]):
             err = refusal(run_main, [*command, *options])
             assert err.startswith(f"calibd: {path}: ") and words in err, (what, err)
             assert not out.exists()
+
+
+def test_an_mcap_of_any_profile_is_read(tmp_path):
+    messages, stamps = small_imu("cdr")
+    for profile in ("", "ros2", "x-own"):
+        path = write_recording(tmp_path / f"p{profile}.mcap", "plain_mcap", messages, stamps, profile=profile)
+        capture = open_capture(str(path))
+        assert capture.stream["messages"] == 300 and capture.stream["frame_id"] == FRAME_ID, profile
 
 
 def test_without_the_extra_a_recording_is_one_line_naming_it(tmp_path, run_main, monkeypatch):
