@@ -1,6 +1,6 @@
-"""Recordings of sensor_msgs/Imu as captures: ROS 1 bags, rosbag2 directories (SQLite3 or MCAP
-storage) and SQLite3 files alone, read through rosbags; plain MCAP files of any profile, with
-ROS 2 (CDR) or ROS 1 messages, through the mcap package.
+"""Recordings of sensor_msgs/Imu as captures: rosbag2 directories (SQLite3 or MCAP storage) and
+SQLite3 files alone, read through rosbags; plain MCAP files of any profile, with ROS 2 (CDR) or
+ROS 1 messages, through the mcap package; ROS 1 bags through calibd.bag1, chunk by chunk.
 
 What the robotics world shares of a STIM300 is its driver's Imu topic, not the sensor's bytes: the
 angular velocity (rad/s) and linear acceleration (m/s^2), stamped. No inclinometers, no
@@ -43,6 +43,7 @@ KINDS = {  # how a file starts -> the name ending rosbags reads it by, and what 
 }
 ROSBAG2_DIRECTORY = "rosbag2 directory"
 MCAP_FILE = KINDS[b"\x89MCAP0\r\n"][1]  # read by the mcap package: every profile and ROS 1 messages too
+ROS1_BAG = KINDS[b"#ROSBAG V"][1]  # read by calibd.bag1 in bounded memory
 BATCH_MESSAGES = 16384  # messages decoded at once; the first batch's stamps also give the rate
 GAP_STEPS = 1.5  # a stamp step longer than this many sample intervals is a gap
 FASTEST_RATE_HZ = 1.05 * INTERNAL_RATE_HZ  # a faster median step is not the sensor's (host stamps of bursts of reads)
@@ -81,6 +82,8 @@ def _unreadable(exc: Exception) -> bool:
     OSError; mcap's zstd (the zstandard package) with its own ZstdError."""
     from mcap.exceptions import McapError
     from rosbags.highlevel import AnyReaderError
+
+    from .bag1 import BagError
     from zstandard import ZstdError as McapZstdError
     from rosbags.rosbag1 import ReaderError as Bag1Error
     from rosbags.rosbag2 import ReaderError as Bag2Error
@@ -89,7 +92,7 @@ def _unreadable(exc: Exception) -> bool:
     except ImportError:  # before Python 3.14
         from backports.zstd import ZstdError
 
-    return (isinstance(exc, (AnyReaderError, Bag1Error, Bag2Error, McapError, ZstdError, McapZstdError, sqlite3.DatabaseError, EOFError,
+    return (isinstance(exc, (AnyReaderError, Bag1Error, Bag2Error, McapError, BagError, ZstdError, McapZstdError, sqlite3.DatabaseError, EOFError,
                              OSError, struct.error))
             or isinstance(exc, RuntimeError) and str(exc).startswith("LZ4"))
 
@@ -106,7 +109,7 @@ class ImuRecording:
             raise CalibrationError(f"{path}: {NEEDS_EXTRA}") from None
         self.path, self.topic, self.messages = path, topic, 0
         ending, self.words = _kind(path)
-        if ending and self.words != MCAP_FILE and Path(path).suffix != ending:  # rosbags reads by the name
+        if ending == ".db3" and Path(path).suffix != ending:  # rosbags reads a storage file by its name
             raise CalibrationError(f"{path}: a {self.words} by its content, but recordings are read by the name "
                                    f"ending {ending}: rename it")
 
@@ -117,7 +120,8 @@ class ImuRecording:
         path, read, batch = self.path, 0, []
         try:
             with ExitStack() as opened:
-                backend = self._mcap_messages if self.words == MCAP_FILE else self._rosbags_messages
+                backend = {MCAP_FILE: self._mcap_messages, ROS1_BAG: self._bag1_messages}.get(self.words,
+                                                                                             self._rosbags_messages)
                 messages, encoding = backend(opened)
                 for data in messages:
                     batch.append(data)
@@ -130,6 +134,17 @@ class ImuRecording:
             if not _unreadable(exc):
                 raise
             raise CalibrationError(f"{path}: cannot read the {self.words}: {' '.join(str(exc).split())}") from None
+
+    def _bag1_messages(self, opened: ExitStack):
+        """A ROS 1 bag's serialised messages of the topic in the file's order (calibd.bag1: rosbags'
+        reader would index every message first), and their encoding (kept open in `opened`)."""
+        from .bag1 import Bag1
+
+        bag = Bag1(opened.enter_context(open_regular(self.path)))
+        topics = {name: (_ros2_type(msgtype) if msgtype else "", count) for name, (msgtype, count) in bag.topics.items()}
+        self.topic = _imu_topic(topics, self.path, self.topic)
+        self.messages = topics[self.topic][1]
+        return bag.messages(self.topic), "ros1"
 
     def _rosbags_messages(self, opened: ExitStack):
         """A bag's or a rosbag2's serialised messages of the topic, and their encoding, read by rosbags
@@ -147,12 +162,15 @@ class ImuRecording:
         return (data for _, _, data in reader.messages(connections)), _one_encoding(encodings, self.path, self.topic)
 
     def _mcap_messages(self, opened: ExitStack):
-        """A plain MCAP file's serialised messages of the topic, and their encoding, read by the mcap
-        package: any profile, ROS 2 (CDR) or ROS 1 messages (kept open in `opened`)."""
+        """A plain MCAP file's serialised messages of the topic in the file's order, and their
+        encoding, read by the mcap package: any profile, ROS 2 (CDR) or ROS 1 messages (kept open
+        in `opened`)."""
         from mcap.reader import make_reader
+        from mcap.records import Message
+        from mcap.stream_reader import StreamReader
 
-        reader = make_reader(opened.enter_context(open_regular(self.path)))
-        summary = reader.get_summary()
+        f = opened.enter_context(open_regular(self.path))
+        summary = make_reader(f).get_summary()
         if summary is None or summary.statistics is None:
             raise CalibrationError(f"{self.path}: the MCAP file has no summary (cut short? `mcap recover` rebuilds "
                                    "one)")
@@ -166,7 +184,10 @@ class ImuRecording:
             counts.get(c.id, 0) for c in topics[name])) for name, types in schemas.items()}, self.path, self.topic)
         self.messages = sum(counts.get(c.id, 0) for c in topics[self.topic])
         encodings = {c.message_encoding for c in topics[self.topic]}
-        return ((message.data for _, _, message in reader.iter_messages(topics=[self.topic])),
+        ids = {c.id for c in topics[self.topic]}
+        f.seek(0)  # the records in the file's order, as recorded (twice as fast as the reader's log-time merge)
+        return ((record.data for record in StreamReader(f).records
+                 if isinstance(record, Message) and record.channel_id in ids),
                 _one_encoding(encodings, self.path, self.topic))
 
 

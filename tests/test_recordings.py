@@ -337,11 +337,12 @@ def test_bad_recordings_are_one_line_and_exit_2(tmp_path, run_main):
     single = write_recording(tmp_path / "single.bag", "bag", messages[:1], stamps)
     cases["one message"] = (single, [], "1 message: too few to tell the sample rate")
     renamed = tmp_path / "recording.bin"
-    shutil.copy(whole, renamed)
-    cases["misnamed"] = (renamed, [], "a ROS 1 bag by its content, but recordings are read by the name ending .bag")
-    misnamed_mcap = tmp_path / "imu.bin"  # the mcap package reads by content: its name does not matter
-    shutil.copy(plain, misnamed_mcap)
-    assert open_capture(str(misnamed_mcap)).stream["messages"] == 300
+    shutil.copy(sqlite, renamed)
+    cases["misnamed"] = (renamed, [], "a rosbag2 SQLite3 file by its content, but recordings are read by the name "
+                                      "ending .db3")
+    for read_by_content in (whole, plain):  # calibd's own readers: the name does not matter
+        shutil.copy(read_by_content, tmp_path / "imu.bin")
+        assert open_capture(str(tmp_path / "imu.bin")).stream["messages"] == 300
     for what, (path, options, words) in cases.items():
         out = tmp_path / f"{what}.json"
         for command in (["calibrate", path, "--latitude", "40", "-o", out], ["noise", path, "-o", out]):
