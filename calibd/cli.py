@@ -324,6 +324,7 @@ def cmd_replay(args) -> int:
     from .config import DetectionConfig, MethodConfig, WarmupConfig
     from .daemon import Calibrator, Callbacks, StateLog
     from .live import configure_logging, replay
+    from .recordingbytes import recording_bytes
     from .statedir import ResultStore
     from .serve.hub import Hub, make_feeds
     from .serve.sockets import ServeError
@@ -338,9 +339,17 @@ def cmd_replay(args) -> int:
     serve = _replay_serve(args, config)
     if args.warmup_window is not None:
         warmup = replace(warmup, window_s=args.warmup_window)
-    with capture_bytes(args.capture) as (data, _, _):  # a file, or the MCAP stim300 record writes
-        data = bytes(data)  # held whole: the replay paces it out
-    _refuse_without_datagrams(data, args.capture)
+    if is_imu_recording(args.capture):  # Imu messages: the datagrams they stand for
+        replayed = recording_bytes(args.capture, args.topic)
+        data, reads = replayed.data, replayed.reads
+        for line in (replayed.description(), *(f"warning: {w}" for w in replayed.warnings)):
+            print(f"calibd replay: {args.capture}: {line}", file=sys.stderr)
+    else:
+        if args.topic is not None:
+            raise UsageError(topic_on_capture(args.capture))
+        with capture_bytes(args.capture) as (data, reads, _):  # a file, or the MCAP stim300 record writes
+            data = bytes(data)  # held whole: the replay paces it out
+        _refuse_without_datagrams(data, args.capture)
     bar = Progress("replay", len(data), "B")
     out = bar.above(sys.stdout)  # a state line printed while the bar is drawn goes above it
     last = [None]
@@ -372,7 +381,8 @@ def cmd_replay(args) -> int:
         listeners.append(hub)
     calibrator = Calibrator(site, warmup, method, listeners, source=args.capture, detection=detection)
     try:
-        source = PtySource(data, speed, tap=hub and hub.tap) if args.pty or serve else CaptureSource(data, speed)
+        source = PtySource(data, speed, tap=hub and hub.tap) if args.pty or serve \
+            else CaptureSource(data, speed, reads=reads)
     except BaseException:
         if hub is not None:
             hub.close()
@@ -995,7 +1005,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--port", help="serial port overriding the configuration's (the systemd unit passes /dev/%%i)")
     p.set_defaults(func=cmd_run)
     p = sub.add_parser("replay", help="the daemon's pipeline on a capture, printing states and results")
-    p.add_argument("capture")
+    p.add_argument("capture", help="a STIM300 capture, or a recording of its Imu messages (ROS bag, rosbag2, MCAP), "
+                                   "replayed as the datagrams they stand for (docs/recordings.md)")
     p.add_argument("--config", type=path_arg, help="TOML configuration (site, warm-up, method)")
     _add_site_options(p, required=False)
     p.add_argument("--speed", type=_speed,
@@ -1013,6 +1024,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--warmup-window", type=_number(*WINDOW_RANGE_S, "s"),
                    help="seconds of settled temperature that end the warm-up (default 600)")
     p.add_argument("--state-dir", type=path_arg, help="also write result.json, history/ and state.json there")
+    p.add_argument("--topic", type=_ros_topic, metavar="NAME", help=TOPIC_HELP)
     p.set_defaults(func=cmd_replay)
     p = sub.add_parser("status", help="the daemon's state and last result")
     p.add_argument("--state-dir", type=path_arg, required=True)
