@@ -242,6 +242,11 @@ class StreamDoc(Struct):
     fault_flags: list[Free] = []
     hidden_gaps: Union[Count, None] = None
     hidden_gap_s: Union[NonNegative, None] = None
+    recording: Union[str, None] = None  # a recording of Imu messages (docs/recordings.md): what it is, in words
+    topic: Union[str, None] = None
+    frame_id: Union[str, None] = None
+    messages: Union[Count, None] = None
+    gaps: Union[Count, None] = None
 
     def __post_init__(self):
         if self.power_up is not None and self.start_s is None:

@@ -135,3 +135,15 @@ def test_bad_recordings_for_apply_are_one_line_and_write_nothing(result_files, r
     assert not out.exists() and not list(tmp_path.glob("*.tmp*"))
     _, err = apply(run_main, result_files, two, out, "--topic", "/b")
     assert out.exists()
+
+
+def test_a_results_recording_fields_are_checked(tmp_path, site, recordings):
+    from calibd.results import ResultError, parse_result
+
+    result = calibrate(recordings["bag"], site, tmp_path / "r.json")
+    assert parse_result(json.dumps(result).encode(), "r.json").stream["topic"] == TOPIC
+    for key, bad in (("topic", 5), ("messages", -1), ("frame_id", ["x"])):
+        doc = json.loads(json.dumps(result))
+        doc["stream"][key] = bad
+        with pytest.raises(ResultError, match=rf"r.json: stream\.{key} is "):
+            parse_result(json.dumps(doc).encode(), "r.json")
