@@ -277,7 +277,8 @@ def _frame_warnings(result: CalibrationResult, frame_id: str, name: str, force: 
     result_frame = result.stream.get("frame_id")
     if result_frame is None or result_frame == frame_id:
         return []
-    text = f"the recording's frame id is {frame_id!r}, the result's {result_frame!r}: its biases may be another sensor's"
+    text = (f"the recording's frame id is {frame_id!r}, the result's {result_frame!r}: its biases may be another "
+            "sensor's")
     if not force:
         raise ApplyError(f"{name}: {text} (--force applies it anyway)")
     return [f"{name}: {text}: applied anyway (--force)"]

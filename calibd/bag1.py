@@ -17,14 +17,17 @@ from __future__ import annotations
 import bz2
 import struct
 
+from .errors import CalibdError
+
 MAGIC = b"#ROSBAG V2.0\n"
 OP_MESSAGE, OP_BAG_HEADER, OP_CHUNK, OP_CHUNK_INFO, OP_CONNECTION = 0x02, 0x03, 0x05, 0x06, 0x07
 U32 = struct.Struct("<I")
 U64 = struct.Struct("<Q")
 
 
-class BagError(Exception):
-    """A bag that cannot be read (cut short, damaged, of another format); one line."""
+class BagError(CalibdError):
+    """A bag that cannot be read (cut short, damaged, of another format); one line (calibd.recordings
+    says which file)."""
 
 
 def _fields(header: bytes) -> dict[bytes, bytes]:

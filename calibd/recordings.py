@@ -92,8 +92,8 @@ def _unreadable(exc: Exception) -> bool:
     except ImportError:  # before Python 3.14
         from backports.zstd import ZstdError
 
-    return (isinstance(exc, (AnyReaderError, Bag1Error, Bag2Error, McapError, BagError, ZstdError, McapZstdError, sqlite3.DatabaseError, EOFError,
-                             OSError, struct.error))
+    return (isinstance(exc, (AnyReaderError, Bag1Error, Bag2Error, McapError, BagError, ZstdError, McapZstdError,
+                             sqlite3.DatabaseError, EOFError, OSError, struct.error))
             or isinstance(exc, RuntimeError) and str(exc).startswith("LZ4"))
 
 
@@ -141,7 +141,8 @@ class ImuRecording:
         from .bag1 import Bag1
 
         bag = Bag1(opened.enter_context(open_regular(self.path)))
-        topics = {name: (_ros2_type(msgtype) if msgtype else "", count) for name, (msgtype, count) in bag.topics.items()}
+        topics = {name: (_ros2_type(msgtype) if msgtype else "", count)
+                  for name, (msgtype, count) in bag.topics.items()}
         self.topic = _imu_topic(topics, self.path, self.topic)
         self.messages = topics[self.topic][1]
         return bag.messages(self.topic), "ros1"
@@ -356,7 +357,8 @@ class StampTimes:
                                 sample_rate=f"{self.rate_hz:g} Hz, measured from the header stamps"),
             stream={"capture": self.where, "recording": words, "topic": topic, "frame_id": self.frame_id,
                     "messages": self.messages, "datagrams": self.messages, "lost_samples": self.lost_samples,
-                    "gaps": self.gaps, "inferred_missing": 0, "crc_errors": 0, "restarts": 0, "warnings": self.warnings},
+                    "gaps": self.gaps, "inferred_missing": 0, "crc_errors": 0, "restarts": 0,
+                    "warnings": self.warnings},
             identity=identity_record)
 
 

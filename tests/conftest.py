@@ -58,3 +58,50 @@ def fleet_batch(tmp_path_factory):
                           capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
     return directory, captures, table, done.stdout, done.stderr
+
+
+@pytest.fixture(scope="session")
+def fixture_samples():
+    """The recordings' capture's samples in SI with header stamps at 125 Hz, and the recorder's
+    jittered times (tests/recording_files.py)."""
+    import math
+
+    import numpy as np
+
+    from recording_files import CAPTURE, EPOCH_NS
+    from stim300.bulk import decode_capture
+
+    samples = decode_capture(CAPTURE.read_bytes()).samples
+    stamps = EPOCH_NS + np.arange(len(samples), dtype=np.int64) * 8_000_000
+    received = stamps + np.random.default_rng(5).integers(200_000, 3_000_000, len(samples))  # 0.2-3 ms late
+    return stamps, samples["gyro"] * (math.pi / 180), samples["acc"] * 9.80665, received
+
+
+@pytest.fixture(scope="session")
+def recordings(tmp_path_factory, fixture_samples):
+    """The capture's samples as a recording of each format: kind -> path."""
+    from recording_files import FORMATS, recording_name, serialised, write_recording
+
+    tmp = tmp_path_factory.mktemp("recordings")
+    stamps, gyro, acc, received = fixture_samples
+    ros1, cdr = serialised("bag", stamps, gyro, acc), serialised("cdr", stamps, gyro, acc)
+    return {kind: write_recording(recording_name(tmp, kind), kind, ros1 if kind in ("bag", "ros1_mcap") else cdr,
+                                  received) for kind in FORMATS}
+
+
+@pytest.fixture(scope="session")
+def site():
+    """The site of the recordings' capture (its truth file's)."""
+    import json
+
+    from recording_files import FIXTURES
+
+    return json.loads((FIXTURES / "gyro_acc_125hz.bin.truth.json").read_text())["site"]
+
+
+@pytest.fixture(scope="session")
+def raw_result(tmp_path_factory, site):
+    """`calibd calibrate` of the recordings' capture itself."""
+    from recording_files import CAPTURE, calibrate
+
+    return calibrate(CAPTURE, site, tmp_path_factory.mktemp("raw") / "result.json")

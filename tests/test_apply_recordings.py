@@ -13,8 +13,8 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
 from calibd.cli import main as calibd_main
-from test_recordings import (CAPTURE, EPOCH_NS, FORMATS, FRAME_ID, IMU, ROS1, TOPIC, calibrate,  # noqa: F401
-                             fixture_samples, imu_message, recordings, raw_result, refusal, serialised, site, small_imu, write_recording)
+from recording_files import (CAPTURE, EPOCH_NS, FORMATS, FRAME_ID, IMU, ROS1, TOPIC, calibrate, imu_message,
+                             refusal, serialised, small_imu, write_recording)
 
 
 @pytest.fixture(scope="module")
@@ -57,7 +57,8 @@ def test_a_recording_is_corrected_as_its_capture_is(kind, recordings, result_fil
 def test_csv_of_a_recording_names_its_columns_and_units(recordings, result_files, run_main, tmp_path):
     apply(run_main, result_files, recordings["bag"], tmp_path / "o.csv", "--force")
     lines = (tmp_path / "o.csv").read_text().splitlines()
-    assert lines[1].startswith("# units: time_s s since the first message's header stamp") and "ns since the epoch" in lines[1]
+    assert lines[1].startswith("# units: time_s s since the first message's header stamp")
+    assert "ns since the epoch" in lines[1]
     assert lines[2] == ("time_s,gyro_x_rad_s,gyro_y_rad_s,gyro_z_rad_s,acc_x_m_s2,acc_y_m_s2,acc_z_m_s2,stamp_ns")
     first, second = (row.split(",") for row in lines[3:5])
     assert first[0] == "0.0000" and second[0] == "0.0080"
@@ -129,8 +130,8 @@ def test_bad_recordings_for_apply_are_one_line_and_write_nothing(result_files, r
     assert "no sensor_msgs/msg/Imu topic" in refusal(run_main, ["apply", result_files, other, "-o", out])
     two = write_recording(tmp_path / "two.bag", "bag", [], stamps, {TOPIC: (IMU, messages), "/b": (IMU, messages)})
     assert "choose one with --topic" in refusal(run_main, ["apply", result_files, two, "-o", out])
-    fast = write_recording(tmp_path / "fast.bag", "bag", small_imu("bag", stamps_ns=EPOCH_NS + np.arange(300) * 100_000)[0],
-                           stamps)
+    fast_messages = small_imu("bag", stamps_ns=EPOCH_NS + np.arange(300) * 100_000)[0]
+    fast = write_recording(tmp_path / "fast.bag", "bag", fast_messages, stamps)
     assert "faster than a STIM300 samples" in refusal(run_main, ["apply", result_files, fast, "-o", out])
     assert not out.exists() and not list(tmp_path.glob("*.tmp*"))
     _, err = apply(run_main, result_files, two, out, "--topic", "/b")

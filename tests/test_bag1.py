@@ -9,7 +9,7 @@ import pytest
 from rosbags.rosbag1 import Reader, Writer
 
 from calibd.bag1 import Bag1, BagError
-from test_recordings import EPOCH_NS, IMU, ROS1, serialised, small_imu
+from recording_files import EPOCH_NS, IMU, ROS1, serialised, small_imu
 
 
 def write_bag(path, topics: dict, compression=None, chunk_bytes: int | None = None):
@@ -20,7 +20,8 @@ def write_bag(path, topics: dict, compression=None, chunk_bytes: int | None = No
     if chunk_bytes:
         writer.chunk_threshold = chunk_bytes
     with writer:
-        connections = {name: writer.add_connection(name, msgtype, typestore=ROS1) for name, (msgtype, _) in topics.items()}
+        connections = {name: writer.add_connection(name, msgtype, typestore=ROS1)
+                       for name, (msgtype, _) in topics.items()}
         longest = max(len(messages) for _, messages in topics.values())
         for k in range(longest):
             for name, (_, messages) in topics.items():

@@ -1,146 +1,23 @@
 """Recordings of sensor_msgs/Imu (calibd.recordings): a simulated capture of a unit without
-inclinometers, written as a ROS 1 bag, rosbag2 SQLite3 and MCAP directories (rosbags' writers)
-and a plain MCAP file (the Foxglove SDK's writer), calibrates as the capture itself does; gaps in
-the header stamps are counted; what cannot be read is one line and exit 2."""
+inclinometers, written as a ROS 1 bag, rosbag2 SQLite3 and MCAP directories and plain MCAP files
+of ROS 2 and ROS 1 messages (tests/recording_files.py), calibrates as the capture itself does;
+gaps in the header stamps are counted; what cannot be read is one line and exit 2."""
 
 import json
-import math
 import shutil
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
-from rosbags.rosbag1 import Writer as Bag1Writer
-from rosbags.rosbag2 import StoragePlugin, Writer as Bag2Writer
-from rosbags.typesys import Stores, get_typestore
 
 from calibd.captures import open_capture
 from calibd.cli import main as calibd_main
 from calibd.errors import CalibrationError
 from calibd.recordings import decode_imu, is_recording
 from calibd.session import power_up_session
-from stim300.bulk import decode_capture
 
-FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
-CAPTURE = FIXTURES / "gyro_acc_125hz.bin"  # 0x91: gyros and accelerometers, no temperatures, 125 Hz
-TOPIC = "/imu/data"
-FRAME_ID = "stim300_link"
-IMU = "sensor_msgs/msg/Imu"
-EPOCH_NS = 1_700_000_000_123_456_789  # the first sample's stamp
-ROS1 = get_typestore(Stores.ROS1_NOETIC)  # its Header has seq, as a ROS 1 bag's does
-ROS2 = get_typestore(Stores.ROS2_HUMBLE)
-FORMATS = ("bag", "sqlite3", "mcap", "plain_mcap", "ros1_mcap")
-
-
-def imu_message(store, stamp_ns: int, gyro_rad_s, acc_m_s2, frame_id: str = FRAME_ID, seq: int = 0,
-                acc_covariance: float = 0.0):
-    t = store.types
-    stamp = t["builtin_interfaces/msg/Time"](stamp_ns // 10**9, stamp_ns % 10**9)
-    header = t["std_msgs/msg/Header"](*([seq] if store is ROS1 else []), stamp, frame_id)
-    vector = t["geometry_msgs/msg/Vector3"]
-    return t[IMU](header, t["geometry_msgs/msg/Quaternion"](0.0, 0.0, 0.0, 1.0), np.full(9, -1.0),
-                  vector(*map(float, gyro_rad_s)), np.zeros(9), vector(*map(float, acc_m_s2)),
-                  np.full(9, acc_covariance))
-
-
-def serialised(kind: str, stamps_ns, gyro_rad_s, acc_m_s2) -> list[bytes]:
-    """Each sample an Imu message serialised by rosbags (ROS 1 for a bag, CDR otherwise)."""
-    if kind == "bag":
-        return [bytes(ROS1.serialize_ros1(imu_message(ROS1, int(t), g, a, seq=k), IMU))
-                for k, (t, g, a) in enumerate(zip(stamps_ns, gyro_rad_s, acc_m_s2))]
-    return [bytes(ROS2.serialize_cdr(imu_message(ROS2, int(t), g, a), IMU))
-            for t, g, a in zip(stamps_ns, gyro_rad_s, acc_m_s2)]
-
-
-def write_recording(path: Path, kind: str, messages: list[bytes], received_ns, topics: dict | None = None,
-                    profile: str = "ros2") -> Path:
-    """`messages` on TOPIC (or `topics`: name -> (type, messages)), each recorded at its
-    `received_ns` (the recorder's time, not the header stamp), as a ROS 1 bag (kind "bag"), a
-    rosbag2 directory ("sqlite3", "mcap") or a plain MCAP file ("plain_mcap", with `profile` in its
-    header: ros2 bags say "ros2")."""
-    topics = {TOPIC: (IMU, messages)} if topics is None else topics
-    if kind == "bag":
-        with Bag1Writer(path) as writer:
-            for name, (msgtype, data) in topics.items():
-                connection = writer.add_connection(name, msgtype, typestore=ROS1)
-                for when, raw in zip(received_ns, data):
-                    writer.write(connection, int(when), raw)
-    elif kind == "ros1_mcap":  # ROS 1 messages in MCAP, as `mcap convert` makes of a bag
-        from mcap.writer import Writer as McapWriter
-
-        with open(path, "wb") as f:
-            writer = McapWriter(f)
-            writer.start(profile="ros1", library="test")
-            for name, (msgtype, data) in topics.items():
-                ros1_name = msgtype.replace("/msg/", "/")
-                schema = writer.register_schema(ros1_name, "ros1msg",
-                                                ROS1.generate_msgdef(msgtype, ros_version=1)[0].encode())
-                channel = writer.register_channel(name, "ros1", schema)
-                for when, raw in zip(received_ns, data):
-                    writer.add_message(channel, int(when), raw, int(when))
-            writer.finish()
-    elif kind == "plain_mcap":
-        import foxglove
-        from foxglove.mcap import MCAPWriteOptions
-
-        context = foxglove.Context()
-        with foxglove.open_mcap(path, context=context, writer_options=MCAPWriteOptions(profile=profile)):
-            for name, (msgtype, data) in topics.items():
-                schema = foxglove.Schema(name=msgtype, encoding="ros2msg",
-                                         data=ROS2.generate_msgdef(msgtype, ros_version=2)[0].encode())
-                channel = foxglove.Channel(name, schema=schema, message_encoding="cdr", context=context)
-                for when, raw in zip(received_ns, data):
-                    channel.log(raw, log_time=int(when))
-    else:
-        plugin = StoragePlugin.SQLITE3 if kind == "sqlite3" else StoragePlugin.MCAP
-        with Bag2Writer(path, version=9, storage_plugin=plugin) as writer:
-            for name, (msgtype, data) in topics.items():
-                connection = writer.add_connection(name, msgtype, typestore=ROS2)
-                for when, raw in zip(received_ns, data):
-                    writer.write(connection, int(when), raw)
-    return path
-
-
-def recording_name(tmp: Path, kind: str, stem: str = "imu") -> Path:
-    return tmp / {"bag": f"{stem}.bag", "plain_mcap": f"{stem}.mcap", "ros1_mcap": f"{stem}_ros1.mcap"}.get(
-        kind, f"{stem}_{kind}")
-
-
-@pytest.fixture(scope="module")
-def fixture_samples():
-    """The capture's samples in SI with header stamps at 125 Hz, and the recorder's jittered times."""
-    samples = decode_capture(CAPTURE.read_bytes()).samples
-    stamps = EPOCH_NS + np.arange(len(samples), dtype=np.int64) * 8_000_000
-    received = stamps + np.random.default_rng(5).integers(200_000, 3_000_000, len(samples))  # 0.2-3 ms late
-    return stamps, samples["gyro"] * (math.pi / 180), samples["acc"] * 9.80665, received
-
-
-@pytest.fixture(scope="module")
-def recordings(tmp_path_factory, fixture_samples):
-    tmp = tmp_path_factory.mktemp("recordings")
-    stamps, gyro, acc, received = fixture_samples
-    ros1, cdr = serialised("bag", stamps, gyro, acc), serialised("cdr", stamps, gyro, acc)
-    return {kind: write_recording(recording_name(tmp, kind), kind, ros1 if kind in ("bag", "ros1_mcap") else cdr,
-                                  received) for kind in FORMATS}
-
-
-@pytest.fixture(scope="module")
-def site():
-    truth = json.loads((FIXTURES / "gyro_acc_125hz.bin.truth.json").read_text())
-    return truth["site"]
-
-
-def calibrate(path, site, out: Path) -> dict:
-    code = calibd_main(["calibrate", str(path), "--latitude", str(site["latitude_deg"]), "--g0", str(site["g0"]),
-                        "-o", str(out)])
-    assert code == 0
-    return json.loads(out.read_text())
-
-
-@pytest.fixture(scope="module")
-def raw_result(tmp_path_factory, site):
-    return calibrate(CAPTURE, site, tmp_path_factory.mktemp("raw") / "result.json")
+from recording_files import (CAPTURE, EPOCH_NS, FIXTURES, FORMATS, FRAME_ID, IMU, ROS1, ROS2, TOPIC, calibrate,
+                             imu_message, refusal, serialised, small_imu, write_recording)
 
 
 def test_recordings_are_told_from_captures_by_content(recordings, tmp_path):
@@ -252,19 +129,6 @@ def test_a_dropped_run_of_messages_is_a_gap_in_the_stream_record(tmp_path, fixtu
     session = power_up_session(capture)
     assert session.stream["lost_samples"] == 53
     assert session.time_s[-1] == pytest.approx(5999 * 0.008, abs=1e-9)  # the gaps keep their time
-
-
-def small_imu(kind: str, n: int = 300, stamps_ns=None):
-    """n messages of a level unit at rest (SI), stamped at 125 Hz unless `stamps_ns` says otherwise."""
-    stamps = EPOCH_NS + np.arange(n, dtype=np.int64) * 8_000_000 if stamps_ns is None else stamps_ns
-    gyro, acc = np.zeros((n, 3)), np.tile([0.0, 0.0, 9.8], (n, 1))
-    return serialised(kind, stamps, gyro, acc), stamps
-
-
-def refusal(run_main, argv) -> str:
-    code, out, err = run_main(calibd_main, argv)
-    assert code == 2 and out == "" and len(err.strip().splitlines()) == 1, (code, out, err)
-    return err
 
 
 def test_several_imu_topics_need_topic_and_topic_chooses(tmp_path, run_main):

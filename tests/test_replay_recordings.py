@@ -17,8 +17,8 @@ from stim300.clock import CYCLE_S, counter_times
 from stim300.protocol import Status
 
 from captures import calibd
-from test_recordings import (CAPTURE, EPOCH_NS, IMU, TOPIC, fixture_samples, recording_name, refusal, serialised,  # noqa: F401
-                             small_imu, write_recording)
+from recording_files import (CAPTURE, EPOCH_NS, IMU, TOPIC, recording_name, refusal, serialised, small_imu,
+                             write_recording)
 from test_serve_daemon import read_link
 
 SITE = ["--latitude", "40.59129", "--g0", "9.79956", "--warmup-window", "10"]  # the fixture's site; no temperatures
@@ -45,7 +45,7 @@ def raw_replay(tmp_path_factory):
 
 @pytest.mark.parametrize("kind", ["sqlite3", pytest.param("bag", marks=pytest.mark.slow),
                                   pytest.param("mcap", marks=pytest.mark.slow)])
-def test_a_recording_replays_as_its_capture_does(kind, fixture_samples, raw_replay, tmp_path, capsys):  # noqa: F811
+def test_a_recording_replays_as_its_capture_does(kind, fixture_samples, raw_replay, tmp_path, capsys):
     stamps, gyro, acc, received = fixture_samples
     path = write_recording(recording_name(tmp_path, kind), kind,
                            serialised("bag" if kind == "bag" else "cdr", stamps, gyro, acc), received)
@@ -64,7 +64,7 @@ def test_a_recording_replays_as_its_capture_does(kind, fixture_samples, raw_repl
     assert result["sensor"]["sample_rate_hz"] == 125 and result["sensor"]["serial_number"] is None
 
 
-def test_the_datagrams_decode_to_the_messages_and_gaps_show_as_lost_datagrams(tmp_path, fixture_samples):  # noqa: F811
+def test_the_datagrams_decode_to_the_messages_and_gaps_show_as_lost_datagrams(tmp_path, fixture_samples):
     """50 messages dropped at 125 Hz: the counter shows 2 lost (50 = 3 whole counter cycles + 2),
     the read log the 3 cycles; 3 dropped: 3 lost."""
     stamps, gyro, acc, received = (a[:6000] for a in fixture_samples)
@@ -92,7 +92,7 @@ def test_the_datagrams_decode_to_the_messages_and_gaps_show_as_lost_datagrams(tm
     assert session.time_s[-1] == pytest.approx(5999 * 0.008, abs=1e-9)
 
 
-def test_replay_of_a_capture_with_its_read_log_finds_the_gaps_the_counter_cannot_see(tmp_path, fixture_samples,  # noqa: F811
+def test_replay_of_a_capture_with_its_read_log_finds_the_gaps_the_counter_cannot_see(tmp_path, fixture_samples,
                                                                                       raw_replay):
     """A recording's datagrams written as a capture with its read log beside it (CAPTURE.reads.npy,
     as `stim300 record` writes): replay takes the read log, as calibrate does, and finds the 16
