@@ -1,10 +1,20 @@
 """What every test starts from, and the fixtures several test files share."""
 
 import os
+import signal
 import tty
 
 import pytest
 import structlog
+
+
+def pytest_configure(config):
+    """Ctrl-C heard again: a run started in the background by a non-interactive shell (`pytest &`
+    in a script) ignores SIGINT and SIGQUIT, and so would every program the tests start, which
+    then never sees the Ctrl-C the tests send it (Python keeps an ignored SIGINT ignored)."""
+    for number in (signal.SIGINT, signal.SIGQUIT):
+        if signal.getsignal(number) == signal.SIG_IGN:
+            signal.signal(number, signal.default_int_handler if number == signal.SIGINT else signal.SIG_DFL)
 
 
 @pytest.fixture(autouse=True)
