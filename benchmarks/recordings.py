@@ -1,7 +1,8 @@
 """What reading a recording costs: `calibd noise` on a 2000 Hz STIM300 capture against the same
 samples recorded as sensor_msgs/Imu in a rosbag2 with SQLite3 storage, one with MCAP storage
 (both read by rosbags), that one's MCAP file alone (read by the mcap package) and a ROS 1 bag
-(read by calibd.bag1), each in a process of its own.
+(read by calibd.bag1), each in a process of its own; beside them, the same samples loaded whole
+from an NPZ file (numpy.load): reading into memory with nothing computed.
 
 Printed for each: the wall time, the peak memory (the process's maximum RSS) and the time per
 message, and the ratio to the raw capture's; and whether the noise table's gyro and accelerometer
@@ -105,23 +106,30 @@ def write_bag(path: Path, stamps: np.ndarray, gyro: np.ndarray, acc: np.ndarray)
 
 
 WRAPPER = ("import resource, subprocess, sys\n"
-           "done = subprocess.run([sys.executable, '-m', 'calibd.cli', 'noise', sys.argv[1]], capture_output=True, "
-           "text=True)\n"
+           "done = subprocess.run([sys.executable, *sys.argv[1:]], capture_output=True, text=True)\n"
            "sys.stdout.write(f'{resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss}\\n' + done.stdout)\n"
            "sys.stderr.write(done.stderr)\n"
            "sys.exit(done.returncode)\n")
+NPZ_READER = ("import numpy, sys\n"
+              "with numpy.load(sys.argv[1]) as arrays:\n"
+              "    print(sum(float(arrays[name].sum()) for name in arrays.files))\n")
+
+
+def measured(argv: list[str]) -> tuple[float, float, str]:
+    """`python ARGV` started by a small process that reports its maximum RSS (a child forked from
+    this process would count this process's pages too): (wall s, peak RSS MB, its stdout)."""
+    started = time.monotonic()
+    done = subprocess.run([sys.executable, "-c", WRAPPER, *argv], env=ENV, capture_output=True, text=True)
+    wall = time.monotonic() - started
+    if done.returncode != 0:
+        raise SystemExit(f"{' '.join(argv)}: {done.stderr.strip()}")
+    peak_kb, out = done.stdout.split("\n", 1)
+    return wall, int(peak_kb) / 1024, out
 
 
 def noise(path: Path) -> tuple[float, float, str]:
-    """`calibd noise PATH` started by a small process that reports its maximum RSS (a child forked
-    from this process would count this process's pages too): (wall s, peak RSS MB, its table)."""
-    started = time.monotonic()
-    done = subprocess.run([sys.executable, "-c", WRAPPER, str(path)], env=ENV, capture_output=True, text=True)
-    wall = time.monotonic() - started
-    if done.returncode != 0:
-        raise SystemExit(f"calibd noise {path}: {done.stderr.strip()}")
-    peak_kb, table = done.stdout.split("\n", 1)
-    return wall, int(peak_kb) / 1024, table
+    """`calibd noise PATH` in a process of its own: (wall s, peak RSS MB, its table)."""
+    return measured(["-m", "calibd.cli", "noise", str(path)])
 
 
 def figures(table: str) -> list[str]:
@@ -155,12 +163,18 @@ def main() -> int:
         write_bag(inputs["ROS 1 bag"], stamps, gyro, acc)
         print(f"ROS 1 bag written in {time.monotonic() - started:.0f} s")
         runs = {name: noise(path) for name, path in inputs.items()}
+        npz = Path(tmp) / "samples.npz"  # the floor: the same samples loaded whole from NPZ, nothing computed
+        np.savez(npz, stamp_ns=stamps, gyro_rad_s=gyro, acc_m_s2=acc)
+        npz_wall, npz_rss, _ = measured(["-c", NPZ_READER, str(npz)])
     raw_wall, raw_rss, raw_table = runs["raw capture"]
     for name, (wall, rss, table) in runs.items():
         same = figures(table) == figures(raw_table)
         print(f"{name:18s} {wall:7.1f} s ({wall / len(stamps) * 1e6:.2f} us a message, {wall / raw_wall:.2f}x the raw "
               f"capture), peak RSS {rss:.0f} MB ({rss / raw_rss:.2f}x); noise table "
               f"{'the same as the raw capture' if same else 'DIFFERENT'}")
+    print(f"{'NPZ, loaded whole':18s} {npz_wall:7.1f} s ({npz_wall / len(stamps) * 1e6:.2f} us a message, "
+          f"{npz_wall / raw_wall:.2f}x the raw capture), peak RSS {npz_rss:.0f} MB ({npz_rss / raw_rss:.2f}x): "
+          "the same samples read into memory, no noise computed")
     at_target = 26.4e6 / len(stamps)
     for name, (wall, rss, _) in runs.items():
         print(f"{name}: at 26.4 M messages about {wall * at_target:.0f} s (target <= 120 s)")
