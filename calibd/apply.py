@@ -122,11 +122,16 @@ class Applied:
         return f"{self.samples} samples, {self.power_ups} power-up(s)"
 
 
-def _without_biases(clusters, correction: Correction) -> str | None:
-    """What to refuse (unless forced) of a capture carrying a cluster the result has no biases
-    for: its columns would pass as measured under a file that says corrected."""
+def _without_biases(clusters, correction: Correction, force: bool) -> tuple[str | None, str | None]:
+    """(warning, refusal) for data carrying a cluster the result has no biases for: its columns
+    would pass as measured under a file that says corrected, so it is refused unless forced."""
     missing = [WORDS[c] for c in clusters if c not in correction.biases]
-    return f"the result has no {' or '.join(missing)} biases" if missing else None
+    if not missing:
+        return None, None
+    text = f"the result has no {' or '.join(missing)} biases"
+    if force:
+        return f"{text}: those columns are as measured, in SI (--force)", None
+    return None, f"{text}: those columns would stay uncorrected (--force writes them as measured)"
 
 
 class _Applier:
@@ -186,11 +191,8 @@ class _Applier:
                 self.refusal = f"{text} (--force applies it anyway)"
 
     def _uncorrected(self) -> None:
-        text = _without_biases(self.applied.clusters, self.correction)
-        if text and self.force:
-            self.applied.warnings.append(f"{text}: those columns are as measured, in SI (--force)")
-        elif text:
-            self.refusal = f"{text}: those columns would stay uncorrected (--force writes them as measured)"
+        warning, self.refusal = _without_biases(self.applied.clusters, self.correction, self.force)
+        self.applied.warnings += [warning] if warning else []
 
     def _columns(self, samples: np.ndarray, time_s: np.ndarray) -> dict[str, np.ndarray]:
         """One block's output columns: SI vectors, biases off, in the asked frame."""
@@ -247,11 +249,10 @@ def apply_recording(recording, correction: Correction, result: CalibrationResult
     replaced only on success."""
     name = str(recording.path)
     applied = Applied(power_ups=1, clusters=RECORDING_CLUSTERS)
-    missing = _without_biases(RECORDING_CLUSTERS, correction)
-    if missing and not force:
-        raise ApplyError(f"{name}: {missing}: those columns would stay uncorrected (--force writes them as measured)")
-    if missing:
-        applied.warnings.append(f"{missing}: those columns are as measured, in SI (--force)")
+    warning, refusal = _without_biases(RECORDING_CLUSTERS, correction, force)
+    if refusal:
+        raise ApplyError(f"{name}: {refusal}")
+    applied.warnings += [warning] if warning else []
     stamps, write = StampTimes(name), None
     for stamps_ns, gyro, acc, frame_id in recording.batches():
         time_s = stamps.times(stamps_ns, frame_id)
