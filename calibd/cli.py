@@ -339,8 +339,10 @@ def cmd_replay(args) -> int:
     serve = _replay_serve(args, config)
     if args.warmup_window is not None:
         warmup = replace(warmup, window_s=args.warmup_window)
+    origin = None
     if is_imu_recording(args.capture):  # Imu messages: the datagrams they stand for
         replayed = recording_bytes(args.capture, args.topic)
+        origin = replayed.origin
         data, reads = replayed.data, replayed.reads
         for line in (replayed.description(), *(f"warning: {w}" for w in replayed.warnings)):
             print(f"calibd replay: {args.capture}: {line}", file=sys.stderr)
@@ -379,7 +381,7 @@ def cmd_replay(args) -> int:
         except ServeError as exc:  # as for the daemon: serving that cannot start fails the run
             raise RunError(str(exc)) from None
         listeners.append(hub)
-    calibrator = Calibrator(site, warmup, method, listeners, source=args.capture, detection=detection)
+    calibrator = Calibrator(site, warmup, method, listeners, source=args.capture, detection=detection, origin=origin)
     try:
         source = PtySource(data, speed, tap=hub and hub.tap) if args.pty or serve \
             else CaptureSource(data, speed, reads=reads)

@@ -42,12 +42,15 @@ AXIS_BITS = np.array([Status.X, Status.Y, Status.Z], np.uint8)
 @dataclass(frozen=True)
 class RecordingBytes:
     """A recording's messages as datagrams (`data`) with their read log (READS_DTYPE rows), and
-    what they are: the topic, how many messages, the counter's step (internal samples per
-    message), the stamps' measured rate, and warnings (gaps, values saturated), one line each."""
+    what they are: the recording (its format in words), topic and frame id, how many messages, the
+    counter's step (internal samples per message), the stamps' measured rate, and warnings (gaps,
+    values saturated), one line each."""
 
     data: bytearray
     reads: np.ndarray
+    recording: str
     topic: str
+    frame_id: str
     messages: int
     step: int
     stamps_rate_hz: int | float
@@ -57,6 +60,12 @@ class RecordingBytes:
     def rate_hz(self) -> int | float:
         """The stream's rate: 2000 Hz / the counter's step (a whole number when it divides)."""
         return INTERNAL_RATE_HZ // self.step if INTERNAL_RATE_HZ % self.step == 0 else INTERNAL_RATE_HZ / self.step
+
+    @property
+    def origin(self) -> dict:
+        """What the daemon's results say of the recording beside the datagrams' statistics, as
+        `calibd calibrate` says it of a recording."""
+        return {"recording": self.recording, "topic": self.topic, "frame_id": self.frame_id}
 
     def description(self) -> str:
         measured = "" if self.stamps_rate_hz == self.rate_hz else f" (the stamps: {self.stamps_rate_hz:.6g} Hz)"
@@ -146,5 +155,5 @@ def recording_bytes(path, topic: str | None = None) -> RecordingBytes:
                                    f"+-{acc_limit:.0f} g = {acc_limit * STANDARD_GRAVITY:.0f} m/s^2): "
                                    "saturated and flagged OVERLOAD, as the sensor flags its own"]
                                  if saturated else [])
-    return RecordingBytes(data, np.concatenate(reads), recording.topic, stamps.messages, step,
-                          stamps.rate_hz, warnings)
+    return RecordingBytes(data, np.concatenate(reads), recording.words, recording.topic, stamps.frame_id,
+                          stamps.messages, step, stamps.rate_hz, warnings)

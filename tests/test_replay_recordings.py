@@ -17,7 +17,7 @@ from stim300.clock import CYCLE_S, counter_times
 from stim300.protocol import Status
 
 from captures import calibd
-from recording_files import (CAPTURE, EPOCH_NS, IMU, TOPIC, recording_name, refusal, serialised, small_imu,
+from recording_files import (CAPTURE, EPOCH_NS, FRAME_ID, IMU, TOPIC, refusal, serialised, small_imu,
                              write_recording)
 from test_serve_daemon import read_link
 
@@ -45,10 +45,9 @@ def raw_replay(tmp_path_factory):
 
 @pytest.mark.parametrize("kind", ["sqlite3", pytest.param("bag", marks=pytest.mark.slow),
                                   pytest.param("mcap", marks=pytest.mark.slow)])
-def test_a_recording_replays_as_its_capture_does(kind, fixture_samples, raw_replay, tmp_path, capsys):
-    stamps, gyro, acc, received = fixture_samples
-    path = write_recording(recording_name(tmp_path, kind), kind,
-                           serialised("bag" if kind == "bag" else "cdr", stamps, gyro, acc), received)
+def test_a_recording_replays_as_its_capture_does(kind, recordings, fixture_samples, raw_replay, tmp_path, capsys):
+    stamps = fixture_samples[0]
+    path = recordings[kind]
     result = replay_result(path, tmp_path)
     assert (f"calibd replay: {path}: {len(stamps)} Imu messages of topic {TOPIC} replayed as STIM300 datagrams 0x91 "
             "at 125 Hz") in capsys.readouterr().err.splitlines()
@@ -62,6 +61,9 @@ def test_a_recording_replays_as_its_capture_does(kind, fixture_samples, raw_repl
     assert raw_replay["stream"]["hidden_gaps"] is None  # the fixture has no read log
     assert result["stream"]["hidden_gaps"] == 0  # the stamps' read log shows no gap where there is none
     assert result["sensor"]["sample_rate_hz"] == 125 and result["sensor"]["serial_number"] is None
+    words = {"sqlite3": "rosbag2 directory", "bag": "ROS 1 bag", "mcap": "rosbag2 directory"}[kind]
+    assert (result["stream"]["capture"], result["stream"]["recording"], result["stream"]["topic"],
+            result["stream"]["frame_id"]) == (str(path), words, TOPIC, FRAME_ID)
 
 
 def test_the_datagrams_decode_to_the_messages_and_gaps_show_as_lost_datagrams(tmp_path, fixture_samples):

@@ -57,11 +57,12 @@ class Calibrator:
     def __init__(self, site: Site, warmup: WarmupConfig = WarmupConfig(), method: MethodConfig = MethodConfig(),
                  listeners: Sequence[Listener] = (), source: str = "live",
                  detection: DetectionConfig = DetectionConfig(), previous: CalibrationResult | None = None,
-                 trim=lambda result: (result, "")):
+                 trim=lambda result: (result, ""), origin: dict | None = None):
         self.configure(site, warmup, method, detection)
         self.listeners = tuple(listeners)
         self._trim = trim
         self.source = source  # the port or capture, named in results
+        self.origin = origin or {}  # what else results say of where the data came from (a replayed recording's topic)
         self.state = State.STARTING
         self.detail = "waiting for data"
         self.result = previous  # an earlier daemon's (result.json) until this one solves: a restart marks it stale
@@ -248,7 +249,8 @@ class Calibrator:
     def _look(self) -> tuple[Session, list[detect.Segment]]:
         """The session so far and its segments."""
         session = self.collector.session(replace(self.sensor, trim=self.trim),
-                                         {"capture": self.source, **self.stream_stats, "session": self.sessions})
+                                         {"capture": self.source, **self.origin, **self.stream_stats,
+                                          "session": self.sessions})
         return session, self.collector.segments(session)
 
     def _solve(self, looked: tuple[Session, list[detect.Segment]] | None = None) -> None:
