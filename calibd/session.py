@@ -412,7 +412,7 @@ def decode_sessions(data, name: str, reads: np.ndarray | None = None,
     return CaptureSessions(
         path=str(name), power_ups=reader.power_ups, rate_hz=reader.rate_hz,
         sensor=replace(info.sensor_record(), sample_rate_hz=reader.rate_hz),
-        stream={"capture": str(name), **info.stream_record()},
+        stream={"capture": str(name), **info.stream_record().to_dict()},
         identity={"size_bytes": len(data), "sha256": digest.hexdigest()})
 
 

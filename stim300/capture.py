@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .protocol import INTERNAL_RATE_HZ, Format
-from .records import SensorRecord
+from .records import SensorRecord, StreamRecord
 from .special import Configuration
 from .stream import Scanner, StreamParser, StreamStats
 
@@ -68,12 +68,10 @@ class StreamInfo:
         return SensorRecord(self.serial_number, self.part_number, None if ident is None else f"0x{ident:02X}",
                             self.rate_hz, self.rate_words(), None if ranges is None else max(ranges))
 
-    def stream_record(self) -> dict:
-        """The stream's statistics as a result records them (JSON-ready): what came, what was lost
-        or refused, so offline and daemon results say the same."""
+    def stream_record(self) -> StreamRecord:
+        """The stream's statistics as a result records them: what came, what was lost or refused."""
         s = self.stats
-        return {"datagrams": s.datagrams, "lost_samples": s.lost_samples, "inferred_missing": s.inferred_missing,
-                "crc_errors": s.crc_errors, "restarts": s.restarts, "warnings": list(self.warnings)}
+        return StreamRecord(s.datagrams, s.lost_samples, s.inferred_missing, s.crc_errors, s.restarts, self.warnings)
 
 
 @dataclass(frozen=True, eq=False)

@@ -89,3 +89,21 @@ class SensorRecord:
         record = cls(**{f.name: doc.get(f.name) for f in fields(cls) if f.name != "trim"})
         trim = doc.get("trim")
         return record if trim is None else replace(record, trim=TrimRecord.from_dict(trim))
+
+
+@dataclass(frozen=True)
+class StreamRecord:
+    """The stream's statistics as a result records them, typed across the seam from the driver to
+    calibd's sessions and the daemon (`StreamInfo.stream_record`): what came, what was lost or
+    refused, so offline and daemon results say the same. `to_dict` gives the fields a result's
+    "stream" object starts its statistics with."""
+
+    datagrams: int = 0
+    lost_samples: int = 0
+    inferred_missing: int = 0
+    crc_errors: int = 0
+    restarts: int = 0
+    warnings: tuple[str, ...] = ()  # what the decoder refused or kept as read, one line each
+
+    def to_dict(self) -> dict:
+        return asdict(self) | {"warnings": list(self.warnings)}

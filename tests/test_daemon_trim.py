@@ -24,7 +24,7 @@ from sensor_emulator import SensorEmulator
 from sensor_emulator import State as UnitState
 from stim300.bulk import decode_capture
 from stim300.capture import stream_info
-from stim300.records import SensorRecord, TrimRecord
+from stim300.records import SensorRecord, StreamRecord, TrimRecord
 from stim300.source import PortSource
 from stim300.stream import StreamParser, TrimSeen
 
@@ -44,7 +44,7 @@ def held(trim: TrimRecord | None):
 
 def fed(calibrator: Calibrator, samples: np.ndarray, first: int, trims=(), restarts=()) -> None:
     """One batch as the daemon's loop gives it."""
-    calibrator.sensor_seen(UNIT, {}, trims)
+    calibrator.sensor_seen(UNIT, StreamRecord(), trims)
     calibrator.feed(samples, 125, first, restarts)
 
 
@@ -180,7 +180,7 @@ def test_a_result_made_under_another_trim_is_no_longer_subtracted(tmp_path):
         def read(k: int, trims=()) -> int:
             samples = parser.feed(data[k * step:(k + 1) * step], time.monotonic())
             hub.stream_seen(stream_info(parser), {}, {})
-            calibrator.sensor_seen(UNIT, {}, trims)
+            calibrator.sensor_seen(UNIT, StreamRecord(), trims)
             calibrator.feed(samples, 2000, parser.stats.datagrams - len(samples))
             return len(samples)
 

@@ -32,7 +32,7 @@ from stim300.bulk import decode_capture
 from stim300.errors import PortError
 from stim300.port import PortReader
 from stim300.protocol import GYRO_RATE_LSB
-from stim300.records import SensorRecord, TrimRecord
+from stim300.records import SensorRecord, StreamRecord, TrimRecord
 from stim300.ringbuffer import RingBuffer
 from stim300.codec import SAMPLE_DTYPE
 from stim300.source import PortSource
@@ -101,7 +101,7 @@ def test_a_solve_is_trimmed_said_everywhere_and_the_next_session_has_no_bias(uni
     hub = Hub(ServeConfig(socket=tmp_path / "s.sock"), emulator.path)
     calibrator = Calibrator(Site(60.0), WarmupConfig(window_s=10.0, min_time_s=0.0), MethodConfig(resolve_every_s=1e9),
                             [Callbacks(result=results.append, stale=stale.append), hub], trim=trimmer)
-    calibrator.sensor_seen(UNIT, {}, (TrimSeen(1, 0, A),))
+    calibrator.sensor_seen(UNIT, StreamRecord(), (TrimSeen(1, 0, A),))
     try:
         with Client.connect(str(tmp_path / "s.sock")) as client:
             client.watch()
@@ -141,7 +141,7 @@ def test_a_solve_is_trimmed_said_everywhere_and_the_next_session_has_no_bias(uni
     sessions, end = calibrator.sessions, len(samples)
     output_now = with_trims(samples, UnitState(gyro_trim_deg_s=tuple(np.subtract(written, A.gyro_deg_s))),
                             unit_state().format)
-    calibrator.sensor_seen(UNIT, {}, (TrimSeen(1, 0, A), TrimSeen(2, end, in_stream)))
+    calibrator.sensor_seen(UNIT, StreamRecord(), (TrimSeen(1, 0, A), TrimSeen(2, end, in_stream)))
     calibrator.feed(output_now, 125, end)
     calibrator.finish()
     assert calibrator.trim == in_stream and calibrator.sessions == sessions + 1

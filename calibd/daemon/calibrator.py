@@ -26,7 +26,7 @@ from dataclasses import replace
 import numpy as np
 import structlog
 
-from stim300.records import SensorRecord, TrimRecord
+from stim300.records import SensorRecord, StreamRecord, TrimRecord
 from stim300.stream import TrimSeen
 
 from .. import detect
@@ -71,7 +71,7 @@ class Calibrator:
         self.session_id: str | None = None
         self.progress = progress(self.method.name, [])  # the session's progress record (detect.Progress)
         self.sensor = SensorRecord()
-        self.stream_stats: dict = {}
+        self.stream_stats = StreamRecord()
         self._cuts = PowerUpCuts()
         self._trims: tuple[TrimSeen, ...] = ()  # the stream's latest BTO datagrams (`sensor_seen`)
         self._trims_taken = 0  # the sequence number of the last one acted on
@@ -83,12 +83,13 @@ class Calibrator:
         """New settings (SIGHUP): they apply from the next solution on (detection: the next session)."""
         self.site, self.warmup, self.method, self.detection = site, warmup, method, detection
 
-    def sensor_seen(self, identity: SensorRecord, stream: dict | None = None, trims: tuple[TrimSeen, ...] = ()) -> None:
+    def sensor_seen(self, identity: SensorRecord, stream: StreamRecord = StreamRecord(),
+                    trims: tuple[TrimSeen, ...] = ()) -> None:
         """The sensor as the stream names it (serial and part number, datagram, rate), the
         stream's statistics since the daemon began reading (StreamInfo.stream_record) and its
         latest Bias Trim Offset datagrams (`stim300.source.Batch.trims`, acted on as the next
         `feed` reaches where each came): results carry them."""
-        self.sensor, self.stream_stats, self._trims = identity, stream or {}, trims
+        self.sensor, self.stream_stats, self._trims = identity, stream, trims
         self._check_inherited(identity.serial_number)
 
     def feed(self, samples: np.ndarray, rate_hz: int, first: int = 0, restart_datagrams=()) -> None:
@@ -249,7 +250,7 @@ class Calibrator:
     def _look(self) -> tuple[Session, list[detect.Segment]]:
         """The session so far and its segments."""
         session = self.collector.session(replace(self.sensor, trim=self.trim),
-                                         {"capture": self.source, **self.origin, **self.stream_stats,
+                                         {"capture": self.source, **self.origin, **self.stream_stats.to_dict(),
                                           "session": self.sessions})
         return session, self.collector.segments(session)
 
