@@ -87,7 +87,8 @@ def open_capture(path: str, data: bytes | None = None, topic: str | None = None)
     its read log, or the MCAP `stim300 record` writes); or, when `path` is another recording (a
     ROS bag, rosbag2 or MCAP of sensor_msgs/Imu, by its content), its Imu `topic` (None: its
     only one). A file is mapped, not read, and the pages decoded are let go, so a long capture
-    never sits in memory whole."""
+    never sits in memory whole; on a terminal, a progress bar on stderr says how far reading is."""
+    from stim300.progress import Progress
     from stim300.reads import load_reads
 
     from .recordings import open_recording
@@ -95,12 +96,21 @@ def open_capture(path: str, data: bytes | None = None, topic: str | None = None)
 
     if data is not None:
         return decode_sessions(data, str(path), load_reads(path))
-    if is_imu_recording(path):
-        return open_recording(path, topic)
-    if topic is not None:
-        raise UsageError(topic_on_capture(path))
-    with capture_bytes(path) as (data, reads, let_go):
-        return decode_sessions(data, str(path), reads, let_go)
+    with Progress(f"reading {path}", 1) as bar:  # on a terminal only: a long input is minutes of reading
+        if is_imu_recording(path):
+            def read(done: int, total: int) -> None:
+                bar.total = total
+                bar.update(done)
+            return open_recording(path, topic, read)
+        if topic is not None:
+            raise UsageError(topic_on_capture(path))
+        with capture_bytes(path) as (data, reads, let_go):
+            bar.total, bar.unit = len(data) or 1, "B"
+
+            def decoded_to(offset: int) -> None:
+                bar.update(offset)
+                let_go(offset)
+            return decode_sessions(data, str(path), reads, decoded_to)
 
 
 def load_session(path: str, start_s: float | None = 0.0, data: bytes | None = None,

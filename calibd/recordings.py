@@ -192,13 +192,15 @@ class ImuRecording:
                 _one_encoding(encodings, self.path, self.topic))
 
 
-def open_recording(path, topic: str | None = None) -> CaptureSessions:
+def open_recording(path, topic: str | None = None, progress=lambda done, total: None) -> CaptureSessions:
     """The Imu messages of `topic` (None: the recording's only Imu topic) as a capture of one
-    power-up, block-averaged as they come; CalibrationError (one line naming the file) for a
-    recording that cannot be read or has no such messages."""
+    power-up, block-averaged as they come (`progress(messages read, messages in all)` after each
+    batch); CalibrationError (one line naming the file) for a recording that cannot be read or
+    has no such messages."""
     recording, stamps, builder = ImuRecording(path, topic), StampTimes(str(path)), SessionBuilder()
     for stamps_ns, gyro, acc, frame_id in recording.batches():
         builder.add(imu_samples(gyro, acc), stamps.times(stamps_ns, frame_id), stamps.rate_hz)
+        progress(stamps.messages, recording.messages)
     if not stamps.messages:
         raise CalibrationError(f"{path}: topic {recording.topic}: no message could be read")
     return stamps.capture(builder, recording.topic, recording.words, identity(path))

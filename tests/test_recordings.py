@@ -232,3 +232,21 @@ def test_without_the_extra_a_recording_is_one_line_naming_it(tmp_path, run_main,
     err = refusal(run_main, ["calibrate", bag, "--latitude", "40", "-o", tmp_path / "r.json"])
     assert err == f"calibd: {bag}: reading a recording needs the recordings extra: pip install " \
                   "'stim300-calib[recordings]'\n"
+
+
+def test_reading_shows_a_progress_bar_on_a_terminal_only(recordings, monkeypatch):
+    import io
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    for path, unit in ((recordings["bag"], "56978/56978"), (CAPTURE, f"{CAPTURE.stat().st_size} B")):
+        terminal = Terminal()
+        monkeypatch.setattr(sys, "stderr", terminal)
+        open_capture(str(path))
+        assert terminal.getvalue().startswith(f"\rreading {path} [") and unit in terminal.getvalue(), path
+        piped = io.StringIO()
+        monkeypatch.setattr(sys, "stderr", piped)
+        open_capture(str(path))
+        assert piped.getvalue() == ""
