@@ -314,6 +314,11 @@ def _replay_serve(args, config) -> ServeConfig | None:
     return serve
 
 
+NO_WARM_UP_CHECK = ("no temperatures: the warm-up cannot be checked, and the first message is not the sensor's "
+                    "power-up; calibration starts at the first message, as calibrate's does (--warmup-window S "
+                    "waits S s of data first)")
+
+
 def cmd_replay(args) -> int:
     import contextlib
     import logging
@@ -327,6 +332,7 @@ def cmd_replay(args) -> int:
     from .recordingbytes import recording_bytes
     from .statedir import ResultStore
     from .serve.hub import Hub, make_feeds
+    from .warmup import WINDOW_RANGE_S
     from .serve.sockets import ServeError
 
     config = _config(args.config, None) if args.config else None
@@ -344,7 +350,11 @@ def cmd_replay(args) -> int:
         replayed = recording_bytes(args.capture, args.topic)
         origin = replayed.origin
         data, reads = replayed.data, replayed.reads
-        for line in (replayed.description(), *(f"warning: {w}" for w in replayed.warnings)):
+        warnings = replayed.warnings
+        if args.warmup_window is None:  # its first message is no power-up: as calibrate, from the first message
+            warmup = replace(warmup, window_s=WINDOW_RANGE_S[0], min_time_s=0.0)
+            warnings = [*warnings, NO_WARM_UP_CHECK]
+        for line in (replayed.description(), *(f"warning: {w}" for w in warnings)):
             print(f"calibd replay: {args.capture}: {line}", file=sys.stderr)
     else:
         if args.topic is not None:

@@ -205,3 +205,18 @@ def test_a_recording_replays_through_the_raw_pty(tmp_path):
     assert len(got) >= DATAGRAM_BYTES and got in data and data.find(got) % DATAGRAM_BYTES == 0  # datagrams whole
     assert f"{path}: 2500 Imu messages of topic {TOPIC} replayed as STIM300 datagrams 0x91 at 125 Hz" in \
         daemon.stderr.read().decode()
+
+
+def test_without_a_warmup_window_a_recording_is_calibrated_from_its_first_message(recordings, raw_replay, tmp_path,
+                                                                                    capsys):
+    """The first message is no power-up, and no temperature tells the warm-up: as calibrate does,
+    the session starts at once (with the default 600 s window this 455 s recording gave nothing)."""
+    path = recordings["sqlite3"]
+    code = calibd_main(["replay", str(path), *SITE[:4], "--state-dir", str(tmp_path / "state")])
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert f"calibd replay: {path}: warning: no temperatures: the warm-up cannot be checked" in err
+    result = json.loads((tmp_path / "state" / "result.json").read_text())
+    for name, e in result["estimates"].items():
+        raw = raw_replay["estimates"][name]
+        assert abs(e["value"] - raw["value"]) <= 0.1 * raw["sigma"], (name, e, raw)
