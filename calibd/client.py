@@ -30,6 +30,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from stim300.errors import os_reason
+
 from .errors import CalibdError
 from .results import CalibrationResult, ResultError
 from .serve import SAMPLE_KINDS, protocol
@@ -200,7 +202,7 @@ def _connect_error(where: str, exc: OSError) -> ClientError:
         return ClientError(f"{where}: connection refused (no calibd listening there)")
     if isinstance(exc, socket.timeout):
         return ClientError(f"{where}: no answer within the timeout")
-    return ClientError(f"{where}: cannot connect: {(exc.strerror or str(exc)).lower()}")
+    return ClientError(f"{where}: cannot connect: {os_reason(exc)}")
 
 
 class Client:
@@ -366,7 +368,7 @@ class Client:
             except ConnectionResetError:  # it closed with commands of ours unread
                 chunk = b""
             except OSError as exc:
-                raise ServerGone(f"{self.where}: the server went away ({(exc.strerror or str(exc)).lower()})") \
+                raise ServerGone(f"{self.where}: the server went away ({os_reason(exc)})") \
                     from None
             if not chunk:
                 raise ServerGone(f"{self.where}: the server closed the connection")

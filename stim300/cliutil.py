@@ -8,7 +8,7 @@ import os
 import stat
 import sys
 
-from .errors import Stim300Error, UsageError
+from .errors import Stim300Error, UsageError, os_reason
 
 
 def package_version() -> str:
@@ -74,7 +74,7 @@ def _refuse(path, mode: int, what: str) -> None:
 def _cannot_read(path, exc: OSError) -> UsageError:
     if isinstance(exc, FileNotFoundError):
         return UsageError(f"{path}: no such file")
-    return UsageError(f"{path}: cannot read: {(exc.strerror or str(exc)).lower()}")
+    return UsageError(f"{path}: cannot read: {os_reason(exc)}")
 
 
 def input_file(path, what: str = "capture file", follow: bool = True) -> None:
@@ -153,7 +153,7 @@ def write_error(path, exc: OSError) -> Exception:
     is the user's (UsageError, exit 2); a full disk or a FIFO nobody reads is the run's (exit 1)."""
     if exc.errno == errno.ENXIO:
         return RunError(f"{path}: cannot write: a FIFO that no process reads")
-    reason = (exc.strerror or str(exc)).lower()
+    reason = os_reason(exc)
     usage = exc.errno in (errno.EISDIR, errno.ENOENT, errno.ENOTDIR, errno.EACCES, errno.EPERM, errno.EROFS)
     return (UsageError if usage else RunError)(f"{path}: cannot write: {reason}")
 

@@ -47,3 +47,9 @@ class ServiceTimeout(ServiceError, TimeoutError):
 
 class UsageError(Stim300Error):
     """A problem with what the user gave a command: reported as one line, exit status 2."""
+
+
+def os_reason(exc: OSError) -> str:
+    """What an OSError says, as the tail of a one-line refusal: the system's words in lower case
+    ("no such file or directory"), else the exception's own text on one line."""
+    return (exc.strerror or " ".join(str(exc).split()) or type(exc).__name__).lower()

@@ -28,7 +28,7 @@ import serial
 import structlog
 
 from .atomic import atomic_file
-from .errors import PortError, UsageError
+from .errors import PortError, UsageError, os_reason
 from .protocol import CONFIGURATION, DEFAULT_BIT_RATE
 from .reads import ReadLog, reads_path
 from .ringbuffer import RingBuffer
@@ -414,7 +414,7 @@ def _record(ser: serial.Serial, url: str, out: Path, part: Path, duration_s: flo
     except OSError as exc:
         with suppress(OSError):  # a directory of that name is not ours to remove
             part.unlink()
-        print(f"stim300 record: {out}: cannot write: {(exc.strerror or str(exc)).lower()}", file=sys.stderr)
+        print(f"stim300 record: {out}: cannot write: {os_reason(exc)}", file=sys.stderr)
         return 1
     print(f"recorded {sink.total} B in {time.monotonic() - start:.1f} s to {out}", file=sys.stderr)
     return status

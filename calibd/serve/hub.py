@@ -32,6 +32,7 @@ from stim300.capture import StreamInfo
 from stim300.clock import CounterClock
 from stim300.codec import join_samples
 from stim300.records import TrimRecord
+from stim300.errors import os_reason
 
 from ..config import FoxgloveConfig, RecordConfig, Ros2Config, ServeConfig
 from ..daemon import Listener, State
@@ -200,7 +201,7 @@ class Hub(Listener):
                     os.unlink(tmp)
         except (OSError, ServeError) as exc:
             error = str(exc) if isinstance(exc, ServeError) else \
-                f"result_copy {path}: {(exc.strerror or str(exc)).lower()}"
+                f"result_copy {path}: {os_reason(exc)}"
             if at_start:
                 raise ServeError(error) from None
             if not self._copy_failing:
@@ -415,7 +416,7 @@ def _check_copy_path(path: Path) -> None:
     except FileNotFoundError:
         return
     except OSError as exc:
-        raise ServeError(f"result_copy {path}: {(exc.strerror or str(exc)).lower()}") from None
+        raise ServeError(f"result_copy {path}: {os_reason(exc)}") from None
     if stat.S_ISLNK(mode):
         raise ServeError(f"result_copy {path}: is a symbolic link; never written through (remove it)")
     if not stat.S_ISREG(mode):
@@ -432,7 +433,7 @@ def _read_token(path: Path) -> bytes:
     except OSError as exc:
         if os.path.islink(path):
             raise ServeError(f"{where}: is a symbolic link; give the file itself") from None
-        raise ServeError(f"{where}: {(exc.strerror or str(exc)).lower()}") from None
+        raise ServeError(f"{where}: {os_reason(exc)}") from None
     try:
         st = os.fstat(fd)
         if not stat.S_ISREG(st.st_mode):

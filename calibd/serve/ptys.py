@@ -30,6 +30,7 @@ import structlog
 from stim300.protocol import (BIAS_TRIM, CONFIGURATION, EXTENDED_ERROR, PART_NUMBER, SERIAL_NUMBER,
                               SPECIAL_IDS, SpecialKind)
 from stim300.stream import Settled
+from stim300.errors import os_reason
 
 from ..config import BEFORE_RESULT
 from ..errors import CalibdError
@@ -139,7 +140,7 @@ class LinkedPty:
                 os.set_blocking(self._master, False)
                 self.path = os.ttyname(slave)
             except OSError as exc:
-                raise PtyError(f"{link}: cannot open a pty: {(exc.strerror or str(exc)).lower()}") from None
+                raise PtyError(f"{link}: cannot open a pty: {os_reason(exc)}") from None
             finally:
                 if slave is not None:
                     os.close(slave)
@@ -293,7 +294,7 @@ def _prepare_node(path: str, gid: int | None) -> None:
             os.chown(path, -1, gid)
     except OSError as exc:
         raise PtyError(f"{path}: cannot give it mode 0660{'' if gid is None else f' and group id {gid}'}: "
-                       f"{exc.strerror.lower()}") from None
+                       f"{os_reason(exc)}") from None
 
 
 def _replace_link(link: Path, target: str) -> None:
@@ -307,7 +308,7 @@ def _replace_link(link: Path, target: str) -> None:
             os.unlink(temp)
         except OSError:
             pass  # never made
-        raise PtyError(f"{link}: cannot link it to {target}: {exc.strerror.lower()}") from None
+        raise PtyError(f"{link}: cannot link it to {target}: {os_reason(exc)}") from None
 
 
 class Throttle:

@@ -27,6 +27,8 @@ from pathlib import Path
 
 import structlog
 
+from stim300.errors import os_reason
+
 from ..errors import CalibdError
 from . import SAMPLE_KINDS
 from .protocol import (AUTH_TRIES, BYTES, IDLE_TIMEOUT_S, MAX_CLIENTS, MAX_CLIENTS_PER_UID, MAX_LINE_BYTES,
@@ -196,7 +198,7 @@ class SocketServer:
         except FileNotFoundError:
             mode = None
         except OSError as exc:
-            raise ServeError(f"socket {path}: {(exc.strerror or str(exc)).lower()}") from None
+            raise ServeError(f"socket {path}: {os_reason(exc)}") from None
         if mode is not None and not stat.S_ISSOCK(mode):
             raise ServeError(f"socket {path}: the path is taken by something else than a socket; not replaced")
         if mode is not None:
@@ -213,7 +215,7 @@ class SocketServer:
                 os.chown(path, -1, self.gid)
         except OSError as exc:
             sock.close()
-            raise ServeError(f"socket {path}: {(exc.strerror or str(exc)).lower()}") from None
+            raise ServeError(f"socket {path}: {os_reason(exc)}") from None
         return sock
 
     def _tcp_socket(self, host: str, port: int) -> socket.socket:
@@ -221,14 +223,14 @@ class SocketServer:
             family = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0][0]
             sock = socket.socket(family, socket.SOCK_STREAM)
         except OSError as exc:
-            raise ServeError(f"tcp {host}:{port}: {(exc.strerror or str(exc)).lower()}") from None
+            raise ServeError(f"tcp {host}:{port}: {os_reason(exc)}") from None
         try:
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             sock.bind((host, port))
             self.tcp_address = sock.getsockname()[:2]
         except OSError as exc:
             sock.close()
-            raise ServeError(f"tcp {host}:{port}: {(exc.strerror or str(exc)).lower()}") from None
+            raise ServeError(f"tcp {host}:{port}: {os_reason(exc)}") from None
         return sock
 
     def _listen(self, sock: socket.socket) -> None:
