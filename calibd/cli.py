@@ -534,8 +534,14 @@ def cmd_report(args) -> int:
 
     input_file(args.result, "result file")
     not_an_input(args.output, args.result, args.capture)
+    topic = args.topic
+    if topic is None and is_imu_recording(args.capture):  # the topic the result was made from
+        from .results import parse_result
+
+        topic = parse_result(read_input(args.result, "result file", DOCUMENT_LIMIT_BYTES), args.result).stream.get(
+            "topic")
     try:
-        written = write_report(args.result, open_capture(args.capture), args.output, svg=args.svg)
+        written = write_report(args.result, open_capture(args.capture, topic=topic), args.output, svg=args.svg)
     except OSError as exc:
         raise write_error(args.output, exc) from None
     figures = (f"figures: {', '.join(p.name for p in written[1:])} in {figures_dir(written[0])}/" if written[1:]
@@ -1059,6 +1065,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="report.html (self-contained); the figures also go to report_files/*.png (and *.svg with "
                         "--svg) beside it")
     p.add_argument("--svg", action="store_true", help="also write each figure's vector copy, report_files/*.svg")
+    p.add_argument("--topic", type=_ros_topic, metavar="NAME",
+                   help="a recording's sensor_msgs/Imu topic (default: the one the result was made from)")
     p.set_defaults(func=cmd_report)
     p = sub.add_parser("plan", help="protocol + site + noise -> expected 1-sigma of every estimate, time to a "
                                     "target yaw 1-sigma (docs/planner.md)")

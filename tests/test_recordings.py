@@ -250,3 +250,19 @@ def test_reading_shows_a_progress_bar_on_a_terminal_only(recordings, monkeypatch
         monkeypatch.setattr(sys, "stderr", piped)
         open_capture(str(path))
         assert piped.getvalue() == ""
+
+
+@pytest.mark.slow
+def test_report_of_a_recording_of_several_imu_topics_takes_the_results_topic(tmp_path, fixture_samples, site,
+                                                                            run_main):
+    stamps, gyro, acc, received = fixture_samples
+    messages = serialised("bag", stamps, gyro, acc)
+    path = write_recording(tmp_path / "two.bag", "bag", [], received,
+                           {TOPIC: (IMU, messages), "/imu2": (IMU, messages)})
+    code, _, err = run_main(calibd_main, ["calibrate", path, "--latitude", site["latitude_deg"], "--g0", site["g0"],
+                                          "--topic", "/imu2", "-o", tmp_path / "r.json"])
+    assert code == 0, err
+    code, out, err = run_main(calibd_main, ["report", tmp_path / "r.json", path, "-o", tmp_path / "r.html"])
+    assert code == 0 and out.startswith(f"report: {tmp_path / 'r.html'}"), err
+    err = refusal(run_main, ["report", tmp_path / "r.json", path, "-o", tmp_path / "s.html", "--topic", "/imu3"])
+    assert "no topic /imu3" in err
