@@ -683,7 +683,7 @@ def _apply_into(f, kind: str, args, fix, meta: dict, result, result_bytes: bytes
         return writers[-1]
 
     if is_imu_recording(args.capture):
-        recording = ImuRecording(args.capture, args.topic)
+        recording = ImuRecording(args.capture, args.topic, preferred=result.stream.get("topic"))
         applied = apply_recording(recording, fix, result, args.force, lambda rate_hz, frame_id: open_writer(
             rate_hz, None, recording.messages, frame_id if fix.frame == "imu" else MCAP_FRAME_IDS["home"]))
     else:

@@ -99,15 +99,16 @@ def _unreadable(exc: Exception) -> bool:
 
 class ImuRecording:
     """The Imu messages of one topic of a recording, read in decoded batches (`batches`): `topic`
-    (None: the recording's only Imu topic; its name once read), `words` what the file is,
-    `messages` how many the recording's index counts (0 until read)."""
+    (None: `preferred` when the recording has that Imu topic, else its only one; its name once
+    read), `words` what the file is, `messages` how many the recording's index counts (0 until
+    read)."""
 
-    def __init__(self, path, topic: str | None = None):
+    def __init__(self, path, topic: str | None = None, preferred: str | None = None):
         try:
             from rosbags.highlevel import AnyReader  # noqa: F401 (the extra is there)
         except ImportError:
             raise CalibrationError(f"{path}: {NEEDS_EXTRA}") from None
-        self.path, self.topic, self.messages = path, topic, 0
+        self.path, self.topic, self.preferred, self.messages = path, topic, preferred, 0
         ending, self.words = _kind(path)
         if ending == ".db3" and Path(path).suffix != ending:  # rosbags reads a storage file by its name
             raise CalibrationError(f"{path}: a {self.words} by its content, but recordings are read by the name "
@@ -143,7 +144,7 @@ class ImuRecording:
         bag = Bag1(opened.enter_context(open_regular(self.path)))
         topics = {name: (_ros2_type(msgtype) if msgtype else "", count)
                   for name, (msgtype, count) in bag.topics.items()}
-        self.topic = _imu_topic(topics, self.path, self.topic)
+        self.topic = _imu_topic(topics, self.path, self.topic, self.preferred)
         self.messages = topics[self.topic][1]
         return bag.messages(self.topic), "ros1"
 
@@ -157,7 +158,7 @@ class ImuRecording:
         reader = opened.enter_context(AnyReader([Path(self.path)], default_typestore=get_typestore(Stores.LATEST)))
         topics = reader.topics
         self.topic = _imu_topic({name: (info.msgtype, info.msgcount) for name, info in topics.items()},
-                                self.path, self.topic)
+                                self.path, self.topic, self.preferred)
         self.messages, connections = topics[self.topic].msgcount, topics[self.topic].connections
         encodings = {"ros1"} if not reader.is2 else {getattr(c.ext, "serialization_format", "cdr") for c in connections}
         return (data for _, _, data in reader.messages(connections)), _one_encoding(encodings, self.path, self.topic)
@@ -182,7 +183,8 @@ class ImuRecording:
         schemas = {name: {_ros2_type(summary.schemas[c.schema_id].name) if c.schema_id in summary.schemas else ""
                           for c in channels} for name, channels in topics.items()}
         self.topic = _imu_topic({name: (next(iter(types)) if len(types) == 1 else "", sum(
-            counts.get(c.id, 0) for c in topics[name])) for name, types in schemas.items()}, self.path, self.topic)
+            counts.get(c.id, 0) for c in topics[name])) for name, types in schemas.items()}, self.path, self.topic,
+            self.preferred)
         self.messages = sum(counts.get(c.id, 0) for c in topics[self.topic])
         encodings = {c.message_encoding for c in topics[self.topic]}
         ids = {c.id for c in topics[self.topic]}
@@ -206,10 +208,12 @@ def open_recording(path, topic: str | None = None, progress=lambda done, total: 
     return stamps.capture(builder, recording.topic, recording.words, identity(path))
 
 
-def _imu_topic(topics: dict[str, tuple[str, int]], path, topic: str | None) -> str:
-    """The Imu topic asked for (or the only one) of `topics` (name -> (message type, "" when of
-    several; message count)), with messages."""
+def _imu_topic(topics: dict[str, tuple[str, int]], path, topic: str | None, preferred: str | None = None) -> str:
+    """The Imu topic asked for (else `preferred` when it is one, else the only one) of `topics`
+    (name -> (message type, "" when of several; message count)), with messages."""
     imu = sorted(name for name, (msgtype, _) in topics.items() if msgtype == IMU_TYPE)
+    if topic is None and preferred in imu:
+        topic = preferred
     if topic is None:
         if not imu:
             raise CalibrationError(f"{path}: no {IMU_TYPE} topic (the recording has "

@@ -138,6 +138,21 @@ def test_bad_recordings_for_apply_are_one_line_and_write_nothing(result_files, r
     assert out.exists()
 
 
+def test_a_recordings_result_names_the_topic_apply_takes_among_several(recordings, site, fixture_samples,
+                                                                      run_main, tmp_path):
+    result = calibrate(recordings["bag"], site, tmp_path / "r.json")  # of topic /imu/data
+    stamps, gyro, acc, received = (a[:500] for a in fixture_samples)
+    messages = serialised("bag", stamps, gyro, acc)
+    two = write_recording(tmp_path / "two.bag", "bag", [], received, {"/a": (IMU, messages[:100]),
+                                                                      TOPIC: (IMU, messages)})
+    out, _ = apply(run_main, tmp_path / "r.json", two, tmp_path / "o.npz")
+    assert f"500 messages of topic {TOPIC}" in out and result["stream"]["topic"] == TOPIC
+    other = write_recording(tmp_path / "other.bag", "bag", [], received,
+                            {"/a": (IMU, messages), "/b": (IMU, messages)})
+    err = refusal(run_main, ["apply", tmp_path / "r.json", other, "-o", tmp_path / "p.npz"])
+    assert "choose one with --topic" in err
+
+
 def test_a_results_recording_fields_are_checked(tmp_path, site, recordings):
     from calibd.results import ResultError, parse_result
 
