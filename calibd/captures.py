@@ -41,12 +41,17 @@ def mapped_input(path: str):
 
 
 @contextmanager
-def capture_bytes(path: str):
+def capture_bytes(path: str, topic: str | None = None):
     """A STIM300 capture's bytes, its read log (None: none) and a function that lets go of the
     bytes before an offset once decoded: a file mapped (`mapped_input`) with the read log beside
-    it (PATH.reads.npy), or the bytes and read log an MCAP of `stim300 record` holds."""
+    it (PATH.reads.npy), or the bytes and read log an MCAP of `stim300 record` holds. A `topic`
+    (a recording's --topic) is refused: a capture has none."""
     from stim300.mcaprec import holds_capture, read_capture
     from stim300.reads import load_reads
+
+    if topic is not None:
+        raise UsageError(f"{path}: --topic names a topic of a recording of Imu messages (ROS bag, rosbag2, MCAP), "
+                         "and this is a STIM300 capture")
 
     if holds_capture(path):
         data, reads = read_capture(path)
@@ -76,12 +81,6 @@ def is_imu_recording(path) -> bool:
     return is_recording(path) and not holds_capture(path)
 
 
-def topic_on_capture(path) -> str:
-    """The refusal of --topic given with a STIM300 capture."""
-    return (f"{path}: --topic names a topic of a recording of Imu messages (ROS bag, rosbag2, MCAP), and this is a "
-            "STIM300 capture")
-
-
 def open_capture(path: str, data: bytes | None = None, topic: str | None = None) -> CaptureSessions:
     """The capture at `path` (its bytes, when already read) decoded (`capture_bytes`: a file and
     its read log, or the MCAP `stim300 record` writes); or, when `path` is another recording (a
@@ -102,9 +101,7 @@ def open_capture(path: str, data: bytes | None = None, topic: str | None = None)
                 bar.total = total
                 bar.update(done)
             return open_recording(path, topic, read)
-        if topic is not None:
-            raise UsageError(topic_on_capture(path))
-        with capture_bytes(path) as (data, reads, let_go):
+        with capture_bytes(path, topic) as (data, reads, let_go):
             bar.total, bar.unit = len(data) or 1, "B"
 
             def decoded_to(offset: int) -> None:

@@ -25,8 +25,7 @@ from stim300.cliutil import (DOCUMENT_LIMIT_BYTES, CommandParser, RunError, inpu
 from stim300.errors import UsageError
 
 from . import spec
-from .captures import (capture_bytes, first_stream_info, is_imu_recording, load_session, open_capture,
-                       topic_on_capture)
+from .captures import capture_bytes, first_stream_info, is_imu_recording, load_session, open_capture
 from .errors import CalibdError, CalibrationError
 from .frames import STANDARD_GRAVITY, Site, site_value_error
 from .scenarios import READY_MADE
@@ -357,9 +356,7 @@ def cmd_replay(args) -> int:
         for line in (replayed.description(), *(f"warning: {w}" for w in warnings)):
             print(f"calibd replay: {args.capture}: {line}", file=sys.stderr)
     else:
-        if args.topic is not None:
-            raise UsageError(topic_on_capture(args.capture))
-        with capture_bytes(args.capture) as (data, reads, _):  # a file, or the MCAP stim300 record writes
+        with capture_bytes(args.capture, args.topic) as (data, reads, _):  # a file, or the MCAP stim300 record writes
             data = bytes(data)  # held whole: the replay paces it out
         _refuse_without_datagrams(data, args.capture)
     bar = Progress("replay", len(data), "B")
@@ -687,13 +684,10 @@ def _apply_into(f, kind: str, args, fix, meta: dict, result, result_bytes: bytes
         applied = apply_recording(recording, fix, result, args.force, lambda rate_hz, frame_id: open_writer(
             rate_hz, None, recording.messages, frame_id if fix.frame == "imu" else MCAP_FRAME_IDS["home"]))
     else:
-        if args.topic is not None:
-            raise UsageError(topic_on_capture(args.capture))
-        with capture_bytes(args.capture) as (data, reads, let_go):
+        with capture_bytes(args.capture, args.topic) as (data, reads, let_go):
             info = first_stream_info(data)
-            ranges = None if info.configuration is None else max(info.configuration.acc_range_g)
-            writer = open_writer(info.rate_hz or INTERNAL_RATE_HZ, ranges, NpzWriter.capacity_for(len(data)),
-                                 MCAP_FRAME_IDS[fix.frame])
+            writer = open_writer(info.rate_hz or INTERNAL_RATE_HZ, info.sensor_record().acc_range_g,
+                                 NpzWriter.capacity_for(len(data)), MCAP_FRAME_IDS[fix.frame])
             applied = apply_capture(data, args.capture, fix, result.sensor.serial_number, args.force, writer, reads,
                                     let_go)
     for writer in writers:

@@ -25,7 +25,7 @@ from stim300.reads import READS_DTYPE
 
 from .errors import CalibrationError
 from .frames import STANDARD_GRAVITY
-from .recordings import GAP_STEPS, ImuRecording, StampTimes, imu_samples
+from .recordings import ImuRecording, StampTimes, imu_samples
 from .units import DEG
 
 DATAGRAM_ID = 0x91
@@ -84,24 +84,6 @@ def counter_step(where, rate_hz: float) -> int:
     return step
 
 
-class _Slots:
-    """Each message's sample slot (messages since the first, the samples a gap misses counted
-    as `StampTimes` counts them) from its stamp's step after the message before."""
-
-    def __init__(self, rate_hz: float):
-        self.interval_ns = 1e9 / rate_hz
-        self.last_ns: int | None = None
-        self.last = -1
-
-    def slots(self, stamps_ns: np.ndarray) -> np.ndarray:
-        # the first message's step: 0, one slot after slot -1
-        steps = np.diff(stamps_ns, prepend=stamps_ns[0] if self.last_ns is None else self.last_ns)
-        counts = np.where(steps > GAP_STEPS * self.interval_ns, np.rint(steps / self.interval_ns), 1).astype(np.int64)
-        slots = self.last + np.cumsum(counts)
-        self.last_ns, self.last = int(stamps_ns[-1]), int(slots[-1])
-        return slots
-
-
 def _saturate(samples: np.ndarray) -> int:
     """Flag OVERLOAD (with the axes) in the status of each gyro and accelerometer triad beyond
     what a datagram holds (the encoder saturates the values); how many samples have one."""
@@ -130,15 +112,15 @@ def recording_bytes(path, topic: str | None = None) -> RecordingBytes:
     a recording that cannot be read or whose stamps no STIM300 counter could count."""
     recording, stamps = ImuRecording(path, topic), StampTimes(str(path))
     data, reads, saturated = bytearray(), [], 0  # extended in place: a large bytearray grows without a copy
-    slots = step = per_read = None
+    step = per_read = None
     for stamps_ns, gyro, acc, frame_id in recording.batches():
         time_s = stamps.times(stamps_ns, frame_id)
         if step is None:
-            step, slots = counter_step(path, stamps.rate_hz), _Slots(stamps.rate_hz)
+            step = counter_step(path, stamps.rate_hz)
             per_read = max(1, min(READ_MESSAGES, int(STEADY_S * INTERNAL_RATE_HZ / step)))
         first = stamps.messages - len(stamps_ns)
         samples = imu_samples(gyro, acc)
-        slot = slots.slots(stamps_ns)
+        slot = stamps.slots
         samples["counter"] = slot * step % COUNTER_MODULUS
         saturated += _saturate(samples)
         data += encode_samples(samples, DATAGRAM_ID, FORMAT, crlf=False).tobytes()

@@ -312,8 +312,10 @@ def measured_rate_hz(stamps_ns: np.ndarray) -> int | float:
 
 class StampTimes:
     """The header stamps of one topic's batches, in order -> each message's time (s since the
-    first message), the rate (the first batch's median step) and the gaps the stamps show.
-    Stamps that do not increase, or step faster than a STIM300 samples, are refused."""
+    first message), the rate (the first batch's median step) and the gaps the stamps show, and
+    the last batch's sample slots (`slots`: samples since the first message, a gap's missing
+    samples counted). Stamps that do not increase, or step faster than a STIM300 samples, are
+    refused."""
 
     def __init__(self, where: str):
         self.where = where
@@ -321,6 +323,7 @@ class StampTimes:
         self.first_ns = self.last_ns = None
         self.messages = self.gaps = self.lost_samples = 0
         self.frame_id = ""
+        self.slots, self._last_slot = np.zeros(0, np.int64), -1
 
     def times(self, stamps_ns: np.ndarray, frame_id: str) -> np.ndarray:
         if self.rate_hz is None:  # the first batch: all the messages when there are fewer than a batch
@@ -341,9 +344,13 @@ class StampTimes:
             raise CalibrationError(f"{self.where}: message {k}'s header stamp is {steps[back[0]] / 1e6:g} ms after "
                                    "the one before: stamps must increase")
         interval_ns = 1e9 / self.rate_hz
-        gaps = steps[steps > GAP_STEPS * interval_ns]
-        self.gaps += len(gaps)
-        self.lost_samples += int(np.rint(gaps / interval_ns).sum()) - len(gaps)
+        counts = np.ones(len(stamps_ns), np.int64)  # slots after the message before (the very first: slot 0)
+        gap = steps > GAP_STEPS * interval_ns
+        counts[len(stamps_ns) - len(steps):][gap] = np.rint(steps[gap] / interval_ns)
+        self.gaps += int(np.count_nonzero(gap))
+        self.lost_samples += int(counts.sum()) - len(counts)
+        self.slots = self._last_slot + np.cumsum(counts)
+        self._last_slot = int(self.slots[-1])
         self.messages += len(stamps_ns)
         self.last_ns = stamps_ns[-1]
         return (stamps_ns - self.first_ns) * 1e-9
