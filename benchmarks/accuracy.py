@@ -3,20 +3,20 @@
 Run sets of random sessions, each with a random truth (any heading, pitch/roll within
 1 deg, alpha/beta within 1 deg, biases within the STIM300's range), STIM300 noise (white plus
 bias instability), 125 Hz, turns in a random sense:
-- `g0 given`: the thesis real-case protocol (10 min level static, four 90 deg index turns with
+- `g0 given`: the thesis real-case campaign (10 min level static, four 90 deg index turns with
   120 s statics, a full turn at 27.93 deg/s) with the site's measured g0 given;
-- `normal gravity`: the same protocol without g0: the calibration takes normal gravity, while the
+- `normal gravity`: the same campaign without g0: the calibration takes normal gravity, while the
   simulated true g0 differs from it by a random local anomaly of the documented spread
   (frames.NORMAL_GRAVITY_SIGMA);
 - `one index`: statics at two platform angles only (10 min level static, one 90 deg index turn
   with a 120 s static, a full turn, 30 s static), through `calibd calibrate`'s path (refusals and
   "poor" flags counted);
-- `no inclinometers`: the thesis protocol with g0 given on a unit without inclinometers (pitch,
+- `no inclinometers`: the thesis campaign with g0 given on a unit without inclinometers (pitch,
   roll and the accelerometer biases from the accelerometers);
-- `vibrating static`: the thesis protocol with g0 given, its second index static 21 s long with
+- `vibrating static`: the thesis campaign with g0 given, its second index static 21 s long with
   VIBRATION times the sensor's white noise on every sensor (0.35 deg/s per gyro sample: an
   engine running), through `calibd calibrate`'s path (the static is weighed by its own noise);
-- `field`: the thesis protocol with g0 given on a sensor with the datasheet's factory residuals
+- `field`: the thesis campaign with g0 given on a sensor with the datasheet's factory residuals
   (each triad's misalignment elements drawn N(0, 0.5 mrad), scale factors N(0, half their
   limit)), turns with a 2 % once-per-revolution rate ripple, through `calibd calibrate`'s path;
 - `limit`: the same with every residual at its datasheet limit, random signs;

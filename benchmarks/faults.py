@@ -1,4 +1,4 @@
-"""Fault cases: what `calibd calibrate` makes of captures that break the protocol's assumptions.
+"""Fault cases: what `calibd calibrate` makes of captures that break the campaign's assumptions.
 
 The rule a calibration must keep is "never a confident wrong answer": each estimate is right
 within its sigma, or flagged ("quality": "poor", with a warning naming the cause), or the run
@@ -8,16 +8,16 @@ which picks the power-up and skips the warm-up) on a simulated capture and print
 |error| / sigma among the estimates not flagged poor, how many were flagged, and the refusal if
 any. Numbers are whatever the code does today: nothing is tuned here.
 
-The session is an index protocol (300 s level static, four 90 deg index turns with 60 s statics,
+The session is an index campaign (300 s level static, four 90 deg index turns with 60 s statics,
 a 360 deg full turn with ramps, 30 s static; 125 Hz, warmed up) unless the case changes it. Cases:
 - no fault: the session as it should be (what the others compare with);
 - hidden gap N: N datagrams lost in the middle of the second index turn (16 and 64 are whole
   counter cycles, 188 is 1.5 s: the counter sees 12), with the read log `stim300 record` keeps
   (host times of reads every few ms, with jitter) or without it;
 - restart: the sensor power-cycles during the second index static (two power-ups in one file;
-  the last has the rest of the protocol, and its home position is that static's platform angle);
-- warm-up: 600 s of static data from a cold power-up before the protocol, with a thermal time
-  constant of 100 s (settled before the protocol) or 1800 s (never settles in the capture);
+  the last has the rest of the campaign, and its home position is that static's platform angle);
+- warm-up: 600 s of static data from a cold power-up before the campaign, with a thermal time
+  constant of 100 s (settled before the campaign) or 1800 s (never settles in the capture);
 - one index position: a level static, one 90 deg turn, one static;
 - thesis method: the thesis's estimators on the 360 deg full turn, whose ramps leave its
   constant-rate part short of a whole revolution (they carry no sigma: only refusals and flags
@@ -57,7 +57,7 @@ CUT_IN_TURN = 2  # the index turn a hidden gap falls in
 BIAS_KEYS = {"gyro_bias": "gyro_bias_deg_h", "acc_bias": "acc_bias_mg", "incl_bias": "incl_bias_mg"}
 
 
-def index_protocol(level_s: float = 300, index_s: float = 60, turns: int = 4, full_deg: float | None = 360
+def index_campaign(level_s: float = 300, index_s: float = 60, turns: int = 4, full_deg: float | None = 360
                    ) -> tuple[Segment, ...]:
     turn = Segment("turn", angle_deg=-90, peak_rate_deg_s=20, accel_deg_s2=20)
     body = [Segment("static", duration_s=level_s)]
@@ -71,7 +71,7 @@ def index_protocol(level_s: float = 300, index_s: float = 60, turns: int = 4, fu
 
 def scenario(seed: int, **changes) -> Scenario:
     base = load_scenario("thesis-real")
-    return replace(base, name="faults", seed=seed, **({"segments": index_protocol()} | changes))
+    return replace(base, name="faults", seed=seed, **({"segments": index_campaign()} | changes))
 
 
 def host_read_log(ends: np.ndarray, true_s: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -110,7 +110,7 @@ def simulated_capture(sc: Scenario, folder: Path, name: str) -> tuple[Path, dict
 
 
 def restart_capture(seed: int, folder: Path):
-    """The last power-up has the whole protocol but the level static: its home position is the
+    """The last power-up has the whole campaign but the level static: its home position is the
     platform angle of the static it starts in, where its attitude truth is taken."""
     sc = scenario(seed)
     second_index = [p for p in schedule(sc) if p.kind == "static"][2]
@@ -120,8 +120,8 @@ def restart_capture(seed: int, folder: Path):
 
 
 def warmup_capture(seed: int, folder: Path, time_constant_s: float):
-    """600 s of static data from a cold power-up, then the protocol: with a thermal time constant
-    of 100 s the temperature settles before the protocol starts, with 1800 s it never does."""
+    """600 s of static data from a cold power-up, then the campaign: with a thermal time constant
+    of 100 s the temperature settles before the campaign starts, with 1800 s it never does."""
     sc = scenario(seed)
     cold = replace(sc, warmup=replace(sc.warmup, power_on_s=0.0, time_constant_s=time_constant_s),
                    segments=(Segment("static", duration_s=600),) + sc.segments)
@@ -129,7 +129,7 @@ def warmup_capture(seed: int, folder: Path, time_constant_s: float):
 
 
 def one_index_capture(seed: int, folder: Path):
-    return simulated_capture(scenario(seed, segments=index_protocol(turns=1, full_deg=None)), folder, "one-index")
+    return simulated_capture(scenario(seed, segments=index_campaign(turns=1, full_deg=None)), folder, "one-index")
 
 
 

@@ -3,7 +3,7 @@ and the block-averaged session's estimates against a full-rate session's.
 
 Targets: calibrate's peak RSS <= 500 MB and wall time <= 3x `stim300 info` on the same file; the
 estimates from the 125 Hz block means (what calibrate keeps) within 0.1 sigma of those from every
-2000 Hz sample. The capture (the thesis real-case protocol with its level static stretched to make
+2000 Hz sample. The capture (the thesis real-case campaign with its level static stretched to make
 an hour, 0xA7 at 2000 Hz) is simulated once and cached under the temporary directory.
 
     python benchmarks/long_capture.py [--cache DIR] [--skip-full-rate]

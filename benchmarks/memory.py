@@ -1,6 +1,6 @@
 """Peak memory of `calibd calibrate` against session length, at 125 Hz.
 
-The thesis real-case protocol with every static stretched by the same factor, so the session
+The thesis real-case campaign with every static stretched by the same factor, so the session
 lasts 19 minutes (the thesis's own), 75 minutes and 2 hours; each capture is calibrated in a
 child process whose peak RSS is read from its own rusage. Baseline, measured in the same run:
 `calibd --version` (the interpreter and the imports). Printed: the peak of each, the growth per

@@ -20,7 +20,7 @@ _HOMES = {  # public name -> the module of calibd that defines it
     "CalibrationResult": "results", "Estimate": "results", "load_result": "results", "write_result": "results",
     "Site": "frames", "normal_gravity": "frames", "DaemonConfig": "config", "load_config": "config",
     "Scenario": "scenario", "load_scenario": "scenario",
-    "CalibdError": "errors", "CalibrationError": "errors", "ProtocolIncomplete": "methods", "SiteError": "errors",
+    "CalibdError": "errors", "CalibrationError": "errors", "CampaignIncomplete": "methods", "SiteError": "errors",
     "OptionError": "methods", "ConfigError": "config", "ScenarioError": "scenario", "ResultError": "results",
     "SchemaError": "documents",
 }

@@ -1,6 +1,6 @@
 """`calibd run | replay | status | calibrate | batch | sensitivity | plan | noise | report | apply |
 simulate | pipe | watch | trim`: the daemon, its pipeline on a capture, its state; one-shot calibration
-and many captures at once on Dask; what alpha/beta errors cost; what a protocol will give before it
+and many captures at once on Dask; what alpha/beta errors cost; what a campaign will give before it
 is run; the noise of a capture; a report people can look at; a result applied to a capture; captures
 with known truth; the daemon's socket as JSON lines and as a live view; the sensor's bias trim.
 
@@ -558,7 +558,7 @@ PLAN_NOISE_OPTIONS = {  # calibd plan option -> (calibd.spec.NoiseFigures field,
 
 
 def cmd_plan(args) -> int:
-    from .planner import (builtin_protocol, noise_from_json, protocol_from_scenario,  # the simulator
+    from .planner import (builtin_campaign, campaign_from_scenario, noise_from_json,  # the simulator
                           report, time_to_target)  # only here
     from .scenario import load_scenario
 
@@ -566,17 +566,17 @@ def cmd_plan(args) -> int:
              if getattr(args, field) is not None}
     if args.noise and given:
         raise UsageError("plan: give --noise FILE or noise figures (--arw, ...), not both")
-    if args.latitude is None and (args.protocol or args.g0 is not None or args.height):
-        raise UsageError("plan: --latitude is needed with --protocol, --height or --g0 (a scenario file has its own "
+    if args.latitude is None and (args.campaign or args.g0 is not None or args.height):
+        raise UsageError("plan: --latitude is needed with --campaign, --height or --g0 (a scenario file has its own "
                          "[site], which --latitude replaces)")
     if args.scenario:
-        protocol = protocol_from_scenario(load_scenario(args.scenario), args.scenario)
+        campaign = campaign_from_scenario(load_scenario(args.scenario), args.scenario)
     else:
-        protocol = builtin_protocol(args.protocol)
-    site = protocol.scenario.site if args.latitude is None else _site(args)
+        campaign = builtin_campaign(args.campaign)
+    site = campaign.scenario.site if args.latitude is None else _site(args)
     figures = (noise_from_json(read_input(args.noise, "noise file", DOCUMENT_LIMIT_BYTES), args.noise)
-               if args.noise else replace(protocol.figures, **given))
-    reach = time_to_target(protocol, site, figures, args.target_yaw_deg * DEG)
+               if args.noise else replace(campaign.figures, **given))
+    reach = time_to_target(campaign, site, figures, args.target_yaw_deg * DEG)
     print(report(reach, figures))
     return 0
 
@@ -1062,13 +1062,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--topic", type=_ros_topic, metavar="NAME",
                    help="a recording's sensor_msgs/Imu topic (default: the one the result was made from)")
     p.set_defaults(func=cmd_report)
-    p = sub.add_parser("plan", help="protocol + site + noise -> expected 1-sigma of every estimate, time to a "
+    p = sub.add_parser("plan", help="campaign + site + noise -> expected 1-sigma of every estimate, time to a "
                                     "target yaw 1-sigma (docs/planner.md)")
-    _add_site_options(p, required=False, optional_when="needed with --protocol; replaces a scenario's [site]")
+    _add_site_options(p, required=False, optional_when="needed with --campaign; replaces a scenario's [site]")
     which = p.add_mutually_exclusive_group(required=True)
-    which.add_argument("--protocol", help="a built-in protocol: thesis, continuous or index")
+    which.add_argument("--campaign", help="a built-in campaign: thesis, continuous or index")
+    which.add_argument("--protocol", dest="campaign", help=argparse.SUPPRESS)  # its former name
     which.add_argument("--scenario", metavar="SCENARIO.toml",
-                       help="your own protocol: a scenario file as calibd simulate takes (its statics and turns, "
+                       help="your own campaign: a scenario file as calibd simulate takes (its statics and turns, "
                             "its [site] unless --latitude is given, its [noise] unless noise options are given)")
     p.add_argument("--target-yaw-deg", type=_number(0.001, 90, "deg"), default=1.0,
                    help="yaw 1-sigma to reach, deg (default 1)")

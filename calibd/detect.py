@@ -4,7 +4,7 @@ Pure numpy functions: no state, no per-sample Python loops, so the same code ser
 file and a growing live buffer. Units at the interface: gyro in deg/s, acc in g, times in s,
 angles in degrees, counter-clockwise about Up positive (docs/method.md, Rotation conventions).
 
-How a session is cut (each step exists because the protocols of docs/method.md need it):
+How a session is cut (each step exists because the campaigns of docs/method.md need it):
 - moving = |gyro vector, moving average over `smooth_s`| > threshold. The norm, not one axis,
   so a hand re-mounting the IMU is motion too. The threshold adapts to the sensor: ten times the
   noise of that average, estimated from the data (`motion_thresholds`), and never below
@@ -344,10 +344,10 @@ def _cruise(rate_s: np.ndarray, tolerance: float) -> tuple[int, int]:
     return int(starts[k]), int(stops[k])
 
 
-# ---------------------------------------------------------------- the protocol's segments
+# ---------------------------------------------------------------- the campaign's segments
 
 def level_static(segments: list[Segment]) -> Segment:
-    """The first static: the home position (platform angle 0) of the real-case protocol."""
+    """The first static: the home position (platform angle 0) of the real-case campaign."""
     for s in segments:
         if s.kind == "static":
             return s
@@ -412,7 +412,7 @@ INDEX_TOLERANCE_DEG = 5.0  # an index turn is this close to +-90 deg, an index h
 
 
 def segment_roles(segments: list[Segment]) -> list[str]:
-    """The protocol role of each segment: static, index turn (about 90 deg), full turn (at least
+    """The campaign role of each segment: static, index turn (about 90 deg), full turn (at least
     350 deg, see `full_turns`), other turn."""
     full = {id(s) for s in full_turns(segments)}
     roles = []
@@ -437,7 +437,7 @@ def index_headings(segments: list[Segment]) -> set[int]:
 
 @dataclass(frozen=True)
 class Progress:
-    """How far a session is through a method's protocol, counted once from one list of segments.
+    """How far a session is through a method's campaign, counted once from one list of segments.
     The daemon's STATE `progress` and its status detail, `calibd watch`, `calibd status`, and the
     refusals of `calibd calibrate` and `calibd report` all show this record, so its counts, its
     headings and what it says is missing cannot disagree."""
@@ -447,7 +447,7 @@ class Progress:
     index_turns: int  # turns of about 90 deg
     full_turns: int  # turns of at least FULL_TURN_MIN_DEG, ramps included
     other_turns: int
-    missing: str | None  # what the method still lacks; None: its protocol is complete
+    missing: str | None  # what the method still lacks; None: its campaign is complete
 
     @classmethod
     def of(cls, segments: list[Segment], missing: str | None) -> Progress:
@@ -461,7 +461,7 @@ class Progress:
         return self.missing is None
 
     def found(self) -> str:
-        """The segments in the protocol's words: "3 statics at 2/4 index headings, 2 index turns, ..."."""
+        """The segments in the campaign's words: "3 statics at 2/4 index headings, 2 index turns, ..."."""
         def count(n: int, role: str) -> str:
             return f"{n} {role}" + ("" if n == 1 else "s")
         return (f"{count(self.statics, 'static')} at {self.index_headings}/4 index headings, "
@@ -469,8 +469,8 @@ class Progress:
                 f"{count(self.other_turns, 'other turn')}")
 
     def words(self) -> str:
-        """What was found and what the protocol waits for, or that it is complete."""
-        return f"{self.found()}; " + ("protocol complete" if self.complete else f"waiting for: {self.missing}")
+        """What was found and what the campaign waits for, or that it is complete."""
+        return f"{self.found()}; " + ("campaign complete" if self.complete else f"waiting for: {self.missing}")
 
     def fields(self) -> dict:
         """The flat fields of STATE's `progress` (docs/protocol.md): the counts and `missing`
@@ -479,7 +479,7 @@ class Progress:
                 "full_turns": self.full_turns, "other_turns": self.other_turns, "missing": self.missing}
 
 
-def protocol_progress(segments: list[Segment]) -> str:
-    """What a session has so far, in the protocol's words (`Progress.found`), for a refusal that
+def campaign_progress(segments: list[Segment]) -> str:
+    """What a session has so far, in the campaign's words (`Progress.found`), for a refusal that
     says itself what is lacking."""
     return Progress.of(segments, None).found()

@@ -1,7 +1,7 @@
-"""Protocol planner: the 1-sigma every joint estimate will have for a protocol, a site and a noise
+"""Campaign planner: the 1-sigma every joint estimate will have for a campaign, a site and a noise
 model, and the data time a target yaw 1-sigma needs.
 
-The sigmas come from the joint estimator itself, not from a formula beside it: the protocol's
+The sigmas come from the joint estimator itself, not from a formula beside it: the campaign's
 session is simulated without noise (`calibd.sim`, the scenario machinery), block-averaged to
 PLAN_RATE_HZ, and solved by `estimators.joint.solve` with the noise model it would fit to the
 residuals replaced by the given figures (white + flicker per sensor). Its design, its white +
@@ -31,8 +31,8 @@ from .sim import schedule, simulate
 from .units import DEG
 
 MG = STANDARD_GRAVITY / 1000
-PROTOCOLS = ("thesis", "continuous", "index")
-STATICS, TURNS = "statics", "turns"  # what a protocol scales to reach a target
+CAMPAIGNS = ("thesis", "continuous", "index")
+STATICS, TURNS = "statics", "turns"  # what a campaign scales to reach a target
 WHAT_SCALES = {STATICS: "static durations scaled, turns kept", TURNS: "number of whole turns scaled, statics kept"}
 CAROUSEL_DEG = 720.0  # a turn of two revolutions or more is continuous rotation: its whole turns scale
 PLAN_RATE_HZ = 5  # the sigmas match 125 Hz to 1e-4 (see the module docstring)
@@ -51,10 +51,10 @@ class PlanError(CalibdError):
     """Input the planner cannot use; the message says what and where in one line."""
 
 
-# ---------------------------------------------------------------- protocols
+# ---------------------------------------------------------------- campaigns
 
 @dataclass(frozen=True)
-class Protocol:
+class Campaign:
     """What is planned: a scenario's steps (statics and turns in order, the first the level
     static) with its truth and site, and which part scales with the data time. The planner
     simulates it without noise, warm-up or faults at 125 Hz: for given noise densities the
@@ -68,17 +68,17 @@ class Protocol:
     inclinometers: bool
 
 
-def protocol_from_scenario(scenario: Scenario, name: str) -> Protocol:
-    """The protocol a scenario's steps make; PlanError when the joint estimator cannot plan them
+def campaign_from_scenario(scenario: Scenario, name: str) -> Campaign:
+    """The campaign a scenario's steps make; PlanError when the joint estimator cannot plan them
     (a bench re-mount, no level static first, no turn). Turns of two revolutions or more make it
-    a continuous-rotation protocol, whose whole turns scale; otherwise its statics scale."""
+    a continuous-rotation campaign, whose whole turns scale; otherwise its statics scale."""
     segments = scenario.segments
     for number, segment in enumerate(segments, 1):
         if segment.kind == "position":
             raise PlanError(f"{name}: [[segments]] #{number}: a position segment re-mounts the IMU; the planner "
                             f"plans the joint estimator on a mounted IMU (statics and turns)")
     if segments[0].kind != "static":
-        raise PlanError(f"{name}: [[segments]] #1: the protocol must start with a static (the level static)")
+        raise PlanError(f"{name}: [[segments]] #1: the campaign must start with a static (the level static)")
     if not any(s.kind == "turn" for s in segments):
         raise PlanError(f"{name}: no turn: yaw and the interface tilt need the platform to turn")
     carousel = any(s.kind == "turn" and abs(s.angle_deg) >= CAROUSEL_DEG for s in segments)
@@ -87,26 +87,26 @@ def protocol_from_scenario(scenario: Scenario, name: str) -> Protocol:
     inclinometers = "incl" in NORMAL_LAYOUTS[scenario.sensor.datagram_id].clusters
     figures = scenario.noise if inclinometers else \
         replace(scenario.noise, incl_vrw_m_s_sqrt_h=None, incl_bias_instability_mg=None)
-    return Protocol(name, quiet, TURNS if carousel else STATICS, figures, inclinometers)
+    return Campaign(name, quiet, TURNS if carousel else STATICS, figures, inclinometers)
 
 
-def builtin_protocol(name: str) -> Protocol:
+def builtin_campaign(name: str) -> Campaign:
     """thesis: the thesis-real scenario (10 min level static, four -90 deg index turns each
     followed by 2 min static, a full turn of -360 deg, 30 s static). index: the same without the
     full turn and its static. continuous: the continuous scenario (2 min static, ten and a
     quarter turns at 10 deg/s, 1 min static: the last static 90 deg from the first, as the
     estimator separates the accelerometer tilt from the biases only with statics at platform
     angles apart)."""
-    if name not in PROTOCOLS:
-        raise PlanError(f"unknown protocol {name!r} (known: {', '.join(PROTOCOLS)})")
+    if name not in CAMPAIGNS:
+        raise PlanError(f"unknown campaign {name!r} (known: {', '.join(CAMPAIGNS)})")
     scenario = load_scenario("continuous" if name == "continuous" else "thesis-real")
     if name == "index":
         scenario = replace(scenario, segments=scenario.segments[:9])
-    return protocol_from_scenario(scenario, name)
+    return campaign_from_scenario(scenario, name)
 
 
-def _protocol(protocol: Protocol | str) -> Protocol:
-    return protocol if isinstance(protocol, Protocol) else builtin_protocol(protocol)
+def _campaign(campaign: Campaign | str) -> Campaign:
+    return campaign if isinstance(campaign, Campaign) else builtin_campaign(campaign)
 
 
 def _whole_turns(segment: Segment, scale: float) -> Segment:
@@ -118,33 +118,33 @@ def _whole_turns(segment: Segment, scale: float) -> Segment:
                                                      segment.angle_deg))
 
 
-def protocol_segments(protocol: Protocol | str, scale: float) -> tuple[Segment, ...]:
-    """The protocol's segments with its scalable part times `scale` (1 = nominal): every static's
+def campaign_segments(campaign: Campaign | str, scale: float) -> tuple[Segment, ...]:
+    """The campaign's segments with its scalable part times `scale` (1 = nominal): every static's
     duration, or the whole turns of its continuous-rotation turns."""
-    protocol = _protocol(protocol)
-    if protocol.scales == TURNS:
+    campaign = _campaign(campaign)
+    if campaign.scales == TURNS:
         return tuple(_whole_turns(s, scale) if s.kind == "turn" and abs(s.angle_deg) >= CAROUSEL_DEG else s
-                     for s in protocol.scenario.segments)
+                     for s in campaign.scenario.segments)
     return tuple(replace(s, duration_s=s.duration_s * scale) if s.kind == "static" else s
-                 for s in protocol.scenario.segments)
+                 for s in campaign.scenario.segments)
 
 
-def _scenario(protocol: Protocol, scale: float, site: Site):
-    """The protocol's scenario, scaled, without noise, warm-up or temperature drift, at `site`."""
-    return replace(protocol.scenario, site=site, segments=protocol_segments(protocol, scale))
+def _scenario(campaign: Campaign, scale: float, site: Site):
+    """The campaign's scenario, scaled, without noise, warm-up or temperature drift, at `site`."""
+    return replace(campaign.scenario, site=site, segments=campaign_segments(campaign, scale))
 
 
-def duration_s(protocol: Protocol | str, scale: float) -> float:
-    """Data time of the scaled protocol, from the level static to the end (no simulation)."""
-    return schedule(_scenario(_protocol(protocol), scale, Site(0.0)))[-1].end_s
+def duration_s(campaign: Campaign | str, scale: float) -> float:
+    """Data time of the scaled campaign, from the level static to the end (no simulation)."""
+    return schedule(_scenario(_campaign(campaign), scale, Site(0.0)))[-1].end_s
 
 
-def _resolution_s(protocol: Protocol) -> float:
-    """The step the protocol's data time takes as its scale changes, at most: one revolution of
+def _resolution_s(campaign: Campaign) -> float:
+    """The step the campaign's data time takes as its scale changes, at most: one revolution of
     each continuous-rotation turn for whole turns; statics scale continuously."""
-    if protocol.scales != TURNS:
+    if campaign.scales != TURNS:
         return 0.0
-    return sum(360.0 / s.peak_rate_deg_s for s in protocol.scenario.segments
+    return sum(360.0 / s.peak_rate_deg_s for s in campaign.scenario.segments
                if s.kind == "turn" and abs(s.angle_deg) >= CAROUSEL_DEG)
 
 
@@ -216,7 +216,7 @@ def _figure(axes: dict, sensor: str, axis: str, name: str, unit: str, where: str
 
 @dataclass
 class Plan:
-    protocol: Protocol
+    campaign: Campaign
     scale: float
     segments: tuple[Segment, ...]
     duration_s: float
@@ -236,12 +236,12 @@ class Plan:
         return checked_by_statics(self.session, result, self.site).sigmas["yaw"]
 
 
-def _session(protocol: Protocol, scale: float, site: Site, inclinometers: bool) -> tuple[JointInput, float]:
-    """The scaled protocol's noise-free session as the joint estimator takes it, block-averaged
+def _session(campaign: Campaign, scale: float, site: Site, inclinometers: bool) -> tuple[JointInput, float]:
+    """The scaled campaign's noise-free session as the joint estimator takes it, block-averaged
     to PLAN_RATE_HZ (averages of interval averages: the model stays exact); statics are the
     whole blocks inside the scheduled static segments. Without `inclinometers` the session is a
     gyro + accelerometer unit's."""
-    sim = simulate(_scenario(protocol, scale, site))
+    sim = simulate(_scenario(campaign, scale, site))
     rate = sim.scenario.sensor.sample_rate_hz
     block = max(1, round(rate / PLAN_RATE_HZ))
     n = len(sim.time_s) // block
@@ -267,30 +267,30 @@ def check_site(site: Site) -> None:
                         f"{math.degrees(math.acos(MIN_COS_LATITUDE)):.1f} deg")
 
 
-def plan(protocol: Protocol | str, site: Site, figures: Noise, scale: float = 1.0,
+def plan(campaign: Campaign | str, site: Site, figures: Noise, scale: float = 1.0,
          options: JointOptions = JointOptions()) -> Plan:
-    """Every estimate's expected 1-sigma for the protocol at `scale`, from the joint estimator
+    """Every estimate's expected 1-sigma for the campaign at `scale`, from the joint estimator
     (with the factory residuals' prior unless `options` leaves it out); for a unit without
-    inclinometers when the protocol's sensor or `figures` has none. The inclinometer figures
+    inclinometers when the campaign's sensor or `figures` has none. The inclinometer figures
     are taken at 0 g and made larger on the axis along gravity, as the estimator takes them."""
     check_site(site)
-    protocol = _protocol(protocol)
-    segments = protocol_segments(protocol, scale)
-    inclinometers = protocol.inclinometers and figures.incl_vrw_m_s_sqrt_h is not None
+    campaign = _campaign(campaign)
+    segments = campaign_segments(campaign, scale)
+    inclinometers = campaign.inclinometers and figures.incl_vrw_m_s_sqrt_h is not None
     try:
-        inp, seconds = _session(protocol, scale, site, inclinometers)
+        inp, seconds = _session(campaign, scale, site, inclinometers)
     except ScenarioError as exc:  # what only the simulation finds: a session too long to hold
-        raise PlanError(f"{protocol.name}: {exc}") from None
+        raise PlanError(f"{campaign.name}: {exc}") from None
     along = None if inp.incl is None else inp.incl[slice(*inp.statics[0])].mean(axis=0) / STANDARD_GRAVITY
     noise = datasheet_noise(figures if inclinometers else replace(
         figures, incl_vrw_m_s_sqrt_h=None, incl_bias_instability_mg=None), inp.rate_hz, along)
     try:
         result = solve(inp, site, options, noise=noise)
-    except Underdetermined as exc:  # what the protocol lacks, said for the protocol
-        raise PlanError(f"{protocol.name}: {exc}") from None
+    except Underdetermined as exc:  # what the campaign lacks, said for the campaign
+        raise PlanError(f"{campaign.name}: {exc}") from None
     result = checked_by_statics(inp, result, site)  # as calibrate does: a tilted axis sees more
     factory = {name: parts.get("factory_residuals", 0.0) for name, parts in result.sigma_budget().items()}
-    return Plan(protocol, scale, segments, seconds, result.sigmas, factory, site, inp, noise)
+    return Plan(campaign, scale, segments, seconds, result.sigmas, factory, site, inp, noise)
 
 
 @dataclass
@@ -305,44 +305,44 @@ class Reach:
     short_of_it: Plan | None
 
 
-def scale_for_duration(protocol: Protocol | str, seconds: float) -> float:
+def scale_for_duration(campaign: Campaign | str, seconds: float) -> float:
     """The largest scale whose data time is at most `seconds` (bisection on the schedule)."""
-    protocol = _protocol(protocol)
+    campaign = _campaign(campaign)
     lo, hi = MIN_SCALE, MIN_SCALE
-    while duration_s(protocol, hi) <= seconds:
+    while duration_s(campaign, hi) <= seconds:
         lo, hi = hi, 2 * hi
     for _ in range(40):
         mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if duration_s(protocol, mid) <= seconds else (lo, mid)
+        lo, hi = (mid, hi) if duration_s(campaign, mid) <= seconds else (lo, mid)
     return lo
 
 
-def time_to_target(protocol: Protocol | str, site: Site, figures: Noise, target_yaw: float,
+def time_to_target(campaign: Campaign | str, site: Site, figures: Noise, target_yaw: float,
                    max_session_s: float = MAX_SESSION_S) -> Reach:
-    """The shortest scaled protocol (WHAT_SCALES) whose yaw 1-sigma is at most `target_yaw` (rad).
+    """The shortest scaled campaign (WHAT_SCALES) whose yaw 1-sigma is at most `target_yaw` (rad).
     From the nominal layout the scale halves down to MIN_SCALE or doubles up to the longest
     layout within `max_session_s` until the target is bracketed, then bisection narrows the
     bracket to TIME_TOLERANCE of the data time (one revolution for whole turns; the data time is
     an increasing affine function of the scale). More data of the same layout never raises the
     sigma here, so the search is monotone."""
-    protocol = _protocol(protocol)
-    nominal = plan(protocol, site, figures)
-    longest_scale = scale_for_duration(protocol, max_session_s)
+    campaign = _campaign(campaign)
+    nominal = plan(campaign, site, figures)
+    longest_scale = scale_for_duration(campaign, max_session_s)
     if nominal.sigmas["yaw"] <= target_yaw:
-        low, high = plan(protocol, site, figures, MIN_SCALE), nominal
+        low, high = plan(campaign, site, figures, MIN_SCALE), nominal
         if low.sigmas["yaw"] <= target_yaw:
             return Reach(target_yaw, nominal, low, None)
     else:
-        low = nominal if nominal.scale <= longest_scale else plan(protocol, site, figures, longest_scale)
+        low = nominal if nominal.scale <= longest_scale else plan(campaign, site, figures, longest_scale)
         high = None
         while high is None and low.scale < longest_scale:
-            longer = plan(protocol, site, figures, min(2 * low.scale, longest_scale))
+            longer = plan(campaign, site, figures, min(2 * low.scale, longest_scale))
             low, high = (low, longer) if longer.sigmas["yaw"] <= target_yaw else (longer, None)
         if high is None:
             return Reach(target_yaw, nominal, None, low)
-    step = _resolution_s(protocol)
+    step = _resolution_s(campaign)
     while high.duration_s - low.duration_s > max(TIME_TOLERANCE * high.duration_s, step * 1.001):
-        mid = plan(protocol, site, figures, 0.5 * (low.scale + high.scale))
+        mid = plan(campaign, site, figures, 0.5 * (low.scale + high.scale))
         low, high = (low, mid) if mid.sigmas["yaw"] <= target_yaw else (mid, high)
     return Reach(target_yaw, nominal, high, low)
 
@@ -360,8 +360,8 @@ def _figures_text(figures: Noise, inclinometers: bool) -> str:
 def report(reach: Reach, figures: Noise) -> str:
     """What `calibd plan` prints: the nominal layout and its sigmas, then the time to the target."""
     nominal, site = reach.nominal, reach.nominal.site
-    protocol = nominal.protocol
-    lines = [f"{protocol.name} protocol at latitude {site.latitude_deg:g} deg, g0 {site.gravity:.5f} m/s^2",
+    campaign = nominal.campaign
+    lines = [f"{campaign.name} campaign at latitude {site.latitude_deg:g} deg, g0 {site.gravity:.5f} m/s^2",
              f"noise: {_figures_text(figures, nominal.session.incl is not None)}",
              f"nominal: {nominal.duration_s / 60:.1f} min of data: {describe(nominal.segments)}",
              "expected 1-sigma of the joint estimates (of it, the factory residuals' prior: what more data "
@@ -370,7 +370,7 @@ def report(reach: Reach, figures: Noise) -> str:
         factor, unit = ESTIMATES[name]
         lines.append(f"  {name:12s} {sigma * factor:10.3g} {unit:6s} ({nominal.factory[name] * factor:.3g} {unit})")
     target = reach.target_yaw / DEG
-    lines.append(f"time to a yaw 1-sigma of {target:g} deg ({WHAT_SCALES[protocol.scales]}):")
+    lines.append(f"time to a yaw 1-sigma of {target:g} deg ({WHAT_SCALES[campaign.scales]}):")
     if reach.reached is None:
         longest = reach.short_of_it
         floor, there, minutes = longest.floor_yaw() / DEG, longest.sigmas["yaw"] / DEG, longest.duration_s / 60
@@ -381,9 +381,9 @@ def report(reach: Reach, figures: Noise) -> str:
         else:
             lines.append(f"  not reachable within {minutes:.1f} min, the longest searched: {there:.4g} deg there; "
                          f"bias instability and the factory residuals' prior would leave {floor:.4g} deg")
-        if protocol.scales != TURNS:
+        if campaign.scales != TURNS:
             lines.append("  (continuous rotation averages bias instability away, but the gyro Z scale factor's "
-                         "prior grows its yaw with every turn: --protocol continuous)")
+                         "prior grows its yaw with every turn: --campaign continuous)")
     else:
         got = reach.reached
         lines.append(f"  {got.duration_s / 60:.1f} min of data: {describe(got.segments)}")

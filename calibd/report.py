@@ -100,12 +100,12 @@ def write_report(result_path, capture: CaptureSessions, output, stream=None, svg
 
 
 def thesis_comparison(session: Session, site: Site, segments: list[detect.Segment]) -> CalibrationResult | str:
-    """The thesis method's result on the same segments, or why there is none: what its protocol
+    """The thesis method's result on the same segments, or why there is none: what its campaign
     lacks, in the words of the session's progress record (the daemon's, so the two never
     disagree), else what the data cannot give."""
     record = progress("thesis", segments)
     if not record.complete:
-        return f"its protocol lacks {record.missing}; found {record.found()}"
+        return f"its campaign lacks {record.missing}; found {record.found()}"
     method = estimator("thesis")
     try:
         return method.solve(session, site, segments, method.options({}))
@@ -282,10 +282,9 @@ def _checks(result: CalibrationResult) -> str:
 def _stream(result: CalibrationResult, whole: Session) -> str:
     s = whole.stream
     duration = float(whole.time_s[-1]) + 1.0 / whole.rate_hz
-    rows = [("datagrams", f"{s['datagrams']} datagrams"), ("CRC errors", f"{s['crc_errors']} spans"),
-            ("lost samples", f"{s['lost_samples']} samples"), ("sensor restarts", f"{s['restarts']} restarts"),
-            *([("datagrams with fault flags", f"{s['flagged_datagrams']} datagrams")]
-              if "flagged_datagrams" in s else []),
+    rows = [("datagrams", f"{s.datagrams} datagrams"), ("CRC errors", f"{s.crc_errors} spans"),
+            ("lost samples", f"{s.lost_samples} samples"), ("sensor restarts", f"{s.restarts} restarts"),
+            ("datagrams with fault flags", f"{s.flagged_datagrams} datagrams"),
             ("duration", f"{duration:.3f} s at {whole.rate_hz} Hz")]
     sensor = result.sensor
     rows += [(label, value) for value, label in ((sensor.serial_number, "serial number"),

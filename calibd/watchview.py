@@ -1,4 +1,4 @@
-"""What `calibd watch` shows (as gpsmon/cgps show a receiver): the daemon's state and protocol
+"""What `calibd watch` shows (as gpsmon/cgps show a receiver): the daemon's state and campaign
 progress, every estimate with its sigma and unit, the result's staleness, stream health, the
 device and, when samples are watched, their rate and live values. `WatchView` gathers the
 messages; `render` (view -> lines, fitted to a terminal's width) and `WatchView.update`'s event
@@ -32,7 +32,7 @@ _SUFFIX_UNITS = (("_deg_s", "deg/s"), ("_deg_h", "deg/h"), ("_deg", "deg"), ("_h
 
 def progress_text(progress: dict) -> str:
     """A flat progress object in words: whatever keys it has, units taken from their names;
-    `missing` last, and "protocol complete" where it is null."""
+    `missing` last, and "campaign complete" where it is null."""
     parts = []
     for key, value in progress.items():
         if key == "missing":
@@ -50,7 +50,7 @@ def progress_text(progress: dict) -> str:
             text = f"{value}{unit}"
         parts.append(f"{name.replace('_', ' ')} {text}")
     if "missing" in progress:
-        parts.append(f"missing: {progress['missing']}" if progress["missing"] else "protocol complete")
+        parts.append(f"missing: {progress['missing']}" if progress["missing"] else "campaign complete")
     return ", ".join(parts) if parts else "-"
 
 

@@ -21,7 +21,7 @@ def test_every_public_name_resolves_and_is_listed_once():
 
 
 def test_the_public_errors_share_calibds_root():
-    names = [name for name in calibd.__all__ if name.endswith("Error") or name == "ProtocolIncomplete"]
+    names = [name for name in calibd.__all__ if name.endswith("Error") or name == "CampaignIncomplete"]
     errors = [getattr(calibd, name) for name in names]
     assert len(errors) >= 8
     assert all(issubclass(e, calibd.CalibdError) for e in errors)

@@ -76,9 +76,9 @@ def test_the_trigger_is_cleared_by_a_look_that_ends_on_a_static_only():
     session = load_session(str(HEADING137))
     segments = session_segments(session)
     turn = next(k for k, s in enumerate(segments) if s.kind == "turn")
-    assert not trigger.protocol_done(segments[:turn + 1], estimator("joint"))  # ends on a turn: look again later
+    assert not trigger.campaign_done(segments[:turn + 1], estimator("joint"))  # ends on a turn: look again later
     assert trigger.stopped_moving(t[:0], gyro[:0], float(t[-1]), SETTINGS, RATE_HZ)
-    assert trigger.protocol_done(segments[:turn + 2], estimator("joint"))  # a static after the turn: complete
+    assert trigger.campaign_done(segments[:turn + 2], estimator("joint"))  # a static after the turn: complete
     assert not trigger.stopped_moving(t[:0], gyro[:0], float(t[-1]), SETTINGS, RATE_HZ)
 
 
@@ -197,7 +197,7 @@ def test_without_temperatures_the_watch_waits_the_window_since_power_up():
 # ---- one solve ------------------------------------------------------------------------------
 
 @pytest.mark.slow
-def test_a_solve_says_what_the_protocol_lacks_or_gives_the_result_with_its_session_record():
+def test_a_solve_says_what_the_campaign_lacks_or_gives_the_result_with_its_session_record():
     session = load_session(str(HEADING137))
     segments = session_segments(session)
     lacking = solve(session, segments[:1], Site(60.0), MethodConfig(), 4)
@@ -210,7 +210,7 @@ def test_a_solve_says_what_the_protocol_lacks_or_gives_the_result_with_its_sessi
     assert solved.result.session.duration_s == pytest.approx(float(session.time_s[-1]))
     yaw = solved.result.estimates["yaw"]
     assert solved.detail == (f"solved on {session.time_s[-1]:.0f} s: yaw {value_sigma(yaw.value, yaw.sigma, 'deg')}; "
-                             f"{solved.progress.found()}; protocol complete")
+                             f"{solved.progress.found()}; campaign complete")
     assert solved.progress.complete and solved.progress.fields()["missing"] is None
     stale = stale_result(solved.result, "why")
     assert stale.stale.reason == "why" and stale.warnings[0] == "stale: why"
@@ -251,7 +251,7 @@ def test_listeners_hear_the_state_sequence_of_a_fixture_replay_in_their_order(tm
     assert state["state"] == "SOLVED" and state["capture"] == "heading137" and state["detail"] == calibrator.detail
     from calibd.cli import _status  # what `calibd status` prints: the progress record's words, complete once solved
     record = calibrator.progress
-    assert record.complete and f"; {record.found()}; protocol complete), updated " in _status(tmp_path, False)
+    assert record.complete and f"; {record.found()}; campaign complete), updated " in _status(tmp_path, False)
     assert calibrator.progress_fields() | record.fields() == calibrator.progress_fields()  # STATE's progress
     written = json.loads((tmp_path / "result.json").read_text())
     assert written["estimates"]["yaw"]["value"] == calibrator.result.estimates["yaw"].value

@@ -232,14 +232,14 @@ def test_a_bench_capture_refused_by_a_single_mounting_method_points_to_the_bench
 
 
 def test_a_refusal_of_what_is_not_the_bench_campaign_has_no_bench_hint():
-    from calibd.methods import ProtocolIncomplete
+    from calibd.methods import CampaignIncomplete
     from calibd.methods.joint import joint_real_case
     from calibd.captures import load_session
     from calibd.frames import Site
 
     session = load_session("fixtures/thesis_real_cw_125hz.bin")
     first_10_s = {name: getattr(session, name)[:1250] for name in ("time_s", "gyro", "acc", "incl", "temperature_c")}
-    with pytest.raises(ProtocolIncomplete) as refused:  # the level static alone: no turn after it
+    with pytest.raises(CampaignIncomplete) as refused:  # the level static alone: no turn after it
         joint_real_case(replace(session, **first_10_s), Site(40.59129))
     assert "it lacks a turn and a static after it on the level static's mounting" in str(refused.value)
     assert "bench" not in str(refused.value)

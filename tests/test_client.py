@@ -375,9 +375,9 @@ def test_progress_says_every_key_with_its_unit():
 
 
 def test_progress_says_complete_once_nothing_is_missing():
-    """After SOLVED the daemon's record has `missing` null: the words say the protocol is complete."""
+    """After SOLVED the daemon's record has `missing` null: the words say the campaign is complete."""
     solved = {"warm": True, "statics": 6, "index_headings": 4, "missing": None}
-    assert progress_text(solved) == "warm yes, statics 6, index headings 4, protocol complete"
+    assert progress_text(solved) == "warm yes, statics 6, index headings 4, campaign complete"
     assert "missing" not in progress_text(solved) and "complete" not in progress_text({"warm": False})
 
 

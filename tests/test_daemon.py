@@ -30,9 +30,9 @@ from stim300.source import CaptureSource, PtySource
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
 SITE = Site(40.59129, g0=9.79956)
-HEADING137 = FIXTURES / "heading137_lat60_125hz.bin"  # the thesis protocol in 607 s, 300 s level static
+HEADING137 = FIXTURES / "heading137_lat60_125hz.bin"  # the thesis campaign in 607 s, 300 s level static
 SITE_137 = Site(60.0)
-NO_TIMER = MethodConfig(resolve_every_s=1e9)  # solves come from the protocol and the end of the data only
+NO_TIMER = MethodConfig(resolve_every_s=1e9)  # solves come from the campaign and the end of the data only
 SETTLE_AND_MIN_STATIC_S = 1.0 + 5.0  # the segment detector's defaults
 
 
@@ -46,7 +46,7 @@ def run_replay(name: str, warmup: WarmupConfig = WarmupConfig()):
 
 
 @pytest.mark.slow
-def test_warm_up_then_protocol_gives_a_result_near_the_truth():
+def test_warm_up_then_campaign_gives_a_result_near_the_truth():
     truth = json.loads((FIXTURES / "warmup_then_protocol_125hz.bin.truth.json").read_text())["truth"]
     calibrator, changes, results = run_replay("warmup_then_protocol_125hz", WarmupConfig(window_s=100.0))
     assert changes == [State.WARMING_UP, State.COLLECTING, State.SOLVED]
@@ -71,7 +71,7 @@ def test_the_state_progress_and_detail_are_one_record_complete_once_solved():
         statics = int(re.search(r"(\d+) statics? at (\d)/4 index headings", detail).group(1))
         assert (statics, detail.split("waiting for: ")[1]) == (fields["statics"], fields["missing"]), detail
     solved = [(detail, fields) for state, detail, fields in said if state == State.SOLVED]
-    assert solved and all(fields["missing"] is None and detail.endswith("; protocol complete")
+    assert solved and all(fields["missing"] is None and detail.endswith("; campaign complete")
                           for detail, fields in solved)
     assert f"{solved[-1][1]['statics']} statics at {solved[-1][1]['index_headings']}/4 index headings" in solved[-1][0]
 
@@ -477,10 +477,10 @@ def test_the_replay_of_a_capture_that_needs_no_warm_up_gives_calibrates_result()
 
 @pytest.mark.parametrize("method", ["joint", "thesis"])
 @pytest.mark.slow
-def test_a_complete_protocol_is_solved_once_the_platform_has_settled(method):
+def test_a_complete_campaign_is_solved_once_the_platform_has_settled(method):
     """Fed in 0.2 s batches (as the live loop drains its ring) with no re-solve timer, the
     calibrator solves within the settle time, the minimum static and one batch (plus the
-    detector's 0.2 s smoothing) of the end of each turn that completes the method's protocol:
+    detector's 0.2 s smoothing) of the end of each turn that completes the method's campaign:
     the joint method after every turn, the thesis method after the full turn only."""
     samples = decode_capture(HEADING137.read_bytes()).samples
     turns = [p for p in json.loads(Path(f"{HEADING137}.truth.json").read_text())["schedule"] if p["kind"] == "turn"]
@@ -491,7 +491,7 @@ def test_a_complete_protocol_is_solved_once_the_platform_has_settled(method):
         now_s[0] = min(start + batch, len(samples)) / 125
         calibrator.feed(samples[start:start + batch], 125)
     completing = turns if method == "joint" else turns[-1:]
-    assert len(solved_at_s) == len(completing)  # nothing before the protocol is complete, one solve per turn after
+    assert len(solved_at_s) == len(completing)  # nothing before the campaign is complete, one solve per turn after
     for turn, solved_s in zip(completing, solved_at_s):
         earliest_s = turn["end_s"] + SETTLE_AND_MIN_STATIC_S
         assert earliest_s - 0.2 <= solved_s <= earliest_s + batch / 125 + 0.2, (turn["end_s"], solved_s)
@@ -644,7 +644,7 @@ def test_a_broken_configuration_on_sighup_keeps_the_daemon_running(tmp_path):
 
 def test_a_fault_inside_the_estimator_is_an_error_not_a_wait(monkeypatch, tmp_path, capsys):
     """A programming error in the solver (here a numpy broadcasting error) is not mistaken for a
-    protocol that lacks something: the daemon says the solve failed and logs the traceback, and
+    campaign that lacks something: the daemon says the solve failed and logs the traceback, and
     the command line ends with one line and exit status 1."""
     import calibd.estimators.joint as joint
 

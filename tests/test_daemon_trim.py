@@ -29,7 +29,7 @@ from stim300.source import PortSource
 from stim300.stream import StreamParser, TrimSeen
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
-HEADING137 = FIXTURES / "heading137_lat60_125hz.bin"  # the thesis protocol in 607 s
+HEADING137 = FIXTURES / "heading137_lat60_125hz.bin"  # the thesis campaign in 607 s
 SHORT = FIXTURES / "faults_125hz.bin"  # a sensor restart at 40 s
 A = TrimRecord((2 ** -6, -2 ** -8, 0.0), (0.0, 2 ** -10, 0.0), (0.0, 0.0, -2 ** -13), 777, 9998)  # whole counts
 B = replace(A, gyro_deg_s=(0.0, 0.0, 0.0))

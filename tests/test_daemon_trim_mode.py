@@ -39,7 +39,7 @@ from stim300.source import PortSource
 from stim300.stream import TrimSeen
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
-HEADING137 = FIXTURES / "heading137_lat60_125hz.bin"  # the thesis protocol in 607 s: one solve in about 1.5 s
+HEADING137 = FIXTURES / "heading137_lat60_125hz.bin"  # the thesis campaign in 607 s: one solve in about 1.5 s
 A = TrimRecord((2 ** -6, -2 ** -8, 0.0), (0.0, 2 ** -10, 0.0), (0.0, 0.0, -2 ** -13), 777, 9998)  # whole counts
 UNIT = SensorRecord(serial_number=SERIAL_NUMBER, acc_range_g=10)
 VOLATILE = TrimConfig(apply="volatile")

@@ -115,7 +115,7 @@ def test_a_full_turn_is_judged_on_its_whole_angle_ramps_included(angle_deg, role
     segments = (scenario.segments[0], replace(scenario.segments[-2], angle_deg=angle_deg), scenario.segments[-1])
     found_segments = found(simulate(noiseless(replace(scenario, segments=segments))))
     assert detect.segment_roles(found_segments) == ["static", role, "static"]
-    progress = detect.protocol_progress(found_segments)  # what the daemon shows while collecting
+    progress = detect.campaign_progress(found_segments)  # what the daemon shows while collecting
     assert f"1 {role}," in progress + "," and progress.count(" 0 ") == 2
 
 
@@ -204,14 +204,14 @@ def test_handling_is_no_turn_and_splits_the_statics():
     assert segments[1].platform_angle_deg == 0.0
 
 
-def test_protocol_progress_counts_the_protocol():
-    from calibd.detect import protocol_progress
+def test_campaign_progress_counts_the_campaign():
+    from calibd.detect import campaign_progress
     sim = simulate(load_scenario("thesis-real"))
     s = sim.samples
     segments = detect.find_segments(s["gyro"].astype(float), s["acc"].astype(float), 125)
-    assert protocol_progress(segments) == "6 statics at 4/4 index headings, 4 index turns, 1 full turn, 0 other turns"
+    assert campaign_progress(segments) == "6 statics at 4/4 index headings, 4 index turns, 1 full turn, 0 other turns"
     # index headings: those of the statics after the level static, as index_positions takes them
-    assert protocol_progress(segments[:3]).startswith("2 statics at 1/4 index headings, 1 index turn")
+    assert campaign_progress(segments[:3]).startswith("2 statics at 1/4 index headings, 1 index turn")
 
 
 def test_thresholds_follow_the_sensor_noise(real):

@@ -195,7 +195,7 @@ def test_a_bad_document_is_exit_2_and_one_line_naming_file_and_field(command, de
             "report": ["report", bad, SMALL, "-o", out / "r.html"],
             "status result.json": ["status", "--state-dir", ins],
             "status state.json": ["status", "--state-dir", ins, "--json"],
-            "plan --noise": ["plan", "--protocol", "thesis", "--latitude", "40", "--noise", bad],
+            "plan --noise": ["plan", "--campaign", "thesis", "--latitude", "40", "--noise", bad],
             "plan --scenario": ["plan", "--scenario", bad],
             "simulate": ["simulate", bad, "-o", out / "c.bin"]}[command]
     code = calibd_main([str(a) for a in argv])

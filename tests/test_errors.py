@@ -33,7 +33,7 @@ def test_every_calibd_error_is_a_calibd_error_and_none_is_a_value_error():
         errors |= {cls for _, cls in inspect.getmembers(module, inspect.isclass)
                    if issubclass(cls, Exception) and cls.__module__.startswith("calibd.")}
     names = {cls.__name__ for cls in errors}
-    assert {"CalibrationError", "ProtocolIncomplete", "ConfigError", "ResultError", "ScenarioError", "NoiseError",
+    assert {"CalibrationError", "CampaignIncomplete", "ConfigError", "ResultError", "ScenarioError", "NoiseError",
             "PlanError", "ReportError", "Underdetermined"} <= names
     for cls in errors:
         assert issubclass(cls, CalibdError), cls
@@ -45,7 +45,7 @@ def test_every_calibd_error_is_a_calibd_error_and_none_is_a_value_error():
     ("ConfigError", ["replay", "{garbage}", "--config", "{tmp}/missing.toml"], "no such configuration file"),
     ("ScenarioError", ["simulate", "{tmp}/missing.toml", "-o", "{tmp}/s.bin"], "no such scenario file"),
     ("ResultError", ["report", "{garbage}", CAPTURE, "-o", "{tmp}/report.html"], "not JSON"),
-    ("PlanError", ["plan", "--protocol", "thesis", "--noise", "{garbage}", "--latitude", "40"], "not a JSON noise"),
+    ("PlanError", ["plan", "--campaign", "thesis", "--noise", "{garbage}", "--latitude", "40"], "not a JSON noise"),
     ("ReportError", ["report", "{empty_result}", CAPTURE, "-o", "{tmp}/report.html"], "has no estimates"),
 ])
 def test_each_error_is_one_line_from_the_cli(error, argv, says, tmp_path, capsys):

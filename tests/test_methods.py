@@ -1,5 +1,5 @@
 """The estimator seam: the registry names the methods, each says what a partial session still
-lacks (None once it holds the protocol) and solves through one call; the daemon, `calibd
+lacks (None once it holds the campaign) and solves through one call; the daemon, `calibd
 calibrate` and the configuration find methods there."""
 
 import dataclasses
@@ -13,7 +13,7 @@ from calibd.captures import load_session
 from calibd.segments import session_segments
 from calibd.config import ConfigError, MethodConfig, WarmupConfig, parse_config
 from calibd.daemon import Calibrator, Callbacks
-from calibd.methods import (DAEMON_METHODS, ESTIMATORS, JointOptions, OptionError, ProtocolIncomplete,
+from calibd.methods import (DAEMON_METHODS, ESTIMATORS, CampaignIncomplete, JointOptions, OptionError,
                             ThesisOptions, estimator)
 from calibd.frames import Site
 from calibd.results import CalibrationResult
@@ -25,7 +25,7 @@ SITE = Site(40.59129, g0=9.79956)
 
 @pytest.fixture(scope="module")
 def sessions():
-    """name -> (session, segments) of the fixtures each protocol's method is made for."""
+    """name -> (session, segments) of the fixtures each campaign's method is made for."""
     out = {}
     for name, capture in (("joint", "heading137_lat60_125hz"), ("thesis", "thesis_real_cw_125hz"),
                           ("thesis-bench", "thesis_bench_125hz")):
@@ -72,7 +72,7 @@ def test_a_solve_refuses_exactly_what_missing_says_in_its_words(sessions, name):
     short = [k for k in range(len(segments)) if method.missing(segments[:k])]
     assert len(short) >= 3
     for k in short:
-        with pytest.raises(ProtocolIncomplete) as refused:
+        with pytest.raises(CampaignIncomplete) as refused:
             method.solve(session, SITE, segments[:k], method.options({}))
         assert refused.value.reason.endswith(f"it lacks {method.missing(segments[:k])}"), (k, refused.value)
 
@@ -83,7 +83,7 @@ def test_the_bench_names_the_positions_it_lacks(sessions):
     assert lacking == "a static with -Z up, a full turn (at least 350 deg)"
 
 
-def test_a_turn_still_under_way_does_not_complete_the_joint_protocol(sessions):
+def test_a_turn_still_under_way_does_not_complete_the_joint_campaign(sessions):
     _, segments = sessions["joint"]
     level_then_turn = segments[:2]
     assert [s.kind for s in level_then_turn] == ["static", "turn"]
@@ -104,7 +104,7 @@ def test_the_daemon_asks_the_registry(monkeypatch):
             return "a stand-in's needs"
 
         def solve(self, *args):
-            raise AssertionError("solved although the protocol is incomplete")
+            raise AssertionError("solved although the campaign is incomplete")
 
     monkeypatch.setitem(ESTIMATORS, "joint", Lacking())
     samples = decode_capture((FIXTURES / "heading137_lat60_125hz.bin").read_bytes()).samples

@@ -101,7 +101,7 @@ def test_noise_has_six_channels_and_plan_reads_the_file_as_a_unit_without_inclin
         assert without.sigmas["pitch"] == pytest.approx(with_incl.sigmas["pitch"], rel=1e-6) if lost == 1.0 else \
             without.sigmas["pitch"] > lost * with_incl.sigmas["pitch"]
     capsys.readouterr()
-    assert calibd_main(["plan", "--latitude", "45", "--protocol", "index", "--noise", str(path)]) == 0
+    assert calibd_main(["plan", "--latitude", "45", "--campaign", "index", "--noise", str(path)]) == 0
     printed = capsys.readouterr().out
     assert "no inclinometers" in printed and "incl_bias" not in printed
 

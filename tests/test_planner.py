@@ -1,4 +1,4 @@
-"""The protocol planner: the joint estimator's own covariance under given noise figures (checked
+"""The campaign planner: the joint estimator's own covariance under given noise figures (checked
 against the estimator on a noisy session, the white-noise Cramer-Rao bound and the measured Monte
 Carlo), the analytic scalings with data time and latitude, the time-to-target search, the command."""
 
@@ -93,7 +93,7 @@ def test_yaw_sigma_matches_the_measured_monte_carlo(thesis_plan):
 
 @pytest.mark.slow
 def test_white_noise_sigma_falls_as_one_over_root_time():
-    """White noise only: doubling the statics of the index protocol (nearly all its data)
+    """White noise only: doubling the statics of the index campaign (nearly all its data)
     divides the sigma of what the statics determine by sqrt of the data time ratio; alpha and
     beta come from the turns, which are kept, and stay, and so does most of the horizontal
     accelerometer biases' sigma (g0 d_beta); bias instability does not average so."""
@@ -112,7 +112,7 @@ def test_white_noise_sigma_falls_as_one_over_root_time():
 
 @pytest.mark.parametrize("latitude", [0.0, -33.9, 70.0])
 def test_yaw_sigma_grows_as_one_over_cos_latitude(noise_plan, latitude):
-    """Yaw comes from the horizontal Earth rate Omega_E cos(lat); nothing else in the protocol's
+    """Yaw comes from the horizontal Earth rate Omega_E cos(lat); nothing else in the campaign's
     information depends on latitude."""
     other = planner.plan("thesis", Site(latitude, g0=SITE.g0), STIM300, options=PERFECT)
     expected = noise_plan.sigmas["yaw"] * math.cos(math.radians(SITE.latitude_deg)) / math.cos(math.radians(latitude))
@@ -121,7 +121,7 @@ def test_yaw_sigma_grows_as_one_over_cos_latitude(noise_plan, latitude):
 
 @pytest.mark.slow
 def test_time_to_target_is_the_shortest_meeting_it():
-    target = 2.5 * DEG  # the nominal index protocol gives 1.87 deg: shorter statics do
+    target = 2.5 * DEG  # the nominal index campaign gives 1.87 deg: shorter statics do
     reach = planner.time_to_target("index", SITE, STIM300, target)
     got, short = reach.reached, reach.short_of_it
     assert got.sigmas["yaw"] <= target < short.sigmas["yaw"]
@@ -133,7 +133,7 @@ def test_time_to_target_is_the_shortest_meeting_it():
 
 @pytest.mark.slow
 def test_whole_turns_are_searched_one_revolution_apart():
-    target = 2.0 * DEG  # the nominal continuous protocol (ten turns) gives 2.17 deg
+    target = 2.0 * DEG  # the nominal continuous campaign (ten turns) gives 2.17 deg
     reach = planner.time_to_target("continuous", SITE, STIM300, target)
     got, short = reach.reached, reach.short_of_it
     assert got.sigmas["yaw"] <= target < short.sigmas["yaw"]
@@ -149,12 +149,12 @@ def test_a_target_below_the_flicker_floor_is_not_reachable():
     assert 0.8 * DEG < longest.floor_yaw() < longest.sigmas["yaw"]
 
 
-def test_continuous_protocol_ends_a_quarter_turn_on():
+def test_continuous_campaign_ends_a_quarter_turn_on():
     """Statics at one platform angle cannot separate the accelerometer tilt from the biases: the
     continuous scenario, and the planner's scaled versions of it, end a quarter turn on."""
     assert load_scenario("continuous").segments[1].angle_deg == 3690
-    assert planner.protocol_segments("continuous", 1.0)[1].angle_deg == 3690
-    assert planner.protocol_segments("continuous", 2.0)[1].angle_deg == 20 * 360 + 90
+    assert planner.campaign_segments("continuous", 1.0)[1].angle_deg == 3690
+    assert planner.campaign_segments("continuous", 2.0)[1].angle_deg == 20 * 360 + 90
 
 
 def noise_file(tmp_path, drop=None, **change) -> Path:
@@ -190,7 +190,7 @@ def test_a_noise_file_gives_the_inclinometers_figure_at_0_g_from_x_and_y(tmp_pat
 
 @pytest.mark.slow
 def test_plan_command_prints_every_sigma_and_the_time(tmp_path, run_main):
-    argv = ["plan", "--latitude", "40.59129", "--g0", "9.79956", "--protocol", "index", "--target-yaw-deg", "2.5"]
+    argv = ["plan", "--latitude", "40.59129", "--g0", "9.79956", "--campaign", "index", "--target-yaw-deg", "2.5"]
     code, out, err = run_main(calibd_main, argv)
     assert code == 0, err
     for name, unit in (("yaw", "deg"), ("gyro_bias_y", "deg/h"), ("acc_bias_z", "mg"), ("incl_bias_x", "mg")):
@@ -202,17 +202,28 @@ def test_plan_command_prints_every_sigma_and_the_time(tmp_path, run_main):
 
 
 @pytest.mark.parametrize("argv,message", [
-    (["--protocol", "carousel"], "unknown protocol 'carousel'"),
-    (["--protocol", "thesis", "--latitude", "90"], "latitude 90 deg: the horizontal Earth rate"),
-    (["--protocol", "thesis", "--noise", "missing.json"], "missing.json: no such file"),
-    (["--protocol", "thesis", "--noise", "NOISE", "--arw", "0.2"], "not both"),
-    (["--protocol", "thesis", "--arw", "-1"], "outside"),
+    (["--campaign", "carousel"], "unknown campaign 'carousel'"),
+    (["--campaign", "thesis", "--latitude", "90"], "latitude 90 deg: the horizontal Earth rate"),
+    (["--campaign", "thesis", "--noise", "missing.json"], "missing.json: no such file"),
+    (["--campaign", "thesis", "--noise", "NOISE", "--arw", "0.2"], "not both"),
+    (["--campaign", "thesis", "--arw", "-1"], "outside"),
 ])
 def test_plan_command_errors_are_one_line(argv, message, tmp_path, run_main, monkeypatch):
     monkeypatch.chdir(tmp_path)
     Path("NOISE").write_text("{}")
     code, _, err = run_main(calibd_main, ["plan", "--latitude", "40", *argv])
     assert code == 2 and message in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_campaign_is_also_taken_by_its_former_name_protocol(run_main):
+    from calibd.cli import build_parser
+
+    for option in ("--campaign", "--protocol"):
+        assert build_parser().parse_args(["plan", "--latitude", "40", option, "index"]).campaign == "index"
+        code, _, err = run_main(calibd_main, ["plan", "--latitude", "40", option, "carousel"])
+        assert code == 2 and "unknown campaign 'carousel'" in err, err
+    plan_help = build_parser()._subparsers._group_actions[0].choices["plan"].format_help()
+    assert "--campaign" in plan_help and "--protocol" not in plan_help
 
 
 @pytest.mark.parametrize("content,message", [
@@ -239,7 +250,7 @@ def test_bad_noise_files_are_one_line(content, message, tmp_path, run_main):
         key, value = content.split("=")
         value = None if value == "None" else float(value) if value[0].isdigit() else value
         path = noise_file(tmp_path, **{key: value})
-    code, _, err = run_main(calibd_main, ["plan", "--latitude", "40", "--protocol", "thesis", "--noise", path])
+    code, _, err = run_main(calibd_main, ["plan", "--latitude", "40", "--campaign", "thesis", "--noise", path])
     assert code == 2 and message in err and len(err.strip().splitlines()) == 1, err
 
 
@@ -254,35 +265,35 @@ def scenario_file(tmp_path, source="thesis-real", name="mine.toml", **replacemen
     return path
 
 
-def test_a_scenario_equal_to_a_builtin_protocol_plans_the_same(tmp_path, thesis_plan):
-    """The planner reads a scenario's steps as the built-in protocols' are read: a copy of the
-    thesis-real scenario is the thesis protocol, of the continuous one the continuous protocol
+def test_a_scenario_equal_to_a_builtin_campaign_plans_the_same(tmp_path, thesis_plan):
+    """The planner reads a scenario's steps as the built-in campaigns' are read: a copy of the
+    thesis-real scenario is the thesis campaign, of the continuous one the continuous campaign
     (its whole turns scale)."""
     path = scenario_file(tmp_path)
-    mine = planner.protocol_from_scenario(load_scenario(str(path)), str(path))
+    mine = planner.campaign_from_scenario(load_scenario(str(path)), str(path))
     assert mine.scales == planner.STATICS and mine.figures == STIM300
     assert planner.plan(mine, SITE, mine.figures).sigmas == thesis_plan.sigmas
-    carousel = planner.protocol_from_scenario(load_scenario(str(scenario_file(tmp_path, "continuous"))), "carousel")
+    carousel = planner.campaign_from_scenario(load_scenario(str(scenario_file(tmp_path, "continuous"))), "carousel")
     assert carousel.scales == planner.TURNS
     for scale in (0.5, 1.0, 3.0):
-        assert planner.protocol_segments(carousel, scale) == planner.protocol_segments("continuous", scale)
+        assert planner.campaign_segments(carousel, scale) == planner.campaign_segments("continuous", scale)
     assert planner.duration_s(carousel, 3.0) == planner.duration_s("continuous", 3.0)
 
 
 @pytest.mark.slow
 def test_plan_command_takes_a_scenario_file(tmp_path, run_main):
-    """`calibd plan --scenario` prints what `--protocol` prints for the same steps (its site from
+    """`calibd plan --scenario` prints what `--campaign` prints for the same steps (its site from
     the scenario's [site]); only the name differs."""
     path = scenario_file(tmp_path, index=("duration_s = 120\n\n[[segments]]\ntype = \"turn\"\nangle_deg = -360",
                                           "duration_s = 120\n\n[[segments]]\ntype = \"turn\"\nangle_deg = -90"))
-    index = ["plan", "--latitude", "40.59129", "--g0", "9.79956", "--protocol", "index", "--target-yaw-deg", "2.5"]
+    index = ["plan", "--latitude", "40.59129", "--g0", "9.79956", "--campaign", "index", "--target-yaw-deg", "2.5"]
     code, builtin, err = run_main(calibd_main, index)
     assert code == 0, err
     text = path.read_text().split("[[segments]]")
-    path.write_text("[[segments]]".join(text[:10]))  # level static, four index turns and statics: the index protocol
+    path.write_text("[[segments]]".join(text[:10]))  # level static, four index turns and statics: the index campaign
     code, out, err = run_main(calibd_main, ["plan", "--scenario", path, "--target-yaw-deg", "2.5"])
     assert code == 0, err
-    assert out.splitlines()[0] == f"{path} protocol at latitude 40.5913 deg, g0 9.79956 m/s^2"
+    assert out.splitlines()[0] == f"{path} campaign at latitude 40.5913 deg, g0 9.79956 m/s^2"
     assert out.splitlines()[1:] == builtin.splitlines()[1:]
 
 
@@ -291,12 +302,12 @@ def test_longer_statics_in_a_scenario_give_smaller_sigmas(tmp_path, noise_plan, 
     the statics' forces see them better)."""
     path = scenario_file(tmp_path, level=("duration_s = 600\n", "duration_s = 1200\n"),
                          index=("duration_s = 120\n", "duration_s = 240\n"))
-    protocol = planner.protocol_from_scenario(load_scenario(str(path)), "longer")
-    longer = planner.plan(protocol, SITE, STIM300, options=PERFECT)
+    campaign = planner.campaign_from_scenario(load_scenario(str(path)), "longer")
+    longer = planner.plan(campaign, SITE, STIM300, options=PERFECT)
     assert longer.duration_s == pytest.approx(noise_plan.duration_s + 600 + 4 * 120)
     for name, sigma in noise_plan.sigmas.items():  # flicker keeps most of them far from 1 / sqrt(2)
         assert longer.sigmas[name] < (0.92 if name == "yaw" or name.startswith("gyro") else 1.0) * sigma, name
-    with_prior = planner.plan(protocol, SITE, STIM300)  # the statics see the residuals a little better
+    with_prior = planner.plan(campaign, SITE, STIM300)  # the statics see the residuals a little better
     assert 0.9 * thesis_plan.factory["alpha"] < with_prior.factory["alpha"] <= thesis_plan.factory["alpha"]
     assert 0.9 * thesis_plan.sigmas["alpha"] < with_prior.sigmas["alpha"] <= thesis_plan.sigmas["alpha"]
 
@@ -322,7 +333,7 @@ def test_a_scenario_gives_the_plan_its_site_noise_and_sensor(tmp_path, run_main)
 @pytest.mark.parametrize("segments,message", [
     ('[[segments]]\ntype = "static"\nduration_s = 300\n', "no turn: yaw and the interface tilt need the platform"),
     ('[[segments]]\ntype = "turn"\nangle_deg = 90\npeak_rate_deg_s = 20\naccel_deg_s2 = 20\n'
-     '[[segments]]\ntype = "static"\nduration_s = 60\n', "[[segments]] #1: the protocol must start with a static"),
+     '[[segments]]\ntype = "static"\nduration_s = 60\n', "[[segments]] #1: the campaign must start with a static"),
     ('[[segments]]\ntype = "static"\nduration_s = 300\n[[segments]]\ntype = "turn"\nangle_deg = 360\n'
      'peak_rate_deg_s = 20\naccel_deg_s2 = 20\n[[segments]]\ntype = "static"\nduration_s = 60\n',
      "the statics cover too few platform angles"),
@@ -344,10 +355,10 @@ def test_bad_scenario_files_are_one_line(segments, message, tmp_path, run_main):
 
 @pytest.mark.parametrize("argv,message", [
     (["--scenario", "missing.toml"], "missing.toml: no such scenario file"),
-    (["--scenario", "thesis-real", "--protocol", "thesis"], "not allowed with argument --scenario"),
-    (["--latitude", "40"], "one of the arguments --protocol --scenario is required"),
-    (["--protocol", "thesis"], "--latitude is needed with --protocol"),
-    (["--scenario", "thesis-real", "--g0", "9.8"], "--latitude is needed with --protocol, --height or --g0"),
+    (["--scenario", "thesis-real", "--campaign", "thesis"], "not allowed with argument --scenario"),
+    (["--latitude", "40"], "one of the arguments --campaign --scenario is required"),
+    (["--campaign", "thesis"], "--latitude is needed with --campaign"),
+    (["--scenario", "thesis-real", "--g0", "9.8"], "--latitude is needed with --campaign, --height or --g0"),
 ])
 def test_plan_command_scenario_usage_errors(argv, message, tmp_path, run_main, monkeypatch):
     monkeypatch.chdir(tmp_path)

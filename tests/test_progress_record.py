@@ -1,6 +1,6 @@
 """The one progress record of a session (calibd.detect.Progress, built by calibd.methods.progress):
 its counts, its index headings (modulo 360 deg) and what it says is missing agree by
-construction, and once the protocol is complete it says so; the daemon's state, `calibd watch`
+construction, and once the campaign is complete it says so; the daemon's state, `calibd watch`
 and the report all show it."""
 
 from __future__ import annotations
@@ -67,7 +67,7 @@ def test_the_joint_record_says_what_is_missing_in_the_terms_of_its_counts(steps,
     record = progress("joint", session(*steps))
     assert (record.statics, record.missing, record.complete) == (statics, missing, missing is None)
     if missing is None:
-        assert record.words().endswith("; protocol complete") and record.fields()["missing"] is None
+        assert record.words().endswith("; campaign complete") and record.fields()["missing"] is None
     else:
         assert record.words().endswith(f"; waiting for: {missing}")
 

@@ -274,7 +274,7 @@ def test_earth_rate_figure_marks_the_yaw():
 
 
 @pytest.mark.slow  # the whole report drawn (the `rendered` fixture)
-def test_segments_are_the_protocols(rendered):
+def test_segments_are_the_campaigns(rendered):
     roles = re.findall(r"<tr><td>\d+</td><td>([a-z ]+)</td>", rendered["page"].split('id="segments"')[1])
     assert roles == ["static", "index turn"] * 4 + ["static", "full turn", "static"]
 
@@ -292,12 +292,12 @@ def _statics_at(*chis: float) -> list[detect.Segment]:
     return out
 
 
-def test_the_thesis_column_says_what_the_protocol_lacks_with_headings_modulo_360():
+def test_the_thesis_column_says_what_the_campaign_lacks_with_headings_modulo_360():
     """A daemon's session whose statics after the level one lie at 90, 180, 270 and 990 deg: the
     thesis method lacks the 0 deg heading, and the count of headings says 3/4, not 4/4."""
     segments = _statics_at(0.0, 90.0, 180.0, 270.0, 990.0)
     note = thesis_comparison(None, SITE, segments)  # the session is not needed to say what is lacking
-    assert note == ("its protocol lacks a static at heading 0 deg after the level static; found 5 statics at 3/4 "
+    assert note == ("its campaign lacks a static at heading 0 deg after the level static; found 5 statics at 3/4 "
                     "index headings, 3 index turns, 1 full turn, 0 other turns")
     table = _segments_table(segments, detect.segment_roles(segments))
     assert "<th>heading [deg]</th>" in table

@@ -92,7 +92,7 @@ def test_replay_serve_gives_state_results_and_the_feeds_samples_and_ignores_garb
     solved = next(m for m in messages if m["class"] == "STATE" and m["state"] == "SOLVED")
     assert solved["progress"]["warm"] is True and solved["progress"]["session_s"] > 100
     last = [m for m in messages if m["class"] == "STATE" and m["state"] == "SOLVED"][-1]["progress"]
-    assert (last["index_headings"], last["index_turns"]) == (4, 4)  # the whole protocol, as offline detection
+    assert (last["index_headings"], last["index_turns"]) == (4, 4)  # the whole campaign, as offline detection
     results = [m["result"] for m in messages if m["class"] == "RESULT"]
     assert results and results[-1] == json.loads((state_dir / "result.json").read_text())
     batches = [m for m in messages if m["class"] == "SAMPLES"]
@@ -247,7 +247,7 @@ def test_replay_serve_corrected_pty_holds_until_a_result_then_subtracts_its_bias
     capture = decode_capture(CAPTURE.read_bytes())
     raw, scales = capture.samples, capture.info.format.scales()
     corrected = decode_capture(got).samples
-    assert 0 < len(corrected) < 0.8 * len(raw)  # held through the warm-up and the protocol
+    assert 0 < len(corrected) < 0.8 * len(raw)  # held through the warm-up and the campaign
     tail = raw[-len(corrected):]
     assert np.array_equal(tail["counter"], corrected["counter"])  # the stream's last datagrams, none lost
     results = [json.loads(path.read_text())["estimates"] for path in sorted((state / "history").glob("*.json"))]

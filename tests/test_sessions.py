@@ -16,7 +16,7 @@ from calibd.scenario import Segment, load_scenario
 from calibd.sim import capture_bytes, power_up_datagrams, simulate
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
-FULL = FIXTURES / "thesis_real_cw_125hz.bin"  # the whole thesis protocol, warm
+FULL = FIXTURES / "thesis_real_cw_125hz.bin"  # the whole thesis campaign, warm
 SITE_ARGS = ["--latitude", "40.59129", "--g0", "9.79956"]
 
 
@@ -43,7 +43,7 @@ def level_only_bytes():
 
 
 @pytest.mark.slow
-def test_a_restart_followed_by_a_level_static_uses_the_power_up_with_the_protocol(level_only_bytes, tmp_path,
+def test_a_restart_followed_by_a_level_static_uses_the_power_up_with_the_campaign(level_only_bytes, tmp_path,
                                                                                   capsys):
     capture = tmp_path / "two.bin"
     capture.write_bytes(FULL.read_bytes() + level_only_bytes)
@@ -60,7 +60,7 @@ def test_a_restart_followed_by_a_level_static_uses_the_power_up_with_the_protoco
 
 
 @pytest.mark.slow
-def test_the_last_power_up_with_the_protocol_wins_and_session_picks_another(level_only_bytes, tmp_path, capsys):
+def test_the_last_power_up_with_the_campaign_wins_and_session_picks_another(level_only_bytes, tmp_path, capsys):
     capture = tmp_path / "two.bin"
     capture.write_bytes(level_only_bytes + FULL.read_bytes())
     code, result, out, err = calibrate(capsys, capture, tmp_path=tmp_path)
@@ -78,7 +78,7 @@ def test_the_last_power_up_with_the_protocol_wins_and_session_picks_another(leve
 
 @pytest.mark.slow
 def test_session_option_picks_the_first_power_up(tmp_path, capsys):
-    """Two whole protocols (0xA7 with temperatures, then 0x93 without): --session 1 is the first."""
+    """Two whole campaigns (0xA7 with temperatures, then 0x93 without): --session 1 is the first."""
     capture = tmp_path / "two.bin"
     capture.write_bytes(FULL.read_bytes() + (FIXTURES / "thesis_real_ccw_125hz.bin").read_bytes())
     code, last, _, err = calibrate(capsys, capture, tmp_path=tmp_path)
@@ -116,7 +116,7 @@ def test_start_past_the_end_is_one_line(tmp_path, capsys):
     assert f"start 5000 s is past the end of power-up 1 of 1 ({duration_s:.1f} s)" in err
 
 
-def test_a_capture_whose_power_ups_all_lack_the_protocol_is_refused_naming_each(tmp_path, capsys):
+def test_a_capture_whose_power_ups_all_lack_the_campaign_is_refused_naming_each(tmp_path, capsys):
     code, _, _, err = calibrate(capsys, FIXTURES / "faults_125hz.bin", tmp_path=tmp_path)
     assert code == 2 and len(err.strip().splitlines()) == 1
     assert "power-up 2 of 2: not the joint" in err and "power-up 1 of 2: not the joint" in err

@@ -23,7 +23,7 @@ pytestmark = pytest.mark.slow
 @pytest.fixture(scope="module")
 def capture(tmp_path_factory) -> Path:
     """44 s at 2000 Hz (120 kB/s, so a 2 s stall leaves 240 kB to read late): statics and two
-    90 deg turns, the joint method's protocol."""
+    90 deg turns, the joint method's campaign."""
     base = load_scenario("thesis-real")
     turn = Segment("turn", angle_deg=90, peak_rate_deg_s=20, accel_deg_s2=20)
     segments = (Segment("static", duration_s=12), turn, Segment("static", duration_s=10), turn,

@@ -1,4 +1,4 @@
-"""A slow temperature ramp (the room warming during the protocol): the joint fit's budget carries
+"""A slow temperature ramp (the room warming during the campaign): the joint fit's budget carries
 the biases' slope with temperature at the datasheet's figure, a ramp moves the estimates as the
 budget predicts, and a power-up that never settles is flagged only where the ramp matters (a
 ramp within RAMP_MODELLED_C_PER_H) or everywhere (a faster one: still warming up)."""

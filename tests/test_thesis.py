@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from calibd import detect
-from calibd.methods import ProtocolIncomplete
+from calibd.methods import CampaignIncomplete
 from calibd.methods.bench import thesis_bench
 from calibd.methods.common import one_period
 from calibd.methods.thesis import thesis_real_case
@@ -281,7 +281,7 @@ def test_a_turn_short_of_350_deg_is_no_full_turn_and_the_refusal_says_so(tmp_pat
     scenario = replace(base, segments=base.segments[:-2] + (replace(base.segments[-2], angle_deg=-300),
                                                              base.segments[-1]))
     write_capture(scenario, tmp_path / "s.bin")
-    with pytest.raises(ProtocolIncomplete) as refusal:
+    with pytest.raises(CampaignIncomplete) as refusal:
         thesis_real_case(load_session(str(tmp_path / "s.bin")), SITE)
     assert "it lacks a full turn (at least 350 deg) after the level static" in str(refusal.value)
     assert refusal.value.found.endswith("4 index turns, 0 full turns, 1 other turn")
@@ -374,7 +374,7 @@ def test_bench_fixture_calibrates_with_its_three_360_deg_turns():
     (["calibrate", "fixtures/faults_125hz.bin", "--method", "thesis", "--latitude", "40", "-o", "r.json"],
      "not the thesis real-case"),
     (["calibrate", "fixtures/thesis_real_cw_125hz.bin", "--method", "thesis", "--bench", "--latitude", "40", "-o",
-      "r.json"], "not the bench protocol"),
+      "r.json"], "not the bench campaign"),
     (["calibrate", "nope.bin", "--latitude", "40", "-o", "r.json"], "nope.bin: no such file"),
 ])
 def test_calibrate_errors_are_one_line(argv, message, tmp_path, capsys, monkeypatch):

@@ -44,7 +44,7 @@ TRIMMED_BEFORE = replace(SENSOR_STATE, gyro_trim_deg_s=(2**-6, -2**-8, 0.0), acc
 @pytest.fixture(scope="module")
 def session():
     """A level static, then three quarter turns each with a static after: the joint method's
-    protocol, in 3 simulated minutes (a fraction of a second to solve)."""
+    campaign, in 3 simulated minutes (a fraction of a second to solve)."""
     scenario = load_scenario("thesis-real")
     turn = Segment("turn", angle_deg=-90, peak_rate_deg_s=20, accel_deg_s2=20)
     scenario = replace(scenario, segments=(Segment("static", STATIC_S), *(turn, Segment("static", 30.0)) * 3))

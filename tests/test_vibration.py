@@ -31,7 +31,7 @@ def _static(duration_s, vibration=0.0):
 
 
 def vibrating_scenario(vibration: float, seed: int = 1):
-    """The index protocol with its second index static (the session's third) 21 s long, vibrating."""
+    """The index campaign with its second index static (the session's third) 21 s long, vibrating."""
     real = load_scenario("thesis-real")
     segments = (_static(300), _turn(-90), _static(60), _turn(-90), _static(21, vibration), _turn(-90), _static(60),
                 _turn(-90), _static(60), Segment("turn", angle_deg=-360, peak_rate_deg_s=27.93, accel_deg_s2=30),

@@ -3,7 +3,7 @@
 `Calibrator` holds no I/O: the live loop (`calibd run`), the replay of a capture and the tests
 feed it the same batches of samples. States: STARTING -> WARMING_UP -> COLLECTING -> SOLVED,
 with RESTARTED (the sensor power-cycled: turn-on biases changed, a new session starts) and FAULT
-(no data). Once warmed up, it solves as soon as the method's protocol is complete (the platform
+(no data). Once warmed up, it solves as soon as the method's campaign is complete (the platform
 stopped after a turn, and the session's segments hold what the method needs), again every
 `resolve_every_s` of new data, and once more at the end of the data (`finish`: the end of a
 replay, or a sensor restart, which ends the previous power-up's data). A restart marks the
@@ -151,7 +151,7 @@ class Calibrator:
             elif self._trigger.stopped_moving(*stored, now_s, self.collector.tracker.settings,
                                               self.collector.stored_rate_hz):
                 session, segments = self._look()
-                if self._trigger.protocol_done(segments, estimator(self.method.name)):
+                if self._trigger.campaign_done(segments, estimator(self.method.name)):
                     self._solve((session, segments))
 
     def _warmed(self, warmth: Warmth | None) -> None:

@@ -22,7 +22,7 @@ from ..units import DEG
 
 log = structlog.get_logger("calibd")
 MAX_SESSION_S = 3600  # beyond this a session stops growing: bias instability floors yaw near 0.9 deg
-# for static protocols (calibd plan: 1.28 deg at 1 h for the thesis layout), and memory stays bounded
+# for static campaigns (calibd plan: 1.28 deg at 1 h for the thesis layout), and memory stays bounded
 
 
 class Collector:

@@ -24,7 +24,7 @@ log = structlog.get_logger("calibd")
 
 @dataclass(frozen=True)
 class Attempt:
-    """What a solve gave: a result, or none and why (what the protocol lacks, what the data
+    """What a solve gave: a result, or none and why (what the campaign lacks, what the data
     cannot give, or a fault of calibd: `failed`); `detail` is what the status says, in the words
     of `progress`, the session's progress record (STATE's `progress`)."""
 

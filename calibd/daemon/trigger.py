@@ -1,5 +1,5 @@
 """When the daemon solves a session it is collecting: as soon as the platform has stopped after
-moving and the segments end on a static that completes the method's protocol, and again every
+moving and the segments end on a static that completes the method's campaign, and again every
 `resolve_every_s` of new data. Between solves only the gyros of each batch are looked at: the
 segments are found again only once the platform has been quiet long enough to show a new static.
 """
@@ -57,7 +57,7 @@ class SolveTrigger:
         quiet_s = now_s - self._last_motion_s
         return self._moved and quiet_s >= settings["settle_s"] + settings["min_static_s"]
 
-    def protocol_done(self, segments: list[detect.Segment], method: Estimator) -> bool:
+    def campaign_done(self, segments: list[detect.Segment], method: Estimator) -> bool:
         """Once the platform has stopped: whether the segments now end on a static (it lasted the
         settle time and the minimum static; else look again next batch) and hold what the method
         needs."""

@@ -22,8 +22,8 @@ The force fits' sensitivity to the gyro-derived axis and to g0 carries the gyro 
 g0's (Site.gravity_sigma) into the accelerometer and inclinometer parameters, with their
 cross-covariances; the numerical Jacobian of the chain takes it all to every estimate. The
 model is fitted to the Allan deviation of the residuals of the longest static that does not
-vibrate, its flicker at least the STIM300 datasheet's, or given (`SensorNoise`: the protocol
-planner gives a datasheet's figures to a noise-free session of the protocol). Samples noisier
+vibrate, its flicker at least the STIM300 datasheet's, or given (`SensorNoise`: the campaign
+planner gives a datasheet's figures to a noise-free session of the campaign). Samples noisier
 than that static (vibration) weigh less in every fit by their measured noise
 (`static_inflation`, `_row_weights`), so the covariance stays that of the data. A unit without
 inclinometers has no inclinometer fit: the accelerometers give the tilt.
@@ -69,12 +69,12 @@ BIAS_PARAMS = slice(2, 5)  # b, m/s^2
 
 class Underdetermined(CalibdError):
     """The session's segments do not determine the fit (statics at too few platform angles):
-    something the protocol lacks, told apart from a fault of the code."""
+    something the campaign lacks, told apart from a fault of the code."""
 
 
 @dataclass(frozen=True)
 class JointInput:
-    """A session in SI: samples from the level static (chi = 0 there) to the end of the protocol."""
+    """A session in SI: samples from the level static (chi = 0 there) to the end of the campaign."""
 
     time_s: np.ndarray  # (N,) s, gaps where datagrams were lost
     # the samples as stored (float32 from a capture's session): every pass takes them to float64 block by block
@@ -503,7 +503,7 @@ def _static_chi2(residuals, inp: JointInput, fitted: int, noise: NoiseModel,
     total, count = 0.0, 0
     for (start, stop), factor in zip(inp.statics, inflation):
         var = mean_variance(noise, stop - start, inp.rate_hz, factor)
-        if np.all(var > 0):  # a given noise-free model (planning a protocol) leaves nothing to compare with
+        if np.all(var > 0):  # a given noise-free model (planning a campaign) leaves nothing to compare with
             total += float(np.sum(residuals(start, stop).mean(axis=0) ** 2 / var))
         count += 3
     return total, max(count - fitted, 1)

@@ -13,7 +13,7 @@ import importlib
 from functools import cache
 from typing import TYPE_CHECKING
 
-from .base import Estimator, OptionError, ProtocolIncomplete, Setting
+from .base import CampaignIncomplete, Estimator, OptionError, Setting
 
 if TYPE_CHECKING:
     from .. import detect
@@ -22,7 +22,7 @@ MODULES = {"joint": "joint", "thesis": "thesis", "thesis-bench": "bench"}  # met
 DAEMON_METHODS = ("joint", "thesis")  # one mounting, a campaign the daemon sees complete as it happens
 _OPTIONS = {"JointOptions": "..estimators.joint", "ThesisOptions": ".thesis"}  # the option types' homes
 
-__all__ = ["MODULES", "ESTIMATORS", "DAEMON_METHODS", "Estimator", "OptionError", "ProtocolIncomplete", "Setting",
+__all__ = ["MODULES", "ESTIMATORS", "DAEMON_METHODS", "Estimator", "OptionError", "CampaignIncomplete", "Setting",
            "JointOptions", "ThesisOptions", "estimator", "progress"]
 
 

@@ -1,6 +1,6 @@
 """What a calibration method is at the seam: the `Estimator` every method module provides, the
 `Setting`s it takes from a configuration file, and its two refusals (`OptionError` for options
-that do not go together, `ProtocolIncomplete` for data its campaign does not hold)."""
+that do not go together, `CampaignIncomplete` for data its campaign does not hold)."""
 
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ class OptionError(CalibdError):
         self.key, self.reason = key, reason
 
 
-class ProtocolIncomplete(CalibrationError):
+class CampaignIncomplete(CalibrationError):
     """The session lacks segments a method needs: why (`reason`) and what it has (`found`)."""
 
     def __init__(self, reason: str, found: str):
@@ -30,13 +30,13 @@ class ProtocolIncomplete(CalibrationError):
         self.reason, self.found = reason, found
 
 
-def refusal(campaign: str, lacking: str, segments: list[detect.Segment], hint: str = "") -> ProtocolIncomplete:
+def refusal(campaign: str, lacking: str, segments: list[detect.Segment], hint: str = "") -> CampaignIncomplete:
     """The refusal of a method whose campaign (`campaign`, in words) the segments do not hold:
     what it lacks, in the words its `missing` gives the daemon's progress, and what was found."""
     from .. import detect  # here: the command line imports this package for the methods' names
 
-    found = detect.protocol_progress(segments)
-    return ProtocolIncomplete(f"not the {campaign}: it lacks {lacking}", f"{found}; {hint}" if hint else found)
+    found = detect.campaign_progress(segments)
+    return CampaignIncomplete(f"not the {campaign}: it lacks {lacking}", f"{found}; {hint}" if hint else found)
 
 
 @dataclass(frozen=True)

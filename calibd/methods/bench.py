@@ -24,7 +24,7 @@ from ..units import DEG
 from .base import Setting, refusal
 from .common import needs_inclinometers, one_period, partial_period, session_warnings, static_mean
 
-CAMPAIGN = "bench protocol"
+CAMPAIGN = "bench campaign"
 
 
 def positions(segments: list[detect.Segment]) -> dict[str, detect.Segment]:

@@ -24,7 +24,7 @@ from . import bench
 from .base import Setting, refusal
 from .common import YAW_SIGMA_POOR_DEG, judged_once_stopped, session_warnings
 
-CAMPAIGN = "joint method's protocol"
+CAMPAIGN = "joint method's campaign"
 
 
 def _mounted(segments: list[detect.Segment]) -> list[detect.Segment]:

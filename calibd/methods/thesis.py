@@ -22,7 +22,7 @@ from .base import OptionError, Setting, refusal
 from .common import (THESIS_DOC, YAW_SIGMA_POOR_DEG, judged_once_stopped, needs_inclinometers, one_period,
                      partial_period, session_warnings, static_mean)
 
-CAMPAIGN = "thesis real-case protocol"
+CAMPAIGN = "thesis real-case campaign"
 FULL_TURN = f"a full turn (at least {detect.FULL_TURN_MIN_DEG:.0f} deg)"
 
 
