@@ -61,6 +61,7 @@ from calibd.engine import TaskFailed, cluster, run_tasks
 from calibd.errors import CalibrationError
 from calibd.estimators.joint import white_noise_bound
 from calibd.frames import NORMAL_GRAVITY_SIGMA, STANDARD_GRAVITY, Site, normal_gravity
+from calibd.results import ResultStream
 from calibd.scenario import Truth, load_scenario
 from calibd.session import Session
 from calibd.sim import simulate, truth_record
@@ -149,7 +150,7 @@ def one_session(seed: int, run_set: str) -> dict:
                       acc=s["acc"].astype(float) * STANDARD_GRAVITY,
                       incl=None if run_set == "no inclinometers" else s["incl"].astype(float) * STANDARD_GRAVITY,
                       temperature_c=sim.temperature_c if run_set == "temperature ramp" else None, rate_hz=rate,
-                      sensor=SensorRecord(), stream={"capture": f"seed {seed}"})
+                      sensor=SensorRecord(), stream=ResultStream(capture=f"seed {seed}"))
     given = scenario.site
     site = Site(given.latitude_deg, given.height_m) if run_set == "normal gravity" else given
     truth = scenario.truth.estimates()

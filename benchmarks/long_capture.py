@@ -32,6 +32,7 @@ from calibd.units import DEG
 from stim300.bulk import decode_capture
 from stim300.clock import counter_times
 from stim300.records import SensorRecord
+from calibd.results import ResultStream
 
 RATE_HZ = 2000
 DURATION_S = 3600.0
@@ -84,7 +85,7 @@ def full_rate_session(path: Path) -> Session:
     return Session(time_s=times.time_s, gyro=s["gyro"].astype(np.float64) * DEG,
                    acc=s["acc"].astype(np.float64) * STANDARD_GRAVITY,
                    incl=s["incl"].astype(np.float64) * STANDARD_GRAVITY, temperature_c=None,
-                   rate_hz=rate_hz, sensor=SensorRecord(), stream={"capture": str(path)})
+                   rate_hz=rate_hz, sensor=SensorRecord(), stream=ResultStream(capture=str(path)))
 
 
 def main() -> int:

@@ -275,7 +275,7 @@ def _frame_warnings(result: CalibrationResult, frame_id: str, name: str, force: 
     if result.sensor.serial_number is not None:
         return [f"{name}: a recording names no serial number: cannot check the result (of sensor "
                 f"{result.sensor.serial_number}) is of this sensor"]
-    result_frame = result.stream.get("frame_id")
+    result_frame = result.stream.frame_id
     if result_frame is None or result_frame == frame_id:
         return []
     text = (f"the recording's frame id is {frame_id!r}, the result's {result_frame!r}: its biases may be another "

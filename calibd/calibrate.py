@@ -56,4 +56,4 @@ def capture_session_id(capture: CaptureSessions, number: int, session: Session) 
     """The data a result of a capture rests on, as "SHA256[:16]/pN/tSTART": the file's first 16
     hex digits of SHA-256, the power-up and the start (s into it). The same capture and start
     options give the same id, whatever the method."""
-    return f"{capture.identity['sha256'][:16]}/p{number}/t{session.stream['start_s']:.3f}"
+    return f"{capture.identity['sha256'][:16]}/p{number}/t{session.stream.start_s:.3f}"

@@ -121,7 +121,7 @@ def _site(args) -> Site:
 
 
 def _summary(result: CalibrationResult) -> str:
-    source = result.stream.get("capture")  # a result of an older version, or a foreign one, may not say
+    source = result.stream.capture  # a result of an older version, or a foreign one, may not say
     lines = [f"{result.method}: {source}" if source else result.method, f"  site: {_site_line(result.site)}"]
     session = _session_line(result)
     if session:
@@ -142,11 +142,10 @@ def _site_line(site: dict) -> str:
 def _session_line(result: CalibrationResult) -> str | None:
     """Which power-up (calibrate) or daemon session the result rests on, and its time span."""
     stream = result.stream
-    power_up = stream.get("power_up")
+    power_up = stream.power_up
     if power_up:
-        span = f"{stream.get('start_s') or 0.0:.1f} s to {power_up['duration_s']:.1f} s of it"
-        return (f"power-up {power_up['number']} of {power_up['count']}, {span}, "
-                f"from {stream.get('start_by', 'given')}")
+        span = f"{stream.start_s or 0.0:.1f} s to {power_up.duration_s:.1f} s of it"
+        return f"power-up {power_up.number} of {power_up.count}, {span}, from {stream.start_by or 'given'}"
     session = result.session
     if session:
         return f"session {session.number} since the daemon started, {session.duration_s:.1f} s of data"
@@ -535,8 +534,7 @@ def cmd_report(args) -> int:
     if topic is None and is_imu_recording(args.capture):  # the topic the result was made from
         from .results import parse_result
 
-        topic = parse_result(read_input(args.result, "result file", DOCUMENT_LIMIT_BYTES), args.result).stream.get(
-            "topic")
+        topic = parse_result(read_input(args.result, "result file", DOCUMENT_LIMIT_BYTES), args.result).stream.topic
     try:
         written = write_report(args.result, open_capture(args.capture, topic=topic), args.output, svg=args.svg)
     except OSError as exc:
@@ -608,7 +606,7 @@ def cmd_noise(args) -> int:
         channels = characterise(session)
     except NoiseError as exc:
         raise UsageError(f"{args.capture}: {exc}") from None
-    rostopic = args.rostopic or session.stream.get("topic", "/imu0")  # a recording's own topic by default
+    rostopic = args.rostopic or session.stream.topic or "/imu0"  # a recording's own topic by default
     documents = [(args.output, lambda: json.dumps(noise_record(session, channels, args.capture), indent=1) + "\n"),
                  (args.kalibr, lambda: kalibr_yaml(session, channels, rostopic))]
     for output, document in documents:
@@ -680,7 +678,7 @@ def _apply_into(f, kind: str, args, fix, meta: dict, result, result_bytes: bytes
         return writers[-1]
 
     if is_imu_recording(args.capture):
-        recording = ImuRecording(args.capture, args.topic, preferred=result.stream.get("topic"))
+        recording = ImuRecording(args.capture, args.topic, preferred=result.stream.topic)
         applied = apply_recording(recording, fix, result, args.force, lambda rate_hz, frame_id: open_writer(
             rate_hz, None, recording.messages, frame_id if fix.frame == "imu" else MCAP_FRAME_IDS["home"]))
     else:
@@ -924,7 +922,7 @@ def _add_client_commands(sub) -> None:
                    help="stop after COUNT messages (the VERSION and WATCH answers count); with --bytes COUNT bytes")
     p.add_argument("--token-file", metavar="PATH", help=token)
     p.set_defaults(func=cmd_pipe)
-    p = sub.add_parser("watch", help="the daemon live: state, protocol progress, estimates with sigma, stream "
+    p = sub.add_parser("watch", help="the daemon live: state, campaign progress, estimates with sigma, stream "
                                      "health (like gpsmon)")
     p.add_argument("socket", help=where)
     p.add_argument("--samples", choices=SAMPLE_KINDS, default="none",

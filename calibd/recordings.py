@@ -31,6 +31,7 @@ from stim300.records import SensorRecord
 
 from .errors import CalibrationError
 from .frames import STANDARD_GRAVITY
+from .results import ResultStream
 from .session import CaptureSessions, PowerUp, SessionBuilder
 from .units import DEG
 
@@ -368,10 +369,9 @@ class StampTimes:
             rate_hz=self.rate_hz,
             sensor=SensorRecord(sample_rate_hz=self.rate_hz,
                                 sample_rate=f"{self.rate_hz:g} Hz, measured from the header stamps"),
-            stream={"capture": self.where, "recording": words, "topic": topic, "frame_id": self.frame_id,
-                    "messages": self.messages, "datagrams": self.messages, "lost_samples": self.lost_samples,
-                    "gaps": self.gaps, "inferred_missing": 0, "crc_errors": 0, "restarts": 0,
-                    "warnings": self.warnings},
+            stream=ResultStream(capture=self.where, recording=words, topic=topic, frame_id=self.frame_id,
+                                messages=self.messages, datagrams=self.messages, lost_samples=self.lost_samples,
+                                gaps=self.gaps, warnings=tuple(self.warnings)),
             identity=identity_record)
 
 

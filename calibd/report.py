@@ -71,9 +71,9 @@ def write_report(result_path, capture: CaptureSessions, output, stream=None, svg
     _check_writable(output)
     with Progress("report", len(STEPS), "steps", stream) as bar:
         bar.update(0, STEPS[0])
-        skipped_s = float(result.stream.get("start_s") or 0.0)
+        skipped_s = float(result.stream.start_s or 0.0)
         start_s = analysis_start_s(result)
-        power_up = (result.stream.get("power_up") or {}).get("number")
+        power_up = None if result.stream.power_up is None else result.stream.power_up.number
         _check_identity(result, result_path, capture)
         whole = power_up_session(capture, power_up, 0.0)
         _check_same_capture(result, whole, capture.path)
@@ -144,7 +144,7 @@ def analysis_start_s(result: CalibrationResult) -> float:
     `calibd calibrate --start`), else its first segment's start (results of older versions do not
     record the offset, but their segments begin after it). The segments found from there are the
     result's."""
-    recorded = result.stream.get("start_s")
+    recorded = result.stream.start_s
     if recorded:
         return float(recorded)
     first = min((float(s["start_s"]) for s in result.segments if "start_s" in s), default=0.0)
@@ -171,11 +171,11 @@ def _check_same_capture(result: CalibrationResult, whole: Session, capture: str)
     """For a result that does not name its capture's bytes (the daemon's, older versions): the
     datagram count (recorded by `calibd calibrate`) must match, and the segments lie inside the
     capture."""
-    recorded = result.stream.get("datagrams")
-    have = whole.stream["datagrams"]
+    recorded = result.stream.datagrams
+    have = whole.stream.datagrams
     if recorded is not None and recorded != have:
         raise ReportError(f"{capture}: {have} datagrams, but the result was made from a capture of {recorded} "
-                          f"datagrams ({result.stream.get('capture')}): not the result's capture")
+                          f"datagrams ({result.stream.capture}): not the result's capture")
     duration = float(whole.time_s[-1]) + 1.0 / whole.rate_hz
     end = max((float(s.get("end_s", 0.0)) for s in result.segments), default=0.0)
     if end > duration + 1.0:

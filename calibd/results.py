@@ -16,12 +16,12 @@ A result is always written as the current version, whatever version it was read 
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, fields, replace
 
 import numpy as np
 
 from stim300.atomic import write_atomic
-from stim300.records import SensorRecord
+from stim300.records import SensorRecord, StreamRecord
 from stim300.cliutil import DOCUMENT_LIMIT_BYTES, package_version, read_input
 from stim300.errors import UsageError
 
@@ -98,6 +98,75 @@ _OPTIONAL = ("options", "checks", "bias_reference", "error_budget", "platform_ra
 
 
 @dataclass(frozen=True)
+class PowerUpRecord:
+    """Which power-up of a capture a result rests on: its number of `count`, where its datagrams
+    are in the capture, and its length (s)."""
+
+    number: int
+    count: int
+    first_datagram: int
+    datagrams: int
+    duration_s: float
+
+
+@dataclass(frozen=True)
+class ResultStream:
+    """The data a result rests on and their stream's health, typed from where a session is made
+    (a capture's power-up, a recording, the daemon's session) to the result's "stream" object.
+    The statistics are the driver's (`stim300.records.StreamRecord`) with the session's faults
+    and hidden gaps; the rest says where the data came from. None is "not known" (a result of an
+    older version says less): `to_dict` leaves it out, but for the hidden gaps of a session's
+    fault record, null where there were no host read times to look with."""
+
+    capture: str | None = None  # the file or port read
+    recording: str | None = None  # a recording of Imu messages: its format in words
+    topic: str | None = None
+    frame_id: str | None = None
+    messages: int | None = None
+    datagrams: int | None = None
+    lost_samples: int | None = None
+    gaps: int | None = None  # a recording: gaps in its header stamps
+    inferred_missing: int | None = None
+    crc_errors: int | None = None
+    restarts: int | None = None
+    warnings: tuple[str, ...] | None = None  # what the decoder refused or kept as read, one line each
+    start_s: float | None = None  # calibrate: where calibration started in the power-up (s)
+    start_by: str | None = None  # and why there
+    power_up: PowerUpRecord | None = None
+    session: int | None = None  # the daemon: its session's number
+    flagged_datagrams: int | None = None  # datagrams whose status bytes flagged a fault
+    fault_flags: tuple[str, ...] | None = None
+    hidden_gaps: int | None = None  # gaps of whole counter cycles the host's read times showed
+    hidden_gap_s: float | None = None
+
+    def __post_init__(self):
+        for name in ("warnings", "fault_flags"):  # tuples, as read from a file's lists too
+            if getattr(self, name) is not None:
+                object.__setattr__(self, name, tuple(getattr(self, name)))
+        if isinstance(self.power_up, dict):
+            object.__setattr__(self, "power_up", PowerUpRecord(**self.power_up))
+
+    @classmethod
+    def of(cls, stats: StreamRecord, **where) -> ResultStream:
+        """The driver's statistics of a stream, with where it came from (fields of this record)."""
+        return cls(**{f.name: getattr(stats, f.name) for f in fields(StreamRecord)}, **where)
+
+    def to_dict(self) -> dict:
+        looked = {"hidden_gaps", "hidden_gap_s"} if self.flagged_datagrams is not None else set()
+        return {f.name: _json_ready(getattr(self, f.name)) for f in fields(self)
+                if getattr(self, f.name) is not None or f.name in looked}
+
+    @classmethod
+    def from_dict(cls, doc: dict) -> ResultStream:
+        """The record of a (validated) document's "stream" object; keys it does not know are left out."""
+        return cls(**{f.name: doc[f.name] for f in fields(cls) if f.name in doc})
+
+
+def _json_ready(value):
+    return list(value) if isinstance(value, tuple) else asdict(value) if isinstance(value, PowerUpRecord) else value
+
+
+@dataclass(frozen=True)
 class SessionRecord:
     """The daemon's session a result was solved on: its number since the daemon started, its
     length (s) and when it was solved (ISO 8601, UTC)."""
@@ -156,7 +225,7 @@ class CalibrationResult:
     segments: tuple[dict, ...] = ()
     warnings: tuple[str, ...] = ()
     sensor: SensorRecord = SensorRecord()
-    stream: dict = field(default_factory=dict)
+    stream: ResultStream = ResultStream()
     covariance: dict | None = None  # covariance_record: the joint method's; None: the method has none
     software: dict | None = None  # name and version of what made it; None: read from a version 1 or 2 file
     session_id: str | None = None  # the data it rests on (offline: capture, power-up, start; daemon: its session)
@@ -229,7 +298,7 @@ class CalibrationResult:
                "site": self.site, "estimates": estimates,
                "rotation": self.rotation_record(), "covariance": self.covariance,
                "segments": list(self.segments), "warnings": list(self.warnings), "sensor": self.sensor.to_dict(),
-               "stream": self.stream}
+               "stream": self.stream.to_dict()}
         optional = {name: getattr(self, name) for name in _OPTIONAL if getattr(self, name) is not None}
         return doc | optional | {name: asdict(optional[name]) for name in _RECORDS if name in optional}
 
@@ -244,10 +313,11 @@ class CalibrationResult:
         if not isinstance(estimates, dict) or not any(estimates.get(name) is not None for name in ESTIMATES):
             raise ResultError(f"{where}: the result has no estimates (value and unit each)")
         validate(doc, ResultDoc, where, ResultError)
-        known = {"method", "site", "stream", "covariance", "software", "session_id", *_OPTIONAL} - set(_RECORDS)
+        known = {"method", "site", "covariance", "software", "session_id", *_OPTIONAL} - set(_RECORDS)
         return cls(**{key: value for key, value in doc.items() if key in known},
                    **{name: record(**doc[name]) for name, record in _RECORDS.items() if doc.get(name) is not None},
                    sensor=SensorRecord.from_dict(doc.get("sensor") or {}),
+                   stream=ResultStream.from_dict(doc.get("stream") or {}),
                    estimates={name: Estimate(e["value"], e.get("sigma"), e["unit"], e.get("quality"))
                               for name, e in estimates.items() if name in ESTIMATES and e is not None},
                    segments=tuple(doc.get("segments", ())), warnings=tuple(doc.get("warnings", ())),

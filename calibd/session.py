@@ -25,6 +25,7 @@ from stim300.protocol import status_names
 from .documents import DocumentError, SensorDoc, validate
 from .errors import CalibrationError
 from .frames import STANDARD_GRAVITY
+from .results import PowerUpRecord, ResultStream
 from .units import DEG
 from .warmup import WARM_UP_RULE, record_settling, start_words
 
@@ -44,7 +45,7 @@ class Session:
     temperature_c: np.ndarray | None  # float64, mean of the gyro temperatures, when the datagram has them
     rate_hz: int | float  # stored samples per second (an externally triggered sensor's: measured)
     sensor: SensorRecord
-    stream: dict
+    stream: ResultStream
 
 
 @dataclass
@@ -74,7 +75,7 @@ class CaptureSessions:
     power_ups: list[PowerUp]
     rate_hz: int | float  # the sensor's samples per second (externally triggered: measured)
     sensor: SensorRecord
-    stream: dict  # the whole capture's stream statistics
+    stream: ResultStream  # the whole capture's stream statistics
     identity: dict  # which file this is: its size_bytes and sha256 (results record it, a report checks it)
 
 
@@ -412,7 +413,7 @@ def decode_sessions(data, name: str, reads: np.ndarray | None = None,
     return CaptureSessions(
         path=str(name), power_ups=reader.power_ups, rate_hz=reader.rate_hz,
         sensor=replace(info.sensor_record(), sample_rate_hz=reader.rate_hz),
-        stream={"capture": str(name), **info.stream_record().to_dict()},
+        stream=ResultStream.of(info.stream_record(), capture=str(name)),
         identity={"size_bytes": len(data), "sha256": digest.hexdigest()})
 
 
@@ -446,8 +447,7 @@ def power_up_session(capture: CaptureSessions, number: int | None = None, start_
         incl=inclinometers(values[first:, 6:9]),
         temperature_c=None if temps is None else temps[first:], rate_hz=stored_rate_hz(capture.rate_hz),
         sensor=replace(capture.sensor, trim=trim),
-        stream=capture.stream | {"warnings": capture.stream["warnings"] + trim_warnings} | {
-            "start_s": float(start_s), "start_by": start_by,
-            "power_up": {"number": number, "count": count, "first_datagram": power_up.first_datagram,
-                         "datagrams": power_up.datagrams, "duration_s": power_up.duration_s},
-            **fault_record(*power_up.data.fault_summary(start_s)), **hidden_gap_record(hidden)})
+        stream=replace(capture.stream, warnings=(*capture.stream.warnings, *trim_warnings), start_s=float(start_s),
+                       start_by=start_by, power_up=PowerUpRecord(number, count, power_up.first_datagram,
+                                                                 power_up.datagrams, power_up.duration_s),
+                       **fault_record(*power_up.data.fault_summary(start_s)), **hidden_gap_record(hidden)))

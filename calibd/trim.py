@@ -136,10 +136,10 @@ def result_refusals(result: CalibrationResult, sensors, acc_range_g: int) -> lis
             elif estimate.sigma > figure:
                 found.append(f"{name}: 1-sigma {estimate.sigma:.3g} {unit_text} exceeds the datasheet's {figure_name} "
                              f"{figure:g} {unit_text}: the trim would write noise")
-    power_up = result.stream.get("power_up") or {}
-    if result.bias_reference == "turn-on" and power_up.get("number", 1) < power_up.get("count", 1):
+    power_up = result.stream.power_up
+    if result.bias_reference == "turn-on" and power_up is not None and power_up.number < power_up.count:
         found.append(f"the result's biases are turn-on biases and its capture shows the sensor restarted after them "
-                     f"(power-up {power_up['number']} of {power_up['count']})")
+                     f"(power-up {power_up.number} of {power_up.count})")
     return found
 
 

@@ -157,7 +157,7 @@ def test_a_results_recording_fields_are_checked(tmp_path, site, recordings):
     from calibd.results import ResultError, parse_result
 
     result = calibrate(recordings["bag"], site, tmp_path / "r.json")
-    assert parse_result(json.dumps(result).encode(), "r.json").stream["topic"] == TOPIC
+    assert parse_result(json.dumps(result).encode(), "r.json").stream.topic == TOPIC
     for key, bad in (("topic", 5), ("messages", -1), ("frame_id", ["x"])):
         doc = json.loads(json.dumps(result))
         doc["stream"][key] = bad

@@ -19,6 +19,7 @@ from calibd.daemon.warmwatch import WARM_CHECK_EVERY_S, WarmWatch
 from calibd.frames import Site
 from calibd.live import configure_logging, replay
 from calibd.methods import estimator
+from calibd.results import ResultStream
 from calibd.statedir import ResultStore
 from calibd.segments import session_segments
 from calibd.session import PowerUpCuts, SessionBuilder
@@ -140,10 +141,10 @@ def test_the_collectors_session_starts_where_asked_and_stops_growing_at_the_boun
     collector = Collector()
     collector.store(samples[:2500], collector.times(samples[:2500], RATE_HZ))  # 20 s
     collector.start_session(10.0, DetectionConfig())
-    session = collector.session(SensorRecord(serial_number="N1"), {"capture": "x.bin", "session": 3})
+    session = collector.session(SensorRecord(serial_number="N1"), ResultStream(capture="x.bin", session=3))
     assert session.time_s[0] == 0.0 and session.time_s[-1] == pytest.approx(20.0 - 1 / RATE_HZ - 10.0, abs=0.2)
-    assert session.stream == {"capture": "x.bin", "session": 3, "flagged_datagrams": 0, "fault_flags": [],
-                              "hidden_gaps": None, "hidden_gap_s": None}  # no host times: none looked for
+    assert session.stream == ResultStream(capture="x.bin", session=3, flagged_datagrams=0, fault_flags=())
+    assert session.stream.hidden_gaps is None  # no host times: none looked for
     assert [s.kind for s in collector.segments(session)] == ["static"]
     monkeypatch.setattr(collector_module, "MAX_SESSION_S", 15.0)
     assert collector.store(samples[2500:3125], collector.times(samples[2500:3125], RATE_HZ)) is not None  # to 25 s

@@ -377,13 +377,13 @@ def test_datagrams_the_sensor_flags_are_counted_and_warned_about(tmp_path):
     capture = tmp_path / "flagged.bin"
     capture.write_bytes(encode_samples(samples, 0xA7, info.format, False).tobytes())
     result = joint_real_case(load_session(str(capture)), SITE)
-    assert result.stream["flagged_datagrams"] == 10 and result.stream["fault_flags"] == ["X", "OVERLOAD"]
+    assert result.stream.flagged_datagrams == 10 and result.stream.fault_flags == ("X", "OVERLOAD")
     assert any(w.startswith("10 datagrams carry fault flags (X, OVERLOAD)") for w in result.warnings)
 
     results = []
     calibrator = Calibrator(SITE, WarmupConfig(window_s=10.0), NO_TIMER, [Callbacks(result=results.append)])
     replay(CaptureSource(capture.read_bytes()), calibrator)
-    assert results[-1].stream["flagged_datagrams"] == 10
+    assert results[-1].stream.flagged_datagrams == 10
     assert any("fault flags (X, OVERLOAD)" in w for w in results[-1].warnings)
 
 

@@ -15,7 +15,7 @@ from calibd.methods.joint import joint_fit, joint_real_case
 from calibd.captures import load_session
 from calibd.estimators import joint
 from calibd.frames import STANDARD_GRAVITY
-from calibd.results import result_json
+from calibd.results import ResultStream, result_json
 from calibd.scenario import Noise, ScenarioError, Truth, load_scenario, parse_scenario
 from calibd.session import Session
 from calibd.sim import simulate, write_capture
@@ -32,7 +32,7 @@ def session_of(sim) -> Session:
     s, rate = sim.samples, sim.scenario.sensor.sample_rate_hz
     return Session(time_s=np.arange(len(s)) / rate, gyro=sim.exact["gyro"] * DEG,
                    acc=sim.exact["acc"] * STANDARD_GRAVITY, incl=sim.exact["incl"] * STANDARD_GRAVITY,
-                   temperature_c=None, rate_hz=rate, sensor=SensorRecord(), stream={"capture": "simulated"})
+                   temperature_c=None, rate_hz=rate, sensor=SensorRecord(), stream=ResultStream(capture="simulated"))
 
 
 def fitted(truth: Truth, scenario=QUIET):
@@ -86,7 +86,7 @@ def noisy_session(scenario) -> Session:
     s, rate = sim.samples, scenario.sensor.sample_rate_hz
     return Session(time_s=np.arange(len(s)) / rate, gyro=s["gyro"].astype(float) * DEG,
                    acc=s["acc"].astype(float) * STANDARD_GRAVITY, incl=s["incl"].astype(float) * STANDARD_GRAVITY,
-                   temperature_c=None, rate_hz=rate, sensor=SensorRecord(), stream={"capture": "simulated"})
+                   temperature_c=None, rate_hz=rate, sensor=SensorRecord(), stream=ResultStream(capture="simulated"))
 
 
 @pytest.mark.parametrize("seed", [3, 4])
@@ -127,7 +127,7 @@ def test_the_budget_parts_add_up_to_the_sigma_in_the_result_document():
     s, rate = sim.samples, THESIS.sensor.sample_rate_hz
     session = Session(time_s=np.arange(len(s)) / rate, gyro=s["gyro"].astype(float) * DEG,
                       acc=s["acc"].astype(float) * STANDARD_GRAVITY, incl=s["incl"].astype(float) * STANDARD_GRAVITY,
-                      temperature_c=None, rate_hz=rate, sensor=SensorRecord(), stream={"capture": "simulated"})
+                      temperature_c=None, rate_hz=rate, sensor=SensorRecord(), stream=ResultStream(capture="simulated"))
     doc = json.loads(result_json(joint_real_case(session, THESIS.site)))
     budget = doc["error_budget"]
     assert budget["frame"] == "housing" and doc["schema"] == "calibd.result/5"
@@ -169,7 +169,7 @@ def test_residuals_at_the_datasheet_limits_are_flagged_or_within_three_sigma(see
     s, rate = sim.samples, scenario.sensor.sample_rate_hz
     session = Session(time_s=np.arange(len(s)) / rate, gyro=s["gyro"].astype(float) * DEG,
                       acc=s["acc"].astype(float) * STANDARD_GRAVITY, incl=s["incl"].astype(float) * STANDARD_GRAVITY,
-                      temperature_c=None, rate_hz=rate, sensor=SensorRecord(), stream={"capture": "simulated"})
+                      temperature_c=None, rate_hz=rate, sensor=SensorRecord(), stream=ResultStream(capture="simulated"))
     result = joint_real_case(session, scenario.site)
     truth = scenario.truth.estimates()
     for name, e in result.estimates.items():
@@ -187,7 +187,7 @@ def test_a_clean_capture_with_the_datasheet_noise_raises_no_vibration_warning():
     s, rate = sim.samples, THESIS.sensor.sample_rate_hz
     session = Session(time_s=np.arange(len(s)) / rate, gyro=s["gyro"].astype(float) * DEG,
                       acc=s["acc"].astype(float) * STANDARD_GRAVITY, incl=s["incl"].astype(float) * STANDARD_GRAVITY,
-                      temperature_c=None, rate_hz=rate, sensor=SensorRecord(), stream={"capture": "simulated"})
+                      temperature_c=None, rate_hz=rate, sensor=SensorRecord(), stream=ResultStream(capture="simulated"))
     result = joint_real_case(session, THESIS.site)
     assert not [w for w in result.warnings if "per sample" in w], result.warnings
 

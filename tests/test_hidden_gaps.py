@@ -70,7 +70,7 @@ def test_the_daemon_keeps_the_platform_angle_across_a_hidden_gap_in_a_turn():
     statics = [s for s in last.segments if s["kind"] == "static"]
     assert [round(s["platform_angle_deg"]) for s in statics] == [0, -90, -180, -270, -360, -720]
     assert within_3_sigma(last, "yaw", truth()["yaw_deg"])
-    assert last.stream["hidden_gaps"] == 1 and last.stream["hidden_gap_s"] == pytest.approx(11 * CYCLE_S)
+    assert last.stream.hidden_gaps == 1 and last.stream.hidden_gap_s == pytest.approx(11 * CYCLE_S)
     assert any(w.startswith("time base corrected: the host clock shows 1.408 s of data lost in 1 gap ")
                for w in last.warnings)
 
@@ -102,7 +102,7 @@ def test_load_session_times_a_capture_from_its_read_log(capture_with_read_log, c
     path, true_s = capture_with_read_log
     session = load_session(str(path))
     np.testing.assert_allclose(session.time_s, true_s, atol=1e-9)
-    assert session.stream["hidden_gaps"] == 1 and session.stream["hidden_gap_s"] == pytest.approx(1.408)
+    assert session.stream.hidden_gaps == 1 and session.stream.hidden_gap_s == pytest.approx(1.408)
     result = joint_real_case(session, SITE)
     assert within_3_sigma(result, "yaw", truth()["yaw_deg"])
     assert any(w.startswith("time base corrected") for w in result.warnings)
@@ -128,7 +128,7 @@ def test_without_a_read_log_the_capture_decodes_on_the_counter_alone(capture_wit
     reads_path(path).unlink()
     session = load_session(str(path))
     assert session.time_s[-1] == pytest.approx(true_s[-1] - 11 * CYCLE_S)
-    assert session.stream["hidden_gaps"] is None  # not zero: nothing could be seen
+    assert session.stream.hidden_gaps is None  # not zero: nothing could be seen
     assert stim300_main(["info", str(path)]) == 0
     assert "hidden_gaps      - (no read log" in capsys.readouterr().out
 
@@ -137,7 +137,7 @@ def test_a_read_log_that_does_not_end_with_the_capture_is_not_used(capture_with_
     path, _ = capture_with_read_log
     path.write_bytes(path.read_bytes()[:-1000])  # the capture changed since it was recorded
     assert load_reads(path) is None
-    assert load_session(str(path)).stream["hidden_gaps"] is None
+    assert load_session(str(path)).stream.hidden_gaps is None
 
 
 def test_a_read_log_that_is_not_a_regular_file_is_not_read(capture_with_read_log):
@@ -226,5 +226,5 @@ def test_record_writes_the_read_log_that_load_session_times_the_capture_with(pty
     assert reads is not None and reads["end"][-1] == out.stat().st_size
     assert np.all(np.diff(reads["end"]) > 0) and np.all(np.diff(reads["t_host_s"]) >= 0)
     session = load_session(str(out))
-    assert session.stream["hidden_gaps"] == 1 and session.stream["hidden_gap_s"] == pytest.approx(CYCLE_S)
+    assert session.stream.hidden_gaps == 1 and session.stream.hidden_gap_s == pytest.approx(CYCLE_S)
     np.testing.assert_allclose(session.time_s, SENT / RATE_HZ, atol=1e-9)

@@ -24,6 +24,7 @@ from calibd.units import DEG, M_S2_TO_MG, RAD_S_TO_DEG_H
 from calibd.scenario import Segment, load_scenario
 from calibd.sim import write_capture
 from stim300.records import SensorRecord
+from calibd.results import ResultStream
 
 SIM_S = 3600.0
 
@@ -158,7 +159,7 @@ def synthetic_session(rng, rate_hz, seconds, white, walk):
     si = np.concatenate([np.full(3, RAD_S_TO_DEG_H), np.full(6, M_S2_TO_MG)])
     x = x / si
     return Session(time_s=np.arange(n) / rate_hz, gyro=x[:, :3], acc=x[:, 3:6], incl=x[:, 6:],
-                   temperature_c=None, rate_hz=rate_hz, sensor=SensorRecord(), stream={})
+                   temperature_c=None, rate_hz=rate_hz, sensor=SensorRecord(), stream=ResultStream())
 
 
 def test_rate_random_walk_is_read_on_the_rising_slope():

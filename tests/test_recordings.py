@@ -123,11 +123,11 @@ def test_a_dropped_run_of_messages_is_a_gap_in_the_stream_record(tmp_path, fixtu
     path = write_recording(tmp_path / "gap.bag", "bag", serialised("bag", stamps[keep], gyro[keep], acc[keep]),
                            received[keep])
     capture = open_capture(str(path))
-    assert capture.stream["gaps"] == 2 and capture.stream["lost_samples"] == 53
-    assert capture.stream["messages"] == len(keep) and capture.rate_hz == 125
-    assert capture.stream["warnings"] == ["2 gap(s) in the header stamps: 53 sample(s) missing"]
+    assert capture.stream.gaps == 2 and capture.stream.lost_samples == 53
+    assert capture.stream.messages == len(keep) and capture.rate_hz == 125
+    assert capture.stream.warnings == ("2 gap(s) in the header stamps: 53 sample(s) missing",)
     session = power_up_session(capture)
-    assert session.stream["lost_samples"] == 53
+    assert session.stream.lost_samples == 53
     assert session.time_s[-1] == pytest.approx(5999 * 0.008, abs=1e-9)  # the gaps keep their time
 
 
@@ -137,7 +137,7 @@ def test_several_imu_topics_need_topic_and_topic_chooses(tmp_path, run_main):
     err = refusal(run_main, ["noise", path])
     assert "2 sensor_msgs/msg/Imu topics (/imu/data, /imu2): choose one with --topic" in err
     capture = open_capture(str(path), topic="/imu2")
-    assert capture.stream["topic"] == "/imu2" and capture.stream["messages"] == len(messages)
+    assert capture.stream.topic == "/imu2" and capture.stream.messages == len(messages)
 
 
 def test_topic_on_a_capture_is_refused(tmp_path, run_main):
@@ -206,7 +206,7 @@ def test_bad_recordings_are_one_line_and_exit_2(tmp_path, run_main):
                                       "ending .db3")
     for read_by_content in (whole, plain):  # calibd's own readers: the name does not matter
         shutil.copy(read_by_content, tmp_path / "imu.bin")
-        assert open_capture(str(tmp_path / "imu.bin")).stream["messages"] == 300
+        assert open_capture(str(tmp_path / "imu.bin")).stream.messages == 300
     for what, (path, options, words) in cases.items():
         out = tmp_path / f"{what}.json"
         for command in (["calibrate", path, "--latitude", "40", "-o", out], ["noise", path, "-o", out]):
@@ -220,7 +220,7 @@ def test_an_mcap_of_any_profile_is_read(tmp_path):
     for profile in ("", "ros2", "x-own"):
         path = write_recording(tmp_path / f"p{profile}.mcap", "plain_mcap", messages, stamps, profile=profile)
         capture = open_capture(str(path))
-        assert capture.stream["messages"] == 300 and capture.stream["frame_id"] == FRAME_ID, profile
+        assert capture.stream.messages == 300 and capture.stream.frame_id == FRAME_ID, profile
 
 
 def test_without_the_extra_a_recording_is_one_line_naming_it(tmp_path, run_main, monkeypatch):

@@ -90,7 +90,7 @@ def test_the_datagrams_decode_to_the_messages_and_gaps_show_as_lost_datagrams(tm
     assert times.hidden_gaps == 1 and times.hidden_s == pytest.approx(3 * CYCLE_S)
     assert np.allclose(times.time_s, (stamps[keep] - stamps[0]) * 1e-9, rtol=0, atol=1e-9)  # the stamps' times
     session = power_up_session(decode_sessions(replayed.data, str(path), replayed.reads))
-    assert session.stream["lost_samples"] == 5 and session.stream["hidden_gaps"] == 1
+    assert session.stream.lost_samples == 5 and session.stream.hidden_gaps == 1
     assert session.time_s[-1] == pytest.approx(5999 * 0.008, abs=1e-9)
 
 

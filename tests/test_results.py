@@ -11,8 +11,8 @@ import pytest
 from calibd.frames import Site
 from calibd.report import read_truth
 from calibd.documents import SchemaError, schema_version
-from calibd.results import (SCHEMA, CalibrationResult, Estimate, ResultError, load_result, make_result, result_json,
-                            write_result)
+from calibd.results import (SCHEMA, CalibrationResult, Estimate, ResultError, ResultStream, load_result, make_result,
+                            result_json, write_result)
 from calibd.units import DEG
 from stim300.records import SensorRecord
 
@@ -22,7 +22,7 @@ FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
 def joint_like() -> CalibrationResult:
     return make_result("joint", Site(60.0), {"yaw": (0.5 * DEG, 0.1 * DEG), "gyro_bias_x": (1e-6, None)},
                        [{"kind": "static", "role": "static", "start_s": 0.0, "end_s": 60.0}], ["a warning"],
-                       SensorRecord(serial_number="N1"), stream={"capture": "c.bin"},
+                       SensorRecord(serial_number="N1"), stream=ResultStream(capture="c.bin"),
                        options={"fixed_amplitude": False},
                        checks={"static_chi2": {"chi2": 3.0, "dof": 4, "p_value": 0.5}}, bias_reference="turn-on")
 
@@ -67,7 +67,7 @@ def test_a_version_1_file_is_read(tmp_path):
     result = load_result(path)
     assert result.schema == "calibd.result/1" and result.method == "thesis-linear"
     assert result.estimates["yaw"] == Estimate(0.0, None, "deg") and result.warnings == ("w",)
-    assert result.stream == {} and result.segments == () and result.checks is None and result.stale is None
+    assert result.stream == ResultStream() and result.segments == () and result.checks is None and result.stale is None
     assert result.software is None and result.session_id is None and result.covariance is None
     assert result.estimates["yaw"].value_si == 0.0 and result.estimates["yaw"].unit_si == "rad"
     assert json.loads(result_json(result)) == doc | {

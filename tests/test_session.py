@@ -70,7 +70,7 @@ def test_a_2000_hz_capture_makes_a_125_hz_session():
     assert len(session.time_s) == len(samples) // 16
     means = samples["gyro"][:len(samples) // 16 * 16].astype(np.float64).reshape(-1, 16, 3).mean(axis=1) * DEG
     assert np.allclose(session.gyro, means, rtol=1e-6, atol=1e-9)  # float32: 1e-10 rad/s at 1e-3 rad/s
-    assert session.stream["power_up"]["duration_s"] == len(samples) / 2000
+    assert session.stream.power_up.duration_s == len(samples) / 2000
 
 
 def _lengths(pieces):

@@ -18,6 +18,7 @@ from calibd.session import Session
 from calibd.sim import simulate
 from calibd.units import DEG
 from stim300.records import SensorRecord
+from calibd.results import ResultStream
 
 BENCH = load_scenario("thesis-bench")
 RESIDUALS = dict(acc_scale_ppm=(120.0, -80.0, 150.0), acc_misalignment_mrad=(0.4, -0.3, 0.2, 0.6, -0.5, 0.1),
@@ -42,7 +43,7 @@ def test_a_simulated_bench_recovers_the_force_triads_terms_within_their_sigma():
     s, rate = sim.samples, BENCH.sensor.sample_rate_hz
     session = Session(time_s=np.arange(len(s)) / rate, gyro=s["gyro"].astype(float) * DEG,
                       acc=s["acc"].astype(float) * STANDARD_GRAVITY, incl=s["incl"].astype(float) * STANDARD_GRAVITY,
-                      temperature_c=None, rate_hz=rate, sensor=SensorRecord(), stream={"capture": "simulated"})
+                      temperature_c=None, rate_hz=rate, sensor=SensorRecord(), stream=ResultStream(capture="simulated"))
     result = thesis_bench(session, BENCH.site)
     terms = result.error_budget["factory_residuals"]["terms"]
     z = []

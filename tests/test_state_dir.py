@@ -23,7 +23,7 @@ from calibd.daemon import Calibrator, Callbacks, State, StateLog
 from calibd.daemon.solver import stale_result
 from calibd.live import Watchdog, replay
 from calibd.frames import Site
-from calibd.results import CalibrationResult, Estimate, site_record, write_result, SessionRecord
+from calibd.results import CalibrationResult, Estimate, ResultStream, SessionRecord, site_record, write_result
 from calibd.statedir import ResultStore, StateDirError
 from captures import plug
 from stim300.bulk import decode_capture
@@ -38,7 +38,7 @@ AS_ROOT = os.geteuid() == 0
 def result(yaw_sigma_deg: float = 1.0, duration_s: float = 600.0, poor: bool = False) -> CalibrationResult:
     yaw = Estimate(10.0, yaw_sigma_deg, "deg", "poor" if poor else None)
     estimates = {"yaw": yaw, "pitch": Estimate(0.1, 0.01, "deg")}
-    return CalibrationResult("joint", site_record(Site(60.0)), estimates, stream={"capture": "x"},
+    return CalibrationResult("joint", site_record(Site(60.0)), estimates, stream=ResultStream(capture="x"),
                              session=SessionRecord(1, duration_s, "now"))
 
 

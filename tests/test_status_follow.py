@@ -16,7 +16,7 @@ import pytest
 
 from calibd.daemon import State
 from calibd.frames import Site
-from calibd.results import CalibrationResult, Estimate, site_record, SessionRecord
+from calibd.results import CalibrationResult, Estimate, ResultStream, SessionRecord, site_record
 from calibd.statedir import ResultStore
 from captures import calibd, command_env
 
@@ -25,7 +25,7 @@ ENV = command_env()
 
 def result(yaw_deg: float) -> CalibrationResult:
     estimates = {"yaw": Estimate(yaw_deg, 1.75, "deg"), "pitch": Estimate(-0.321412, 0.00123, "deg")}
-    return CalibrationResult("joint", site_record(Site(60.0)), estimates, stream={"capture": "x"},
+    return CalibrationResult("joint", site_record(Site(60.0)), estimates, stream=ResultStream(capture="x"),
                              session=SessionRecord(1, 600.0, "now"))
 
 

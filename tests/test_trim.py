@@ -229,7 +229,7 @@ def _stale(r):
 
 
 def _later_power_up(r):
-    return replace(r, stream=r.stream | {"power_up": r.stream["power_up"] | {"number": 1, "count": 2}})
+    return replace(r, stream=replace(r.stream, power_up=replace(r.stream.power_up, number=1, count=2)))
 
 
 @pytest.mark.parametrize("change, words", [

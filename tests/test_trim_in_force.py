@@ -95,7 +95,7 @@ def test_a_trim_changed_within_a_power_up_is_the_last_and_said():
     capture = trimmed_capture() + data[len(HEAD):middle] + encode_special(other, False, 10) + data[middle:]
     session = power_up_session(decode_sessions(capture, "c.bin"))
     assert session.sensor.trim == replace(RECORD, gyro_deg_s=(0.0, 0.0, 0.0))
-    assert any("changed 1 time(s) during power-up 1" in w for w in session.stream["warnings"])
+    assert any("changed 1 time(s) during power-up 1" in w for w in session.stream.warnings)
     two = decode_sessions(FULL.read_bytes() + trimmed_capture(), "two.bin")
     assert [p.trim for p in two.power_ups] == [None, RECORD]
 
@@ -106,7 +106,7 @@ def test_a_trim_before_any_configuration_is_not_recorded():
     capture = encode_special(TRIM, False, 10) + headless
     session = power_up_session(decode_sessions(capture, "c.bin"))
     assert session.sensor.trim is None
-    assert any("bias trim offset datagram before any configuration" in w for w in session.stream["warnings"])
+    assert any("bias trim offset datagram before any configuration" in w for w in session.stream.warnings)
 
 
 def _result_doc() -> dict:

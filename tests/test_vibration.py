@@ -17,6 +17,7 @@ from calibd.session import Session
 from calibd.sim import simulate, truth_record
 from calibd.units import DEG
 from stim300.records import SensorRecord
+from calibd.results import ResultStream
 
 VIBRATION = 12.5  # times the STIM300's white noise at 125 Hz (0.028 deg/s): 0.35 deg/s per sample
 K_SIGMA = 3.5
@@ -43,7 +44,7 @@ def session_of(sim) -> Session:
     s, rate = sim.samples, sim.scenario.sensor.sample_rate_hz
     return Session(time_s=np.arange(len(s)) / rate, gyro=s["gyro"].astype(float) * DEG,
                    acc=s["acc"].astype(float) * STANDARD_GRAVITY, incl=s["incl"].astype(float) * STANDARD_GRAVITY,
-                   temperature_c=None, rate_hz=rate, sensor=SensorRecord(), stream={"capture": "simulated"})
+                   temperature_c=None, rate_hz=rate, sensor=SensorRecord(), stream=ResultStream(capture="simulated"))
 
 
 def z_scores(result, sim) -> dict[str, float]:

@@ -34,7 +34,7 @@ from ..config import DetectionConfig, MethodConfig
 from ..correction import other_sensor
 from ..frames import Site
 from ..methods import estimator, progress
-from ..results import CalibrationResult
+from ..results import CalibrationResult, ResultStream
 from ..session import PowerUpCuts, Session, checked_trim, missing_sensors
 from ..warmup import WarmupConfig
 from .collector import Collector
@@ -250,8 +250,8 @@ class Calibrator:
     def _look(self) -> tuple[Session, list[detect.Segment]]:
         """The session so far and its segments."""
         session = self.collector.session(replace(self.sensor, trim=self.trim),
-                                         {"capture": self.source, **self.origin, **self.stream_stats.to_dict(),
-                                          "session": self.sessions})
+                                         ResultStream.of(self.stream_stats, capture=self.source, **self.origin,
+                                                         session=self.sessions))
         return session, self.collector.segments(session)
 
     def _solve(self, looked: tuple[Session, list[detect.Segment]] | None = None) -> None:

@@ -7,6 +7,8 @@ the session collected from it with its segments (each logged once it is final).
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import structlog
 
@@ -16,6 +18,7 @@ from stim300.records import SensorRecord
 from .. import detect
 from ..config import DetectionConfig
 from ..frames import STANDARD_GRAVITY
+from ..results import ResultStream
 from ..segments import segment_record
 from ..session import Session, SessionBuilder, fault_record, hidden_gap_record, inclinometers, stored_rate_hz
 from ..units import DEG
@@ -83,12 +86,12 @@ class Collector:
         self.session_start_s = start_s
         self.tracker = detect.SegmentTracker(self.stored_rate_hz, **detection.options())
 
-    def session(self, sensor: SensorRecord, stream: dict) -> Session:
+    def session(self, sensor: SensorRecord, stream: ResultStream) -> Session:
         """The session so far, in its own time; `stream` gains the session's fault records."""
         d = self.data.arrays(since_s=self.session_start_s)
         return Session(time_s=d["time_s"] - d["time_s"][0], gyro=d["gyro"], acc=d["acc"], incl=inclinometers(d["incl"]),
                        temperature_c=None if np.isnan(d["temp"]).all() else d["temp"], rate_hz=self.stored_rate_hz,
-                       sensor=sensor, stream=stream | self._fault_record())
+                       sensor=sensor, stream=replace(stream, **self._fault_record()))
 
     def _fault_record(self) -> dict:
         hidden = [seconds for t, seconds in self._hidden if t > self.session_start_s]

@@ -33,17 +33,17 @@ def judged_once_stopped(segments: list[detect.Segment], lacking) -> str | None:
 def session_warnings(session: Session) -> list[str]:
     """What is wrong with the data itself: faults the sensor flagged, gaps the time base had to
     be corrected for, a warm-up not over."""
-    flagged = session.stream.get("flagged_datagrams", 0)
-    faults = [f"{flagged} datagrams carry fault flags ({', '.join(session.stream['fault_flags'])}): their samples "
+    flagged = session.stream.flagged_datagrams
+    faults = [f"{flagged} datagrams carry fault flags ({', '.join(session.stream.fault_flags)}): their samples "
               "are in the fit; an overload or channel error biases the statics they fall in"] if flagged else []
-    hidden = session.stream.get("hidden_gaps", 0)
+    hidden = session.stream.hidden_gaps
     if hidden:
-        faults.append(f"time base corrected: the host clock shows {session.stream['hidden_gap_s']:.3f} s of data "
+        faults.append(f"time base corrected: the host clock shows {session.stream.hidden_gap_s:.3f} s of data "
                       f"lost in {hidden} gap{'s' if hidden > 1 else ''} the datagram counter could not see (whole "
                       f"{CYCLE_S:.3f} s counter cycles); that time was added")
     if session.incl is None:
         faults.append(NO_INCLINOMETERS)
-    from_capture = "power_up" in session.stream  # calibd calibrate's --start can move its start; the daemon's cannot
+    from_capture = session.stream.power_up is not None  # calibrate --start can move it; the daemon cannot
     return faults + warm_up_warnings(session.time_s, session.temperature_c, start_hint=from_capture)
 
 
