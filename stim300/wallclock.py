@@ -28,6 +28,8 @@ ENVELOPE_S = 10.0  # the envelope's span: many reads, while drift and host stall
 TAU_S = 20.0  # sensor seconds over which the offset used closes its gap to the envelope
 SLEW = 500e-6  # the most the offset used moves per sensor second beyond the drift (500 ppm)
 STEP_S = 0.02  # an envelope this far from the offset used is a new mapping, not drift
+CLOCK_SPREAD_NS = 20_000  # realtime and monotonic reads this close are one instant (a read takes ~100 ns)
+CLOCK_TRIES = 8  # reads of the two clocks before the tightest is taken
 
 
 class WallClock:
@@ -117,5 +119,17 @@ def _envelope(minima: deque[tuple[float, float]], now: float) -> tuple[float, fl
 
 
 def _host_clocks() -> tuple[int, float]:
-    """The host's realtime clock (ns) and monotonic clock (s), read back to back."""
-    return time.time_ns(), time.monotonic()
+    """The host's realtime clock (ns) and monotonic clock (s) at one instant: the realtime read
+    between two monotonic reads, the tightest of a few tries. Read plainly back to back, a thread
+    preempted between the two reads (a loaded host) puts its wait into the epoch, and so into
+    every stamp of the batch, as an unreported step of milliseconds."""
+    best = None
+    for _ in range(CLOCK_TRIES):
+        before = time.monotonic_ns()
+        realtime_ns = time.time_ns()
+        spread = time.monotonic_ns() - before
+        if best is None or spread < best[0]:
+            best = (spread, realtime_ns, (before + spread / 2) / 1e9)
+        if spread <= CLOCK_SPREAD_NS:
+            break
+    return best[1], best[2]

@@ -75,3 +75,18 @@ def test_a_replay_faster_than_real_time_keeps_the_sensors_time_scale():
         assert step is None
         stamps.append(got)
     assert np.all(np.diff(np.concatenate(stamps)) == 500_000)  # ns: exactly the sample interval
+
+
+def test_the_host_clocks_are_read_at_one_instant_even_when_a_read_is_preempted(monkeypatch):
+    """A thread preempted between its realtime and monotonic reads would see the epoch (realtime
+    minus monotonic) move by its wait, and every stamp with it: the tightest of a few bracketed
+    reads is taken instead."""
+    from stim300 import wallclock
+
+    monotonic = iter([10_000_000_000, 10_004_000_000,  # the first try: 4 ms preempted between its reads
+                      10_005_000_000, 10_005_000_300])  # the second: 300 ns
+    realtime = iter([EPOCH_NS + 10_004_000_000, EPOCH_NS + 10_005_000_150])
+    monkeypatch.setattr(wallclock.time, "monotonic_ns", lambda: next(monotonic))
+    monkeypatch.setattr(wallclock.time, "time_ns", lambda: next(realtime))
+    realtime_ns, monotonic_s = wallclock._host_clocks()
+    assert realtime_ns - round(monotonic_s * 1e9) == EPOCH_NS  # the second try's, to the nanosecond
