@@ -85,9 +85,11 @@ def counter_times(counter: np.ndarray, rate_hz: float, t_host: np.ndarray | None
     return CounterTimes(time_s, gap_index, cycles[gap_index] * CYCLE_S, True)
 
 
-def counter_ticks(counter: np.ndarray) -> np.ndarray:
-    """Internal samples (1/INTERNAL_RATE_HZ s) from each sample to the next, by the counter."""
-    counts = np.diff(np.asarray(counter).astype(np.int64)) % COUNTER_MODULUS
+def counter_ticks(counter: np.ndarray, previous: int | None = None) -> np.ndarray:
+    """Internal samples (1/INTERNAL_RATE_HZ s) from each sample to the next, by the counter (from
+    the `previous` sample's counter to the first, when given)."""
+    counter = np.asarray(counter).astype(np.int64)
+    counts = (np.diff(counter) if previous is None else np.diff(counter, prepend=previous)) % COUNTER_MODULUS
     counts[counts == 0] = COUNTER_MODULUS
     return counts
 
@@ -104,8 +106,13 @@ def settle_window(rate_hz: float) -> int:
 
 def _evidence(time_s: np.ndarray, t_host: np.ndarray | None) -> bool:
     """Host times can show lost cycles: all there, and not arriving faster than real time."""
-    return t_host is not None and len(t_host) == len(time_s) and bool(np.isfinite(t_host).all()) \
-        and t_host[-1] - t_host[0] >= 0.9 * (time_s[-1] - time_s[0]) - CYCLE_S / 2
+    return t_host is not None and len(t_host) == len(time_s) and _kept_pace(time_s[0], t_host[0], time_s, t_host)
+
+
+def _kept_pace(first_s: float, first_host: float, time_s: np.ndarray, t_host: np.ndarray) -> bool:
+    """`_evidence` of a first sample's (time, host time) followed by `time_s` and `t_host`."""
+    return bool(np.isfinite(first_host)) and bool(np.isfinite(t_host).all()) \
+        and t_host[-1] - first_host >= 0.9 * (time_s[-1] - first_s) - CYCLE_S / 2
 
 
 def _hidden_cycles(offset_s: np.ndarray, window: int, settle: int) -> np.ndarray:
@@ -128,8 +135,13 @@ def _hidden_cycles(offset_s: np.ndarray, window: int, settle: int) -> np.ndarray
         before = minimum_filter1d(part, window, mode="nearest", origin=(window - 1) // 2)  # min over [i-W+1, i]
         after = minimum_filter1d(part, window, mode="nearest", origin=-(window // 2))  # min over [i, i+W-1]
         steps = np.rint((after[1:] - before[:-1]) / CYCLE_S)  # steps[m]: before sample lo + m + 1
+        # a candidate is a step of the envelope where the host also waited for the sample (`_lost`'s
+        # first test, taken here for all at once: a host drifting from the counter, as a slowed
+        # replay's, makes a step of nearly every sample, and none of them a wait)
+        waited = np.diff(part) >= CYCLE_S / 2
         found = None
-        for m in np.flatnonzero(steps[start - lo - 1:judged - lo - 1] >= 1) + start - lo - 1:
+        for m in np.flatnonzero((steps >= 1)[start - lo - 1:judged - lo - 1]
+                                & waited[start - lo - 1:judged - lo - 1]) + start - lo - 1:
             if _lost(offset_s, lo + m + 1, window, settle):
                 found = lo + m + 1
                 break
@@ -182,23 +194,25 @@ class CounterClock:
         if self._counter is None:  # the stream's first sample at 0
             time_s = np.concatenate([[0.0], np.cumsum(counter_ticks(counter))]) / INTERNAL_RATE_HZ
         else:
-            time_s = self._last_s + np.cumsum(counter_ticks(np.r_[self._counter, counter])) / INTERNAL_RATE_HZ
+            time_s = self._last_s + np.cumsum(counter_ticks(counter, self._counter)) / INTERNAL_RATE_HZ
         if np.isnan(self._first[1]) and np.isfinite(t_host[0]):
             self._first = (float(time_s[0]), float(t_host[0]))
         known = len(self._time)
         time_all, host_all = np.concatenate([self._time, time_s]), np.concatenate([self._host, t_host])
-        checked = _evidence(np.r_[self._first[0], time_all], np.r_[self._first[1], host_all])
+        checked = _kept_pace(*self._first, time_all, host_all)
         cycles = _hidden_cycles(host_all - time_all, host_window(rate_hz), settle_window(rate_hz)) if checked \
             else np.zeros(len(time_all), np.int64)
-        added = np.cumsum(cycles) * CYCLE_S
         found = np.flatnonzero(cycles)
-        before = found[found < known]  # in samples timed already: each from its time once those before moved
-        moved = tuple(zip((self._time + added[:known] - cycles[:known] * CYCLE_S)[before].tolist(),
-                          (cycles[before] * CYCLE_S).tolist()))
-        time_s += added[known:]
+        moved, history = (), self._time  # most batches: no gap found, nothing moves
+        if found.size:
+            added = np.cumsum(cycles) * CYCLE_S
+            before = found[found < known]  # in samples timed already: each from its time once those before moved
+            moved = tuple(zip((self._time + added[:known] - cycles[:known] * CYCLE_S)[before].tolist(),
+                              (cycles[before] * CYCLE_S).tolist()))
+            time_s += added[known:]
+            history = self._time + added[:known]  # its steps found: not found again
         here = found[found >= known]
         keep = host_window(rate_hz) + settle_window(rate_hz)  # a window before a step and SETTLE_S after it
-        history = self._time + added[:known]  # its steps found: not found again
         self._time, self._host = np.concatenate([history, time_s])[-keep:], host_all[-keep:]
         self._counter, self._last_s = int(counter[-1]), float(time_s[-1])
         return CounterTimes(time_s, here - known, cycles[here] * CYCLE_S, checked, moved)
