@@ -37,7 +37,8 @@ class WallClock:
     stamps in integer nanoseconds since the Unix epoch. `realtime` gives (realtime ns,
     monotonic s) read together (the host's clocks; a test's own). `follow=False` for a stream
     that does not come at the sensor's pace (a capture replayed faster): the offset found at
-    the start is kept, so the stamps keep the sensor's time scale from there."""
+    the start is kept, and the realtime clock's epoch with it unless the clock is set (a
+    reported step), so the stamps keep the sensor's time scale from there."""
 
     def __init__(self, realtime=None, follow: bool = True) -> None:
         self._realtime = realtime or _host_clocks
@@ -57,6 +58,8 @@ class WallClock:
         step = None
         if self._epoch_ns is not None and abs(epoch_ns - self._epoch_ns) > STEP_S * 1e9:
             step = (epoch_ns - self._epoch_ns) / 1e9  # the realtime clock was set
+        elif self._epoch_ns is not None and not self._follow_host:
+            epoch_ns = self._epoch_ns  # a slewed realtime clock would bend the sensor's time scale
         self._epoch_ns = epoch_ns
         moved = self._follow(np.asarray(time_s, np.float64), np.asarray(t_host, np.float64))
         if moved is not None:

@@ -90,3 +90,23 @@ def test_the_host_clocks_are_read_at_one_instant_even_when_a_read_is_preempted(m
     monkeypatch.setattr(wallclock.time, "time_ns", lambda: next(realtime))
     realtime_ns, monotonic_s = wallclock._host_clocks()
     assert realtime_ns - round(monotonic_s * 1e9) == EPOCH_NS  # the second try's, to the nanosecond
+
+
+def test_a_replays_stamps_keep_the_sensors_time_scale_while_the_realtime_clock_is_slewed():
+    """NTP slews the realtime clock (up to 500 ppm): a live stream's stamps follow it, a replay's
+    keep the counter's intervals exactly; a clock set is still a reported step."""
+    state = {"mono": 50.0, "epoch": EPOCH_NS}
+    wall = WallClock(lambda: (state["epoch"] + round(state["mono"] * 1e9), state["mono"]), follow=False)
+    clock = CounterClock()
+    counter = np.arange(2000 * 10) % 256
+    stamps, steps = [], []
+    for lo in range(0, len(counter), 400):
+        state["mono"] += 0.002
+        state["epoch"] += 1_000 + (2 * 10**9 if lo == 10_000 else 0)  # 1 us a read, and a 2 s set halfway
+        time_s = clock.times(counter[lo:lo + 400], 2000, np.full(400, state["mono"])).time_s
+        got, step = wall.stamps(time_s, np.full(400, state["mono"]))
+        stamps.append(got)
+        steps += [] if step is None else [step]
+    steps_ns = np.diff(np.concatenate(stamps))
+    assert len(steps) == 1 and abs(steps[0] - 2.0) < 1e-3
+    assert np.count_nonzero(steps_ns != 500_000) == 1  # ns: the sample interval but at the set
