@@ -22,8 +22,9 @@ bias instability), 125 Hz, turns in a random sense:
 - `limit`: the same on units at the datasheet's limits, random signs: each scale factor at its
   limit; each triad turned so that every sensing axis is its misalignment limit (1 mrad) from its
   housing reference, and each pair of its axes off orthogonal by the orthogonality limit
-  (0.2 mrad) (`limit_misalignment`: independent elements at +-1 mrad would put each axis 1.4 mrad
-  off and two axes up to 2 mrad off orthogonal, a unit the datasheet does not admit);
+  (0.2 mrad) (`calibd.spec.limit_misalignment`: independent elements at +-1 mrad would put each
+  axis 1.4 mrad off and two axes up to 2 mrad off orthogonal, a unit the datasheet does not
+  admit);
 - `tilted axis`: the field set on a platform axis tilted about 5.8 deg from Up (pitch 5, roll
   3 deg), where the statics' forces see some residuals: which terms the data estimated, and how
   well, is tabled too;
@@ -129,21 +130,6 @@ def random_scenario(seed: int, run_set: str = "g0 given"):
     return replace(base, seed=seed, truth=truth, segments=segments, site=site, warmup=warmup)
 
 
-def limit_misalignment(rng: np.random.Generator, triad: spec.Triad) -> np.ndarray:
-    """A triad's misalignment elements (mrad, spec.OFF_DIAGONAL order) at the datasheet's limits,
-    random signs. The datasheet bounds each sensing axis's angle to its housing reference (the
-    two off-diagonal elements of its row together) and the angle between two axes' deviation from
-    90 deg (E_ij + E_ji): a rotation of the whole triad with each component limit / sqrt(2) puts
-    every axis at its limit, and a symmetric part of half the orthogonality limit puts every pair
-    at that limit (and moves each axis's angle by up to 0.14 of the limit)."""
-    phi = rng.choice([-1, 1], 3) * triad.misalignment_mrad / np.sqrt(2)
-    half = rng.choice([-1, 1], 3) * triad.orthogonality_mrad / 2  # pairs xy, xz, yz
-    error = np.array([[0.0, phi[2] + half[0], -phi[1] + half[1]],
-                      [-phi[2] + half[0], 0.0, phi[0] + half[2]],
-                      [phi[1] + half[1], -phi[0] + half[2], 0.0]])
-    return np.array([error[i, j] for i, j in spec.OFF_DIAGONAL])
-
-
 def factory_residuals(rng: np.random.Generator, run_set: str) -> dict:
     """Each triad's scale factors and misalignment elements (Truth's fields): drawn with the
     datasheet's limits as 2 sigma (field), or at the limits with random signs (limit)."""
@@ -154,7 +140,7 @@ def factory_residuals(rng: np.random.Generator, run_set: str) -> dict:
             misalignment = rng.normal(0, triad.misalignment_sigma_mrad, 6)
         else:
             scale = rng.choice([-1, 1], 3) * triad.scale_factor_ppm
-            misalignment = limit_misalignment(rng, triad)
+            misalignment = spec.limit_misalignment(rng, triad)
         out[f"{sensor}_scale_ppm"] = tuple(scale)
         out[f"{sensor}_misalignment_mrad"] = tuple(misalignment)
     return out

@@ -124,6 +124,22 @@ class NoiseFigures:
 OFF_DIAGONAL = ((0, 1), (0, 2), (1, 0), (1, 2), (2, 0), (2, 1))  # xy xz yx yz zx zy
 
 
+def limit_misalignment(rng: np.random.Generator, triad: Triad) -> np.ndarray:
+    """A triad's misalignment elements (mrad, OFF_DIAGONAL order) at the datasheet's limits,
+    random signs. The datasheet bounds each sensing axis's angle to its housing reference (the
+    two off-diagonal elements of its row together) and the angle between two axes' deviation from
+    90 deg (E_ij + E_ji): a rotation of the whole triad with each component limit / sqrt(2) puts
+    every axis at its limit, and a symmetric part of half the orthogonality limit puts every pair
+    at that limit (which moves each axis a little off its limit: 0.86 to 1.14 mrad for 1 mrad
+    and 0.2 mrad)."""
+    phi = rng.choice([-1, 1], 3) * triad.misalignment_mrad / np.sqrt(2)
+    half = rng.choice([-1, 1], 3) * triad.orthogonality_mrad / 2  # pairs xy, xz, yz
+    error = np.array([[0.0, phi[2] + half[0], -phi[1] + half[1]],
+                      [-phi[2] + half[0], 0.0, phi[0] + half[2]],
+                      [phi[1] + half[1], -phi[0] + half[2], 0.0]])
+    return np.array([error[i, j] for i, j in OFF_DIAGONAL])
+
+
 def triad_error(scale_ppm, misalignment_mrad) -> np.ndarray:
     """The 3 x 3 error E of a triad whose output is (I + E) times the input in housing axes:
     scale-factor errors (ppm) on the diagonal, the OFF_DIAGONAL elements (mrad) off it."""

@@ -243,7 +243,7 @@ def test_the_factory_prior_check_counts_only_the_directions_the_data_saw():
     assert dof == 2 and chi2 == pytest.approx(1.0 / 0.5 + 4.0 / 0.8)
 
 
-LIMIT_SEED = 4  # signs whose unit the check flags (as 43 % of the benchmark's limit units)
+LIMIT_SEED = 4  # signs whose unit the check flags (as 43 % of units with every element at +-limit)
 TILTED_1_DEG = dict(pitch_deg=1.0, roll_deg=-0.9, alpha_deg=0.8, beta_deg=0.7)  # the statics see more tilted
 
 
@@ -274,3 +274,20 @@ def test_a_unit_whose_visible_residuals_lie_beyond_the_datasheet_has_what_they_l
     limited = [n for n in result.estimates if n not in ("yaw", "gyro_bias_x", "gyro_bias_y", "gyro_bias_z")]
     assert poor == limited  # pitch, roll, alpha, beta, the force biases: what the residuals limit
     assert any("beyond the STIM300 datasheet's spread" in w for w in result.warnings)
+
+
+@pytest.mark.parametrize("range_g", spec.ACC_RANGES_G)
+def test_a_unit_at_the_datasheet_limits_has_each_axis_and_each_pair_at_its_limit(range_g):
+    """What the datasheet bounds (TS1524 rev.31, Tables 5-3 to 5-8): each sensing axis's angle to
+    its housing reference (the two off-diagonal elements of its row) and each pair's deviation
+    from 90 deg (E_ij + E_ji). `spec.limit_misalignment` puts both at their limits."""
+    rng = np.random.default_rng(range_g)
+    for triad in spec.triads(range_g).values():
+        for _ in range(20):
+            error = spec.triad_error(np.zeros(3), spec.limit_misalignment(rng, triad))
+            axes = [np.hypot(*np.delete(error[i], i)) * 1e3 for i in range(3)]
+            pairs = [abs(error[i, j] + error[j, i]) * 1e3 for i, j in ((0, 1), (0, 2), (1, 2))]
+            assert np.allclose(pairs, triad.orthogonality_mrad)
+            assert all(abs(a - triad.misalignment_mrad) <= triad.orthogonality_mrad + 1e-12 for a in axes), axes
+            limit, orthogonality = triad.misalignment_mrad, triad.orthogonality_mrad
+            assert np.isclose(np.mean(np.square(axes)), limit ** 2 + orthogonality ** 2 / 2)
