@@ -25,6 +25,8 @@ bias instability), 125 Hz, turns in a random sense:
   (0.2 mrad) (`calibd.spec.limit_misalignment`: independent elements at +-1 mrad would put each
   axis 1.4 mrad off and two axes up to 2 mrad off orthogonal, a unit the datasheet does not
   admit);
+- `beyond limit`: those units, each element at +-1 mrad on its own, on the same sessions as the
+  limit set: what the estimator does with a unit outside the datasheet;
 - `tilted axis`: the field set on a platform axis tilted about 5.8 deg from Up (pitch 5, roll
   3 deg), where the statics' forces see some residuals: which terms the data estimated, and how
   well, is tabled too;
@@ -80,11 +82,13 @@ UNITS = {**{n: "deg" for n in NAMES[:5]}, **{n: "deg/h" for n in NAMES[5:8]}, **
 ARW = 0.15 / 60 * DEG  # rad/sqrt(s): the datasheet angle random walk the bound assumes
 GYRO_DRIVEN = ("yaw", "alpha", "beta", "gyro_bias_x", "gyro_bias_y", "gyro_bias_z")  # what the gyro bound covers
 RUN_SETS = ("g0 given", "normal gravity", "one index", "no inclinometers", "vibrating static", "field", "limit",
-            "tilted axis", "temperature ramp")
+            "beyond limit", "tilted axis", "temperature ramp")
 SEED_OFFSET = {"g0 given": 0, "normal gravity": 100_000, "one index": 200_000, "no inclinometers": 300_000,
-               "vibrating static": 400_000, "field": 500_000, "limit": 600_000, "tilted axis": 700_000,
+               "vibrating static": 400_000, "field": 500_000, "limit": 600_000,
+               "beyond limit": 600_000, "tilted axis": 700_000,
                "temperature ramp": 800_000}
-FACTORY_SETS = ("field", "limit", "tilted axis", "temperature ramp")  # with the datasheet's factory residuals
+# with the datasheet's factory residuals
+FACTORY_SETS = ("field", "limit", "beyond limit", "tilted axis", "temperature ramp")
 CALIBRATE_PATH = ("one index", "vibrating static", *FACTORY_SETS)  # through calibd calibrate: flags count
 TILTED_DEG = (5.0, 3.0)  # the tilted-axis set's pitch and roll: its platform axis about 5.8 deg from Up
 VIBRATION = 12.5  # times the sensor's white noise (scenario.Segment.vibration)
@@ -132,15 +136,17 @@ def random_scenario(seed: int, run_set: str = "g0 given"):
 
 def factory_residuals(rng: np.random.Generator, run_set: str) -> dict:
     """Each triad's scale factors and misalignment elements (Truth's fields): drawn with the
-    datasheet's limits as 2 sigma (field), or at the limits with random signs (limit)."""
+    datasheet's limits as 2 sigma (field), at the limits with random signs (limit), or every
+    element at its limit on its own (beyond limit)."""
     out = {}
     for sensor, triad in spec.triads(spec.DEFAULT_ACC_RANGE_G).items():
-        if run_set != "limit":
+        if run_set not in ("limit", "beyond limit"):
             scale = rng.normal(0, triad.scale_factor_sigma_ppm, 3)
             misalignment = rng.normal(0, triad.misalignment_sigma_mrad, 6)
         else:
             scale = rng.choice([-1, 1], 3) * triad.scale_factor_ppm
-            misalignment = spec.limit_misalignment(rng, triad)
+            misalignment = spec.limit_misalignment(rng, triad) if run_set == "limit" \
+                else rng.choice([-1, 1], 6) * triad.misalignment_mrad
         out[f"{sensor}_scale_ppm"] = tuple(scale)
         out[f"{sensor}_misalignment_mrad"] = tuple(misalignment)
     return out
