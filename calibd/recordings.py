@@ -371,7 +371,8 @@ class StampTimes:
                                 sample_rate=f"{self.rate_hz:g} Hz, measured from the header stamps"),
             stream=ResultStream(capture=self.where, recording=words, topic=topic, frame_id=self.frame_id,
                                 messages=self.messages, datagrams=self.messages, lost_samples=self.lost_samples,
-                                gaps=self.gaps, warnings=tuple(self.warnings)),
+                                gaps=self.gaps, inferred_missing=0, crc_errors=0, restarts=0,
+                                warnings=tuple(self.warnings)),
             identity=identity_record)
 
 

@@ -48,6 +48,7 @@ def test_a_recording_calibrates_as_its_capture_does(recordings, kind, site, raw_
     stream = result["stream"]
     assert stream["topic"] == TOPIC and stream["frame_id"] == FRAME_ID and stream["capture"] == str(recordings[kind])
     assert stream["messages"] == raw_result["stream"]["datagrams"] and stream["lost_samples"] == 0
+    assert (stream["crc_errors"], stream["restarts"], stream["inferred_missing"]) == (0, 0, 0)  # none: no datagrams
     assert result["sensor"]["sample_rate_hz"] == 125 and result["sensor"]["serial_number"] is None
     assert result["capture"]["path"] == str(recordings[kind]) and len(result["capture"]["sha256"]) == 64
 
@@ -264,5 +265,7 @@ def test_report_of_a_recording_of_several_imu_topics_takes_the_results_topic(tmp
     assert code == 0, err
     code, out, err = run_main(calibd_main, ["report", tmp_path / "r.json", path, "-o", tmp_path / "r.html"])
     assert code == 0 and out.startswith(f"report: {tmp_path / 'r.html'}"), err
+    page = (tmp_path / "r.html").read_text()
+    assert "0 spans" in page and "None" not in page  # the stream's counts of a recording, each a number
     err = refusal(run_main, ["report", tmp_path / "r.json", path, "-o", tmp_path / "s.html", "--topic", "/imu3"])
     assert "no topic /imu3" in err
