@@ -135,9 +135,9 @@ def _hidden_cycles(offset_s: np.ndarray, window: int, settle: int) -> np.ndarray
         before = minimum_filter1d(part, window, mode="nearest", origin=(window - 1) // 2)  # min over [i-W+1, i]
         after = minimum_filter1d(part, window, mode="nearest", origin=-(window // 2))  # min over [i, i+W-1]
         steps = np.rint((after[1:] - before[:-1]) / CYCLE_S)  # steps[m]: before sample lo + m + 1
-        # a candidate is a step of the envelope where the host also waited for the sample (`_lost`'s
-        # first test, taken here for all at once: a host drifting from the counter, as a slowed
-        # replay's, makes a step of nearly every sample, and none of them a wait)
+        # a candidate is a step of the envelope where the host also waited for the sample (its
+        # offset at least half a cycle above the one before), all taken at once: a host drifting
+        # from the counter, as a slowed replay's, makes a step of nearly every sample, none a wait
         waited = np.diff(part) >= CYCLE_S / 2
         found = None
         for m in np.flatnonzero((steps >= 1)[start - lo - 1:judged - lo - 1]
@@ -154,14 +154,14 @@ def _hidden_cycles(offset_s: np.ndarray, window: int, settle: int) -> np.ndarray
 
 
 def _lost(offset_s: np.ndarray, j: int, window: int, settle: int) -> bool:
-    """A step of the envelope before sample j is a loss, not a host stall: the host waited for j
-    (its offset at least half a cycle above j-1's), kept up with the counter over a whole window
+    """A step of the envelope before sample j, where the host waited for j (`_hidden_cycles`'
+    candidates), is a loss, not a host stall: the host kept up with the counter over a whole window
     before it (the envelope does not fall by half a cycle from one half to the next, as it does
     when data come faster than real time), and the offsets over the `settle` samples after it
     never fall STEADY_S below those of its first half window (a backlog read after a stall
     does). Minima, so one late read does not count."""
     half = max(1, window // 2)
-    if j < 2 * half or offset_s[j] - offset_s[j - 1] < CYCLE_S / 2:
+    if j < 2 * half:
         return False
     past, future = offset_s[j - 2 * half:j], offset_s[j:j + settle]
     return past[-half:].min() - past[:half].min() > -CYCLE_S / 2 \
