@@ -20,9 +20,11 @@ import numpy as np
 from stim300.protocol import NORMAL_LAYOUTS
 
 from .methods.joint import checked_by_statics
+from . import spec
 from .documents import NoiseDoc, SchemaError, decode_json, schema_version, validate
 from .errors import CalibdError
-from .estimators.joint import JointInput, JointOptions, SensorNoise, Underdetermined, datasheet_noise, solve
+from .estimators.joint import (JointInput, JointOptions, JointResult, SensorNoise, Underdetermined, datasheet_noise,
+                               solve)
 from .frames import STANDARD_GRAVITY, Site
 from .noise import NOISE_SCHEMA, NOISE_VERSION
 from .results import ESTIMATES
@@ -222,6 +224,8 @@ class Plan:
     duration_s: float
     sigmas: dict[str, float]  # SI (rad, rad/s, m/s^2), 1-sigma of every joint estimate
     factory: dict[str, float]  # SI, the part of each sigma the factory residuals' prior makes (none: 0)
+    estimated_terms: dict[str, tuple[float, float]]  # factory terms the statics' forces estimate: (sigma, prior
+    # sigma) in the term's unit (ppm, mrad)
     site: Site
     session: JointInput  # the noise-free session the sigmas come from, at PLAN_RATE_HZ
     noise: SensorNoise
@@ -290,7 +294,18 @@ def plan(campaign: Campaign | str, site: Site, figures: Noise, scale: float = 1.
         raise PlanError(f"{campaign.name}: {exc}") from None
     result = checked_by_statics(inp, result, site)  # as calibrate does: a tilted axis sees more
     factory = {name: parts.get("factory_residuals", 0.0) for name, parts in result.sigma_budget().items()}
-    return Plan(campaign, scale, segments, seconds, result.sigmas, factory, site, inp, noise)
+    return Plan(campaign, scale, segments, seconds, result.sigmas, factory, estimated_terms(result), site, inp, noise)
+
+
+def estimated_terms(result: JointResult) -> dict[str, tuple[float, float]]:
+    """The factory terms whose sigma the statics' forces bring to half the prior's or less (as a
+    calibration reports them "estimated"): name -> (sigma, prior sigma), in the term's unit."""
+    factory = result.factory
+    if factory is None or factory.posterior is None:
+        return {}
+    cov = factory.posterior.cov
+    return {term.name: (math.sqrt(cov[k, k]) * term.sigma_in_unit, term.sigma_in_unit)
+            for k, term in enumerate(factory.terms) if factory.posterior.estimated(k)}
 
 
 @dataclass
@@ -369,6 +384,11 @@ def report(reach: Reach, figures: Noise) -> str:
     for name, sigma in nominal.sigmas.items():
         factor, unit = ESTIMATES[name]
         lines.append(f"  {name:12s} {sigma * factor:10.3g} {unit:6s} ({nominal.factory[name] * factor:.3g} {unit})")
+    terms = nominal.estimated_terms
+    lines.append("factory terms the statics' forces estimate (sigma at most half the prior's): " + (
+        ", ".join(f"{name} {sigma:.3g} {unit} (prior {prior:.3g} {unit})" for name, (sigma, prior), unit in
+                  ((name, value, spec.FactoryTerm.named(name).unit) for name, value in terms.items()))
+        if terms else "none (docs/planner.md: what a tilted platform axis buys)"))
     target = reach.target_yaw / DEG
     lines.append(f"time to a yaw 1-sigma of {target:g} deg ({WHAT_SCALES[campaign.scales]}):")
     if reach.reached is None:

@@ -312,6 +312,23 @@ def test_longer_statics_in_a_scenario_give_smaller_sigmas(tmp_path, noise_plan, 
     assert 0.9 * thesis_plan.sigmas["alpha"] < with_prior.sigmas["alpha"] <= thesis_plan.sigmas["alpha"]
 
 
+
+def test_the_plan_names_the_factory_terms_a_tilted_axis_estimates(thesis_plan):
+    """The thesis's axis, 0.64 deg from Up, leaves every factory term at more than half its
+    prior (the gyro Z scale factor at about 150 of 250 ppm): none estimated. 5.8 deg from Up the
+    statics' forces see the angle that scale factor adds to every turn: it is estimated, and
+    the report says to what."""
+    tilted = replace(THESIS, truth=replace(THESIS.truth, pitch_deg=5.0, roll_deg=3.0))
+    plan = planner.plan(planner.campaign_from_scenario(tilted, "tilted"), SITE, STIM300)
+    assert thesis_plan.estimated_terms == {}
+    assert list(plan.estimated_terms) == ["gyro_scale_z"]
+    sigma, prior = plan.estimated_terms["gyro_scale_z"]
+    assert prior == pytest.approx(250) and 15 < sigma < 35
+    lines = planner.report(planner.Reach(DEG, plan, plan, None), STIM300).splitlines()
+    assert f"gyro_scale_z {sigma:.3g} ppm (prior 250 ppm)" in next(line for line in lines if "factory terms" in line)
+    nominal = planner.report(planner.Reach(DEG, thesis_plan, thesis_plan, None), STIM300)
+    assert "the statics' forces estimate (sigma at most half the prior's): none" in nominal
+
 @pytest.mark.slow
 def test_a_scenario_gives_the_plan_its_site_noise_and_sensor(tmp_path, run_main):
     """The scenario's [site] and [noise] are the plan's unless options replace them; a unit
