@@ -18,7 +18,8 @@ With --feeds the second run publishes ROS 2 topics and the Foxglove view instead
 CPU: the share of samples each Imu topic delivered (target >= 99.9 %), whether they came in
 order with strictly increasing stamps, the stamps' jitter against the sensor's clock (each 10 s
 of stamps against a straight line through them; target <= 50 us RMS), whether every corrected
-sample is its raw twin less a constant bias, and the Foxglove messages per channel.
+sample is its raw twin through a published result's correction (biases out, then the factory
+terms it estimated) and how often the correction taken changed, and the Foxglove messages per channel.
 
     python benchmarks/serve.py [--seconds 600] [--quick] [--feeds]
 """
@@ -44,6 +45,9 @@ import numpy as np
 
 from live import ENV, ROOT, capture_2000hz, feed, usage  # benchmarks/live.py: the stream and its real-time feed
 from ros2_publish import LOOPBACK  # DDS on loopback only, unicast discovery
+
+from calibd.correction import ServedCorrection, si_biases, through
+from calibd.results import parse_result
 
 
 WARMUP_WINDOW_S = 60
@@ -189,14 +193,35 @@ def ros2_figures(path: Path, rate_hz: float) -> str:
                      f"{expected:,} from its first to its last ({100 * len(stamps) / expected:.3f} %, target >= "
                      f"99.9 %), stamps {'strictly increasing' if np.all(steps > 0) else 'NOT in order'}, "
                      f"jitter {jitter_us:.1f} us RMS (target <= 50 us)")
-    raw = dict(zip(got["raw_stamp_ns"].tolist(), got["raw_values"]))
-    pairs = [(raw[s] - v) for s, v in zip(got["corrected_stamp_ns"].tolist(), got["corrected_values"]) if s in raw]
-    if pairs:
-        taken = np.array(pairs)
-        changes = np.flatnonzero(np.any(np.abs(np.diff(taken, axis=0)) > 1e-12, axis=1))
-        lines.append(f"corrected = raw - bias: {len(taken):,} pairs, the bias taken changed {len(changes)} times "
-                     f"(a new result each), constant between")
+    lines.append(corrected_figures(got))
     return "\n".join(lines)
+
+
+def corrected_figures(got) -> str:
+    """Whether each corrected sample is its raw twin through one of the published results'
+    corrections (biases out, then the factory terms it estimated, as docs/ros2.md says), and how
+    often the one taken changed."""
+    raw = {s: i for i, s in enumerate(got["raw_stamp_ns"].tolist())}
+    pairs = [(raw[s], i) for i, s in enumerate(got["corrected_stamp_ns"].tolist()) if s in raw]
+    if not pairs:
+        return "corrected: no sample with a raw twin"
+    raw_values = got["raw_values"][[r for r, _ in pairs]]
+    corrected = got["corrected_values"][[c for _, c in pairs]]
+    results = [parse_result(document, "imu/calibration") for document in got["documents"].tolist()]
+    taken = np.full(len(pairs), -1)
+    for index, result in enumerate(results):
+        correction = ServedCorrection.of(result)
+        if correction is None:
+            continue
+        bias = si_biases(result)
+        predicted = np.hstack([through(raw_values[:, 3 * k:3 * k + 3] - bias.get(block, 0.0),
+                                       correction.maps.get(block)) for k, block in enumerate(("gyro", "acc"))])
+        match = np.all(np.abs(predicted - corrected) <= 1e-9 * np.abs(raw_values) + 1e-12, axis=1)
+        taken[(taken < 0) & match] = index
+    changes = int(np.count_nonzero(np.diff(taken[taken >= 0])))
+    return (f"corrected = raw through a published result's correction: {np.count_nonzero(taken >= 0):,} of "
+            f"{len(pairs):,} pairs ({len(results)} results published), the correction taken changed {changes} "
+            f"times, constant between")
 
 
 def event_name(line: str) -> str:
