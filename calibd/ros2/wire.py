@@ -7,11 +7,15 @@ writers announce the same types a ROS 2 node's readers ask for. Iron and later r
 type hash from its user data ("typehash=RIHS01_<hex>;", as rmw_cyclonedds writes it); rosbags
 computes it from the message definitions. Imu samples are encoded in batches by
 `stim300.rosimu.ImuEncoder` and written through `DataWriter.write` as `_Encoded` samples, whose
-`serialize` returns those bytes; the low-rate messages are written as the structs below.
+`serialize` returns those bytes; the low-rate messages are written as the structs below. An Imu
+writer batches (`_BatchedWriter`): a batch's samples leave in a few datagrams when it is flushed,
+not one sendmsg each.
 (No `from __future__ import annotations` here: cyclonedds reads the fields' types from the
 annotations as objects.)
 """
 
+import ctypes
+import time
 from dataclasses import dataclass
 from functools import cache
 from typing import Sequence
@@ -29,6 +33,7 @@ try:
     from cyclonedds.domain import DomainParticipant
     from cyclonedds.idl import IdlStruct
     from cyclonedds.idl import types as idl
+    from cyclonedds.internal import c_call, dds_c_t
     from cyclonedds.pub import DataWriter
     from cyclonedds.topic import Topic
     from cyclonedds.util import duration
@@ -122,6 +127,31 @@ class _Encoded(Imu):
         return self.cdr
 
 
+class _BatchedWriter(DataWriter):
+    """A DataWriter whose writes wait in Cyclone DDS's write batch until `flush` (or until a
+    datagram is full): at 2000 Hz a sample per sendmsg is most of what a write costs. The
+    writer-batching QoS and the flush are Cyclone's C API, which the Python binding does not
+    wrap: they are bound here the way the binding binds its own calls (`c_call`)."""
+
+    def _create_writer(self, publisher, topic, qos, listener):
+        self._qset_writer_batching(qos, True)  # qos: the C copy of the writer's Qos, made for this call
+        return DataWriter._create_writer(self, publisher, topic, qos, listener)
+
+    def flush(self) -> None:
+        """Send what the batch holds."""
+        ret = self._flush(self._ref)
+        if ret < 0:
+            raise DDSException(ret, f"Occurred while flushing {self!r}")
+
+    @c_call("dds_qset_writer_batching")
+    def _qset_writer_batching(self, qos: dds_c_t.qos_p, batch_updates: ctypes.c_bool) -> None:
+        pass
+
+    @c_call("dds_write_flush")
+    def _flush(self, writer: dds_c_t.entity) -> dds_c_t.returnv:
+        pass
+
+
 # ---- the QoS a ROS 2 reader matches (rmw_qos_profile_sensor_data; a latched topic; diagnostics)
 
 _XCDR1 = Policy.DataRepresentation(use_cdrv0_representation=True)
@@ -130,6 +160,7 @@ SENSOR_QOS = (Policy.Reliability.BestEffort, Policy.Durability.Volatile, Policy.
 LATCHED_QOS = (_RELIABLE, Policy.Durability.TransientLocal, Policy.History.KeepLast(1))
 DIAGNOSTICS_QOS = (_RELIABLE, Policy.Durability.Volatile, Policy.History.KeepLast(10))
 
+MATCH_CHECK_S = 0.5  # how long an Imu writer's count of matched readers is taken as known
 # Publisher's topic keys -> (ROS 2 type, its DDS type, QoS)
 TOPICS = {
     "imu_raw": (IMU, Imu, SENSOR_QOS),
@@ -177,6 +208,8 @@ class Publisher:
     writer keeps only its last samples (keep last), and a reliable one waits at most 100 ms for
     room. The Imu topics may be written from one thread while the others are from another."""
 
+    IMU_KEYS = ("imu_raw", "imu")
+
     def __init__(self, domain_id: int, topics: dict[str, str], frame_id: str):
         unknown = sorted(set(topics) - set(TOPICS))
         if unknown:
@@ -191,26 +224,39 @@ class Publisher:
             raise Ros2Error(f"ros2 domain_id {domain_id!r}: expected an integer 0 to {MAX_DOMAIN_ID}")
         try:
             self._participant = DomainParticipant(domain_id)
-            self._writers = {key: self._writer(name, *TOPICS[key]) for key, name in names.items()}
+            self._writers = {key: self._writer(name, *TOPICS[key], batched=key in self.IMU_KEYS)
+                             for key, name in names.items()}
         except DDSException as error:
             code, words = DDSException.error_message_mapping.get(error.code, (str(error.code), "error"))
             raise Ros2Error(f"ros2 domain_id {domain_id}: Cyclone DDS cannot publish there ({words.lower()}, {code}): "
                             "see its own message above, and CYCLONEDDS_URI if set") from None
+        self._matched: dict[str, tuple[float, bool]] = {}  # Imu key -> (when checked, monotonic s; a reader matched)
 
-    def _writer(self, name: str, ros_type: str, data_type: type, qos: tuple) -> DataWriter:
+    def _writer(self, name: str, ros_type: str, data_type: type, qos: tuple, batched: bool) -> DataWriter:
         topic = Topic(self._participant, name, data_type)
-        return DataWriter(self._participant, topic, Qos(*qos, _XCDR1, Policy.Userdata(user_data(ros_type))))
+        return (_BatchedWriter if batched else DataWriter)(
+            self._participant, topic, Qos(*qos, _XCDR1, Policy.Userdata(user_data(ros_type))))
 
     def imu(self, key: str, stamp_ns: np.ndarray, gyro_rad_s: np.ndarray, acc_m_s2: np.ndarray,
             gyro_cov: Sequence[float], acc_cov: Sequence[float]) -> None:
         """A batch of sensor_msgs/Imu on "imu_raw" or "imu": stamps (ns since the epoch, N),
         rates (rad/s, N x 3), accelerations (m/s^2, N x 3), covariances (9 each, row-major).
-        Neither encoded nor written while no reader is matched (best effort, volatile: a reader
-        that comes later gets the samples from then on, as it would anyway)."""
+        Neither encoded nor written while no reader is matched, as last checked within
+        MATCH_CHECK_S (best effort, volatile: a reader that comes later gets the samples from
+        then on, as it would anyway). The batch is sent when written."""
         writer = self._writers.get(key)
-        if writer is not None and writer.get_publication_matched_status().current_count:  # none: nothing to do
+        if writer is not None and self._reader_matched(key, writer):  # none: nothing to do
             for cdr in self._imu.encode(stamp_ns, gyro_rad_s, acc_m_s2, gyro_cov, acc_cov):
                 writer.write(_Encoded(cdr))
+            writer.flush()
+
+    def _reader_matched(self, key: str, writer: DataWriter) -> bool:
+        now = time.monotonic()
+        checked, matched = self._matched.get(key, (-MATCH_CHECK_S, False))
+        if now - checked >= MATCH_CHECK_S:
+            matched = writer.get_publication_matched_status().current_count > 0
+            self._matched[key] = (now, matched)
+        return matched
 
     def calibration(self, document_json: str) -> None:
         """The latest calibration result (its JSON document) as std_msgs/String, kept for late
