@@ -324,7 +324,7 @@ def cmd_replay(args) -> int:
     from stim300.progress import Progress
     from stim300.source import CaptureSource, PtySource
 
-    from .config import DetectionConfig, MethodConfig, WarmupConfig
+    from .config import DetectionConfig, MethodConfig, ServeConfig, WarmupConfig
     from .daemon import Calibrator, Callbacks, StateLog
     from .live import configure_logging, replay
     from .recordingbytes import recording_bytes
@@ -334,6 +334,11 @@ def cmd_replay(args) -> int:
     from .serve.sockets import ServeError
 
     config = _config(args.config, None) if args.config else None
+    mcap = None if args.mcap is None else Path(args.mcap)
+    if mcap is not None:
+        if mcap.suffix != ".mcap":
+            raise UsageError(f"--mcap {args.mcap}: name it .mcap (the Foxglove view's channels, docs/foxglove.md)")
+        not_an_input(args.mcap, args.capture)
     if config:
         site, warmup, method, detection = config.site, config.warmup, config.method, config.detection
     elif args.latitude is not None:
@@ -380,16 +385,18 @@ def cmd_replay(args) -> int:
     speed_text = args.speed or ("1" if serve else "max")  # served: as a sensor sends, unless told
     speed = None if speed_text == "max" else float(speed_text)
     hub = None
-    if serve:
+    if serve or mcap:
+        served = config if serve and config else None
         try:
-            hub = Hub(serve, args.capture, feeds=make_feeds(config.ros2, config.foxglove) if config else None,
-                      paced=speed == 1, record=config.record if config else None)
+            feeds = make_feeds(served and served.ros2, served and served.foxglove, mcap)
+            hub = Hub(serve or ServeConfig(), args.capture, feeds=feeds, paced=speed == 1,
+                      record=served and served.record)
         except ServeError as exc:  # as for the daemon: serving that cannot start fails the run
             raise RunError(str(exc)) from None
         listeners.append(hub)
     calibrator = Calibrator(site, warmup, method, listeners, source=args.capture, detection=detection, origin=origin)
     try:
-        source = PtySource(data, speed, tap=hub and hub.tap) if args.pty or serve \
+        source = PtySource(data, speed, tap=hub and hub.tap) if args.pty or hub \
             else CaptureSource(data, speed, reads=reads)
     except BaseException:
         if hub is not None:
@@ -1034,6 +1041,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--warmup-window", type=_number(*WINDOW_RANGE_S, "s"),
                    help="seconds of settled temperature that end the warm-up (default 600)")
     p.add_argument("--state-dir", type=path_arg, help="also write result.json, history/ and state.json there")
+    p.add_argument("--mcap", type=path_arg, metavar="VIEW.mcap",
+                   help="record the Foxglove view's channels (the IMU, state, estimates, health, results) into "
+                        "VIEW.mcap, replaced atomically at the end; needs the foxglove extra (docs/foxglove.md)")
     p.add_argument("--topic", type=_ros_topic, metavar="NAME", help=TOPIC_HELP)
     p.set_defaults(func=cmd_replay)
     p = sub.add_parser("status", help="the daemon's state and last result")

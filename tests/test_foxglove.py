@@ -375,3 +375,84 @@ def test_a_port_in_use_ends_a_served_replay_before_it_starts_with_one_line(tmp_p
     taken.close()
     assert done.returncode == 1 and done.stdout == "", done.stdout
     assert done.stderr.count("\n") == 1 and f"cannot serve Foxglove on 127.0.0.1:{port}" in done.stderr, done.stderr
+
+
+def recorded_view(path: Path) -> list[tuple[str, int, dict]]:
+    """An MCAP file's messages: (topic, log time in ns, the JSON payload), in the file's order."""
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        return [(channel.topic, message.log_time, json.loads(message.data))
+                for _, channel, message in make_reader(f).iter_messages(log_time_order=False)]
+
+
+def test_a_view_recorded_to_mcap_logs_every_channel_on_the_samples_time_line(tmp_path):
+    """Without a server and without a client: the MCAP file is every channel's sink. What comes
+    after samples is logged at the newest sample's time (a replay faster than real time keeps one
+    time line), what comes before at the host's; the file is put in place whole at close."""
+    path = tmp_path / "view.mcap"
+    view = FoxgloveView(host=None, mcap=path)
+    assert view.port is None
+    before = time.time_ns()
+    view.state("WARMING_UP", "waiting", {})
+    whole = batch(201)
+    view.samples(whole)
+    view.result(RESULT)
+    view.health(Health("COLLECTING", "", {"crc_errors": 0}, 0, ()))
+    assert not path.exists()
+    view.close()
+    got = recorded_view(path)
+    assert [topic for topic, _, _ in got] == ["/calibd/state", *["/imu/raw"] * 10, "/calibd/estimates",
+                                              "/calibd/result", "/calibd/health"]
+    assert before <= got[0][1] <= time.time_ns()
+    assert [t for topic, t, _ in got[11:]] == [int(whole.stamp_ns[-1])] * 3
+    assert got[12][2] == json.loads(json.dumps(RESULT.to_dict(), default=json_value))
+    raw_times = [t for topic, t, _ in got if topic == "/imu/raw"]
+    assert raw_times == sorted(raw_times) and raw_times[0] >= T0_NS
+    assert list(tmp_path.iterdir()) == [path]  # no temporary file beside it
+
+
+def test_an_mcap_path_that_cannot_be_written_is_one_line_and_leaves_nothing(tmp_path):
+    missing = tmp_path / "missing" / "view.mcap"
+    with pytest.raises(ServeError) as refused:
+        FoxgloveView(host=None, mcap=missing)
+    assert str(refused.value).startswith(f"--mcap {missing}: ") and "\n" not in str(refused.value)
+    (tmp_path / "dir.mcap").mkdir()
+    with pytest.raises(ServeError, match="dir.mcap"):
+        FoxgloveView(host=None, mcap=tmp_path / "dir.mcap")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dir.mcap"]
+
+
+HEADING137 = Path(__file__).resolve().parents[1] / "fixtures" / "heading137_lat60_125hz.bin"
+
+
+@pytest.mark.slow
+def test_replay_records_the_view_of_a_calibration_into_mcap(tmp_path, run_main):
+    """`calibd replay --mcap` at full speed, through the daemon's own port reader and feeds: the
+    capture's IMU at the display rate on the sensor's time line, the states it went through, and
+    the result as the state directory holds it."""
+    from calibd.cli import main as calibd_main
+
+    view = tmp_path / "view.mcap"
+    code, out, err = run_main(calibd_main, ["replay", str(HEADING137), "--latitude", "60", "--mcap", str(view),
+                                            "--state-dir", str(tmp_path / "state")])
+    assert code == 0, err
+    got = recorded_view(view)
+    raw = [t for topic, t, _ in got if topic == "/imu/raw"]
+    seconds = len(HEADING137.read_bytes()) / 125 / 50  # roughly: 125 Hz datagrams of about 50 bytes
+    assert raw == sorted(raw) and 0.5 * seconds < (raw[-1] - raw[0]) / 1e9 < 2 * seconds
+    assert 90 < len(raw) / ((raw[-1] - raw[0]) / 1e9) <= 101  # blocks of 10 ms
+    states = [message["state"] for topic, _, message in got if topic == "/calibd/state"]
+    assert "SOLVED" in states or "MONITORING" in states, states
+    results = [message for topic, _, message in got if topic == "/calibd/result"]
+    assert results[-1] == json.loads((tmp_path / "state" / "result.json").read_text())
+
+
+def test_replay_refuses_an_mcap_view_not_named_mcap_or_naming_its_capture(tmp_path, run_main):
+    from calibd.cli import main as calibd_main
+
+    link = tmp_path / "capture.mcap"
+    link.symlink_to(HEADING137)
+    for given, words in ((tmp_path / "view.json", "name it .mcap"), (link, "would destroy the input")):
+        code, out, err = run_main(calibd_main, ["replay", str(HEADING137), "--latitude", "60", "--mcap", str(given)])
+        assert code == 2 and words in err and err.count("\n") == 1, err

@@ -7,6 +7,10 @@ a viewer. Every call first asks the SDK whether a client subscribes to its chann
 once when none does, so an unwatched view costs one question per channel; what is logged goes to
 per-client queues the SDK bounds (BACKLOG_MESSAGES), dropping a slow client's oldest messages
 rather than waiting for it. foxglove-sdk is an optional extra, imported only when a view is made.
+
+A view may also record its channels into an MCAP file (`calibd replay --mcap`): every channel
+then has a sink and is logged, each message at the time of the samples it follows, and the file
+replaces its path whole when the view closes (`stim300.atomic`).
 """
 
 from __future__ import annotations
@@ -15,11 +19,15 @@ import functools
 import logging
 import time
 from collections.abc import Callable
+from contextlib import ExitStack
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import msgspec
 import numpy as np
 
+from stim300.atomic import atomic_file
+from stim300.errors import os_reason
 from stim300.protocol import CLUSTERS
 
 from ..correction import uncorrectable
@@ -86,10 +94,12 @@ CHANNELS: dict[str, dict] = {
 
 class FoxgloveView:
     """foxglove-sdk's WebSocket server with calibd's channels, in a context of its own (so views
-    share nothing), listening from construction: a port in use or a missing SDK is a ServeError
-    before the daemon says it is ready."""
+    share nothing), listening from construction (host None: no server), and the MCAP file
+    `mcap` they are recorded into (None: none): a port in use, an MCAP path that cannot be
+    written or a missing SDK is a ServeError before the daemon says it is ready."""
 
-    def __init__(self, host: str = "127.0.0.1", port: int = 8765, rate_hz: float = 100.0):
+    def __init__(self, host: str | None = "127.0.0.1", port: int = 8765, rate_hz: float = 100.0,
+                 mcap: Path | None = None):
         try:
             import foxglove
         except ImportError:
@@ -102,19 +112,31 @@ class FoxgloveView:
         self._context = foxglove.Context()  # the channels' binding to the server: dropped, it unbinds them
         self._channels = {topic: foxglove.Channel(topic, schema=schema, context=self._context)
                           for topic, schema in CHANNELS.items()}
+        self._last_ns: int | None = None  # the newest sample's stamp: the time of what is logged next
+        self._server, self._mcap, self._file = None, None, ExitStack()
         try:
-            self._server = foxglove.start_server(name="calibd", host=host, port=port, context=self._context,
-                                                 message_backlog_size=BACKLOG_MESSAGES)
+            if host is not None:
+                self._server = foxglove.start_server(name="calibd", host=host, port=port, context=self._context,
+                                                     message_backlog_size=BACKLOG_MESSAGES)
         except RuntimeError as exc:
-            self._close_channels()
+            self.close()
             why = str(exc).removeprefix("FoxgloveError: ").splitlines()[0]
             address = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
             raise ServeError(f"cannot serve Foxglove on {address}: {why}") from None
+        try:
+            if mcap is not None:
+                self._mcap = foxglove.open_mcap(self._file.enter_context(atomic_file(mcap, durable=False)),
+                                                context=self._context)
+        except (OSError, RuntimeError) as exc:
+            self._file.__exit__(type(exc), exc, exc.__traceback__)  # a temporary file removed, nothing in place
+            self.close()
+            why = os_reason(exc) if isinstance(exc, OSError) else str(exc).splitlines()[0]
+            raise ServeError(f"--mcap {mcap}: cannot write: {why}") from None
 
     @property
-    def port(self) -> int:
-        """The port listened on (the one the system chose for port 0)."""
-        return self._server.port
+    def port(self) -> int | None:
+        """The port listened on (the one the system chose for port 0); None: no server."""
+        return None if self._server is None else self._server.port
 
     def watching(self, topic: str) -> bool:
         """Whether a client subscribes to `topic`: a caller skips work nobody would see."""
@@ -124,6 +146,8 @@ class FoxgloveView:
         """A batch of reads on /imu/raw, and with its correction taken out (biases, estimated factory
         terms) on /imu/corrected when it has one; nothing for a format whose outputs are not rates
         and accelerations."""
+        if len(batch.stamp_ns):
+            self._last_ns = int(batch.stamp_ns[-1])
         for kind, correction in (("raw", None), ("corrected", batch.correction)):
             if (kind == "corrected" and correction is None) or not self.watching(IMU_TOPICS[kind]) \
                     or uncorrectable(batch.info.format):
@@ -149,8 +173,13 @@ class FoxgloveView:
                                                  "faults": list(health.faults)})
 
     def close(self) -> None:
-        """Stop listening (clients are disconnected) and unadvertise the channels."""
-        self._server.stop()
+        """Stop listening (clients are disconnected), finish the MCAP file and put it in place,
+        and unadvertise the channels."""
+        if self._server is not None:
+            self._server.stop()
+        if self._mcap is not None:
+            self._mcap.close()
+        self._file.close()
         self._close_channels()
 
     def _close_channels(self) -> None:
@@ -179,10 +208,12 @@ class FoxgloveView:
             channel.log(msgspec.json.encode(message), log_time=t)
 
     def _publish(self, topic: str, message: Callable[[], dict]) -> None:
-        """`message()` as JSON on `topic`, timed now; not even made when nobody subscribes."""
+        """`message()` as JSON on `topic`, timed at the newest sample (now before the first: a
+        replay faster than real time keeps one time line); not even made when nobody subscribes."""
         channel = self._channels[topic]
         if channel.has_sinks():
-            channel.log(msgspec.json.encode(message(), enc_hook=json_value), log_time=time.time_ns())
+            channel.log(msgspec.json.encode(message(), enc_hook=json_value),
+                        log_time=time.time_ns() if self._last_ns is None else self._last_ns)
 
 
 def block_means(stamp_ns: np.ndarray, columns: np.ndarray, period_ns: int

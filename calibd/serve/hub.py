@@ -362,10 +362,12 @@ class Hub(Listener):
         raise ProtocolError(f"?{command.name} takes no part in this server")
 
 
-def make_feeds(ros2: Ros2Config | None, foxglove: FoxgloveConfig | None) -> dict[str, Feed]:
-    """The feeds the [ros2] and [foxglove] tables ask for (None: the table is absent), started;
-    ServeError (one line, before the daemon says it is ready) when one cannot start, those made
-    before it closed. Their packages are loaded only here, when asked for."""
+def make_feeds(ros2: Ros2Config | None, foxglove: FoxgloveConfig | None, mcap: Path | None = None
+               ) -> dict[str, Feed]:
+    """The feeds the [ros2] and [foxglove] tables ask for (None: the table is absent), and the
+    Foxglove view recorded into `mcap` (replay --mcap; without a [foxglove] table, a view with
+    no server), started; ServeError (one line, before the daemon says it is ready) when one
+    cannot start, those made before it closed. Their packages are loaded only here, when asked for."""
     from ..ros2.messages import Ros2Error
 
     feeds: dict[str, Feed] = {}
@@ -374,10 +376,11 @@ def make_feeds(ros2: Ros2Config | None, foxglove: FoxgloveConfig | None) -> dict
             from .rosfeed import Ros2Feed  # here: the ros2 extra is loaded only when [ros2] is given
 
             feeds["ros2"] = Ros2Feed(ros2)
-        if foxglove is not None:
+        if foxglove is not None or mcap is not None:
             from .foxglove import FoxgloveView
 
-            feeds["foxglove"] = FoxgloveView(foxglove.host, foxglove.port, foxglove.rate_hz)
+            view = foxglove or FoxgloveConfig()
+            feeds["foxglove"] = FoxgloveView(view.host if foxglove else None, view.port, view.rate_hz, mcap)
     except Ros2Error as exc:
         _close_all(feeds)
         raise ServeError(f"[ros2] {exc}") from None
