@@ -161,10 +161,13 @@ def _method_settings(args, command: str) -> tuple[str, dict]:
     if args.method == "joint" and (args.alpha is not None or args.platform_rate is not None or args.bench):
         raise UsageError(f"{command}: --alpha/--beta, --platform-rate and --bench belong to --method thesis; the "
                          "joint method estimates alpha and beta itself")
-    if args.method == "thesis" and (args.fixed_amplitude or args.drift):
-        raise UsageError(f"{command}: --fixed-amplitude and --drift belong to --method joint")
+    if args.method == "thesis" and (args.fixed_amplitude or args.drift or args.index_step is not None):
+        raise UsageError(f"{command}: --fixed-amplitude, --index-step and --drift belong to --method joint")
+    if args.index_sigma is not None and args.index_step is None:
+        raise UsageError(f"{command}: --index-sigma is the index's 1-sigma: give --index-step too")
     options = {"fixed_amplitude": args.fixed_amplitude, "drift": args.drift, "alpha_deg": args.alpha,
-               "beta_deg": args.beta, "platform_rate_deg_s": args.platform_rate}
+               "beta_deg": args.beta, "platform_rate_deg_s": args.platform_rate,
+               "index_step_deg": args.index_step, "index_sigma_deg": args.index_sigma}
     return "thesis-bench" if args.bench else args.method, options
 
 
@@ -959,6 +962,8 @@ TOPIC_HELP = ("the sensor_msgs/Imu topic of a recording (ROS bag, rosbag2, MCAP;
 
 def _add_method_options(p: argparse.ArgumentParser, methods: tuple[str, ...]) -> None:
     """The options that say how a capture is calibrated (`calibrate`, `batch`)."""
+    from .methods.base import DEFAULT_INDEX_SIGMA_DEG, INDEX_SIGMA_DEG, INDEX_STEP_DEG
+
     p.add_argument("--method", choices=methods, default="joint",
                    help="joint: every segment in one fit, with 1-sigma (default); thesis: the thesis's chain")
     _add_site_options(p, required=True)
@@ -976,6 +981,12 @@ def _add_method_options(p: argparse.ArgumentParser, methods: tuple[str, ...]) ->
                         "loses the check that the Earth rate is really seen)")
     p.add_argument("--drift", action="store_true",
                    help="joint: fit a linear gyro drift per channel (thermal ramps); costs precision")
+    p.add_argument("--index-step", type=_number(*INDEX_STEP_DEG, "deg"), metavar="DEG",
+                   help="joint: the platform's turns are whole multiples of DEG (an indexing table's step): each "
+                        "static's angle is taken from its stop, and the turns show the gyro Z scale factor")
+    p.add_argument("--index-sigma", type=_number(*INDEX_SIGMA_DEG, "deg"), metavar="DEG",
+                   help=f"joint: how exactly a static sits at its stop, 1-sigma (default {DEFAULT_INDEX_SIGMA_DEG:g} "
+                        "deg)")
     p.add_argument("--topic", type=_ros_topic, metavar="NAME", help=TOPIC_HELP)
 
 

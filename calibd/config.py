@@ -65,6 +65,8 @@ class MethodConfig:
     alpha_deg: float | None = None  # thesis only, with beta_deg: a-priori interface tilt (nominal run)
     beta_deg: float | None = None
     resolve_every_s: float = 60.0  # how often the estimate is recomputed from the data so far
+    index_step_deg: float | None = None  # joint only: the platform's turns are whole multiples of this angle
+    index_sigma_deg: float | None = None  # joint only: how exactly a static sits at its stop (default 0.01 deg)
 
 
 BEFORE_RESULT = ("hold", "raw")  # what the corrected outputs carry before the power-up's first result

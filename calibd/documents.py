@@ -274,6 +274,15 @@ class TurnAngle(Struct):
     corrected: bool
 
 
+class IndexedTurnsCheck(Struct):
+    step_deg: Number
+    sigma_deg: NonNegative
+    static_angles_deg: list[Number]
+    gyro_minus_stop_deg: list[Number]
+    scale_along_axis_ppm: Number
+    scale_sigma_ppm: NonNegative
+
+
 class Checks(Struct):
     earth_rate_horizontal_deg_h: Union[EarthRateCheck, None] = None
     static_chi2: Union[Chi2, None] = None
@@ -282,11 +291,14 @@ class Checks(Struct):
     platform_axis_in_gyro_axes: Union[Vector, None] = None
     noise_excess_over_white: dict[str, NonNegative] = {}
     turn_angles: list[TurnAngle] = []
+    indexed_turns: Union[IndexedTurnsCheck, None] = None
 
 
 class Options(Struct):
     fixed_amplitude: bool = False
     drift: bool = False
+    index_step_deg: Union[Number, None] = None
+    index_sigma_deg: Union[NonNegative, None] = None
 
 
 class CaptureDoc(Struct):

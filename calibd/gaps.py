@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .estimators.joint import (FactoryEffects, FactoryPosterior, JointInput, NoiseModel, TemperatureEffects,
+from .estimators.joint import (FactoryEffects, FactoryPosterior, JointInput, NoiseModel, TemperatureEffects, turn_ramps,
                                Underdetermined, alpha_beta, mean_variance, static_inflation)
 from .allan import FLICKER_TAUS_S
 from .frames import int_to_imu, r3
@@ -268,11 +268,7 @@ def chi_correction(inp: JointInput, chi: np.ndarray, turns: list[TurnAngle]) -> 
     """Per sample, the platform angle the `turns` add beyond the gyros' integral: nothing before
     a turn, all of it after, and in proportion to the angle turned in between (where in the turn
     the datagrams went is not known)."""
-    total = np.zeros(len(inp.time_s))
+    added = np.zeros(len(inp.statics) - 1)
     for turn in turns:
-        progress = (chi - chi[turn.start - 1]) / (chi[turn.stop] - chi[turn.start - 1])
-        ramp = np.clip(progress, 0.0, 1.0)
-        ramp[:turn.start] = 0.0
-        ramp[turn.stop:] = 1.0
-        total += turn.correction_rad * ramp
-    return total
+        added[next(k for k in range(len(added)) if inp.statics[k][1] == turn.start)] += turn.correction_rad
+    return turn_ramps(inp, chi, added)

@@ -82,6 +82,11 @@ def test_full_config_round_trips(tmp_path):
 def test_joint_options(tmp_path):
     path = write(tmp_path, MINIMAL + '[method]\nname = "joint"\nfixed_amplitude = true\ndrift = true\n')
     assert load_config(path).method == MethodConfig("joint", fixed_amplitude=True, drift=True)
+    path = write(tmp_path, MINIMAL + '[method]\nindex_step_deg = 90\nindex_sigma_deg = 0.005\n')
+    method = load_config(path).method
+    assert (method.index_step_deg, method.index_sigma_deg) == (90.0, 0.005)
+    message = error(write(tmp_path, MINIMAL + '[method]\nindex_sigma_deg = 0.005\n'))
+    assert message.endswith("[method] index_sigma_deg: is the index's 1-sigma: give index_step_deg too"), message
 
 
 def test_defaults_apply(tmp_path):
@@ -253,6 +258,8 @@ def replace_line(text: str, old: str, new: str) -> str:
     ('name = "thesis"', 'name = "thesis"\ndrift = false', "[method]", "drift", ["False", '"thesis"', "joint"]),
     ('name = "thesis"', 'name = "thesis"\nfixed_amplitude = true', "[method]", "fixed_amplitude",
      ["True", '"thesis"']),
+    ('name = "thesis"', 'name = "joint"\nindex_step_deg = 0.5', "[method]", "index_step_deg",
+     ["0.5", "an indexing table's step in [1, 360] deg"]),
 ])
 def test_errors_name_file_table_and_key(tmp_path, old, new, table, key, words):
     message = error(write(tmp_path, replace_line(FULL, old, new)))

@@ -15,7 +15,9 @@ from calibd.methods.joint import joint_fit, joint_real_case
 from calibd.captures import load_session
 from calibd.estimators import joint
 from calibd.frames import STANDARD_GRAVITY
-from calibd.results import ResultStream, result_json
+from calibd.errors import CalibrationError
+from calibd.estimators.joint import JointOptions
+from calibd.results import ResultStream, parse_result, result_json
 from calibd.scenario import Noise, ScenarioError, Truth, load_scenario, parse_scenario
 from calibd.session import Session
 from calibd.sim import simulate, write_capture
@@ -291,3 +293,55 @@ def test_a_unit_at_the_datasheet_limits_has_each_axis_and_each_pair_at_its_limit
             assert all(abs(a - triad.misalignment_mrad) <= triad.orthogonality_mrad + 1e-12 for a in axes), axes
             limit, orthogonality = triad.misalignment_mrad, triad.orthogonality_mrad
             assert np.isclose(np.mean(np.square(axes)), limit ** 2 + orthogonality ** 2 / 2)
+
+
+INDEXED = JointOptions(index_step=90 * DEG, index_sigma=0.01 * DEG)
+UPRIGHT = replace(THESIS.truth, pitch_deg=0.05, roll_deg=0.05, alpha_deg=0.0, beta_deg=0.0,
+                  gyro_scale_ppm=(0.0, 0.0, 400.0))
+
+
+def test_indexed_turns_give_the_gyro_z_scale_factor_exactly_on_exact_data():
+    """An axis 0.07 deg from Up, whose statics' forces see nothing of the gyro Z scale factor:
+    with the statics at an indexing table's stops (90 deg), each turn's integral less its stop's
+    angle is the scale factor times the angle. On exact data: 400 ppm to a millionth, and yaw
+    and the attitude as simulated."""
+    sim = simulate(replace(QUIET, truth=UPRIGHT))
+    result = joint_real_case(session_of(sim), THESIS.site, INDEXED)
+    check = result.checks["indexed_turns"]
+    assert check["static_angles_deg"] == [0.0, -90.0, -180.0, -270.0, -360.0, -720.0]
+    assert check["gyro_minus_stop_deg"] == pytest.approx([400e-6 * a for a in check["static_angles_deg"]], abs=1e-7)
+    assert check["scale_along_axis_ppm"] == pytest.approx(400.0, abs=1e-3)
+    term = result.error_budget["factory_residuals"]["terms"]["gyro_scale_z"]
+    assert term["source"] == "estimated" and term["value"] == pytest.approx(400.0, rel=0.02)
+    assert result.estimates["yaw"].value == pytest.approx(UPRIGHT.yaw_deg, abs=1e-6)
+    assert result.options == {"fixed_amplitude": False, "drift": False, "index_step_deg": 90.0,
+                              "index_sigma_deg": 0.01}
+    assert any("each static's platform angle is its stop's (index step 90 deg" in w for w in result.warnings)
+
+
+@pytest.mark.slow
+def test_indexed_turns_estimate_the_gyro_z_scale_factor_within_its_sigma_and_carry_the_stops_error():
+    """With the sensor's noise: the scale factor to about an eighth of its prior, within 2 sigma
+    of the simulated 400 ppm (without the index it keeps its prior); the stops' own 1-sigma moves
+    the estimates through the turn_angles part of the budget."""
+    scenario = replace(THESIS, seed=3, truth=UPRIGHT, warmup=replace(THESIS.warmup, power_on_s=1e7))
+    session = noisy_session(scenario)
+    result = joint_real_case(session, THESIS.site, INDEXED)
+    term = result.error_budget["factory_residuals"]["terms"]["gyro_scale_z"]
+    assert term["source"] == "estimated" and term["sigma"] < 0.2 * term["prior_sigma"]
+    assert abs(term["value"] - 400.0) < 2 * term["sigma"], term
+    assert result.error_budget["sigma"]["yaw"]["turn_angles"] > 0
+    exact = joint_real_case(session, THESIS.site, replace(INDEXED, index_sigma=0.0))
+    assert exact.error_budget["sigma"]["yaw"]["turn_angles"] == 0
+    unindexed = joint_real_case(session, THESIS.site).error_budget["factory_residuals"]["terms"]["gyro_scale_z"]
+    assert unindexed["source"] == "prior"
+    again = parse_result(result_json(result), "result")
+    assert again.checks["indexed_turns"] == result.checks["indexed_turns"] and again.options == result.options
+
+
+def test_a_campaign_whose_statics_are_not_at_the_steps_stops_is_refused():
+    sim = simulate(replace(QUIET, truth=UPRIGHT))
+    with pytest.raises(CalibrationError) as refused:
+        joint_real_case(session_of(sim), THESIS.site, replace(INDEXED, index_step=60 * DEG))
+    assert str(refused.value) == ("static 2 of the fit sits at -90.04 deg by the gyros, 29.96 deg from the nearest "
+                                  "multiple of the index step 60 deg: the turns are not indexed by that step")

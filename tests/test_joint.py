@@ -314,12 +314,31 @@ def test_calibrate_defaults_to_joint(tmp_path, capsys):
 @pytest.mark.parametrize("argv,message", [
     (["--alpha", "0.5", "--beta", "0.1"], "belong to --method thesis"),
     (["--method", "thesis", "--drift"], "belong to --method joint"),
+    (["--method", "thesis", "--index-step", "90"], "--index-step and --drift belong to --method joint"),
+    (["--index-sigma", "0.01"], "--index-sigma is the index's 1-sigma: give --index-step too"),
+    (["--index-step", "0.5"], "--index-step"),
 ])
 def test_calibrate_option_mixups_are_one_line(argv, message, tmp_path, capsys):
     code = calibd_main(["calibrate", FIXTURE, "--latitude", "40", "-o", str(tmp_path / "r.json"), *argv])
     assert code == 2
     err = capsys.readouterr().err
     assert message in err and len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.slow
+def test_calibrate_with_an_index_step_takes_the_statics_at_their_stops(tmp_path, capsys):
+    """The fixture's turns are exact (-90 deg four times, -360 deg): each static at its stop, the
+    gyro Z scale factor estimated from the turns (the simulated unit has none: within 3 sigma of
+    0), the check and the options in the document."""
+    out = tmp_path / "r.json"
+    assert calibd_main(["calibrate", FIXTURE, "--latitude", "40.59129", "-o", str(out), "--index-step", "90"]) == 0
+    result = json.loads(out.read_text())
+    check = result["checks"]["indexed_turns"]
+    assert check["static_angles_deg"] == [0.0, -90.0, -180.0, -270.0, -360.0, -720.0] and check["sigma_deg"] == 0.01
+    assert max(abs(v) for v in check["gyro_minus_stop_deg"]) < 0.1
+    scale = result["error_budget"]["factory_residuals"]["terms"]["gyro_scale_z"]
+    assert scale["source"] == "estimated" and abs(scale["value"]) < 3 * scale["sigma"] < 0.5 * scale["prior_sigma"]
+    assert result["options"]["index_step_deg"] == 90.0
 
 
 def test_capture_without_turns_is_refused(tmp_path, capsys):

@@ -85,6 +85,9 @@ class JointInput:
     rate_hz: float
     # (N,) rad added to the gyro-integrated platform angle: turns whose angle lost datagrams shortened
     chi_correction: np.ndarray | None = None
+    # (statics,) rad: each static's platform angle when the platform's stops give it (an indexing
+    # table), the level static's 0; None: the gyros' integral gives them
+    static_angles: np.ndarray | None = None
     # (N,) degC, the sensor's temperature at each sample; None: the datagrams carry none
     temperature_c: np.ndarray | None = None
 
@@ -140,6 +143,10 @@ class JointOptions:
     # the factory residuals' prior (spec.factory_terms) in every sigma; False: a perfect sensor is
     # assumed (the noise-limit checks of the fit itself)
     factory_residuals: bool = True
+    # rad: the platform's turns are whole multiples of this angle (an indexing table's step), so
+    # each static's angle is known to index_sigma (rad, 1-sigma); None: the gyros' integral gives it
+    index_step: float | None = None
+    index_sigma: float = 0.0
 
 
 # The parts a covariance is made of, in the order results list them (`JointResult.budget`)
@@ -275,7 +282,26 @@ def _platform_angle(inp: JointInput, axis: np.ndarray, offset, data) -> tuple[np
     chi -= np.gradient(rate) * dt / 8
     if inp.chi_correction is not None:
         chi += inp.chi_correction
+    if inp.static_angles is not None:  # each turn stretched to end at its stop, the statics pinned there
+        integrated = np.array([chi[a:b].mean() for a, b in inp.statics])
+        chi += turn_ramps(inp, chi, np.diff(inp.static_angles) - np.diff(integrated - integrated[0]))
     return chi, rate
+
+
+def turn_ramps(inp: JointInput, chi: np.ndarray, added: np.ndarray) -> np.ndarray:
+    """Per sample, the angle (rad) each turn between two statics adds beyond `chi` (`added`, one
+    per turn): nothing before the turn, all of it after, and in proportion to the angle `chi`
+    turned in between (where in the turn datagrams went missing, or a scale factor acted, is
+    spread as the turning was)."""
+    total = np.zeros(len(inp.time_s))
+    for k, angle in enumerate(added):
+        start, stop = inp.statics[k][1], inp.statics[k + 1][0]
+        progress = (chi - chi[start - 1]) / (chi[stop] - chi[start - 1])
+        ramp = np.clip(progress, 0.0, 1.0)
+        ramp[:start] = 0.0
+        ramp[stop:] = 1.0
+        total += angle * ramp
+    return total
 
 
 @dataclass(frozen=True)
@@ -876,6 +902,13 @@ class FactoryPosterior:
     def estimated(self, k: int) -> bool:
         """Whether the data, not the prior, set term k: its sigma at most half the prior's."""
         return bool(self.cov[k, k] <= ESTIMATED_BELOW**2)
+
+    def observed(self, row: np.ndarray, value: float, sigma: float) -> FactoryPosterior:
+        """The terms after one more measurement of a combination of them: value = row . z plus
+        noise of `sigma` (a Gaussian update of the mean and covariance)."""
+        spread = self.cov @ row
+        gain = spread / (row @ spread + sigma**2)
+        return FactoryPosterior(self.z + gain * (value - row @ self.z), self.cov - np.outer(gain, spread))
 
     def against_prior(self) -> tuple[float, int]:
         """(chi-square, degrees of freedom) of what the data saw of the terms against the prior:

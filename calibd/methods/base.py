@@ -14,6 +14,13 @@ if TYPE_CHECKING:
     from .. import detect
 
 
+# the joint method's index settings (an indexing table's step, how exactly a static sits at its
+# stop: deg), here so that the command line offers them without loading the method
+INDEX_STEP_DEG = (1.0, 360.0)
+INDEX_SIGMA_DEG = (0.0, 1.0)
+DEFAULT_INDEX_SIGMA_DEG = 0.01
+
+
 class OptionError(CalibdError):
     """Settings a method cannot take together: `key` names the one at fault, `reason` says why."""
 

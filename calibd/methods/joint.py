@@ -21,7 +21,7 @@ from ..segments import segment_record, session_segments
 from ..session import Session
 from ..units import DEG
 from . import bench
-from .base import Setting, refusal
+from .base import DEFAULT_INDEX_SIGMA_DEG, INDEX_SIGMA_DEG, INDEX_STEP_DEG, OptionError, Setting, refusal
 from .common import YAW_SIGMA_POOR_DEG, judged_once_stopped, session_warnings
 
 CAMPAIGN = "joint method's campaign"
@@ -51,10 +51,21 @@ class Joint:
     """Every static and turning sample in one fit, with 1-sigma (the default method)."""
 
     name = "joint"
-    settings = {"fixed_amplitude": Setting(bool), "drift": Setting(bool)}
+    settings = {"fixed_amplitude": Setting(bool), "drift": Setting(bool),
+                "index_step_deg": Setting(float, lambda v: INDEX_STEP_DEG[0] <= v <= INDEX_STEP_DEG[1],
+                                          f"an indexing table's step in [{INDEX_STEP_DEG[0]:g}, "
+                                          f"{INDEX_STEP_DEG[1]:g}] deg"),
+                "index_sigma_deg": Setting(float, lambda v: INDEX_SIGMA_DEG[0] <= v <= INDEX_SIGMA_DEG[1],
+                                           f"a 1-sigma in [{INDEX_SIGMA_DEG[0]:g}, {INDEX_SIGMA_DEG[1]:g}] deg")}
 
     def options(self, settings: Mapping[str, Any]) -> JointOptions:
-        return JointOptions(bool(settings.get("fixed_amplitude")), bool(settings.get("drift")))
+        step, sigma = settings.get("index_step_deg"), settings.get("index_sigma_deg")
+        if sigma is not None and step is None:
+            raise OptionError("index_sigma_deg", "is the index's 1-sigma: give index_step_deg too")
+        return JointOptions(bool(settings.get("fixed_amplitude")), bool(settings.get("drift")),
+                            index_step=None if step is None else step * DEG,
+                            index_sigma=0.0 if step is None else (DEFAULT_INDEX_SIGMA_DEG if sigma is None
+                                                                  else sigma) * DEG)
 
     def missing(self, segments: list[detect.Segment]) -> str | None:
         return judged_once_stopped(segments, _lacking)
@@ -78,6 +89,7 @@ class JointFit:
     options: joint.JointOptions  # as solved: the accelerometer range the sensor's configuration gave
     turn_angles: gaps.TiltCheck | None = None  # each turn's angle against the tilt, before any correction
     final_tilt: gaps.TiltCheck | None = None  # the same check on the fit as returned
+    index: IndexedTurns | None = None  # the statics' angles from an indexing table's stops; None: the gyros'
 
 
 def joint_input(session: Session, segments: list[detect.Segment]) -> tuple[list[detect.Segment], int,
@@ -118,6 +130,8 @@ def joint_fit(session: Session, site: Site, options: joint.JointOptions = joint.
     except np.linalg.LinAlgError:
         raise refusal(CAMPAIGN, "what determines every parameter (too few platform angles)", segments) from None
     check = tilt_check(inp, fit, site)
+    if options.index_step is not None:
+        return _indexed(used, first, inp, fit, site, options, check)
     found = [t for t in check.turns if t.found] if check else []
     if not found:
         return JointFit(used, first, inp, seen_by_statics(fit, check), options, check, check)
@@ -128,6 +142,96 @@ def joint_fit(session: Session, site: Site, options: joint.JointOptions = joint.
                                f"angles, and the corrected angles leave no usable fit ({exc})") from None
     final = tilt_check(inp, fit, site)
     return JointFit(used, first, inp, seen_by_statics(fit, final), options, check, final)
+
+
+INDEX_TOLERANCE = 0.25  # of the step: a static farther from every stop than this is not at one
+
+
+@dataclass(frozen=True)
+class IndexedTurns:
+    """What the stops of an indexing table say: each static's angle, and the gyro Z scale factor
+    (along the platform axis) the gyros' integral shows against them."""
+
+    step: float  # rad
+    sigma: float  # rad, each static's angle's 1-sigma
+    known: np.ndarray  # (statics,) rad, the level static's 0
+    integrated: np.ndarray  # (statics,) rad, the gyros' integral
+    scale: float  # the gyros' integral over the stops' angles, less 1, along the platform axis
+    scale_sigma: float
+
+    def record(self) -> dict:
+        """The result's check: the stops, the gyros' angles against them, the scale factor seen."""
+        return {"step_deg": self.step / DEG, "sigma_deg": self.sigma / DEG,
+                "static_angles_deg": (self.known / DEG).tolist(),
+                "gyro_minus_stop_deg": ((self.integrated - self.known) / DEG).tolist(),
+                "scale_along_axis_ppm": self.scale * 1e6, "scale_sigma_ppm": self.scale_sigma * 1e6}
+
+
+def indexed_turns(inp: joint.JointInput, fit: joint.JointResult, step: float, sigma: float) -> IndexedTurns:
+    """Each static's angle at its stop (the whole multiple of `step` nearest the gyros' integral),
+    and the scale factor the turns show: per turn, the integral less the stops' angle is the
+    scale factor times the angle, plus the gyros' white noise integrated through the turn, the
+    offset's error times the turn's time and the two stops' own error (a generalised least-squares
+    fit through all turns). CalibrationError when a static is not at a stop."""
+    integrated = np.array([fit.gyro.chi[a:b].mean() for a, b in inp.statics])
+    integrated -= integrated[0]
+    known = np.round(integrated / step) * step
+    off = np.abs(integrated - known)
+    if off.max() > INDEX_TOLERANCE * step:
+        k = int(np.argmax(off))
+        raise CalibrationError(f"static {k + 1} of the fit sits at {integrated[k] / DEG:.2f} deg by the gyros, "
+                               f"{off[k] / DEG:.2f} deg from the nearest multiple of the index step "
+                               f"{step / DEG:g} deg: the turns are not indexed by that step")
+    k_axis = fit.gyro.params[joint.AXIS_PARAMS] / np.linalg.norm(fit.gyro.params[joint.AXIS_PARAMS])
+    turned = np.diff(known)
+    seconds = np.array([inp.time_s[inp.statics[j + 1][0]] - inp.time_s[inp.statics[j][1] - 1]
+                        for j in range(len(turned))])
+    white = float(k_axis**2 @ fit.gyro.noise.white) / inp.rate_hz  # angle variance per second turning, rad^2/s
+    offset_cov = sum(fit.gyro.cov_parts.values())[joint.OFFSET_PARAMS, joint.OFFSET_PARAMS]
+    between = np.diff(np.eye(len(known)), axis=0)  # each turn's angle from the statics'
+    cov = (np.diag(white * seconds) + float(k_axis @ offset_cov @ k_axis) * np.outer(seconds, seconds)
+           + sigma**2 * between @ between.T)
+    weights = np.linalg.solve(cov, turned)
+    information = float(turned @ weights)
+    return IndexedTurns(step, sigma, known, integrated, float(weights @ np.diff(integrated - known)) / information,
+                        float(np.sqrt(1.0 / information)))
+
+
+def _indexed(used: list[detect.Segment], first: int, inp: joint.JointInput, fit: joint.JointResult, site: Site,
+             options: JointOptions, check: gaps.TiltCheck | None) -> JointFit:
+    """The joint fit with each static at its stop (`indexed_turns`): the platform angle no longer
+    carries the gyro Z scale factor, lost datagrams or the gyros' noise through the turns, and the
+    scale factor the turns show joins what the statics' forces see of the factory residuals. The
+    stops' own error is carried into the covariance through a fit redone with each moved by it."""
+    index = indexed_turns(inp, fit, options.index_step, options.index_sigma)
+
+    def solved(known: np.ndarray) -> tuple[joint.JointInput, joint.JointResult]:
+        pinned_inp = replace(inp, static_angles=known)
+        return pinned_inp, joint.solve(pinned_inp, site, options)
+
+    pinned_inp, pinned = solved(index.known)
+    stops = np.zeros_like(pinned.covariance)
+    if index.sigma > 0:
+        for k in range(1, len(index.known)):
+            _, moved = solved(index.known + index.sigma * (np.arange(len(index.known)) == k))
+            shift = np.array([moved.estimates[name] - value for name, value in pinned.estimates.items()])
+            stops += np.outer(shift, shift)
+    pinned = replace(pinned, budget=pinned.budget | {"turn_angles": stops})
+    final = tilt_check(pinned_inp, pinned, site)
+    if pinned.factory is None:
+        return JointFit(used, first, pinned_inp, pinned, options, check, final, index)
+    terms = pinned.factory.terms
+    statics = final.factory if final and final.factory else joint.FactoryPosterior(np.zeros(len(terms)),
+                                                                                   np.eye(len(terms)))
+    posterior = statics.observed(_scale_row(terms, pinned), index.scale, index.scale_sigma)
+    return JointFit(used, first, pinned_inp, pinned.with_factory_posterior(posterior), options, check, final, index)
+
+
+def _scale_row(terms: tuple[spec.FactoryTerm, ...], fit: joint.JointResult) -> np.ndarray:
+    """How each factory term at its 1-sigma moves the gyros' scale along the platform axis k:
+    k' E k, the gyro triad's terms only."""
+    k = fit.gyro.params[joint.AXIS_PARAMS] / np.linalg.norm(fit.gyro.params[joint.AXIS_PARAMS])
+    return np.array([k[t.row] * k[t.col] * t.sigma if t.sensor == "gyro" else 0.0 for t in terms])
 
 
 def checked_by_statics(inp: joint.JointInput, fit: joint.JointResult, site: Site) -> joint.JointResult:
@@ -184,8 +288,11 @@ def joint_real_case(session: Session, site: Site, options: joint.JointOptions = 
                  if name in fit.estimates}  # the order of fit.estimates, which is the covariance's
     result = make_result("joint", site, estimates, [segment_record(s, s.kind) for s in used], warnings,
                          session.sensor, fit.covariance, stream=session.stream,
-                         options={"fixed_amplitude": options.fixed_amplitude, "drift": options.drift},
-                         checks=_joint_checks(fit, site) | _turn_angle_checks(fitted, session),
+                         options={"fixed_amplitude": options.fixed_amplitude, "drift": options.drift} | (
+                             {} if fitted.index is None else {"index_step_deg": options.index_step / DEG,
+                                                              "index_sigma_deg": options.index_sigma / DEG}),
+                         checks=_joint_checks(fit, site) | _turn_angle_checks(fitted, session)
+                         | ({} if fitted.index is None else {"indexed_turns": fitted.index.record()}),
                          bias_reference="turn-on", error_budget=error_budget_record(fit, fitted.options))
     if fit.sigmas["yaw"] / DEG > YAW_SIGMA_POOR_DEG:
         result = result.flag_poor(("yaw",))
@@ -312,13 +419,20 @@ def _turn_angle_warnings(fitted: JointFit, session: Session) -> list[str]:
     not fit."""
     unseen = ("a datagram loss the counter cannot see (whole 0.128 s cycles) during a turn would go unnoticed "
               "except by the gyro chi-square")
-    if fitted.turn_angles is None:
-        return [f"the statics do not pin the turns' angles (statics at fewer than {gaps.MIN_HEADINGS} "
-                f"headings): {unseen}"]
     warnings = []
+    if fitted.index is not None:
+        index = fitted.index
+        off = np.abs(index.integrated - index.known) / DEG
+        warnings.append(f"each static's platform angle is its stop's (index step {index.step / DEG:g} deg, "
+                        f"1-sigma {index.sigma / DEG:g} deg), not the gyros' integral, which was at most "
+                        f"{off.max():.3f} deg off; the turns show the gyro scale factor along the platform axis "
+                        f"at {index.scale * 1e6:+.0f} +- {index.scale_sigma * 1e6:.0f} ppm")
+    if fitted.turn_angles is None:
+        return warnings or [f"the statics do not pin the turns' angles (statics at fewer than {gaps.MIN_HEADINGS} "
+                            f"headings): {unseen}"]
     for t in fitted.turn_angles.turns:
         start_s, end_s = _turn_window_s(fitted, session, t)
-        if t.found:
+        if t.found and fitted.index is None:
             top_rate = np.max(np.abs(fitted.fit.gyro.chi_rate[t.start:t.stop]))
             warnings.append(
                 f"the turn from {start_s:.1f} s to {end_s:.1f} s: the tilt the accelerometers and inclinometers "
