@@ -330,7 +330,7 @@ class Trimmed(TrimDoc):
 
 
 class ResultDoc(Struct):
-    """calibd.result/1 to /5 (docs/result-schema.md); the rotation is made from the estimates."""
+    """calibd.result/1 to /6 (docs/result-schema.md); the rotation is made from the estimates."""
 
     schema: str
     method: str

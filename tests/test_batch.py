@@ -152,7 +152,7 @@ def test_bad_inputs_are_rows_with_their_reason(tmp_path):
     good = folder / "a.bin"
     good.write_bytes((FIXTURES / "heading137_lat60_125hz.bin").read_bytes())
     (folder / "b_copy.bin").write_bytes(good.read_bytes())
-    (folder / "c.json").write_text('{"schema": "calibd.result/5"}')
+    (folder / "c.json").write_text('{"schema": "calibd.result/6"}')
     (folder / "d.png").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(4000))
     (folder / "e.bin").symlink_to(folder / "nowhere.bin")
     (folder / "a.bin.truth.json").write_text("{}")  # a sidecar: not an input
