@@ -584,7 +584,12 @@ def cmd_plan(args) -> int:
     site = campaign.scenario.site if args.latitude is None else _site(args)
     figures = (noise_from_json(read_input(args.noise, "noise file", DOCUMENT_LIMIT_BYTES), args.noise)
                if args.noise else replace(campaign.figures, **given))
-    reach = time_to_target(campaign, site, figures, args.target_yaw_deg * DEG)
+    if args.index_sigma is not None and args.index_step is None:
+        raise UsageError("plan: --index-sigma is the index's 1-sigma: give --index-step too")
+    from .methods import estimator
+
+    options = estimator("joint").options({"index_step_deg": args.index_step, "index_sigma_deg": args.index_sigma})
+    reach = time_to_target(campaign, site, figures, args.target_yaw_deg * DEG, options=options)
     print(report(reach, figures))
     return 0
 
@@ -960,10 +965,20 @@ TOPIC_HELP = ("the sensor_msgs/Imu topic of a recording (ROS bag, rosbag2, MCAP;
               "only one)")
 
 
-def _add_method_options(p: argparse.ArgumentParser, methods: tuple[str, ...]) -> None:
-    """The options that say how a capture is calibrated (`calibrate`, `batch`)."""
+def _add_index_options(p: argparse.ArgumentParser) -> None:
+    """The joint method's indexing table (`calibrate`, `batch`, `plan`)."""
     from .methods.base import DEFAULT_INDEX_SIGMA_DEG, INDEX_SIGMA_DEG, INDEX_STEP_DEG
 
+    p.add_argument("--index-step", type=_number(*INDEX_STEP_DEG, "deg"), metavar="DEG",
+                   help="joint: the platform's turns are whole multiples of DEG (an indexing table's step): each "
+                        "static's angle is taken from its stop, and the turns show the gyro Z scale factor")
+    p.add_argument("--index-sigma", type=_number(*INDEX_SIGMA_DEG, "deg"), metavar="DEG",
+                   help=f"joint: how exactly a static sits at its stop, 1-sigma (default {DEFAULT_INDEX_SIGMA_DEG:g} "
+                        "deg)")
+
+
+def _add_method_options(p: argparse.ArgumentParser, methods: tuple[str, ...]) -> None:
+    """The options that say how a capture is calibrated (`calibrate`, `batch`)."""
     p.add_argument("--method", choices=methods, default="joint",
                    help="joint: every segment in one fit, with 1-sigma (default); thesis: the thesis's chain")
     _add_site_options(p, required=True)
@@ -981,12 +996,7 @@ def _add_method_options(p: argparse.ArgumentParser, methods: tuple[str, ...]) ->
                         "loses the check that the Earth rate is really seen)")
     p.add_argument("--drift", action="store_true",
                    help="joint: fit a linear gyro drift per channel (thermal ramps); costs precision")
-    p.add_argument("--index-step", type=_number(*INDEX_STEP_DEG, "deg"), metavar="DEG",
-                   help="joint: the platform's turns are whole multiples of DEG (an indexing table's step): each "
-                        "static's angle is taken from its stop, and the turns show the gyro Z scale factor")
-    p.add_argument("--index-sigma", type=_number(*INDEX_SIGMA_DEG, "deg"), metavar="DEG",
-                   help=f"joint: how exactly a static sits at its stop, 1-sigma (default {DEFAULT_INDEX_SIGMA_DEG:g} "
-                        "deg)")
+    _add_index_options(p)
     p.add_argument("--topic", type=_ros_topic, metavar="NAME", help=TOPIC_HELP)
 
 
@@ -1094,6 +1104,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="yaw 1-sigma to reach, deg (default 1)")
     p.add_argument("--noise", type=path_arg,
                    help="NOISE.json (calibd.noise/1, from calibd noise) instead of the figures below")
+    _add_index_options(p)
     for option, (field, unit, what) in PLAN_NOISE_OPTIONS.items():
         stim300 = getattr(spec.NoiseFigures(), field)
         p.add_argument(option, dest=field, type=_number(0, 1000, unit), metavar=unit.upper(),

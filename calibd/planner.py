@@ -22,7 +22,7 @@ from stim300.protocol import NORMAL_LAYOUTS
 from .methods.joint import checked_by_statics
 from . import spec
 from .documents import NoiseDoc, SchemaError, decode_json, schema_version, validate
-from .errors import CalibdError
+from .errors import CalibdError, CalibrationError
 from .estimators.joint import (JointInput, JointOptions, JointResult, SensorNoise, Underdetermined, datasheet_noise,
                                solve)
 from .frames import STANDARD_GRAVITY, Site
@@ -224,11 +224,12 @@ class Plan:
     duration_s: float
     sigmas: dict[str, float]  # SI (rad, rad/s, m/s^2), 1-sigma of every joint estimate
     factory: dict[str, float]  # SI, the part of each sigma the factory residuals' prior makes (none: 0)
-    estimated_terms: dict[str, tuple[float, float]]  # factory terms the statics' forces estimate: (sigma, prior
+    estimated_terms: dict[str, tuple[float, float]]  # factory terms the campaign estimates: (sigma, prior
     # sigma) in the term's unit (ppm, mrad)
     site: Site
     session: JointInput  # the noise-free session the sigmas come from, at PLAN_RATE_HZ
     noise: SensorNoise
+    options: JointOptions = JointOptions()  # as solved (an index step: each static at its stop)
 
     def floor_yaw(self) -> float:
         """The yaw 1-sigma bias instability and the factory residuals' prior leave (white noise
@@ -236,8 +237,8 @@ class Plan:
         continuous rotation raise: the gyro Z scale factor turns every later angle)."""
         noise = self.noise
         flicker = SensorNoise(*(m and replace(m, white=0.0) for m in (noise.gyro, noise.acc, noise.incl)))
-        result = solve(self.session, self.site, noise=flicker)
-        return checked_by_statics(self.session, result, self.site).sigmas["yaw"]
+        result = solve(self.session, self.site, self.options, noise=flicker)
+        return checked_by_statics(self.session, result, self.site, self.options, flicker).sigmas["yaw"]
 
 
 def _session(campaign: Campaign, scale: float, site: Site, inclinometers: bool) -> tuple[JointInput, float]:
@@ -292,14 +293,19 @@ def plan(campaign: Campaign | str, site: Site, figures: Noise, scale: float = 1.
         result = solve(inp, site, options, noise=noise)
     except Underdetermined as exc:  # what the campaign lacks, said for the campaign
         raise PlanError(f"{campaign.name}: {exc}") from None
-    result = checked_by_statics(inp, result, site)  # as calibrate does: a tilted axis sees more
+    try:
+        result = checked_by_statics(inp, result, site, options, noise)  # as calibrate does: a tilted axis sees more
+    except CalibrationError as exc:  # statics not at the index step's stops
+        raise PlanError(f"{campaign.name}: {exc}") from None
     factory = {name: parts.get("factory_residuals", 0.0) for name, parts in result.sigma_budget().items()}
-    return Plan(campaign, scale, segments, seconds, result.sigmas, factory, estimated_terms(result), site, inp, noise)
+    return Plan(campaign, scale, segments, seconds, result.sigmas, factory, estimated_terms(result), site, inp, noise,
+                options)
 
 
 def estimated_terms(result: JointResult) -> dict[str, tuple[float, float]]:
-    """The factory terms whose sigma the statics' forces bring to half the prior's or less (as a
-    calibration reports them "estimated"): name -> (sigma, prior sigma), in the term's unit."""
+    """The factory terms whose sigma the statics' forces (and an indexing table's turns) bring to
+    half the prior's or less (as a calibration reports them "estimated"): name -> (sigma, prior
+    sigma), in the term's unit."""
     factory = result.factory
     if factory is None or factory.posterior is None:
         return {}
@@ -333,7 +339,7 @@ def scale_for_duration(campaign: Campaign | str, seconds: float) -> float:
 
 
 def time_to_target(campaign: Campaign | str, site: Site, figures: Noise, target_yaw: float,
-                   max_session_s: float = MAX_SESSION_S) -> Reach:
+                   max_session_s: float = MAX_SESSION_S, options: JointOptions = JointOptions()) -> Reach:
     """The shortest scaled campaign (WHAT_SCALES) whose yaw 1-sigma is at most `target_yaw` (rad).
     From the nominal layout the scale halves down to MIN_SCALE or doubles up to the longest
     layout within `max_session_s` until the target is bracketed, then bisection narrows the
@@ -341,23 +347,23 @@ def time_to_target(campaign: Campaign | str, site: Site, figures: Noise, target_
     an increasing affine function of the scale). More data of the same layout never raises the
     sigma here, so the search is monotone."""
     campaign = _campaign(campaign)
-    nominal = plan(campaign, site, figures)
+    nominal = plan(campaign, site, figures, options=options)
     longest_scale = scale_for_duration(campaign, max_session_s)
     if nominal.sigmas["yaw"] <= target_yaw:
-        low, high = plan(campaign, site, figures, MIN_SCALE), nominal
+        low, high = plan(campaign, site, figures, MIN_SCALE, options), nominal
         if low.sigmas["yaw"] <= target_yaw:
             return Reach(target_yaw, nominal, low, None)
     else:
-        low = nominal if nominal.scale <= longest_scale else plan(campaign, site, figures, longest_scale)
+        low = nominal if nominal.scale <= longest_scale else plan(campaign, site, figures, longest_scale, options)
         high = None
         while high is None and low.scale < longest_scale:
-            longer = plan(campaign, site, figures, min(2 * low.scale, longest_scale))
+            longer = plan(campaign, site, figures, min(2 * low.scale, longest_scale), options)
             low, high = (low, longer) if longer.sigmas["yaw"] <= target_yaw else (longer, None)
         if high is None:
             return Reach(target_yaw, nominal, None, low)
     step = _resolution_s(campaign)
     while high.duration_s - low.duration_s > max(TIME_TOLERANCE * high.duration_s, step * 1.001):
-        mid = plan(campaign, site, figures, 0.5 * (low.scale + high.scale))
+        mid = plan(campaign, site, figures, 0.5 * (low.scale + high.scale), options)
         low, high = (low, mid) if mid.sigmas["yaw"] <= target_yaw else (mid, high)
     return Reach(target_yaw, nominal, high, low)
 
@@ -376,7 +382,10 @@ def report(reach: Reach, figures: Noise) -> str:
     """What `calibd plan` prints: the nominal layout and its sigmas, then the time to the target."""
     nominal, site = reach.nominal, reach.nominal.site
     campaign = nominal.campaign
-    lines = [f"{campaign.name} campaign at latitude {site.latitude_deg:g} deg, g0 {site.gravity:.5f} m/s^2",
+    index = nominal.options.index_step
+    stops = "" if index is None else (f", statics at an indexing table's stops every {index / DEG:g} deg "
+                                      f"(1-sigma {nominal.options.index_sigma / DEG:g} deg)")
+    lines = [f"{campaign.name} campaign at latitude {site.latitude_deg:g} deg, g0 {site.gravity:.5f} m/s^2{stops}",
              f"noise: {_figures_text(figures, nominal.session.incl is not None)}",
              f"nominal: {nominal.duration_s / 60:.1f} min of data: {describe(nominal.segments)}",
              "expected 1-sigma of the joint estimates (of it, the factory residuals' prior: what more data "
@@ -385,10 +394,10 @@ def report(reach: Reach, figures: Noise) -> str:
         factor, unit = ESTIMATES[name]
         lines.append(f"  {name:12s} {sigma * factor:10.3g} {unit:6s} ({nominal.factory[name] * factor:.3g} {unit})")
     terms = nominal.estimated_terms
-    lines.append("factory terms the statics' forces estimate (sigma at most half the prior's): " + (
+    lines.append("factory terms the campaign estimates (sigma at most half the prior's): " + (
         ", ".join(f"{name} {sigma:.3g} {unit} (prior {prior:.3g} {unit})" for name, (sigma, prior), unit in
                   ((name, value, spec.FactoryTerm.named(name).unit) for name, value in terms.items()))
-        if terms else "none (docs/planner.md: what a tilted platform axis buys)"))
+        if terms else "none (a tilted platform axis or an indexing table's stops would: docs/planner.md)"))
     target = reach.target_yaw / DEG
     lines.append(f"time to a yaw 1-sigma of {target:g} deg ({WHAT_SCALES[campaign.scales]}):")
     if reach.reached is None:
@@ -401,7 +410,7 @@ def report(reach: Reach, figures: Noise) -> str:
         else:
             lines.append(f"  not reachable within {minutes:.1f} min, the longest searched: {there:.4g} deg there; "
                          f"bias instability and the factory residuals' prior would leave {floor:.4g} deg")
-        if campaign.scales != TURNS:
+        if campaign.scales != TURNS and index is None:
             lines.append("  (continuous rotation averages bias instability away, but the gyro Z scale factor's "
                          "prior grows its yaw with every turn: --campaign continuous)")
     else:

@@ -327,7 +327,7 @@ def test_the_plan_names_the_factory_terms_a_tilted_axis_estimates(thesis_plan):
     lines = planner.report(planner.Reach(DEG, plan, plan, None), STIM300).splitlines()
     assert f"gyro_scale_z {sigma:.3g} ppm (prior 250 ppm)" in next(line for line in lines if "factory terms" in line)
     nominal = planner.report(planner.Reach(DEG, thesis_plan, thesis_plan, None), STIM300)
-    assert "the statics' forces estimate (sigma at most half the prior's): none" in nominal
+    assert "factory terms the campaign estimates (sigma at most half the prior's): none" in nominal
 
 @pytest.mark.slow
 def test_a_scenario_gives_the_plan_its_site_noise_and_sensor(tmp_path, run_main):
@@ -381,3 +381,37 @@ def test_plan_command_scenario_usage_errors(argv, message, tmp_path, run_main, m
     monkeypatch.chdir(tmp_path)
     code, _, err = run_main(calibd_main, ["plan", *argv])
     assert code == 2 and message in err and len(err.strip().splitlines()) == 1, err
+
+
+INDEXED = JointOptions(index_step=90 * DEG, index_sigma=0.01 * DEG)
+
+
+def test_an_indexing_table_estimates_the_gyro_z_scale_factor_and_lowers_yaws_factory_share(thesis_plan):
+    """With the statics at 90 deg stops the turns show the gyro Z scale factor on the thesis's
+    near-vertical axis (about 30 ppm against 250), and the statics' angles no longer carry it:
+    yaw's factory share falls by a third; what the stops cannot see stays."""
+    indexed = planner.plan("thesis", SITE, STIM300, options=INDEXED)
+    sigma, prior = indexed.estimated_terms["gyro_scale_z"]
+    assert 20 < sigma < 40 and prior == pytest.approx(250)
+    assert indexed.factory["yaw"] < 0.8 * thesis_plan.factory["yaw"]
+    assert indexed.sigmas["alpha"] == pytest.approx(thesis_plan.sigmas["alpha"], rel=0.02)
+    assert "statics at an indexing table's stops every 90 deg (1-sigma 0.01 deg)" in planner.report(
+        planner.Reach(DEG, indexed, indexed, None), STIM300).splitlines()[0]
+
+
+@pytest.mark.slow
+def test_continuous_rotation_ending_at_a_stop_reaches_a_degree_of_yaw(run_main):
+    """Without stops the gyro Z scale factor's prior turns every later angle and leaves a floor
+    near 9 deg; a final static at a known stop pins it, and a degree is reached in minutes."""
+    code, out, err = run_main(calibd_main, ["plan", "--latitude", "40.59129", "--campaign", "continuous",
+                                            "--index-step", "90"])
+    assert code == 0, err
+    reached = out.splitlines()[-1]
+    assert re.fullmatch(r"  \(yaw 1-sigma 0\.99\d+ deg; .*\)", reached), out
+
+
+def test_plan_refuses_statics_off_the_index_steps_stops_and_a_sigma_without_a_step(run_main):
+    code, out, err = run_main(calibd_main, ["plan", "--latitude", "40", "--campaign", "thesis", "--index-step", "60"])
+    assert code == 2 and err.count("\n") == 1 and "thesis: static 2 of the fit sits at -90.00 deg" in err, err
+    code, out, err = run_main(calibd_main, ["plan", "--latitude", "40", "--campaign", "thesis", "--index-sigma", "0.1"])
+    assert code == 2 and "give --index-step too" in err

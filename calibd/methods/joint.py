@@ -199,15 +199,25 @@ def indexed_turns(inp: joint.JointInput, fit: joint.JointResult, step: float, si
 
 def _indexed(used: list[detect.Segment], first: int, inp: joint.JointInput, fit: joint.JointResult, site: Site,
              options: JointOptions, check: gaps.TiltCheck | None) -> JointFit:
-    """The joint fit with each static at its stop (`indexed_turns`): the platform angle no longer
-    carries the gyro Z scale factor, lost datagrams or the gyros' noise through the turns, and the
-    scale factor the turns show joins what the statics' forces see of the factory residuals. The
-    stops' own error is carried into the covariance through a fit redone with each moved by it."""
+    """The joint fit with each static at its stop (`at_stops`)."""
+    pinned_inp, pinned, final, index = at_stops(inp, fit, site, options)
+    return JointFit(used, first, pinned_inp, pinned, options, check, final, index)
+
+
+def at_stops(inp: joint.JointInput, fit: joint.JointResult, site: Site, options: JointOptions,
+             noise: joint.SensorNoise | None = None
+             ) -> tuple[joint.JointInput, joint.JointResult, gaps.TiltCheck | None, IndexedTurns]:
+    """The joint fit (`fit`, of `inp` as the gyros integrate it) redone with each static at its
+    stop (`indexed_turns`): the platform angle no longer carries the gyro Z scale factor, lost
+    datagrams or the gyros' noise through the turns, and the scale factor the turns show joins
+    what the statics' forces see of the factory residuals. The stops' own error is carried into
+    the covariance through a fit redone with each moved by it. `noise`: as `joint.solve` takes
+    it. The input, the fit, its turn-angle check and the stops."""
     index = indexed_turns(inp, fit, options.index_step, options.index_sigma)
 
     def solved(known: np.ndarray) -> tuple[joint.JointInput, joint.JointResult]:
         pinned_inp = replace(inp, static_angles=known)
-        return pinned_inp, joint.solve(pinned_inp, site, options)
+        return pinned_inp, joint.solve(pinned_inp, site, options, noise=noise)
 
     pinned_inp, pinned = solved(index.known)
     stops = np.zeros_like(pinned.covariance)
@@ -219,12 +229,12 @@ def _indexed(used: list[detect.Segment], first: int, inp: joint.JointInput, fit:
     pinned = replace(pinned, budget=pinned.budget | {"turn_angles": stops})
     final = tilt_check(pinned_inp, pinned, site)
     if pinned.factory is None:
-        return JointFit(used, first, pinned_inp, pinned, options, check, final, index)
+        return pinned_inp, pinned, final, index
     terms = pinned.factory.terms
     statics = final.factory if final and final.factory else joint.FactoryPosterior(np.zeros(len(terms)),
                                                                                    np.eye(len(terms)))
     posterior = statics.observed(_scale_row(terms, pinned), index.scale, index.scale_sigma)
-    return JointFit(used, first, pinned_inp, pinned.with_factory_posterior(posterior), options, check, final, index)
+    return pinned_inp, pinned.with_factory_posterior(posterior), final, index
 
 
 def _scale_row(terms: tuple[spec.FactoryTerm, ...], fit: joint.JointResult) -> np.ndarray:
@@ -234,9 +244,14 @@ def _scale_row(terms: tuple[spec.FactoryTerm, ...], fit: joint.JointResult) -> n
     return np.array([k[t.row] * k[t.col] * t.sigma if t.sensor == "gyro" else 0.0 for t in terms])
 
 
-def checked_by_statics(inp: joint.JointInput, fit: joint.JointResult, site: Site) -> joint.JointResult:
-    """The fit with what the turn-angle check of its statics sees of the factory residuals (the
-    planner's view of a session; calibrate keeps the check too)."""
+def checked_by_statics(inp: joint.JointInput, fit: joint.JointResult, site: Site,
+                       options: JointOptions = JointOptions(), noise: joint.SensorNoise | None = None
+                       ) -> joint.JointResult:
+    """The fit with what the turn-angle check of its statics sees of the factory residuals, and
+    with each static at its stop when `options` gives an index step (the planner's view of a
+    session; calibrate keeps the check too). `noise`: as the fit was solved with it."""
+    if options.index_step is not None:
+        return at_stops(inp, fit, site, options, noise)[1]
     return seen_by_statics(fit, tilt_check(inp, fit, site))
 
 
