@@ -30,6 +30,10 @@ bias instability), 125 Hz, turns in a random sense:
 - `tilted axis`: the field set on a platform axis tilted about 5.8 deg from Up (pitch 5, roll
   3 deg), where the statics' forces see some residuals: which terms the data estimated, and how
   well, is tabled too;
+- `indexed`: the field set's sessions calibrated with their statics at an indexing table's 90 deg
+  stops (`--index-step 90`, the stops' 1-sigma 0.01 deg: the simulated stops are exact): the
+  gyro Z scale factor from the turns, on the field set's axes (within about 2 deg of Up, where the
+  statics' forces see it only in part);
 - `temperature ramp`: the field set in a room warming or cooling at 2 degC/h (random sign) after
   the warm-up, each bias channel's slope with temperature drawn from the datasheet's figure
   (calibd.spec, `bias_temperature_sigma`), the temperatures in the session, through `calibd
@@ -66,7 +70,7 @@ from calibd import spec
 from calibd.calibrate import judged_by_temperature
 from calibd.engine import TaskFailed, cluster, run_tasks
 from calibd.errors import CalibrationError
-from calibd.estimators.joint import white_noise_bound
+from calibd.estimators.joint import JointOptions, white_noise_bound
 from calibd.frames import NORMAL_GRAVITY_SIGMA, STANDARD_GRAVITY, Site, normal_gravity
 from calibd.results import ResultStream
 from calibd.scenario import Truth, load_scenario
@@ -82,18 +86,19 @@ UNITS = {**{n: "deg" for n in NAMES[:5]}, **{n: "deg/h" for n in NAMES[5:8]}, **
 ARW = 0.15 / 60 * DEG  # rad/sqrt(s): the datasheet angle random walk the bound assumes
 GYRO_DRIVEN = ("yaw", "alpha", "beta", "gyro_bias_x", "gyro_bias_y", "gyro_bias_z")  # what the gyro bound covers
 RUN_SETS = ("g0 given", "normal gravity", "one index", "no inclinometers", "vibrating static", "field", "limit",
-            "beyond limit", "tilted axis", "temperature ramp")
+            "beyond limit", "tilted axis", "indexed", "temperature ramp")
 SEED_OFFSET = {"g0 given": 0, "normal gravity": 100_000, "one index": 200_000, "no inclinometers": 300_000,
                "vibrating static": 400_000, "field": 500_000, "limit": 600_000,
-               "beyond limit": 600_000, "tilted axis": 700_000,
+               "beyond limit": 600_000, "tilted axis": 700_000, "indexed": 500_000,
                "temperature ramp": 800_000}
 # with the datasheet's factory residuals
-FACTORY_SETS = ("field", "limit", "beyond limit", "tilted axis", "temperature ramp")
+FACTORY_SETS = ("field", "limit", "beyond limit", "tilted axis", "indexed", "temperature ramp")
 CALIBRATE_PATH = ("one index", "vibrating static", *FACTORY_SETS)  # through calibd calibrate: flags count
 TILTED_DEG = (5.0, 3.0)  # the tilted-axis set's pitch and roll: its platform axis about 5.8 deg from Up
 VIBRATION = 12.5  # times the sensor's white noise (scenario.Segment.vibration)
 FIELD_RIPPLE = 0.02  # once-per-revolution rate ripple of the field and limit sets' turns
 RAMP_C_PER_H = 2.0  # the temperature ramp set's room drift, either sign
+INDEXED = JointOptions(index_step=90 * DEG, index_sigma=0.01 * DEG)  # the indexed set's stops
 
 
 def names(run_set: str) -> list[str]:
@@ -182,7 +187,8 @@ def one_session(seed: int, run_set: str) -> dict:
     out = {"refused": None, "poor": False, "poor_names": []}
     if run_set in CALIBRATE_PATH:
         try:
-            result = judged_by_temperature(joint_real_case(session, site),
+            options = INDEXED if run_set == "indexed" else JointOptions()
+            result = judged_by_temperature(joint_real_case(session, site, options),
                                            record_settling(session.time_s, session.temperature_c))
         except CalibrationError as exc:
             return out | {"refused": str(exc)}
