@@ -345,3 +345,16 @@ def test_a_campaign_whose_statics_are_not_at_the_steps_stops_is_refused():
         joint_real_case(session_of(sim), THESIS.site, replace(INDEXED, index_step=60 * DEG))
     assert str(refused.value) == ("static 2 of the fit sits at -90.04 deg by the gyros, 29.96 deg from the nearest "
                                   "multiple of the index step 60 deg: the turns are not indexed by that step")
+
+
+def test_turns_that_do_not_end_at_the_stops_are_named_and_what_they_move_is_flagged():
+    """A platform driven by time, not stopped at detents: the simulator's 2 % rate ripple ends
+    each 90 deg turn 1.15 deg beyond it. Taken as indexed, the turns show a scale factor far
+    beyond the datasheet's 500 ppm: a warning says the platform may not stop at the steps, and
+    the factory check flags what the factory terms limit."""
+    rippled = tuple(replace(s, ripple=0.02) if s.kind == "turn" else s for s in QUIET.segments)
+    sim = simulate(replace(QUIET, truth=UPRIGHT, segments=rippled))
+    result = joint_real_case(session_of(sim), THESIS.site, INDEXED)
+    assert any("beyond the gyro scale factor the STIM300 datasheet allows (500 ppm): the platform may not stop at "
+               "whole multiples of 90 deg (--index-step)" in w for w in result.warnings)
+    assert result.estimates["yaw"].quality == "poor"

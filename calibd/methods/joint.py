@@ -442,6 +442,12 @@ def _turn_angle_warnings(fitted: JointFit, session: Session) -> list[str]:
                         f"1-sigma {index.sigma / DEG:g} deg), not the gyros' integral, which was at most "
                         f"{off.max():.3f} deg off; the turns show the gyro scale factor along the platform axis "
                         f"at {index.scale * 1e6:+.0f} +- {index.scale_sigma * 1e6:.0f} ppm")
+        limit = spec.GYRO.scale_factor_ppm * 1e-6
+        if abs(index.scale) > limit + 3 * index.scale_sigma:
+            warnings.append(f"the turns differ from the stops' angles by {index.scale * 1e6:+.0f} ppm of the angle "
+                            f"turned, beyond the gyro scale factor the STIM300 datasheet allows ({limit * 1e6:.0f} "
+                            f"ppm): the platform may not stop at whole multiples of {index.step / DEG:g} deg "
+                            "(--index-step)")
     if fitted.turn_angles is None:
         return warnings or [f"the statics do not pin the turns' angles (statics at fewer than {gaps.MIN_HEADINGS} "
                             f"headings): {unseen}"]
