@@ -177,8 +177,10 @@ class PortReader:
         return True
 
     def lend(self, use):
-        """`use(port)` with the reading paused (from any thread but the reader's); its return
-        value. PortError when the port is not open (being reopened, or the thread ended)."""
+        """`use(port)` with the reading paused between two whole reads (what the last read gave
+        is in the ring, nothing more comes to the parser until `use` returns), from any thread
+        but the reader's; its return value. PortError when the port is not open (being
+        reopened, or the thread ended)."""
         with self._loans:
             self._not_lent.clear()  # the thread stops before its next read and waits
             try:
@@ -218,32 +220,37 @@ class PortReader:
         log.info("port_opened", port=self.url, baudrate=self.baudrate, config_requested=self.request_config)
         return ser
 
+    def _decode(self, data: bytes, t_host: float) -> bool:
+        """A read's bytes (read at `t_host`) to the raw hook, the parser and the ring; whether
+        they gave samples."""
+        self.bytes_read += len(data)
+        if self.on_raw is not None:
+            self.on_raw(data)
+        samples = self.parser.feed(data, t_host)
+        if len(samples):
+            self.ring.push(samples)
+        return bool(len(samples))
+
     def _run(self, ser: serial.Serial) -> None:
-        parser, ring, clock, on_raw, batch_s = self.parser, self.ring, self.clock, self.on_raw, self.batch_s
         self._publish(ser)
         try:
             while not self._stop.is_set():
                 if not self._not_lent.wait(0.1):
                     continue  # lent: `stop` is still heard
-                try:
-                    with self._reading:
+                with self._reading:  # a loan waits for a whole read: its bytes read, parsed and pushed
+                    try:
                         data, waited = _read_waited(ser)
-                except (serial.SerialException, OSError) as exc:
-                    ser = self._reopen(ser, exc)
+                    except (serial.SerialException, OSError) as exc:
+                        failed, decoded = exc, False
+                    else:
+                        failed, decoded = None, bool(data) and self._decode(data, self.clock())
+                if failed is not None:
+                    ser = self._reopen(ser, failed)
                     if ser is None:
                         return
                     continue
-                t_host = clock()
-                if not data:
-                    continue
-                self.bytes_read += len(data)
-                if on_raw is not None:
-                    on_raw(data)
-                samples = parser.feed(data, t_host)
-                if len(samples):
-                    ring.push(samples)
-                    if not waited:
-                        time.sleep(batch_s)
+                if decoded and not waited:
+                    time.sleep(self.batch_s)
         except Exception as exc:  # noqa: BLE001 - the thread must report, not vanish silently
             self.error = exc
             log.exception("reader_failed", port=self.url)
