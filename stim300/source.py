@@ -23,7 +23,10 @@ its reader thread failed (then `error` holds why).
 
 from __future__ import annotations
 
+import fcntl
 import os
+import struct
+import termios
 import threading
 import time
 import tty
@@ -40,7 +43,8 @@ from .ringbuffer import RingBuffer
 from .stream import StreamParser, TrimSeen
 
 RING_S = 30  # seconds of samples a port's ring holds at the internal rate
-IDLE_READS_AT_END = 3  # a pty whose writer is done has been read out after this many empty reads
+IDLE_READS_AT_END = 3  # a pty whose writer is done and that holds no unread byte has been read out after
+# this many empty reads
 WAIT_FOR_PARSER_S = 1.0  # a paced pty writer waits at most this long for the reader to learn the rate
 
 
@@ -297,10 +301,18 @@ class PtySource(SampleSource):
             self.error, self.ended = self._port.error or self._write_error, True
         elif batch is not None and len(batch.samples):
             self._idle_reads = 0
-        elif not self._writer.is_alive():
+        elif not self._writer.is_alive() and not self._unread():
             self._idle_reads += 1
             self.ended = self._idle_reads >= IDLE_READS_AT_END
         return batch
+
+    def _unread(self) -> int:
+        """Bytes the pty holds that the reader has not read yet (a reader starved of CPU on a
+        loaded host can leave some while reads come back empty)."""
+        try:
+            return struct.unpack("i", fcntl.ioctl(self._slave, termios.FIONREAD, b"\0\0\0\0"))[0]
+        except OSError:
+            return 0
 
     def close(self) -> None:
         self._stop.set()

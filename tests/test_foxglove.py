@@ -435,7 +435,7 @@ def test_replay_records_the_view_of_a_calibration_into_mcap(tmp_path, run_main):
 
     view = tmp_path / "view.mcap"
     code, out, err = run_main(calibd_main, ["replay", str(HEADING137), "--latitude", "60", "--mcap", str(view),
-                                            "--state-dir", str(tmp_path / "state")])
+                                            "--state-dir", str(tmp_path / "state"), "--warmup-window", "300"])
     assert code == 0, err
     got = recorded_view(view)
     raw = [t for topic, t, _ in got if topic == "/imu/raw"]
