@@ -163,11 +163,8 @@ def _method_settings(args, command: str) -> tuple[str, dict]:
                          "joint method estimates alpha and beta itself")
     if args.method == "thesis" and (args.fixed_amplitude or args.drift or args.index_step is not None):
         raise UsageError(f"{command}: --fixed-amplitude, --index-step and --drift belong to --method joint")
-    if args.index_sigma is not None and args.index_step is None:
-        raise UsageError(f"{command}: --index-sigma is the index's 1-sigma: give --index-step too")
     options = {"fixed_amplitude": args.fixed_amplitude, "drift": args.drift, "alpha_deg": args.alpha,
-               "beta_deg": args.beta, "platform_rate_deg_s": args.platform_rate,
-               "index_step_deg": args.index_step, "index_sigma_deg": args.index_sigma}
+               "beta_deg": args.beta, "platform_rate_deg_s": args.platform_rate, **_index_settings(args, command)}
     return "thesis-bench" if args.bench else args.method, options
 
 
@@ -584,11 +581,9 @@ def cmd_plan(args) -> int:
     site = campaign.scenario.site if args.latitude is None else _site(args)
     figures = (noise_from_json(read_input(args.noise, "noise file", DOCUMENT_LIMIT_BYTES), args.noise)
                if args.noise else replace(campaign.figures, **given))
-    if args.index_sigma is not None and args.index_step is None:
-        raise UsageError("plan: --index-sigma is the index's 1-sigma: give --index-step too")
     from .methods import estimator
 
-    options = estimator("joint").options({"index_step_deg": args.index_step, "index_sigma_deg": args.index_sigma})
+    options = estimator("joint").options(_index_settings(args, "plan"))
     reach = time_to_target(campaign, site, figures, args.target_yaw_deg * DEG, options=options)
     print(report(reach, figures))
     return 0
@@ -963,6 +958,13 @@ def _speed(text: str) -> str:
 
 TOPIC_HELP = ("the sensor_msgs/Imu topic of a recording (ROS bag, rosbag2, MCAP; docs/recordings.md) (default: its "
               "only one)")
+
+
+def _index_settings(args, command: str) -> dict:
+    """The joint method's index settings from --index-step and --index-sigma (`_add_index_options`)."""
+    if args.index_sigma is not None and args.index_step is None:
+        raise UsageError(f"{command}: --index-sigma is the index's 1-sigma: give --index-step too")
+    return {"index_step_deg": args.index_step, "index_sigma_deg": args.index_sigma}
 
 
 def _add_index_options(p: argparse.ArgumentParser) -> None:
