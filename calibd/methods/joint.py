@@ -187,7 +187,7 @@ def indexed_turns(inp: joint.JointInput, fit: joint.JointResult, step: float, si
     seconds = np.array([inp.time_s[inp.statics[j + 1][0]] - inp.time_s[inp.statics[j][1] - 1]
                         for j in range(len(turned))])
     white = float(k_axis**2 @ fit.gyro.noise.white) / inp.rate_hz  # angle variance per second turning, rad^2/s
-    offset_cov = sum(fit.gyro.cov_parts.values())[joint.OFFSET_PARAMS, joint.OFFSET_PARAMS]
+    offset_cov = fit.gyro.cov[joint.OFFSET_PARAMS, joint.OFFSET_PARAMS]
     between = np.diff(np.eye(len(known)), axis=0)  # each turn's angle from the statics'
     cov = (np.diag(white * seconds) + float(k_axis @ offset_cov @ k_axis) * np.outer(seconds, seconds)
            + sigma**2 * between @ between.T)
