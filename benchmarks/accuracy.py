@@ -36,6 +36,10 @@ bias instability), 125 Hz, turns in a random sense:
   0.01 deg: the simulated stops are exact): the
   gyro Z scale factor from the turns, on the field set's axes (within about 2 deg of Up, where the
   statics' forces see it only in part);
+- `two mountings`: the field set's sessions, each with a second session of the same unit with its
+  housing turned 180 deg about its Z axis (the fixture's turn off 180 deg by N(0, 0.1 deg), the
+  default `--remount-sigma`), calibrated together (`--remounted`): the gyro misalignment that
+  tilts the platform axis from the two tilts, and pitch, roll, alpha and beta without it;
 - `temperature ramp`: the field set in a room warming or cooling at 2 degC/h (random sign) after
   the warm-up, each bias channel's slope with temperature drawn from the datasheet's figure
   (calibd.spec, `bias_temperature_sigma`), the temperatures in the session, through `calibd
@@ -66,7 +70,8 @@ from pathlib import Path
 
 import numpy as np
 
-from calibd.methods.joint import joint_fit, joint_real_case
+from calibd.methods.base import DEFAULT_REMOUNT_SIGMA_DEG
+from calibd.methods.joint import SecondMounting, joint_fit, joint_real_case
 from calibd.methods.thesis import thesis_real_case
 from calibd import spec
 from calibd.calibrate import judged_by_temperature
@@ -77,7 +82,7 @@ from calibd.frames import NORMAL_GRAVITY_SIGMA, STANDARD_GRAVITY, Site, normal_g
 from calibd.results import ResultStream
 from calibd.scenario import Truth, load_scenario
 from calibd.session import Session
-from calibd.sim import simulate, truth_record
+from calibd.sim import remounted, simulate, truth_record
 from calibd.units import DEG
 from calibd.warmup import record_settling
 from stim300.records import SensorRecord
@@ -88,13 +93,14 @@ UNITS = {**{n: "deg" for n in NAMES[:5]}, **{n: "deg/h" for n in NAMES[5:8]}, **
 ARW = 0.15 / 60 * DEG  # rad/sqrt(s): the datasheet angle random walk the bound assumes
 GYRO_DRIVEN = ("yaw", "alpha", "beta", "gyro_bias_x", "gyro_bias_y", "gyro_bias_z")  # what the gyro bound covers
 RUN_SETS = ("g0 given", "normal gravity", "one index", "no inclinometers", "vibrating static", "field", "limit",
-            "beyond limit", "tilted axis", "indexed", "temperature ramp")
+            "beyond limit", "tilted axis", "indexed", "two mountings", "temperature ramp")
 SEED_OFFSET = {"g0 given": 0, "normal gravity": 100_000, "one index": 200_000, "no inclinometers": 300_000,
                "vibrating static": 400_000, "field": 500_000, "limit": 600_000,
-               "beyond limit": 600_000, "tilted axis": 700_000, "indexed": 500_000,
+               "beyond limit": 600_000, "tilted axis": 700_000, "indexed": 500_000, "two mountings": 500_000,
                "temperature ramp": 800_000}
+SECOND_SEED = 50_000  # the second mounting's noise: another session's
 # with the datasheet's factory residuals
-FACTORY_SETS = ("field", "limit", "beyond limit", "tilted axis", "indexed", "temperature ramp")
+FACTORY_SETS = ("field", "limit", "beyond limit", "tilted axis", "indexed", "two mountings", "temperature ramp")
 CALIBRATE_PATH = ("one index", "vibrating static", *FACTORY_SETS)  # through calibd calibrate: flags count
 TILTED_DEG = (5.0, 3.0)  # the tilted-axis set's pitch and roll: its platform axis about 5.8 deg from Up
 VIBRATION = 12.5  # times the sensor's white noise (scenario.Segment.vibration)
@@ -160,16 +166,29 @@ def factory_residuals(rng: np.random.Generator, run_set: str) -> dict:
     return out
 
 
+def _session(sim, run_set: str, seed: int) -> Session:
+    s = sim.samples
+    rate = sim.scenario.sensor.sample_rate_hz
+    return Session(time_s=np.arange(len(s)) / rate, gyro=s["gyro"].astype(float) * DEG,
+                   acc=s["acc"].astype(float) * STANDARD_GRAVITY,
+                   incl=None if run_set == "no inclinometers" else s["incl"].astype(float) * STANDARD_GRAVITY,
+                   temperature_c=sim.temperature_c if run_set == "temperature ramp" else None,
+                   rate_hz=rate, sensor=SensorRecord(), stream=ResultStream(capture=f"seed {seed}"))
+
+
+def second_mounting(scenario, seed: int) -> SecondMounting:
+    """The same unit turned 180 deg about its Z axis (off by N(0, the default --remount-sigma)),
+    simulated with noise of its own and fitted as `calibd calibrate --remounted` fits it."""
+    error = np.random.default_rng(seed).normal(0, DEFAULT_REMOUNT_SIGMA_DEG) * DEG
+    turned = replace(scenario, truth=remounted(scenario.truth, error), seed=scenario.seed + SECOND_SEED)
+    fit = joint_fit(_session(simulate(turned), "two mountings", seed), turned.site).fit
+    return SecondMounting(fit, {"path": f"seed {seed}, turned", "power_up": 1}, DEFAULT_REMOUNT_SIGMA_DEG * DEG)
+
+
 def one_session(seed: int, run_set: str) -> dict:
     scenario = random_scenario(seed + SEED_OFFSET[run_set], run_set)
     sim = simulate(scenario)
-    s = sim.samples
-    rate = scenario.sensor.sample_rate_hz
-    session = Session(time_s=np.arange(len(s)) / rate, gyro=s["gyro"].astype(float) * DEG,
-                      acc=s["acc"].astype(float) * STANDARD_GRAVITY,
-                      incl=None if run_set == "no inclinometers" else s["incl"].astype(float) * STANDARD_GRAVITY,
-                      temperature_c=sim.temperature_c if run_set == "temperature ramp" else None, rate_hz=rate,
-                      sensor=SensorRecord(), stream=ResultStream(capture=f"seed {seed}"))
+    session = _session(sim, run_set, seed)
     given = scenario.site
     site = Site(given.latitude_deg, given.height_m) if run_set == "normal gravity" else given
     truth = scenario.truth.estimates()
@@ -191,7 +210,8 @@ def one_session(seed: int, run_set: str) -> dict:
     if run_set in CALIBRATE_PATH:
         try:
             options = INDEXED if run_set == "indexed" else JointOptions()
-            result = judged_by_temperature(joint_real_case(session, site, options),
+            second = second_mounting(scenario, seed) if run_set == "two mountings" else None
+            result = judged_by_temperature(joint_real_case(session, site, options, None, second),
                                            record_settling(session.time_s, session.temperature_c))
         except CalibrationError as exc:
             return out | {"refused": str(exc)}

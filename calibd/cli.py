@@ -163,6 +163,11 @@ def _method_settings(args, command: str) -> tuple[str, dict]:
                          "joint method estimates alpha and beta itself")
     if args.method == "thesis" and (args.fixed_amplitude or args.drift or args.index_step is not None):
         raise UsageError(f"{command}: --fixed-amplitude, --index-step and --drift belong to --method joint")
+    remounted = getattr(args, "remounted", None)
+    if remounted is not None and (args.method != "joint" or args.bench):
+        raise UsageError(f"{command}: --remounted belongs to --method joint")
+    if getattr(args, "remount_sigma", None) is not None and remounted is None:
+        raise UsageError(f"{command}: --remount-sigma is the second mounting's 1-sigma: give --remounted too")
     options = {"fixed_amplitude": args.fixed_amplitude, "drift": args.drift, "alpha_deg": args.alpha,
                "beta_deg": args.beta, "platform_rate_deg_s": args.platform_rate, **_index_settings(args, command)}
     return "thesis-bench" if args.bench else args.method, options
@@ -180,8 +185,12 @@ def cmd_calibrate(args) -> int:
 
     method = estimator(name)
     options = method.options(settings)
+    second = _second_mounting(args, capture, site, options)
 
     def solve(session):
+        if second is not None:
+            from .methods.joint import joint_real_case
+            return joint_real_case(session, site, options, None, second)
         return method.solve(session, site, None, options)
 
     try:
@@ -194,6 +203,22 @@ def cmd_calibrate(args) -> int:
         raise write_error(args.output, exc) from None
     print(_summary(result))
     return 0
+
+
+def _second_mounting(args, capture, site: Site, options):
+    """The unit's second mounting `--remounted` names (calibd.calibrate.second_mounting); None without one."""
+    if args.remounted is None:
+        return None
+    from .calibrate import second_mounting
+    from .methods.base import DEFAULT_REMOUNT_SIGMA_DEG
+
+    not_an_input(args.output, args.remounted)
+    other = open_capture(args.remounted, topic=args.topic)
+    sigma = DEFAULT_REMOUNT_SIGMA_DEG if args.remount_sigma is None else args.remount_sigma
+    try:
+        return second_mounting(capture, other, site, options, sigma * DEG)
+    except CalibrationError as exc:
+        raise UsageError(f"{args.remounted}: {exc}") from None
 
 
 def cmd_batch(args) -> int:
@@ -979,6 +1004,19 @@ def _add_index_options(p: argparse.ArgumentParser) -> None:
                         "deg)")
 
 
+def _add_remount_options(p: argparse.ArgumentParser) -> None:
+    """The unit's second mounting (`calibrate`)."""
+    from .methods.base import DEFAULT_REMOUNT_SIGMA_DEG, REMOUNT_SIGMA_DEG
+
+    p.add_argument("--remounted", metavar="CAPTURE",
+                   help="joint: the same unit's campaign with its housing turned 180 deg about its own Z axis on "
+                        "the interface: the two tilts show the gyro misalignment that tilts the platform axis, and "
+                        "pitch, roll, alpha and beta lose it (docs/turntable.md, A second mounting)")
+    p.add_argument("--remount-sigma", type=_number(*REMOUNT_SIGMA_DEG, "deg"), metavar="DEG",
+                   help=f"how exactly the fixture turns the housing by 180 deg, 1-sigma (default "
+                        f"{DEFAULT_REMOUNT_SIGMA_DEG:g} deg)")
+
+
 def _add_method_options(p: argparse.ArgumentParser, methods: tuple[str, ...]) -> None:
     """The options that say how a capture is calibrated (`calibrate`, `batch`)."""
     p.add_argument("--method", choices=methods, default="joint",
@@ -1016,6 +1054,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="calibrate power-up N (1-based) of a capture in which the sensor restarted (default: the "
                         "last one that has what the method needs)")
     p.add_argument("--session", type=_positive_int, dest="power_up", help=argparse.SUPPRESS)  # its former name
+    _add_remount_options(p)
     p.set_defaults(func=cmd_calibrate)
     p = sub.add_parser("batch", help="captures and folders of captures -> every power-up calibrated on Dask, one "
                                      "row each in a fleet table (Parquet; docs/fleet.md)")

@@ -283,6 +283,27 @@ class IndexedTurnsCheck(Struct):
     scale_sigma_ppm: NonNegative
 
 
+Pair = Annotated[list[Number], Meta(min_length=2, max_length=2)]
+
+
+class SecondMountingCheck(Struct):
+    """The unit's second mounting (calibd.methods.joint.SecondMounting): its capture, its tilt, and
+    the two tilts' sum against what the factory residuals allow."""
+
+    size_bytes: Count
+    sha256: Annotated[str, Meta(pattern="^[0-9a-f]{64}$")]
+    power_up: Ordinal
+    remount_sigma_deg: NonNegative
+    alpha_deg: Number
+    beta_deg: Number
+    tilt_sum_mrad: Pair
+    predicted_mrad: Pair
+    sigma_mrad: Annotated[list[NonNegative], Meta(min_length=2, max_length=2)]
+    chi2: NonNegative
+    p_value: number(0.0, 1.0)
+    path: Union[str, None] = None
+
+
 class Checks(Struct):
     earth_rate_horizontal_deg_h: Union[EarthRateCheck, None] = None
     static_chi2: Union[Chi2, None] = None
@@ -292,6 +313,7 @@ class Checks(Struct):
     noise_excess_over_white: dict[str, NonNegative] = {}
     turn_angles: list[TurnAngle] = []
     indexed_turns: Union[IndexedTurnsCheck, None] = None
+    second_mounting: Union[SecondMountingCheck, None] = None
 
 
 class Options(Struct):
@@ -330,7 +352,7 @@ class Trimmed(TrimDoc):
 
 
 class ResultDoc(Struct):
-    """calibd.result/1 to /6 (docs/result-schema.md); the rotation is made from the estimates."""
+    """calibd.result/1 to /7 (docs/result-schema.md); the rotation is made from the estimates."""
 
     schema: str
     method: str

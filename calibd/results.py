@@ -1,4 +1,4 @@
-"""The calibration result every method writes (schema calibd.result/6), typed, and its safe storage.
+"""The calibration result every method writes (schema calibd.result/7), typed, and its safe storage.
 
 Estimates are kept in SI inside the code; here they become the units people read: degrees,
 deg/h for gyro biases, mg (1e-3 of the sensor's g, 9.80665 m/s^2) for accelerometer and
@@ -37,7 +37,7 @@ RESULT_SCHEMA = "calibd.result"
 # sigmas and covariance now carrying the factory residuals; 5: sensor.trim, the bias trim offsets in
 # force, and each bias estimate's untrimmed value beside it, and trimmed, the daemon's volatile trim
 # made from the result
-RESULT_VERSION = 6
+RESULT_VERSION = 7
 SCHEMA = f"{RESULT_SCHEMA}/{RESULT_VERSION}"
 # display unit -> (display units per SI unit, SI unit): the one conversion of estimates
 DISPLAY_UNITS = {"deg": (1 / DEG, "rad"), "deg/h": (RAD_S_TO_DEG_H, "rad/s"), "mg": (M_S2_TO_MG, "m/s^2")}

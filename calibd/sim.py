@@ -30,7 +30,7 @@ from stim300.special import BiasTrimOffset, Configuration, PartNumber, SerialNum
 from . import spec
 from .allan import FLICKER_TAUS_S, flicker_sigma
 from .frames import EARTH_RATE, MOUNTS, STANDARD_GRAVITY, euler_321, int_to_imu, nav_to_imu, r3
-from .scenario import TRUTH_SCHEMA, TRUTH_VERSION, Scenario, ScenarioError
+from .scenario import TRUTH_SCHEMA, TRUTH_VERSION, Scenario, ScenarioError, Truth
 from .units import DEG
 
 MAX_SAMPLES = 10_000_000  # about 1.4 h at 2000 Hz, 22 h at 125 Hz: the simulator holds some 1 kB a sample
@@ -153,14 +153,27 @@ class Simulation:
     wander: dict[str, np.ndarray]  # session mean of the bias-instability noise (deg/s, g): part of the bias now
 
 
-def _attitude_truth(scenario: Scenario) -> tuple[np.ndarray, np.ndarray, tuple[float, float, float]]:
+def _attitude_truth(t: Truth) -> tuple[np.ndarray, np.ndarray, tuple[float, float, float]]:
     """(R_int^IMU, R_NAV^int, gammas in deg) from the home attitude and the interface tilt."""
-    t = scenario.truth
     r_int_imu = int_to_imu(t.alpha_deg * DEG, t.beta_deg * DEG)
     r_nav_imu = nav_to_imu(t.yaw_deg * DEG, t.pitch_deg * DEG, t.roll_deg * DEG)
     r_nav_int = r_int_imu.T @ r_nav_imu
     g1, g2, g3 = euler_321(r_nav_int)
     return r_int_imu, r_nav_int, (float(g1) / DEG, float(g2) / DEG, float(g3) / DEG)
+
+
+def remounted(truth: Truth, turn_error_rad: float = 0.0) -> Truth:
+    """The same unit with its housing turned 180 deg (plus `turn_error_rad`, the fixture's own
+    error) about its own Z axis on the interface: a second mounting (calibd.estimators.remount),
+    the platform where it was. R_int^IMU becomes R3(pi) R1(alpha) R2(beta) = R1(-alpha) R2(-beta)
+    R3(pi): alpha and beta change sign (exactly, with no turn error), the home attitude follows
+    from R_NAV^IMU = R_int^IMU R_NAV^int. The factory residuals are the sensor's and stay."""
+    r_int_imu, r_nav_int, _ = _attitude_truth(truth)
+    turned = r3(np.pi + turn_error_rad) @ r_int_imu
+    axis = turned[:, 2]  # the platform axis in the turned housing's axes
+    yaw, pitch, roll = euler_321(turned @ r_nav_int)
+    return replace(truth, yaw_deg=float(yaw) / DEG, pitch_deg=float(pitch) / DEG, roll_deg=float(roll) / DEG,
+                   alpha_deg=float(np.arctan2(axis[1], axis[2])) / DEG, beta_deg=float(-np.arcsin(axis[0])) / DEG)
 
 
 def simulated_samples(scenario: Scenario, phases: list[Phase]) -> int:
@@ -195,7 +208,7 @@ def simulate(scenario: Scenario) -> Simulation:
     phase_index = np.searchsorted([p.end_s for p in phases], t_mid, side="right").clip(0, len(phases) - 1)
     mounts = np.stack([MOUNTS[p.up] for p in phases])[phase_index]
 
-    r_int_imu, r_nav_int, _ = _attitude_truth(scenario)
+    r_int_imu, r_nav_int, _ = _attitude_truth(truth)
     body = mounts @ r_int_imu  # (n, 3, 3)
     r_nav_imu = body @ r3(chi_mid) @ r_nav_int
     omega = r_nav_imu @ site.earth_rate_nav + body[:, :, 2] * chi_rate[:, None]  # rad/s
@@ -377,7 +390,7 @@ def _phase_record(phase: Phase) -> dict:
 def truth_record(sim: Simulation, faults: dict) -> dict:
     """Every parameter of the truth, for the truth file beside a capture."""
     scenario = sim.scenario
-    _, _, gammas = _attitude_truth(scenario)
+    _, _, gammas = _attitude_truth(scenario.truth)
     site = scenario.site
     lat = np.radians(site.latitude_deg)
     earth = EARTH_RATE / DEG * 3600 * np.array([np.cos(lat), np.sin(lat)])  # deg/h, horizontal and vertical

@@ -132,7 +132,7 @@ def test_the_budget_parts_add_up_to_the_sigma_in_the_result_document():
                       temperature_c=None, rate_hz=rate, sensor=SensorRecord(), stream=ResultStream(capture="simulated"))
     doc = json.loads(result_json(joint_real_case(session, THESIS.site)))
     budget = doc["error_budget"]
-    assert budget["frame"] == "housing" and doc["schema"] == "calibd.result/6"
+    assert budget["frame"] == "housing" and doc["schema"] == "calibd.result/7"
     for name, estimate in doc["estimates"].items():
         parts = budget["sigma"][name]
         assert set(parts) == set(budget["parts"]) >= {"white_noise", "bias_instability", "gravity", "factory_residuals"}

@@ -154,7 +154,7 @@ def test_calibrate_writes_every_version_3_field(tmp_path, capsys):
     assert calibd_main(["calibrate", str(CW), "--latitude", "40.59129", "-o", str(out)]) == 0
     doc = json.loads(out.read_text())
     sha256 = hashlib.sha256(CW.read_bytes()).hexdigest()
-    assert doc["schema"] == SCHEMA == "calibd.result/6"
+    assert doc["schema"] == SCHEMA == "calibd.result/7"
     assert doc["software"] == {"name": "stim300-calib", "version": package_version()}
     assert doc["session_id"] == f"{sha256[:16]}/p1/t{doc['stream']['start_s']:.3f}"
     assert doc["capture"] == {"path": str(CW), "size_bytes": CW.stat().st_size, "sha256": sha256,
@@ -207,8 +207,8 @@ def test_a_version_2_document_still_loads(tmp_path, cw_result):
 
 
 @pytest.mark.parametrize("change, message", [
-    ({"schema": "calibd.result/7"},
-     "r.json is calibd.result/7, newer than this calibd reads (up to 6): upgrade calibd"),
+    ({"schema": "calibd.result/8"},
+     "r.json is calibd.result/8, newer than this calibd reads (up to 7): upgrade calibd"),
     ({"estimates": {"yaw": {"value": 1.0, "unit": "grad"}}},
      'r.json: estimates.yaw.unit is "grad", expected "deg"'),
 ])

@@ -39,7 +39,7 @@ def test_a_result_round_trips_through_its_file(tmp_path):
     write_result(tmp_path / "r.json", result)
     assert load_result(tmp_path / "r.json") == result
     doc = json.loads((tmp_path / "r.json").read_text())
-    assert doc["schema"] == SCHEMA == "calibd.result/6"
+    assert doc["schema"] == SCHEMA == "calibd.result/7"
     assert list(doc) == ["schema", "method", "software", "session_id", "site", "estimates", "rotation", "covariance",
                          "segments", "warnings", "sensor", "stream",
                          "options", "checks", "bias_reference"]  # unset optional fields are not written
@@ -78,7 +78,7 @@ def test_a_version_1_file_is_read(tmp_path):
 
 
 @pytest.mark.parametrize("schema, message", [
-    ("calibd.result/7", "r.json is calibd.result/7, newer than this calibd reads (up to 6): upgrade calibd"),
+    ("calibd.result/8", "r.json is calibd.result/8, newer than this calibd reads (up to 7): upgrade calibd"),
     ("calibd.noise/1", "r.json is 'calibd.noise/1', not a calibd.result file"),
     ("calibd.result/x", "r.json is 'calibd.result/x', not a calibd.result file"),
     (None, "r.json is None, not a calibd.result file"),
@@ -125,10 +125,10 @@ def test_status_refuses_a_newer_result_in_one_line(tmp_path, capsys):
     from calibd.cli import main as calibd_main
 
     (tmp_path / "state.json").write_text(json.dumps({"state": "SOLVED", "detail": "solved", "updated": 0}))
-    (tmp_path / "result.json").write_text(json.dumps(joint_like().to_dict() | {"schema": "calibd.result/7"}))
+    (tmp_path / "result.json").write_text(json.dumps(joint_like().to_dict() | {"schema": "calibd.result/8"}))
     assert calibd_main(["status", "--state-dir", str(tmp_path)]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "calibd.result/7, newer than this calibd reads (up to 6): upgrade calibd" in err
+    assert err.count("\n") == 1 and "calibd.result/8, newer than this calibd reads (up to 7): upgrade calibd" in err
 
 
 def test_numpy_scalars_in_a_result_are_written_as_plain_json():

@@ -141,7 +141,7 @@ def test_nominal_chain_recovers_the_truth_within_its_model_error(session):
         assert abs(e[f"acc_bias_{a}"]) < 0.01  # mg
     assert abs(e["incl_bias_x"]) < 0.04 and abs(e["incl_bias_y"]) < 0.04
     assert e["incl_bias_z"] == pytest.approx(-scenario.truth.incl_bias_mg[2])  # assumed 0
-    assert result.method == "thesis-nominal" and result.schema == "calibd.result/6"
+    assert result.method == "thesis-nominal" and result.schema == "calibd.result/7"
     assert all(e.sigma is None for e in result.estimates.values())
 
 
@@ -328,7 +328,7 @@ def test_calibrate_command_writes_the_result_schema(tmp_path, capsys):
                         "--alpha", "0.5934", "--beta", "-0.1196", "-o", str(out)])
     assert code == 0, capsys.readouterr().err
     result = json.loads(out.read_text())
-    assert result["schema"] == "calibd.result/6" and result["method"] == "thesis-nominal"
+    assert result["schema"] == "calibd.result/7" and result["method"] == "thesis-nominal"
     assert set(result["estimates"]) == {"pitch", "roll", "yaw", "alpha", "beta", "gyro_bias_x", "gyro_bias_y",
                                         "gyro_bias_z", "acc_bias_x", "acc_bias_y", "acc_bias_z", "incl_bias_x",
                                         "incl_bias_y", "incl_bias_z"}

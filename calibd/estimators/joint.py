@@ -150,7 +150,8 @@ class JointOptions:
 
 
 # The parts a covariance is made of, in the order results list them (`JointResult.budget`)
-BUDGET_PARTS = ("white_noise", "bias_instability", "temperature", "gravity", "turn_angles", "factory_residuals")
+BUDGET_PARTS = ("white_noise", "bias_instability", "temperature", "gravity", "turn_angles", "remounting",
+                "factory_residuals")
 
 
 @dataclass

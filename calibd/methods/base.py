@@ -19,6 +19,8 @@ if TYPE_CHECKING:
 INDEX_STEP_DEG = (1.0, 360.0)
 INDEX_SIGMA_DEG = (0.0, 1.0)
 DEFAULT_INDEX_SIGMA_DEG = 0.01
+REMOUNT_SIGMA_DEG = (0.0, 5.0)  # a second mounting's turn about 180 deg, 1-sigma
+DEFAULT_REMOUNT_SIGMA_DEG = 0.1  # a fixture with locating pins
 
 
 class OptionError(CalibdError):

@@ -13,7 +13,7 @@ import numpy as np
 
 from .. import detect, gaps, spec
 from ..errors import CalibrationError
-from ..estimators import joint
+from ..estimators import joint, remount
 from ..estimators.joint import JointOptions
 from ..frames import STANDARD_GRAVITY, Site, int_to_imu
 from ..results import ESTIMATES, CalibrationResult, make_result
@@ -291,14 +291,63 @@ def _corrected(inp: joint.JointInput, fit: joint.JointResult, site: Site, option
     return inp, replace(corrected, budget=corrected.budget | {"turn_angles": turn_angles})
 
 
+@dataclass(frozen=True)
+class SecondMounting:
+    """The same unit's campaign with its housing turned 180 deg about its own Z axis on the
+    interface (calibd.estimators.remount): its fit, where it came from, and how exactly the
+    fixture turns the housing."""
+
+    fit: joint.JointResult
+    source: dict  # the result's checks.second_mounting: the capture's path, size_bytes, sha256, power_up
+    sigma: float  # rad, 1-sigma of the fixture's turn about 180 deg
+    unsettled: str | None = None  # words when its power-up's temperature never settled
+
+
+REMOUNT_ALARM_P = 1e-3  # p-value below which the two mountings' tilts do not mirror each other
+REMOUNTED = ("pitch", "roll", "alpha", "beta")  # what the second mounting's tilt sets
+
+
+def _remounted(fitted: JointFit, second: SecondMounting) -> tuple[JointFit, dict]:
+    """The first mounting's fit with what the two mountings' tilts show of the factory residuals
+    taken out, and the result's check; CalibrationError when the tilts do not mirror each other."""
+    try:
+        fit, check = remount.two_mountings(fitted.fit, second.fit, second.sigma)
+    except ValueError:
+        raise CalibrationError("the second mounting's fit estimates other things than the first's (a datagram "
+                               "format without inclinometers, or another accelerometer range?)") from None
+    sigma = np.sqrt(np.diag(check.cov))
+    record = second.source | {
+        "remount_sigma_deg": second.sigma / DEG,
+        "alpha_deg": check.second["alpha"] / DEG, "beta_deg": check.second["beta"] / DEG,
+        "tilt_sum_mrad": (check.tilt_sum * 1e3).tolist(), "predicted_mrad": (check.predicted * 1e3).tolist(),
+        "sigma_mrad": (sigma * 1e3).tolist(), "chi2": check.chi2, "p_value": check.p_value}
+    if check.p_value < REMOUNT_ALARM_P:
+        raise CalibrationError(
+            f"the two mountings' platform axes do not mirror each other: their tilts in the housing sum to "
+            f"({check.tilt_sum[0] * 1e3:.3f}, {check.tilt_sum[1] * 1e3:.3f}) mrad where the factory residuals and "
+            f"the noise allow ({check.predicted[0] * 1e3:.3f} +- {sigma[0] * 1e3:.3f}, "
+            f"{check.predicted[1] * 1e3:.3f} +- {sigma[1] * 1e3:.3f}) mrad (p = {check.p_value:.2g}): is the "
+            "housing turned 180 deg about its own Z axis between them?")
+    return replace(fitted, fit=fit), record
+
+
 def joint_real_case(session: Session, site: Site, options: joint.JointOptions = joint.JointOptions(),
-                    segments: list[detect.Segment] | None = None) -> CalibrationResult:
+                    segments: list[detect.Segment] | None = None,
+                    second: SecondMounting | None = None) -> CalibrationResult:
     """The joint estimator (docs/method.md, Estimators) on every static and turning sample from the level
-    static to the last static of the same mounting. `segments`: the session's, when already found."""
+    static to the last static of the same mounting. `segments`: the session's, when already found;
+    `second`: the unit's second mounting, whose tilt takes out the factory terms it shows."""
     fitted = joint_fit(session, site, options, segments)
+    remounting = None
+    if second is not None:
+        fitted, remounting = _remounted(fitted, second)
     used, fit = fitted.segments, fitted.fit
     warnings = (session_warnings(session) + _vibration_warnings(fitted, session) + _joint_warnings(fit, site)
                 + _turn_angle_warnings(fitted, session))
+    if remounting is not None:
+        warnings.append(f"pitch, roll, alpha and beta rest on the second mounting too ({second.source['path']}, "
+                        "the housing turned 180 deg about its Z axis): its tilt estimates the gyro triad's "
+                        "misalignment that tilts the platform axis (checks.second_mounting)")
     estimates = {name: (fit.estimates[name], fit.sigmas[name]) for name in joint.ESTIMATE_NAMES
                  if name in fit.estimates}  # the order of fit.estimates, which is the covariance's
     result = make_result("joint", site, estimates, [segment_record(s, s.kind) for s in used], warnings,
@@ -307,8 +356,12 @@ def joint_real_case(session: Session, site: Site, options: joint.JointOptions = 
                              {} if fitted.index is None else {"index_step_deg": options.index_step / DEG,
                                                               "index_sigma_deg": options.index_sigma / DEG}),
                          checks=_joint_checks(fit, site) | _turn_angle_checks(fitted, session)
-                         | ({} if fitted.index is None else {"indexed_turns": fitted.index.record()}),
+                         | ({} if fitted.index is None else {"indexed_turns": fitted.index.record()})
+                         | ({} if remounting is None else {"second_mounting": remounting}),
                          bias_reference="turn-on", error_budget=error_budget_record(fit, fitted.options))
+    if second is not None and second.unsettled:
+        result = result.flag_poor(REMOUNTED, f"the second mounting's power-up {second.unsettled}: pitch, roll, "
+                                             "alpha and beta, which its tilt sets, are flagged poor")
     if fit.sigmas["yaw"] / DEG > YAW_SIGMA_POOR_DEG:
         result = result.flag_poor(("yaw",))
     if fitted.final_tilt and fitted.final_tilt.p_value < CHI2_ALARM_P:
