@@ -166,8 +166,6 @@ def _method_settings(args, command: str) -> tuple[str, dict]:
     remounted = getattr(args, "remounted", None)
     if remounted is not None and (args.method != "joint" or args.bench):
         raise UsageError(f"{command}: --remounted belongs to --method joint")
-    if getattr(args, "remount_sigma", None) is not None and remounted is None:
-        raise UsageError(f"{command}: --remount-sigma is the second mounting's 1-sigma: give --remounted too")
     options = {"fixed_amplitude": args.fixed_amplitude, "drift": args.drift, "alpha_deg": args.alpha,
                "beta_deg": args.beta, "platform_rate_deg_s": args.platform_rate, **_index_settings(args, command)}
     return "thesis-bench" if args.bench else args.method, options
@@ -205,18 +203,29 @@ def cmd_calibrate(args) -> int:
     return 0
 
 
+def _remount_sigma(args, command: str) -> float | None:
+    """The second mounting's fixture 1-sigma, rad, from --remount-sigma (its default with
+    --remounted); None without a second mounting (`_add_remount_options`)."""
+    from .methods.base import DEFAULT_REMOUNT_SIGMA_DEG
+
+    if not args.remounted:
+        if args.remount_sigma is not None:
+            raise UsageError(f"{command}: --remount-sigma is the second mounting's 1-sigma: give --remounted too")
+        return None
+    return (DEFAULT_REMOUNT_SIGMA_DEG if args.remount_sigma is None else args.remount_sigma) * DEG
+
+
 def _second_mounting(args, capture, site: Site, options):
     """The unit's second mounting `--remounted` names (calibd.calibrate.second_mounting); None without one."""
-    if args.remounted is None:
+    sigma = _remount_sigma(args, "calibrate")
+    if sigma is None:
         return None
     from .calibrate import second_mounting
-    from .methods.base import DEFAULT_REMOUNT_SIGMA_DEG
 
     not_an_input(args.output, args.remounted)
     other = open_capture(args.remounted, topic=args.topic)
-    sigma = DEFAULT_REMOUNT_SIGMA_DEG if args.remount_sigma is None else args.remount_sigma
     try:
-        return second_mounting(capture, other, site, options, sigma * DEG)
+        return second_mounting(capture, other, site, options, sigma)
     except CalibrationError as exc:
         raise UsageError(f"{args.remounted}: {exc}") from None
 
@@ -609,7 +618,8 @@ def cmd_plan(args) -> int:
     from .methods import estimator
 
     options = estimator("joint").options(_index_settings(args, "plan"))
-    reach = time_to_target(campaign, site, figures, args.target_yaw_deg * DEG, options=options)
+    reach = time_to_target(campaign, site, figures, args.target_yaw_deg * DEG, options=options,
+                           remount_sigma=_remount_sigma(args, "plan"))
     print(report(reach, figures))
     return 0
 
@@ -1004,14 +1014,19 @@ def _add_index_options(p: argparse.ArgumentParser) -> None:
                         "deg)")
 
 
-def _add_remount_options(p: argparse.ArgumentParser) -> None:
-    """The unit's second mounting (`calibrate`)."""
+def _add_remount_options(p: argparse.ArgumentParser, planned: bool = False) -> None:
+    """The unit's second mounting: its capture (`calibrate`), or the campaign planned on it too (`plan`)."""
     from .methods.base import DEFAULT_REMOUNT_SIGMA_DEG, REMOUNT_SIGMA_DEG
 
-    p.add_argument("--remounted", metavar="CAPTURE",
-                   help="joint: the same unit's campaign with its housing turned 180 deg about its own Z axis on "
-                        "the interface: the two tilts show the gyro misalignment that tilts the platform axis, and "
-                        "pitch, roll, alpha and beta lose it (docs/turntable.md, A second mounting)")
+    if planned:
+        p.add_argument("--remounted", action="store_true",
+                       help="the campaign run again with the housing turned 180 deg about its own Z axis (a second "
+                            "mounting, calibrate --remounted): what it buys pitch, roll, alpha and beta")
+    else:
+        p.add_argument("--remounted", metavar="CAPTURE",
+                       help="joint: the same unit's campaign with its housing turned 180 deg about its own Z axis "
+                            "on the interface: the two tilts show the gyro misalignment that tilts the platform "
+                            "axis, and pitch, roll, alpha and beta lose it (docs/turntable.md, A second mounting)")
     p.add_argument("--remount-sigma", type=_number(*REMOUNT_SIGMA_DEG, "deg"), metavar="DEG",
                    help=f"how exactly the fixture turns the housing by 180 deg, 1-sigma (default "
                         f"{DEFAULT_REMOUNT_SIGMA_DEG:g} deg)")
@@ -1146,6 +1161,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--noise", type=path_arg,
                    help="NOISE.json (calibd.noise/1, from calibd noise) instead of the figures below")
     _add_index_options(p)
+    _add_remount_options(p, planned=True)
     for option, (field, unit, what) in PLAN_NOISE_OPTIONS.items():
         stim300 = getattr(spec.NoiseFigures(), field)
         p.add_argument(option, dest=field, type=_number(0, 1000, unit), metavar=unit.upper(),

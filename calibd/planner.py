@@ -25,11 +25,12 @@ from .documents import NoiseDoc, SchemaError, decode_json, schema_version, valid
 from .errors import CalibdError, CalibrationError
 from .estimators.joint import (JointInput, JointOptions, JointResult, SensorNoise, Underdetermined, datasheet_noise,
                                solve)
+from .estimators.remount import two_mountings
 from .frames import STANDARD_GRAVITY, Site
 from .noise import NOISE_SCHEMA, NOISE_VERSION
 from .results import ESTIMATES
 from .scenario import Faults, Noise, Scenario, ScenarioError, Segment, Sensor, load_scenario
-from .sim import schedule, simulate
+from .sim import remounted, schedule, simulate
 from .units import DEG
 
 MG = STANDARD_GRAVITY / 1000
@@ -131,9 +132,11 @@ def campaign_segments(campaign: Campaign | str, scale: float) -> tuple[Segment, 
                  for s in campaign.scenario.segments)
 
 
-def _scenario(campaign: Campaign, scale: float, site: Site):
-    """The campaign's scenario, scaled, without noise, warm-up or temperature drift, at `site`."""
-    return replace(campaign.scenario, site=site, segments=campaign_segments(campaign, scale))
+def _scenario(campaign: Campaign, scale: float, site: Site, turned: bool = False):
+    """The campaign's scenario, scaled, without noise, warm-up or temperature drift, at `site`;
+    `turned`: on the unit's second mounting (`sim.remounted`)."""
+    scenario = replace(campaign.scenario, site=site, segments=campaign_segments(campaign, scale))
+    return replace(scenario, truth=remounted(scenario.truth)) if turned else scenario
 
 
 def duration_s(campaign: Campaign | str, scale: float) -> float:
@@ -230,23 +233,26 @@ class Plan:
     session: JointInput  # the noise-free session the sigmas come from, at PLAN_RATE_HZ
     noise: SensorNoise
     options: JointOptions = JointOptions()  # as solved (an index step: each static at its stop)
+    remount_sigma: float | None = None  # rad: with a second mounting, its fixture's turn 1-sigma; None: one
 
     def floor_yaw(self) -> float:
         """The yaw 1-sigma bias instability and the factory residuals' prior leave (white noise
         removed), rad: the floor that more data of this layout barely lowers (and more turns of
-        continuous rotation raise: the gyro Z scale factor turns every later angle)."""
+        continuous rotation raise: the gyro Z scale factor turns every later angle). A second
+        mounting leaves yaw as it is: the first mounting's alone gives it."""
         noise = self.noise
         flicker = SensorNoise(*(m and replace(m, white=0.0) for m in (noise.gyro, noise.acc, noise.incl)))
         result = solve(self.session, self.site, self.options, noise=flicker)
         return checked_by_statics(self.session, result, self.site, self.options, flicker).sigmas["yaw"]
 
 
-def _session(campaign: Campaign, scale: float, site: Site, inclinometers: bool) -> tuple[JointInput, float]:
+def _session(campaign: Campaign, scale: float, site: Site, inclinometers: bool,
+             turned: bool = False) -> tuple[JointInput, float]:
     """The scaled campaign's noise-free session as the joint estimator takes it, block-averaged
     to PLAN_RATE_HZ (averages of interval averages: the model stays exact); statics are the
     whole blocks inside the scheduled static segments. Without `inclinometers` the session is a
-    gyro + accelerometer unit's."""
-    sim = simulate(_scenario(campaign, scale, site))
+    gyro + accelerometer unit's; `turned`: on the unit's second mounting."""
+    sim = simulate(_scenario(campaign, scale, site, turned))
     rate = sim.scenario.sensor.sample_rate_hz
     block = max(1, round(rate / PLAN_RATE_HZ))
     n = len(sim.time_s) // block
@@ -273,33 +279,41 @@ def check_site(site: Site) -> None:
 
 
 def plan(campaign: Campaign | str, site: Site, figures: Noise, scale: float = 1.0,
-         options: JointOptions = JointOptions()) -> Plan:
+         options: JointOptions = JointOptions(), remount_sigma: float | None = None) -> Plan:
     """Every estimate's expected 1-sigma for the campaign at `scale`, from the joint estimator
     (with the factory residuals' prior unless `options` leaves it out); for a unit without
     inclinometers when the campaign's sensor or `figures` has none. The inclinometer figures
-    are taken at 0 g and made larger on the axis along gravity, as the estimator takes them."""
+    are taken at 0 g and made larger on the axis along gravity, as the estimator takes them.
+    `remount_sigma` (rad): the campaign run again on the unit's second mounting, the fixture's
+    turn that exact (calibd.estimators.remount); None: one mounting."""
     check_site(site)
     campaign = _campaign(campaign)
     segments = campaign_segments(campaign, scale)
     inclinometers = campaign.inclinometers and figures.incl_vrw_m_s_sqrt_h is not None
-    try:
-        inp, seconds = _session(campaign, scale, site, inclinometers)
-    except ScenarioError as exc:  # what only the simulation finds: a session too long to hold
-        raise PlanError(f"{campaign.name}: {exc}") from None
-    along = None if inp.incl is None else inp.incl[slice(*inp.statics[0])].mean(axis=0) / STANDARD_GRAVITY
-    noise = datasheet_noise(figures if inclinometers else replace(
-        figures, incl_vrw_m_s_sqrt_h=None, incl_bias_instability_mg=None), inp.rate_hz, along)
-    try:
-        result = solve(inp, site, options, noise=noise)
-    except Underdetermined as exc:  # what the campaign lacks, said for the campaign
-        raise PlanError(f"{campaign.name}: {exc}") from None
-    try:
-        result = checked_by_statics(inp, result, site, options, noise)  # as calibrate does: a tilted axis sees more
-    except CalibrationError as exc:  # statics not at the index step's stops
-        raise PlanError(f"{campaign.name}: {exc}") from None
+
+    def solved(turned: bool) -> tuple[JointInput, float, SensorNoise, JointResult]:
+        try:
+            inp, seconds = _session(campaign, scale, site, inclinometers, turned)
+        except ScenarioError as exc:  # what only the simulation finds: a session too long to hold
+            raise PlanError(f"{campaign.name}: {exc}") from None
+        along = None if inp.incl is None else inp.incl[slice(*inp.statics[0])].mean(axis=0) / STANDARD_GRAVITY
+        noise = datasheet_noise(figures if inclinometers else replace(
+            figures, incl_vrw_m_s_sqrt_h=None, incl_bias_instability_mg=None), inp.rate_hz, along)
+        try:
+            result = solve(inp, site, options, noise=noise)
+        except Underdetermined as exc:  # what the campaign lacks, said for the campaign
+            raise PlanError(f"{campaign.name}: {exc}") from None
+        try:  # as calibrate does: a tilted axis sees more
+            return inp, seconds, noise, checked_by_statics(inp, result, site, options, noise)
+        except CalibrationError as exc:  # statics not at the index step's stops
+            raise PlanError(f"{campaign.name}: {exc}") from None
+
+    inp, seconds, noise, result = solved(False)
+    if remount_sigma is not None:
+        result = two_mountings(result, solved(True)[3], remount_sigma)[0]
     factory = {name: parts.get("factory_residuals", 0.0) for name, parts in result.sigma_budget().items()}
     return Plan(campaign, scale, segments, seconds, result.sigmas, factory, estimated_terms(result), site, inp, noise,
-                options)
+                options, remount_sigma)
 
 
 def estimated_terms(result: JointResult) -> dict[str, tuple[float, float]]:
@@ -339,31 +353,36 @@ def scale_for_duration(campaign: Campaign | str, seconds: float) -> float:
 
 
 def time_to_target(campaign: Campaign | str, site: Site, figures: Noise, target_yaw: float,
-                   max_session_s: float = MAX_SESSION_S, options: JointOptions = JointOptions()) -> Reach:
+                   max_session_s: float = MAX_SESSION_S, options: JointOptions = JointOptions(),
+                   remount_sigma: float | None = None) -> Reach:
     """The shortest scaled campaign (WHAT_SCALES) whose yaw 1-sigma is at most `target_yaw` (rad).
     From the nominal layout the scale halves down to MIN_SCALE or doubles up to the longest
     layout within `max_session_s` until the target is bracketed, then bisection narrows the
     bracket to TIME_TOLERANCE of the data time (one revolution for whole turns; the data time is
     an increasing affine function of the scale). More data of the same layout never raises the
-    sigma here, so the search is monotone."""
+    sigma here, so the search is monotone. `options`, `remount_sigma`: as `plan` takes them."""
     campaign = _campaign(campaign)
-    nominal = plan(campaign, site, figures, options=options)
+
+    def planned(scale: float) -> Plan:
+        return plan(campaign, site, figures, scale, options, remount_sigma)
+
+    nominal = planned(1.0)
     longest_scale = scale_for_duration(campaign, max_session_s)
     if nominal.sigmas["yaw"] <= target_yaw:
-        low, high = plan(campaign, site, figures, MIN_SCALE, options), nominal
+        low, high = planned(MIN_SCALE), nominal
         if low.sigmas["yaw"] <= target_yaw:
             return Reach(target_yaw, nominal, low, None)
     else:
-        low = nominal if nominal.scale <= longest_scale else plan(campaign, site, figures, longest_scale, options)
+        low = nominal if nominal.scale <= longest_scale else planned(longest_scale)
         high = None
         while high is None and low.scale < longest_scale:
-            longer = plan(campaign, site, figures, min(2 * low.scale, longest_scale), options)
+            longer = planned(min(2 * low.scale, longest_scale))
             low, high = (low, longer) if longer.sigmas["yaw"] <= target_yaw else (longer, None)
         if high is None:
             return Reach(target_yaw, nominal, None, low)
     step = _resolution_s(campaign)
     while high.duration_s - low.duration_s > max(TIME_TOLERANCE * high.duration_s, step * 1.001):
-        mid = plan(campaign, site, figures, 0.5 * (low.scale + high.scale), options)
+        mid = planned(0.5 * (low.scale + high.scale))
         low, high = (low, mid) if mid.sigmas["yaw"] <= target_yaw else (mid, high)
     return Reach(target_yaw, nominal, high, low)
 
@@ -385,6 +404,9 @@ def report(reach: Reach, figures: Noise) -> str:
     index = nominal.options.index_step
     stops = "" if index is None else (f", statics at an indexing table's stops every {index / DEG:g} deg "
                                       f"(1-sigma {nominal.options.index_sigma / DEG:g} deg)")
+    if nominal.remount_sigma is not None:
+        stops += (f", run again on a second mounting (the housing turned 180 deg about its Z axis, 1-sigma "
+                  f"{nominal.remount_sigma / DEG:g} deg)")
     lines = [f"{campaign.name} campaign at latitude {site.latitude_deg:g} deg, g0 {site.gravity:.5f} m/s^2{stops}",
              f"noise: {_figures_text(figures, nominal.session.incl is not None)}",
              f"nominal: {nominal.duration_s / 60:.1f} min of data: {describe(nominal.segments)}",
@@ -397,7 +419,8 @@ def report(reach: Reach, figures: Noise) -> str:
     lines.append("factory terms the campaign estimates (sigma at most half the prior's): " + (
         ", ".join(f"{name} {sigma:.3g} {unit} (prior {prior:.3g} {unit})" for name, (sigma, prior), unit in
                   ((name, value, spec.FactoryTerm.named(name).unit) for name, value in terms.items()))
-        if terms else "none (a tilted platform axis or an indexing table's stops would: docs/planner.md)"))
+        if terms else "none (a tilted platform axis, an indexing table's stops or a second mounting would: "
+                      "docs/planner.md)"))
     target = reach.target_yaw / DEG
     lines.append(f"time to a yaw 1-sigma of {target:g} deg ({WHAT_SCALES[campaign.scales]}):")
     if reach.reached is None:

@@ -415,3 +415,28 @@ def test_plan_refuses_statics_off_the_index_steps_stops_and_a_sigma_without_a_st
     assert code == 2 and err.count("\n") == 1 and "thesis: static 2 of the fit sits at -90.00 deg" in err, err
     code, out, err = run_main(calibd_main, ["plan", "--latitude", "40", "--campaign", "thesis", "--index-sigma", "0.1"])
     assert code == 2 and "give --index-step too" in err
+
+
+def test_a_second_mounting_takes_the_gyro_misalignment_out_of_the_angles(thesis_plan):
+    """Planned on the unit turned 180 deg about its Z axis too, the two tilts estimate the gyro
+    triad's E_xz and E_yz: pitch, roll, alpha and beta fall from the 0.5 mrad prior's 0.026 deg
+    to the noise's 0.001 deg; the horizontal biases lose the gyro triad's share (g0 E_g), not
+    the force triad's own; yaw keeps its sigma; a looser fixture costs the angles across the tilt."""
+    both = planner.plan("thesis", SITE, STIM300, remount_sigma=0.1 * DEG)
+    for name in ("pitch", "roll", "alpha", "beta"):
+        assert both.sigmas[name] < 0.06 * thesis_plan.sigmas[name]
+    assert {"gyro_misalignment_xz", "gyro_misalignment_yz"} <= set(both.estimated_terms)
+    assert both.sigmas["yaw"] == pytest.approx(thesis_plan.sigmas["yaw"], rel=0.02)
+    mg = STANDARD_GRAVITY / 1000
+    assert both.sigmas["acc_bias_x"] == pytest.approx(0.5 * mg, rel=0.02)
+    assert both.sigmas["acc_bias_x"] < 0.8 * thesis_plan.sigmas["acc_bias_x"]
+    loose = planner.plan("thesis", SITE, STIM300, remount_sigma=0.5 * DEG)
+    assert loose.sigmas["beta"] > 2 * both.sigmas["beta"]
+    assert "run again on a second mounting (the housing turned 180 deg about its Z axis, 1-sigma 0.1 deg)" in \
+        planner.report(planner.Reach(DEG, both, both, None), STIM300).splitlines()[0]
+
+
+def test_plan_refuses_a_remount_sigma_without_a_second_mounting(run_main):
+    code, out, err = run_main(calibd_main, ["plan", "--latitude", "40", "--campaign", "thesis", "--remount-sigma",
+                                            "0.2"])
+    assert code == 2 and err.count("\n") == 1 and "plan: --remount-sigma is the second mounting's 1-sigma" in err
