@@ -276,6 +276,14 @@ def _checks(result: CalibrationResult) -> str:
     if chi2:
         lines.append(f"statics' mean residuals: chi-square {chi2['chi2']:.1f} for {chi2['dof']} degrees of freedom "
                      f"(p = {chi2['p_value']:.3g})")
+    second = checks.get("second_mounting")
+    if second:
+        total, predicted, sigma = (second[k] for k in ("tilt_sum_mrad", "predicted_mrad", "sigma_mrad"))
+        lines.append(f"second mounting {second.get('path') or second['sha256'][:16]} (power-up {second['power_up']}), "
+                     f"the housing turned 180 deg: its alpha {second['alpha_deg']:.5f} deg, beta "
+                     f"{second['beta_deg']:.5f} deg; the two tilts sum to ({total[0]:.4f}, {total[1]:.4f}) mrad "
+                     f"against ({predicted[0]:.4f} ± {sigma[0]:.4f}, {predicted[1]:.4f} ± {sigma[1]:.4f}) mrad "
+                     f"the factory residuals allow (p = {second['p_value']:.3g})")
     return "".join(f"<li>{_e(line)}</li>" for line in lines)
 
 

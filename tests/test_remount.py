@@ -187,6 +187,8 @@ def test_calibrate_remounted_reports_the_terms_estimated_and_the_correction_take
     gyro_map = estimated_maps(load_result(out))["gyro"]  # (I + E)^-1 of the estimated terms
     assert np.linalg.inv(gyro_map)[0, 2] == pytest.approx(terms["gyro_misalignment_xz"]["value"] / 1e3, rel=1e-9)
     assert any("rest on the second mounting" in w for w in doc["warnings"])
+    from calibd.report import _checks  # the report's Checks list says what the second mounting saw
+    assert f"second mounting {captures['turned']} (power-up 1), the housing turned 180 deg" in _checks(load_result(out))
 
 
 @pytest.mark.slow
