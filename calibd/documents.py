@@ -281,6 +281,7 @@ class IndexedTurnsCheck(Struct):
     gyro_minus_stop_deg: list[Number]
     scale_along_axis_ppm: Number
     scale_sigma_ppm: NonNegative
+    turns_left_out: list[Ordinal] = []
 
 
 Pair = Annotated[list[Number], Meta(min_length=2, max_length=2)]

@@ -358,3 +358,26 @@ def test_turns_that_do_not_end_at_the_stops_are_named_and_what_they_move_is_flag
     assert any("beyond the gyro scale factor the STIM300 datasheet allows (500 ppm): the platform may not stop at "
                "whole multiples of 90 deg (--index-step)" in w for w in result.warnings)
     assert result.estimates["yaw"].quality == "poor"
+
+
+def test_a_hidden_loss_mid_turn_is_named_and_left_out_of_the_scale_factor_with_the_statics_at_their_stops():
+    """A whole 0.128 s cycle lost in the second index turn, which the counter cannot see: the
+    turn's integral is 2.5 deg short, far more than a scale factor makes. Its statics keep their
+    stops' angles, the turn is named and left out, and the other turns still give the simulated
+    400 ppm; the estimates are those of the lossless session."""
+    sim = simulate(replace(QUIET, truth=UPRIGHT))
+    whole = session_of(sim)
+    turn = [p for p in sim.phases if p.kind == "turn"][1]
+    cut = int((turn.start_s + turn.end_s) / 2 * whole.rate_hz)
+    kept = np.r_[0:cut, cut + 16:len(whole.time_s)]  # 16 samples at 125 Hz: one counter cycle
+    lossy = replace(whole, time_s=np.arange(len(kept)) / whole.rate_hz, gyro=whole.gyro[kept], acc=whole.acc[kept],
+                    incl=whole.incl[kept])
+    clean, result = (joint_real_case(s, THESIS.site, INDEXED) for s in (whole, lossy))
+    check = result.checks["indexed_turns"]
+    assert check["turns_left_out"] == [2] and clean.checks["indexed_turns"]["turns_left_out"] == []
+    assert check["scale_along_axis_ppm"] == pytest.approx(400.0, abs=0.01)
+    named = [w for w in result.warnings if "left out of the scale factor" in w]
+    assert len(named) == 1 and "ended +2.53 deg from its stop" in named[0]
+    assert not [n for n, e in result.estimates.items() if e.quality == "poor"]
+    for name in ("yaw", "pitch", "roll", "alpha", "beta"):
+        assert result.estimates[name].value == pytest.approx(clean.estimates[name].value, abs=1e-3)

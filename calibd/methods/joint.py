@@ -145,6 +145,7 @@ def joint_fit(session: Session, site: Site, options: joint.JointOptions = joint.
 
 
 INDEX_TOLERANCE = 0.25  # of the step: a static farther from every stop than this is not at one
+SLIP_SIGMAS = 5.0  # a turn off its stops by the scale factor's limit and this many sigma more lost data
 
 
 @dataclass(frozen=True)
@@ -158,13 +159,15 @@ class IndexedTurns:
     integrated: np.ndarray  # (statics,) rad, the gyros' integral
     scale: float  # the gyros' integral over the stops' angles, less 1, along the platform axis
     scale_sigma: float
+    left_out: tuple[int, ...] = ()  # turns (k: from static k to k + 1) off their stops by more than a scale factor
 
     def record(self) -> dict:
         """The result's check: the stops, the gyros' angles against them, the scale factor seen."""
         return {"step_deg": self.step / DEG, "sigma_deg": self.sigma / DEG,
                 "static_angles_deg": (self.known / DEG).tolist(),
                 "gyro_minus_stop_deg": ((self.integrated - self.known) / DEG).tolist(),
-                "scale_along_axis_ppm": self.scale * 1e6, "scale_sigma_ppm": self.scale_sigma * 1e6}
+                "scale_along_axis_ppm": self.scale * 1e6, "scale_sigma_ppm": self.scale_sigma * 1e6,
+                "turns_left_out": [k + 1 for k in self.left_out]}
 
 
 def indexed_turns(inp: joint.JointInput, fit: joint.JointResult, step: float, sigma: float) -> IndexedTurns:
@@ -172,7 +175,11 @@ def indexed_turns(inp: joint.JointInput, fit: joint.JointResult, step: float, si
     and the scale factor the turns show: per turn, the integral less the stops' angle is the
     scale factor times the angle, plus the gyros' white noise integrated through the turn, the
     offset's error times the turn's time and the two stops' own error (a generalised least-squares
-    fit through all turns). CalibrationError when a static is not at a stop."""
+    fit through all turns). A turn off its stops by more than the datasheet's scale factor and
+    SLIP_SIGMAS of that noise lost datagrams the counter cannot see (or its stop slipped): its
+    statics keep their stops, and it is left out of the fit, unless most turns are (a platform
+    that does not stop at the steps: the warnings say so). CalibrationError when a static is not
+    at a stop."""
     integrated = np.array([fit.gyro.chi[a:b].mean() for a, b in inp.statics])
     integrated -= integrated[0]
     known = np.round(integrated / step) * step
@@ -191,10 +198,13 @@ def indexed_turns(inp: joint.JointInput, fit: joint.JointResult, step: float, si
     between = np.diff(np.eye(len(known)), axis=0)  # each turn's angle from the statics'
     cov = (np.diag(white * seconds) + float(k_axis @ offset_cov @ k_axis) * np.outer(seconds, seconds)
            + sigma**2 * between @ between.T)
-    weights = np.linalg.solve(cov, turned)
-    information = float(turned @ weights)
-    return IndexedTurns(step, sigma, known, integrated, float(weights @ np.diff(integrated - known)) / information,
-                        float(np.sqrt(1.0 / information)))
+    excess = np.diff(integrated - known)
+    slipped = np.abs(excess) > spec.GYRO.scale_factor_ppm * 1e-6 * np.abs(turned) + SLIP_SIGMAS * np.sqrt(np.diag(cov))
+    use = ~slipped if 2 * slipped.sum() < len(slipped) else np.ones_like(slipped)
+    weights = np.linalg.solve(cov[np.ix_(use, use)], turned[use])
+    information = float(turned[use] @ weights)
+    return IndexedTurns(step, sigma, known, integrated, float(weights @ excess[use]) / information,
+                        float(np.sqrt(1.0 / information)), tuple(int(k) for k in np.flatnonzero(~use)))
 
 
 def _indexed(used: list[detect.Segment], first: int, inp: joint.JointInput, fit: joint.JointResult, site: Site,
@@ -495,6 +505,14 @@ def _turn_angle_warnings(fitted: JointFit, session: Session) -> list[str]:
                         f"1-sigma {index.sigma / DEG:g} deg), not the gyros' integral, which was at most "
                         f"{off.max():.3f} deg off; the turns show the gyro scale factor along the platform axis "
                         f"at {index.scale * 1e6:+.0f} +- {index.scale_sigma * 1e6:.0f} ppm")
+        for k in index.left_out:
+            a, b = fitted.inp.statics[k][1], fitted.inp.statics[k + 1][0]
+            excess = (index.integrated[k + 1] - index.known[k + 1]) - (index.integrated[k] - index.known[k])
+            warnings.append(f"the turn from {session.time_s[fitted.first + a - 1]:.1f} s to "
+                            f"{session.time_s[fitted.first + b]:.1f} s ended {excess / DEG:+.2f} deg from its stop, "
+                            "more than the gyro scale factor can make: datagrams lost unseen by the counter, or a stop "
+                            "that slipped; its statics keep their stops' angles, and it is left out of the scale "
+                            "factor")
         limit = spec.GYRO.scale_factor_ppm * 1e-6
         if abs(index.scale) > limit + 3 * index.scale_sigma:
             warnings.append(f"the turns differ from the stops' angles by {index.scale * 1e6:+.0f} ppm of the angle "
