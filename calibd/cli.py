@@ -163,9 +163,10 @@ def _method_settings(args, command: str) -> tuple[str, dict]:
                          "joint method estimates alpha and beta itself")
     if args.method == "thesis" and (args.fixed_amplitude or args.drift or args.index_step is not None):
         raise UsageError(f"{command}: --fixed-amplitude, --index-step and --drift belong to --method joint")
-    remounted = getattr(args, "remounted", None)
-    if remounted is not None and (args.method != "joint" or args.bench):
-        raise UsageError(f"{command}: --remounted belongs to --method joint")
+    for flag, given in (("--remounted", getattr(args, "remounted", None)),
+                        ("--intrinsics", getattr(args, "intrinsics", None))):
+        if given is not None and (args.method != "joint" or args.bench):
+            raise UsageError(f"{command}: {flag} belongs to --method joint")
     options = {"fixed_amplitude": args.fixed_amplitude, "drift": args.drift, "alpha_deg": args.alpha,
                "beta_deg": args.beta, "platform_rate_deg_s": args.platform_rate, **_index_settings(args, command)}
     return "thesis-bench" if args.bench else args.method, options
@@ -182,7 +183,7 @@ def cmd_calibrate(args) -> int:
     capture = open_capture(args.capture, topic=args.topic)  # a refusal names the capture
 
     method = estimator(name)
-    options = method.options(settings)
+    options = _with_intrinsics(args, capture, method.options(settings))
     second = _second_mounting(args, capture, site, options)
 
     def solve(session):
@@ -201,6 +202,41 @@ def cmd_calibrate(args) -> int:
         raise write_error(args.output, exc) from None
     print(_summary(result))
     return 0
+
+
+def _with_intrinsics(args, capture, options):
+    """The joint options with the factory terms the results `--intrinsics` names estimated (a
+    bench's six positions, a second mounting) taken as known (`methods.joint.measured_terms`);
+    `options` as they are without one. Each must be of this unit, and of other data than the
+    capture's and each other's: the same data counted twice would claim a sigma it does not have."""
+    if not args.intrinsics:
+        return options
+    from .methods.joint import measured_terms
+    from .results import load_result
+
+    known, seen = [], {capture.identity["sha256"][:16]: "the capture calibrated"}
+    for path in args.intrinsics:
+        not_an_input(args.output, path)
+        earlier = load_result(path)  # a refusal names the file
+        data = (earlier.session_id or "").split("/")[0]
+        if data and data in seen:
+            raise UsageError(f"{path}: rests on the same data as {seen[data]}: its terms would be counted twice")
+        seen[data] = path
+        theirs = (earlier.capture or {}).get("serial_number") or earlier.sensor.serial_number
+        ours = capture.sensor.serial_number
+        if ours and theirs and ours != theirs:
+            raise UsageError(f"{path}: is of serial number {theirs}, the capture's of {ours}: factory terms are one "
+                             "unit's")
+        try:
+            terms = measured_terms(earlier)
+        except (ValueError, KeyError, TypeError, ZeroDivisionError):
+            raise UsageError(f"{path}: error_budget.factory_residuals is not as calibd writes it (a term's name, "
+                             "value, sigma or prior_sigma)") from None
+        if not terms:
+            raise UsageError(f"{path}: estimates no factory term (a bench campaign's result, --method thesis --bench, "
+                             "or one made with --remounted has them)")
+        known += terms
+    return replace(options, known_terms=tuple(known), known_from=", ".join(args.intrinsics))
 
 
 def _remount_sigma(args, command: str) -> float | None:
@@ -1070,6 +1106,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "last one that has what the method needs)")
     p.add_argument("--session", type=_positive_int, dest="power_up", help=argparse.SUPPRESS)  # its former name
     _add_remount_options(p)
+    p.add_argument("--intrinsics", type=path_arg, metavar="RESULT.json", action="append",
+                   help="joint: the factory terms an earlier result of this unit estimated (a bench campaign's six "
+                        "positions, a second mounting), taken as known, what they limit falls to the noise; "
+                        "repeat for several results "
+                        "(docs/turntable.md, Factory terms known from an earlier calibration)")
     p.set_defaults(func=cmd_calibrate)
     p = sub.add_parser("batch", help="captures and folders of captures -> every power-up calibrated on Dask, one "
                                      "row each in a fleet table (Parquet; docs/fleet.md)")

@@ -62,15 +62,23 @@ def estimated_maps(result: CalibrationResult) -> dict[str, np.ndarray]:
     misalignment in mrad off it): what takes the triad's output, its bias off, back to the housing
     axes. A term its prior set is never applied (a prior is no measurement), so a triad without
     an estimated term is absent and its output passes as it is."""
-    factory = (result.error_budget or {}).get("factory_residuals") or {}
     errors: dict[str, np.ndarray] = {}
-    for name, term in (factory.get("terms") or {}).items():
-        if term.get("source") != "estimated":
-            continue
+    for name, (value, _) in estimated_terms(result).items():
         element = spec.FactoryTerm.named(name)
-        errors.setdefault(element.sensor, np.zeros((3, 3)))[element.row, element.col] = \
-            term["value"] / element.to_unit
+        errors.setdefault(element.sensor, np.zeros((3, 3)))[element.row, element.col] = value
     return {sensor: np.linalg.inv(np.eye(3) + error) for sensor, error in errors.items()}
+
+
+def estimated_terms(result: CalibrationResult) -> dict[str, tuple[float, float]]:
+    """The factory terms the result's data estimated (error_budget terms whose source is
+    "estimated"), by name: (value, 1-sigma), dimensionless. A term its prior set is not one."""
+    factory = (result.error_budget or {}).get("factory_residuals") or {}
+    out = {}
+    for name, term in (factory.get("terms") or {}).items():
+        if term.get("source") == "estimated":
+            to_unit = spec.FactoryTerm.named(name).to_unit
+            out[name] = (term["value"] / to_unit, term["sigma"] / to_unit)
+    return out
 
 
 def through(values: np.ndarray, matrix: np.ndarray | None) -> np.ndarray:

@@ -317,11 +317,19 @@ class Checks(Struct):
     second_mounting: Union[SecondMountingCheck, None] = None
 
 
+class IntrinsicsDoc(Struct):
+    """The factory terms an earlier result of the unit estimated, taken as known (`--intrinsics`)."""
+
+    terms: list[str]
+    path: Union[str, None] = None
+
+
 class Options(Struct):
     fixed_amplitude: bool = False
     drift: bool = False
     index_step_deg: Union[Number, None] = None
     index_sigma_deg: Union[NonNegative, None] = None
+    intrinsics: Union[IntrinsicsDoc, None] = None
 
 
 class CaptureDoc(Struct):

@@ -154,12 +154,15 @@ def captures(tmp_path_factory):
                                       ("other unit", remounted(TRUTH), 24, other_unit)):
         paths[name] = folder / f"{name.replace(' ', '_')}.bin"
         write_capture(replace(scenario, truth=truth, seed=scenario.seed + seed, sensor=sensor), paths[name])
+    bench = load_scenario("thesis-bench")  # the unit re-mounted on each face: its force triads' terms
+    paths["bench"] = folder / "bench.bin"
+    write_capture(replace(bench, truth=replace(bench.truth, **RESIDUALS), seed=bench.seed + 25), paths["bench"])
     return paths
 
 
-def _calibrate(paths, tmp_path, *argv):
-    out = tmp_path / "r.json"
-    code = calibd_main(["calibrate", str(paths["first"]), "--latitude", str(THESIS.site.latitude_deg), "--g0",
+def _calibrate(paths, tmp_path, *argv, capture="first", out="r.json"):
+    out = tmp_path / out
+    code = calibd_main(["calibrate", str(paths[capture]), "--latitude", str(THESIS.site.latitude_deg), "--g0",
                         str(THESIS.site.g0), "-o", str(out), *map(str, argv)])
     return code, out
 
@@ -210,3 +213,47 @@ def test_remount_sigma_needs_remounted(tmp_path, capsys):
                         str(tmp_path / "r.json"), "--remount-sigma", "0.05"])
     err = capsys.readouterr().err
     assert code == 2 and "--remount-sigma is the second mounting's 1-sigma: give --remounted too" in err
+
+
+@pytest.mark.slow
+def test_factory_terms_of_a_bench_and_a_second_mounting_bring_a_later_calibration_to_the_noise(captures, tmp_path,
+                                                                                              capsys):
+    """The unit's bench campaign (its force triads' terms from six positions) and its two
+    mountings (the gyro triad's that tilt the axis), taken as known by a later single-mounting
+    calibration of other data (`--intrinsics`): pitch, roll, alpha, beta and the horizontal biases
+    fall to the noise and stay within their sigma of the truth."""
+    assert _calibrate(captures, tmp_path, "--method", "thesis", "--bench", capture="bench", out="bench.json")[0] == 0
+    assert _calibrate(captures, tmp_path, "--remounted", captures["turned"], out="two.json")[0] == 0
+    assert _calibrate(captures, tmp_path, capture="unturned", out="alone.json")[0] == 0
+    code, out = _calibrate(captures, tmp_path, "--intrinsics", tmp_path / "bench.json", "--intrinsics",
+                           tmp_path / "two.json", capture="unturned", out="known.json")
+    assert code == 0, capsys.readouterr().err
+    alone, known = (json.loads((tmp_path / name).read_text()) for name in ("alone.json", "known.json"))
+    assert known["options"]["intrinsics"]["path"] == f"{tmp_path / 'bench.json'}, {tmp_path / 'two.json'}"
+    assert {"acc_misalignment_xz", "gyro_misalignment_xz"} <= set(known["options"]["intrinsics"]["terms"])
+    truth = TRUTH.estimates()
+    # the bench sees the accelerometers' terms to about 0.01 mrad, the noisier inclinometers' to 0.1 to 0.16
+    for name, share in {**dict.fromkeys((*ANGLES, "acc_bias_x", "acc_bias_y"), 0.1),
+                        "incl_bias_x": 0.35, "incl_bias_y": 0.35}.items():
+        estimate = known["estimates"][name]
+        assert estimate["sigma"] < share * alone["estimates"][name]["sigma"], name
+        assert abs(estimate["value"] - truth[name]) < 3 * estimate["sigma"], name
+    terms = known["error_budget"]["factory_residuals"]["terms"]
+    assert terms["acc_misalignment_xz"]["source"] == terms["gyro_misalignment_yz"]["source"] == "estimated"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("given, message", [
+    ("first", "rests on the same data as the capture calibrated: its terms would be counted twice"),
+    ("other", "is of serial number N25582405002999, the capture's of N25582405002002: factory terms are one unit's"),
+    ("none", "estimates no factory term"),
+])
+def test_intrinsics_that_are_not_this_units_other_data_are_refused_in_one_line(captures, tmp_path, capsys, given,
+                                                                              message):
+    made = {"first": ("first", ()), "other": ("other unit", ()), "none": ("unturned", ("--method", "thesis"))}
+    capture, argv = made[given]
+    assert _calibrate(captures, tmp_path, *argv, capture=capture, out="earlier.json")[0] == 0
+    capsys.readouterr()
+    code, out = _calibrate(captures, tmp_path, "--intrinsics", tmp_path / "earlier.json")
+    err = capsys.readouterr().err
+    assert code == 2 and message in err and len(err.strip().splitlines()) == 1 and not out.exists()

@@ -147,6 +147,10 @@ class JointOptions:
     # each static's angle is known to index_sigma (rad, 1-sigma); None: the gyros' integral gives it
     index_step: float | None = None
     index_sigma: float = 0.0
+    # factory terms an earlier calibration of the unit estimated (a bench's six positions, a second
+    # mounting): (term name, value, 1-sigma), dimensionless, each taken as one more measurement of it
+    known_terms: tuple[tuple[str, float, float], ...] = ()
+    known_from: str | None = None  # where they come from: the earlier result's path
 
 
 # The parts a covariance is made of, in the order results list them (`JointResult.budget`)
@@ -828,12 +832,14 @@ class JointResult:
         return dict(zip(self.estimates, np.sqrt(np.diag(self.covariance)).tolist()))
 
     def with_factory_posterior(self, posterior: FactoryPosterior) -> JointResult:
-        """The result with what the statics' forces saw of the factory residuals: each estimate
-        less the terms' estimated move (first order: the effects are linear at that size), their
-        share of the covariance the posterior's. The posterior's own noise, drawn from the same
-        static means as the force fits, is taken as independent of theirs."""
+        """The result with what the data saw of the factory residuals (the statics' forces, and what
+        else `posterior` holds): each estimate less the terms' estimated move (first order: the
+        effects are linear at that size), their share of the covariance the posterior's. It
+        replaces any posterior the result had (its move undone first). The posterior's own noise,
+        drawn from the same static means as the force fits, is taken as independent of theirs."""
         factory = replace(self.factory, posterior=posterior)
-        moved = self.factory.estimates @ posterior.z
+        before = self.factory.posterior
+        moved = self.factory.estimates @ (posterior.z - (0.0 if before is None else before.z))
         estimates = {name: value - float(dv) for (name, value), dv in zip(self.estimates.items(), moved)}
         return replace(self, estimates=estimates, factory=factory,
                        budget=self.budget | {"factory_residuals": factory.covariance})

@@ -25,6 +25,7 @@ from .base import Setting, refusal
 from .common import needs_inclinometers, one_period, partial_period, session_warnings, static_mean
 
 CAMPAIGN = "bench campaign"
+SIX_POSITIONS = "six positions"  # the error budget's "from": its factory terms were fitted without a prior
 
 
 def positions(segments: list[detect.Segment]) -> dict[str, detect.Segment]:
@@ -88,7 +89,7 @@ def thesis_bench(session: Session, site: Site, segments: list[detect.Segment] | 
     return make_result("thesis-bench", site, estimates, records, warnings, session.sensor, stream=session.stream,
                        turns_alpha_beta_deg=[[a / DEG, b / DEG] for a, b in tilts],
                        error_budget={"frame": "housing", "factory_residuals": {
-                           "reference": spec.SPECIFICATIONS, "acc_range_g": acc_range_g, "from": "six positions",
+                           "reference": spec.SPECIFICATIONS, "acc_range_g": acc_range_g, "from": SIX_POSITIONS,
                            "terms": intrinsic_terms(session, at, site, acc_range_g)}})
 
 

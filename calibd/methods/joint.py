@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from .. import detect, gaps, spec
+from ..correction import estimated_terms
 from ..errors import CalibrationError
 from ..estimators import joint, remount
 from ..estimators.joint import JointOptions
@@ -134,14 +135,14 @@ def joint_fit(session: Session, site: Site, options: joint.JointOptions = joint.
         return _indexed(used, first, inp, fit, site, options, check)
     found = [t for t in check.turns if t.found] if check else []
     if not found:
-        return JointFit(used, first, inp, seen_by_statics(fit, check), options, check, check)
+        return JointFit(used, first, inp, seen_by_statics(fit, check, options), options, check, check)
     try:
         inp, fit = _corrected(inp, fit, site, options, found)
     except (joint.Underdetermined, np.linalg.LinAlgError) as exc:
         raise CalibrationError(f"the tilt the accelerometers and inclinometers see disagrees with the gyros' turn "
                                f"angles, and the corrected angles leave no usable fit ({exc})") from None
     final = tilt_check(inp, fit, site)
-    return JointFit(used, first, inp, seen_by_statics(fit, final), options, check, final)
+    return JointFit(used, first, inp, seen_by_statics(fit, final, options), options, check, final)
 
 
 INDEX_TOLERANCE = 0.25  # of the step: a static farther from every stop than this is not at one
@@ -244,7 +245,7 @@ def at_stops(inp: joint.JointInput, fit: joint.JointResult, site: Site, options:
     statics = final.factory if final and final.factory else joint.FactoryPosterior(np.zeros(len(terms)),
                                                                                    np.eye(len(terms)))
     posterior = statics.observed(_scale_row(terms, pinned), index.scale, index.scale_sigma)
-    return pinned_inp, pinned.with_factory_posterior(posterior), final, index
+    return pinned_inp, pinned.with_factory_posterior(with_known_terms(posterior, terms, options)), final, index
 
 
 def _scale_row(terms: tuple[spec.FactoryTerm, ...], fit: joint.JointResult) -> np.ndarray:
@@ -262,14 +263,52 @@ def checked_by_statics(inp: joint.JointInput, fit: joint.JointResult, site: Site
     session; calibrate keeps the check too). `noise`: as the fit was solved with it."""
     if options.index_step is not None:
         return at_stops(inp, fit, site, options, noise)[1]
-    return seen_by_statics(fit, tilt_check(inp, fit, site))
+    return seen_by_statics(fit, tilt_check(inp, fit, site), options)
 
 
-def seen_by_statics(fit: joint.JointResult, check: gaps.TiltCheck | None) -> joint.JointResult:
-    """The fit with what the statics' forces saw of the factory residuals, where they were checked."""
-    if check is None or check.factory is None:
+def seen_by_statics(fit: joint.JointResult, check: gaps.TiltCheck | None,
+                    options: JointOptions = JointOptions()) -> joint.JointResult:
+    """The fit with what the statics' forces saw of the factory residuals, where they were checked,
+    and the terms `options` says an earlier calibration of the unit estimated."""
+    if fit.factory is None:
         return fit
-    return fit.with_factory_posterior(check.factory)
+    seen = None if check is None else check.factory
+    if seen is None and not options.known_terms:
+        return fit
+    terms = fit.factory.terms
+    seen = seen or joint.FactoryPosterior(np.zeros(len(terms)), np.eye(len(terms)))
+    return fit.with_factory_posterior(with_known_terms(seen, terms, options))
+
+
+def measured_terms(result: CalibrationResult) -> tuple[tuple[str, float, float], ...]:
+    """What an earlier result's data alone said of each factory term it estimated: (name, value,
+    1-sigma), dimensionless, for `JointOptions.known_terms`. A bench's six positions fit the
+    terms without a prior, so their value and sigma are that; a joint result's are a posterior,
+    so the datasheet's prior is taken out of each (term by term: the document keeps no
+    correlations), lest a later fit count the prior twice."""
+    factory = (result.error_budget or {}).get("factory_residuals") or {}
+    with_prior = factory.get("from") != bench.SIX_POSITIONS
+    out = []
+    for name, (value, sigma) in estimated_terms(result).items():
+        if with_prior:
+            prior = factory["terms"][name]["prior_sigma"] / spec.FactoryTerm.named(name).to_unit
+            precision = 1 / sigma**2 - 1 / prior**2  # an estimated term's sigma is at most half its prior's
+            value, sigma = value / sigma**2 / precision, 1 / np.sqrt(precision)
+        out.append((name, float(value), float(sigma)))
+    return tuple(out)
+
+
+def with_known_terms(posterior: joint.FactoryPosterior, terms: tuple[spec.FactoryTerm, ...],
+                     options: JointOptions) -> joint.FactoryPosterior:
+    """The posterior with each factory term an earlier calibration estimated (`known_terms`: its
+    value and sigma, from other data, so independent of these) taken as one more measurement. A
+    term this fit does not have (an inclinometer's, on a unit without them) is passed over."""
+    names = [t.name for t in terms]
+    for name, value, sigma in options.known_terms:
+        if name in names:
+            k = names.index(name)
+            posterior = posterior.observed(np.eye(len(terms))[k], value / terms[k].sigma, sigma / terms[k].sigma)
+    return posterior
 
 
 def tilt_check(inp: joint.JointInput, fit: joint.JointResult, site: Site) -> gaps.TiltCheck | None:
@@ -364,7 +403,9 @@ def joint_real_case(session: Session, site: Site, options: joint.JointOptions = 
                          session.sensor, fit.covariance, stream=session.stream,
                          options={"fixed_amplitude": options.fixed_amplitude, "drift": options.drift} | (
                              {} if fitted.index is None else {"index_step_deg": options.index_step / DEG,
-                                                              "index_sigma_deg": options.index_sigma / DEG}),
+                                                              "index_sigma_deg": options.index_sigma / DEG}) | (
+                             {} if not options.known_terms else {"intrinsics": {
+                                 "path": options.known_from, "terms": [name for name, _, _ in options.known_terms]}}),
                          checks=_joint_checks(fit, site) | _turn_angle_checks(fitted, session)
                          | ({} if fitted.index is None else {"indexed_turns": fitted.index.record()})
                          | ({} if remounting is None else {"second_mounting": remounting}),
