@@ -40,6 +40,9 @@ bias instability), 125 Hz, turns in a random sense:
   housing turned 180 deg about its Z axis (the fixture's turn off 180 deg by N(0, 0.1 deg), the
   default `--remount-sigma`), calibrated together (`--remounted`): the gyro misalignment that
   tilts the platform axis from the two tilts, and pitch, roll, alpha and beta without it;
+- `known intrinsics`: the field set's sessions calibrated with the unit's factory terms known from
+  earlier, independent data (`--intrinsics`): a bench campaign of the unit (its force triads'
+  terms) and a second-mounting pair (its gyro triad's that tilt the axis);
 - `temperature ramp`: the field set in a room warming or cooling at 2 degC/h (random sign) after
   the warm-up, each bias channel's slope with temperature drawn from the datasheet's figure
   (calibd.spec, `bias_temperature_sigma`), the temperatures in the session, through `calibd
@@ -71,7 +74,8 @@ from pathlib import Path
 import numpy as np
 
 from calibd.methods.base import DEFAULT_REMOUNT_SIGMA_DEG
-from calibd.methods.joint import SecondMounting, joint_fit, joint_real_case
+from calibd.methods.bench import thesis_bench
+from calibd.methods.joint import SecondMounting, joint_fit, joint_real_case, measured_terms
 from calibd.methods.thesis import thesis_real_case
 from calibd import spec
 from calibd.calibrate import judged_by_temperature
@@ -93,14 +97,16 @@ UNITS = {**{n: "deg" for n in NAMES[:5]}, **{n: "deg/h" for n in NAMES[5:8]}, **
 ARW = 0.15 / 60 * DEG  # rad/sqrt(s): the datasheet angle random walk the bound assumes
 GYRO_DRIVEN = ("yaw", "alpha", "beta", "gyro_bias_x", "gyro_bias_y", "gyro_bias_z")  # what the gyro bound covers
 RUN_SETS = ("g0 given", "normal gravity", "one index", "no inclinometers", "vibrating static", "field", "limit",
-            "beyond limit", "tilted axis", "indexed", "two mountings", "temperature ramp")
+            "beyond limit", "tilted axis", "indexed", "two mountings", "known intrinsics", "temperature ramp")
 SEED_OFFSET = {"g0 given": 0, "normal gravity": 100_000, "one index": 200_000, "no inclinometers": 300_000,
                "vibrating static": 400_000, "field": 500_000, "limit": 600_000,
                "beyond limit": 600_000, "tilted axis": 700_000, "indexed": 500_000, "two mountings": 500_000,
-               "temperature ramp": 800_000}
+               "known intrinsics": 500_000, "temperature ramp": 800_000}
 SECOND_SEED = 50_000  # the second mounting's noise: another session's
+EARLIER_SEED = 60_000  # the known intrinsics' earlier sessions (bench, two mountings): other data
 # with the datasheet's factory residuals
-FACTORY_SETS = ("field", "limit", "beyond limit", "tilted axis", "indexed", "two mountings", "temperature ramp")
+FACTORY_SETS = ("field", "limit", "beyond limit", "tilted axis", "indexed", "two mountings", "known intrinsics",
+                "temperature ramp")
 CALIBRATE_PATH = ("one index", "vibrating static", *FACTORY_SETS)  # through calibd calibrate: flags count
 TILTED_DEG = (5.0, 3.0)  # the tilted-axis set's pitch and roll: its platform axis about 5.8 deg from Up
 VIBRATION = 12.5  # times the sensor's white noise (scenario.Segment.vibration)
@@ -185,6 +191,21 @@ def second_mounting(scenario, seed: int) -> SecondMounting:
     return SecondMounting(fit, {"path": f"seed {seed}, turned", "power_up": 1}, DEFAULT_REMOUNT_SIGMA_DEG * DEG)
 
 
+def known_intrinsics(scenario, seed: int) -> JointOptions:
+    """The unit's factory terms as `--intrinsics` takes them from two earlier results on data of
+    their own: a bench campaign (the force triads' terms from six positions) and a pair of
+    mountings (the gyro triad's that tilt the axis)."""
+    residuals = {name: getattr(scenario.truth, name) for name in scenario.truth.__dataclass_fields__
+                 if name.endswith(("_scale_ppm", "_misalignment_mrad"))}
+    bench = load_scenario("thesis-bench")
+    bench = replace(bench, truth=replace(bench.truth, **residuals), seed=scenario.seed + EARLIER_SEED)
+    earlier = replace(scenario, seed=scenario.seed + EARLIER_SEED + 1)
+    first = _session(simulate(earlier), "known intrinsics", seed)
+    pair = joint_real_case(first, earlier.site, JointOptions(), None, second_mounting(earlier, seed + EARLIER_SEED))
+    terms = measured_terms(thesis_bench(_session(simulate(bench), "known intrinsics", seed), bench.site))
+    return JointOptions(known_terms=terms + measured_terms(pair))
+
+
 def one_session(seed: int, run_set: str) -> dict:
     scenario = random_scenario(seed + SEED_OFFSET[run_set], run_set)
     sim = simulate(scenario)
@@ -209,7 +230,8 @@ def one_session(seed: int, run_set: str) -> dict:
     out = {"refused": None, "poor": False, "poor_names": []}
     if run_set in CALIBRATE_PATH:
         try:
-            options = INDEXED if run_set == "indexed" else JointOptions()
+            options = INDEXED if run_set == "indexed" else \
+                known_intrinsics(scenario, seed) if run_set == "known intrinsics" else JointOptions()
             second = second_mounting(scenario, seed) if run_set == "two mountings" else None
             result = judged_by_temperature(joint_real_case(session, site, options, None, second),
                                            record_settling(session.time_s, session.temperature_c))
