@@ -9,7 +9,7 @@ from typing import Any
 from .errors import CalibrationError
 from .results import CalibrationResult
 from .session import CaptureSessions, Session, power_up_session
-from .warmup import NOT_WARMED_UP, RAMP_MODELLED_C_PER_H, TEMPERATURE_POOR_SHARE, Settling, ramp_words, record_settling
+from .warmup import NOT_WARMED_UP, TEMPERATURE_POOR_SHARE, Settling, ramp_carried, ramp_words, record_settling
 
 
 def solved_power_up(capture: CaptureSessions, solve, power_up: int | None = None,
@@ -51,7 +51,7 @@ def judged_by_temperature(result: CalibrationResult, verdict: Settling | None) -
     if verdict is None or verdict.settled:
         return result
     budget = (result.error_budget or {}).get("sigma", {})
-    if abs(verdict.trend_c_per_h) > RAMP_MODELLED_C_PER_H or not budget or \
+    if not ramp_carried(verdict) or not budget or \
             not all("temperature" in parts for parts in budget.values()):
         return result.flag_poor(result.estimates, NOT_WARMED_UP)
     moved = [name for name, e in result.estimates.items()
@@ -82,8 +82,7 @@ def second_mounting(first: CaptureSessions, capture: CaptureSessions, site, opti
     number, session, fitted, _ = solved_power_up(capture, lambda s: joint_fit(s, site, alone))
     verdict = record_settling(session.time_s, session.temperature_c)
     unsettled = None  # a slow ramp is in its fit's temperature part, which the budget carries through
-    if verdict is not None and not verdict.settled and not (
-            verdict.trend_c_per_h is not None and abs(verdict.trend_c_per_h) <= RAMP_MODELLED_C_PER_H):
+    if verdict is not None and not verdict.settled and not ramp_carried(verdict):
         unsettled = "was taken while the IMU warmed up (its temperature never settled)"
     return SecondMounting(fitted.fit, {"path": capture.path, **capture.identity, "power_up": number}, sigma, unsettled)
 

@@ -117,6 +117,12 @@ def record_settling(time_s: np.ndarray, temperature_c: np.ndarray | None,
     return settling(time_s, temperature_c, rule)
 
 
+def ramp_carried(verdict: Settling) -> bool:
+    """Whether a power-up that never settled ramps slowly enough (RAMP_MODELLED_C_PER_H) for the
+    joint method's sigma to carry it (its budget's temperature part)."""
+    return verdict.trend_c_per_h is not None and abs(verdict.trend_c_per_h) <= RAMP_MODELLED_C_PER_H
+
+
 def ramp_words(verdict: Settling, moved: list[str]) -> str:
     """Why a slow ramp's estimates keep their sigma, and which are flagged."""
     flagged = (f"{', '.join(moved)} flagged poor: the ramp moves them by {TEMPERATURE_POOR_SHARE:g} of their "

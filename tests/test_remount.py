@@ -257,3 +257,17 @@ def test_intrinsics_that_are_not_this_units_other_data_are_refused_in_one_line(c
     code, out = _calibrate(captures, tmp_path, "--intrinsics", tmp_path / "earlier.json")
     err = capsys.readouterr().err
     assert code == 2 and message in err and len(err.strip().splitlines()) == 1 and not out.exists()
+
+
+@pytest.mark.slow
+def test_a_second_mounting_that_never_warmed_flags_what_its_tilt_sets(exact):
+    from calibd.methods.joint import SecondMounting, joint_real_case
+
+    _, second, _, _ = exact
+    session = session_of(simulate(replace(QUIET, truth=TRUTH)))
+    cold = SecondMounting(second, {"path": "turned.bin", "size_bytes": 1, "sha256": "0" * 64, "power_up": 1}, 0.0,
+                          "was taken while the IMU warmed up (its temperature never settled)")
+    result = joint_real_case(session, THESIS.site, second=cold)
+    assert sorted(n for n, e in result.estimates.items() if e.quality == "poor") == sorted(ANGLES)
+    words = "the second mounting's power-up was taken while the IMU warmed up"
+    assert any(w.startswith(words) for w in result.warnings)
