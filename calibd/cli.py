@@ -168,13 +168,14 @@ def _method_settings(args, command: str) -> tuple[str, dict]:
         if given is not None and (args.method != "joint" or args.bench):
             raise UsageError(f"{command}: {flag} belongs to --method joint")
     options = {"fixed_amplitude": args.fixed_amplitude, "drift": args.drift, "alpha_deg": args.alpha,
-               "beta_deg": args.beta, "platform_rate_deg_s": args.platform_rate, **_index_settings(args, command)}
+               "beta_deg": args.beta, "platform_rate_deg_s": args.platform_rate, **_index_settings(args, command),
+               "intrinsics": getattr(args, "intrinsics", None)}
     return "thesis-bench" if args.bench else args.method, options
 
 
 def cmd_calibrate(args) -> int:
     from .calibrate import calibrate_capture
-    from .methods import estimator
+    from .methods import OptionError, estimator
     from .results import write_result
 
     name, settings = _method_settings(args, "calibrate")
@@ -183,7 +184,11 @@ def cmd_calibrate(args) -> int:
     capture = open_capture(args.capture, topic=args.topic)  # a refusal names the capture
 
     method = estimator(name)
-    options = _with_intrinsics(args, capture, method.options(settings))
+    _not_the_capture(args, capture)
+    try:
+        options = method.options(settings)
+    except OptionError as exc:
+        raise UsageError(f"calibrate: {exc.reason}") from None
     second = _second_mounting(args, capture, site, options)
 
     def solve(session):
@@ -204,39 +209,16 @@ def cmd_calibrate(args) -> int:
     return 0
 
 
-def _with_intrinsics(args, capture, options):
-    """The joint options with the factory terms the results `--intrinsics` names estimated (a
-    bench's six positions, a second mounting) taken as known (`methods.joint.measured_terms`);
-    `options` as they are without one. Each must be of this unit, and of other data than the
-    capture's and each other's: the same data counted twice would claim a sigma it does not have."""
-    if not args.intrinsics:
-        return options
-    from .methods.joint import measured_terms
+def _not_the_capture(args, capture) -> None:
+    """An --intrinsics result that rests on the capture being calibrated is refused: its terms
+    would count this data twice (the results among themselves: `methods.joint.intrinsics`)."""
     from .results import load_result
 
-    known, seen = [], {capture.identity["sha256"][:16]: "the capture calibrated"}
-    for path in args.intrinsics:
+    for path in args.intrinsics or ():
         not_an_input(args.output, path)
-        earlier = load_result(path)  # a refusal names the file
-        data = (earlier.session_id or "").split("/")[0]
-        if data and data in seen:
-            raise UsageError(f"{path}: rests on the same data as {seen[data]}: its terms would be counted twice")
-        seen[data] = path
-        theirs = (earlier.capture or {}).get("serial_number") or earlier.sensor.serial_number
-        ours = capture.sensor.serial_number
-        if ours and theirs and ours != theirs:
-            raise UsageError(f"{path}: is of serial number {theirs}, the capture's of {ours}: factory terms are one "
-                             "unit's")
-        try:
-            terms = measured_terms(earlier)
-        except (ValueError, KeyError, TypeError, ZeroDivisionError):
-            raise UsageError(f"{path}: error_budget.factory_residuals is not as calibd writes it (a term's name, "
-                             "value, sigma or prior_sigma)") from None
-        if not terms:
-            raise UsageError(f"{path}: estimates no factory term (a bench campaign's result, --method thesis --bench, "
-                             "or one made with --remounted has them)")
-        known += terms
-    return replace(options, known_terms=tuple(known), known_from=", ".join(args.intrinsics))
+        if (load_result(path).session_id or "").split("/")[0] == capture.identity["sha256"][:16]:
+            raise UsageError(f"{path}: rests on the same data as the capture calibrated: its terms would be counted "
+                             "twice")
 
 
 def _remount_sigma(args, command: str) -> float | None:

@@ -67,6 +67,7 @@ class MethodConfig:
     resolve_every_s: float = 60.0  # how often the estimate is recomputed from the data so far
     index_step_deg: float | None = None  # joint only: the platform's turns are whole multiples of this angle
     index_sigma_deg: float | None = None  # joint only: how exactly a static sits at its stop (default 0.01 deg)
+    intrinsics: list[str] | None = None  # joint only: result files of this unit whose factory terms are known
 
 
 BEFORE_RESULT = ("hold", "raw")  # what the corrected outputs carry before the power-up's first result

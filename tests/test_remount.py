@@ -245,7 +245,7 @@ def test_factory_terms_of_a_bench_and_a_second_mounting_bring_a_later_calibratio
 @pytest.mark.slow
 @pytest.mark.parametrize("given, message", [
     ("first", "rests on the same data as the capture calibrated: its terms would be counted twice"),
-    ("other", "is of serial number N25582405002999, the capture's of N25582405002002: factory terms are one unit's"),
+    ("other", "are of serial number N25582405002999, this sensor is N25582405002002: factory terms are one unit's"),
     ("none", "estimates no factory term"),
 ])
 def test_intrinsics_that_are_not_this_units_other_data_are_refused_in_one_line(captures, tmp_path, capsys, given,
@@ -271,3 +271,28 @@ def test_a_second_mounting_that_never_warmed_flags_what_its_tilt_sets(exact):
     assert sorted(n for n, e in result.estimates.items() if e.quality == "poor") == sorted(ANGLES)
     words = "the second mounting's power-up was taken while the IMU warmed up"
     assert any(w.startswith(words) for w in result.warnings)
+
+
+@pytest.mark.slow
+def test_the_daemon_takes_intrinsics_from_its_configuration(captures, tmp_path, capsys):
+    """`[method] intrinsics` in the daemon's configuration: every result it solves takes the
+    unit's factory terms as known (here through `calibd replay`, the daemon's own pipeline); a
+    list naming one result twice is refused at start in one line."""
+    assert _calibrate(captures, tmp_path, "--method", "thesis", "--bench", capture="bench", out="bench.json")[0] == 0
+    assert _calibrate(captures, tmp_path, "--remounted", captures["turned"], out="two.json")[0] == 0
+    config = tmp_path / "calibd.toml"
+    files = f'["{tmp_path / "bench.json"}", "{tmp_path / "two.json"}"]'
+    config.write_text(f'[serial]\nport = "/dev/null"\n[site]\nlatitude_deg = {THESIS.site.latitude_deg}\n'
+                      f'g0 = {THESIS.site.g0}\n[output]\nstate_dir = "{tmp_path / "state"}"\n'
+                      f'[method]\nintrinsics = {files}\n')
+    capsys.readouterr()
+    assert calibd_main(["replay", str(captures["unturned"]), "--config", str(config), "--state-dir",
+                        str(tmp_path / "state")]) == 0, capsys.readouterr().err
+    result = json.loads((tmp_path / "state" / "result.json").read_text())
+    assert result["options"]["intrinsics"]["terms"] and result["estimates"]["alpha"]["sigma"] < 0.003
+    assert result["estimates"]["acc_bias_x"]["sigma"] < 0.06
+    config.write_text(config.read_text().replace(files, f'["{tmp_path / "two.json"}", "{tmp_path / "two.json"}"]'))
+    capsys.readouterr()
+    assert calibd_main(["replay", str(captures["unturned"]), "--config", str(config)]) == 2
+    err = capsys.readouterr().err
+    assert "[method] intrinsics:" in err and "rests on the same data as" in err and err.count("\n") == 1, err

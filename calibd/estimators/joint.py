@@ -150,7 +150,8 @@ class JointOptions:
     # factory terms an earlier calibration of the unit estimated (a bench's six positions, a second
     # mounting): (term name, value, 1-sigma), dimensionless, each taken as one more measurement of it
     known_terms: tuple[tuple[str, float, float], ...] = ()
-    known_from: str | None = None  # where they come from: the earlier result's path
+    known_from: str | None = None  # where they come from: the earlier results' paths
+    known_serial: str | None = None  # whose they are: a sensor of another serial number is refused
 
 
 # The parts a covariance is made of, in the order results list them (`JointResult.budget`)

@@ -17,7 +17,7 @@ from ..errors import CalibrationError
 from ..estimators import joint, remount
 from ..estimators.joint import JointOptions
 from ..frames import STANDARD_GRAVITY, Site, int_to_imu
-from ..results import ESTIMATES, CalibrationResult, make_result
+from ..results import ESTIMATES, CalibrationResult, ResultError, load_result, make_result
 from ..segments import segment_record, session_segments
 from ..session import Session
 from ..units import DEG
@@ -57,7 +57,9 @@ class Joint:
                                           f"an indexing table's step in [{INDEX_STEP_DEG[0]:g}, "
                                           f"{INDEX_STEP_DEG[1]:g}] deg"),
                 "index_sigma_deg": Setting(float, lambda v: INDEX_SIGMA_DEG[0] <= v <= INDEX_SIGMA_DEG[1],
-                                           f"a 1-sigma in [{INDEX_SIGMA_DEG[0]:g}, {INDEX_SIGMA_DEG[1]:g}] deg")}
+                                           f"a 1-sigma in [{INDEX_SIGMA_DEG[0]:g}, {INDEX_SIGMA_DEG[1]:g}] deg"),
+                "intrinsics": Setting(list, lambda v: bool(v) and all(isinstance(p, str) and p.strip() for p in v),
+                                      "a list of result files of this unit (RESULT.json)")}
 
     def options(self, settings: Mapping[str, Any]) -> JointOptions:
         step, sigma = settings.get("index_step_deg"), settings.get("index_sigma_deg")
@@ -66,7 +68,8 @@ class Joint:
         return JointOptions(bool(settings.get("fixed_amplitude")), bool(settings.get("drift")),
                             index_step=None if step is None else step * DEG,
                             index_sigma=0.0 if step is None else (DEFAULT_INDEX_SIGMA_DEG if sigma is None
-                                                                  else sigma) * DEG)
+                                                                  else sigma) * DEG,
+                            **intrinsics(settings.get("intrinsics") or ()))
 
     def missing(self, segments: list[detect.Segment]) -> str | None:
         return judged_once_stopped(segments, _lacking)
@@ -121,6 +124,10 @@ def joint_fit(session: Session, site: Site, options: joint.JointOptions = joint.
     segments = session_segments(session) if segments is None else segments
     if session.sensor.acc_range_g in spec.ACC:
         options = replace(options, acc_range_g=session.sensor.acc_range_g)
+    ours = session.sensor.serial_number
+    if options.known_serial and ours and ours != options.known_serial:
+        raise CalibrationError(f"the factory terms of {options.known_from} are of serial number "
+                               f"{options.known_serial}, this sensor is {ours}: factory terms are one unit's")
     if lacking := METHOD.missing(segments):
         raise refusal(CAMPAIGN, lacking, segments, bench.hint(segments))
     used, first, inp = joint_input(session, segments)
@@ -278,6 +285,41 @@ def seen_by_statics(fit: joint.JointResult, check: gaps.TiltCheck | None,
     terms = fit.factory.terms
     seen = seen or joint.FactoryPosterior(np.zeros(len(terms)), np.eye(len(terms)))
     return fit.with_factory_posterior(with_known_terms(seen, terms, options))
+
+
+def intrinsics(paths) -> dict:
+    """JointOptions' known_terms, known_from and known_serial from the results at `paths` (the
+    `intrinsics` setting): the factory terms each estimated (`measured_terms`). OptionError (one
+    line naming the file) for a file that is not a result, one that estimates no term, results of
+    two serial numbers, or two that rest on the same data (their terms would count twice)."""
+    if not paths:
+        return {}
+    known, serials, data = [], set(), {}
+    for path in paths:
+        try:
+            earlier = load_result(path)
+            terms = measured_terms(earlier)
+        except ResultError as exc:
+            raise OptionError("intrinsics", str(exc)) from None
+        except (ValueError, KeyError, TypeError, ZeroDivisionError):
+            raise OptionError("intrinsics", f"{path}: error_budget.factory_residuals is not as calibd writes it (a "
+                                            "term's name, value, sigma or prior_sigma)") from None
+        if not terms:
+            raise OptionError("intrinsics", f"{path}: estimates no factory term (a bench campaign's result, "
+                                            "--method thesis --bench, or one made with --remounted has them)")
+        rests_on = (earlier.session_id or "").split("/")[0]
+        if rests_on and rests_on in data:
+            raise OptionError("intrinsics", f"{path}: rests on the same data as {data[rests_on]}: its terms would be "
+                                            "counted twice")
+        data[rests_on] = path
+        serials.add((earlier.capture or {}).get("serial_number") or earlier.sensor.serial_number)
+        known += terms
+    serials.discard(None)
+    if len(serials) > 1:
+        raise OptionError("intrinsics", f"the results are of serial numbers {', '.join(sorted(serials))}: factory "
+                                        "terms are one unit's")
+    return {"known_terms": tuple(known), "known_from": ", ".join(map(str, paths)),
+            "known_serial": serials.pop() if serials else None}
 
 
 def measured_terms(result: CalibrationResult) -> tuple[tuple[str, float, float], ...]:
