@@ -633,9 +633,12 @@ def cmd_plan(args) -> int:
     site = campaign.scenario.site if args.latitude is None else _site(args)
     figures = (noise_from_json(read_input(args.noise, "noise file", DOCUMENT_LIMIT_BYTES), args.noise)
                if args.noise else replace(campaign.figures, **given))
-    from .methods import estimator
+    from .methods import OptionError, estimator
 
-    options = estimator("joint").options(_index_settings(args, "plan"))
+    try:
+        options = estimator("joint").options(_index_settings(args, "plan") | {"intrinsics": args.intrinsics})
+    except OptionError as exc:
+        raise UsageError(f"plan: {exc.reason}") from None
     reach = time_to_target(campaign, site, figures, args.target_yaw_deg * DEG, options=options,
                            remount_sigma=_remount_sigma(args, "plan"))
     print(report(reach, figures))
@@ -1185,6 +1188,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="NOISE.json (calibd.noise/1, from calibd noise) instead of the figures below")
     _add_index_options(p)
     _add_remount_options(p, planned=True)
+    p.add_argument("--intrinsics", type=path_arg, metavar="RESULT.json", action="append",
+                   help="the factory terms earlier results of the unit estimated, taken as known (as calibrate "
+                        "--intrinsics takes them): what they buy the campaign; repeat for several results")
     for option, (field, unit, what) in PLAN_NOISE_OPTIONS.items():
         stim300 = getattr(spec.NoiseFigures(), field)
         p.add_argument(option, dest=field, type=_number(0, 1000, unit), metavar=unit.upper(),

@@ -407,6 +407,8 @@ def report(reach: Reach, figures: Noise) -> str:
     if nominal.remount_sigma is not None:
         stops += (f", run again on a second mounting (the housing turned 180 deg about its Z axis, 1-sigma "
                   f"{nominal.remount_sigma / DEG:g} deg)")
+    if nominal.options.known_terms:
+        stops += f", {len(nominal.options.known_terms)} factory terms known from {nominal.options.known_from}"
     lines = [f"{campaign.name} campaign at latitude {site.latitude_deg:g} deg, g0 {site.gravity:.5f} m/s^2{stops}",
              f"noise: {_figures_text(figures, nominal.session.incl is not None)}",
              f"nominal: {nominal.duration_s / 60:.1f} min of data: {describe(nominal.segments)}",

@@ -160,6 +160,15 @@ def captures(tmp_path_factory):
     return paths
 
 
+@pytest.fixture(scope="module")
+def earlier(captures, tmp_path_factory):
+    """The unit's intrinsics as two earlier results: its bench campaign and its two mountings."""
+    folder = tmp_path_factory.mktemp("earlier")
+    assert _calibrate(captures, folder, "--method", "thesis", "--bench", capture="bench", out="bench.json")[0] == 0
+    assert _calibrate(captures, folder, "--remounted", captures["turned"], out="two.json")[0] == 0
+    return folder / "bench.json", folder / "two.json"
+
+
 def _calibrate(paths, tmp_path, *argv, capture="first", out="r.json"):
     out = tmp_path / out
     code = calibd_main(["calibrate", str(paths[capture]), "--latitude", str(THESIS.site.latitude_deg), "--g0",
@@ -216,20 +225,19 @@ def test_remount_sigma_needs_remounted(tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_factory_terms_of_a_bench_and_a_second_mounting_bring_a_later_calibration_to_the_noise(captures, tmp_path,
-                                                                                              capsys):
+def test_factory_terms_of_a_bench_and_a_second_mounting_bring_a_later_calibration_to_the_noise(captures, earlier,
+                                                                                              tmp_path, capsys):
     """The unit's bench campaign (its force triads' terms from six positions) and its two
     mountings (the gyro triad's that tilt the axis), taken as known by a later single-mounting
     calibration of other data (`--intrinsics`): pitch, roll, alpha, beta and the horizontal biases
     fall to the noise and stay within their sigma of the truth."""
-    assert _calibrate(captures, tmp_path, "--method", "thesis", "--bench", capture="bench", out="bench.json")[0] == 0
-    assert _calibrate(captures, tmp_path, "--remounted", captures["turned"], out="two.json")[0] == 0
+    bench, two = earlier
     assert _calibrate(captures, tmp_path, capture="unturned", out="alone.json")[0] == 0
-    code, out = _calibrate(captures, tmp_path, "--intrinsics", tmp_path / "bench.json", "--intrinsics",
-                           tmp_path / "two.json", capture="unturned", out="known.json")
+    code, out = _calibrate(captures, tmp_path, "--intrinsics", bench, "--intrinsics", two, capture="unturned",
+                           out="known.json")
     assert code == 0, capsys.readouterr().err
     alone, known = (json.loads((tmp_path / name).read_text()) for name in ("alone.json", "known.json"))
-    assert known["options"]["intrinsics"]["path"] == f"{tmp_path / 'bench.json'}, {tmp_path / 'two.json'}"
+    assert known["options"]["intrinsics"]["path"] == f"{bench}, {two}"
     assert {"acc_misalignment_xz", "gyro_misalignment_xz"} <= set(known["options"]["intrinsics"]["terms"])
     truth = TRUTH.estimates()
     # the bench sees the accelerometers' terms to about 0.01 mrad, the noisier inclinometers' to 0.1 to 0.16
@@ -274,14 +282,13 @@ def test_a_second_mounting_that_never_warmed_flags_what_its_tilt_sets(exact):
 
 
 @pytest.mark.slow
-def test_the_daemon_takes_intrinsics_from_its_configuration(captures, tmp_path, capsys):
+def test_the_daemon_takes_intrinsics_from_its_configuration(captures, earlier, tmp_path, capsys):
     """`[method] intrinsics` in the daemon's configuration: every result it solves takes the
     unit's factory terms as known (here through `calibd replay`, the daemon's own pipeline); a
     list naming one result twice is refused at start in one line."""
-    assert _calibrate(captures, tmp_path, "--method", "thesis", "--bench", capture="bench", out="bench.json")[0] == 0
-    assert _calibrate(captures, tmp_path, "--remounted", captures["turned"], out="two.json")[0] == 0
+    bench, two = earlier
     config = tmp_path / "calibd.toml"
-    files = f'["{tmp_path / "bench.json"}", "{tmp_path / "two.json"}"]'
+    files = f'["{bench}", "{two}"]'
     config.write_text(f'[serial]\nport = "/dev/null"\n[site]\nlatitude_deg = {THESIS.site.latitude_deg}\n'
                       f'g0 = {THESIS.site.g0}\n[output]\nstate_dir = "{tmp_path / "state"}"\n'
                       f'[method]\nintrinsics = {files}\n')
@@ -291,8 +298,20 @@ def test_the_daemon_takes_intrinsics_from_its_configuration(captures, tmp_path, 
     result = json.loads((tmp_path / "state" / "result.json").read_text())
     assert result["options"]["intrinsics"]["terms"] and result["estimates"]["alpha"]["sigma"] < 0.003
     assert result["estimates"]["acc_bias_x"]["sigma"] < 0.06
-    config.write_text(config.read_text().replace(files, f'["{tmp_path / "two.json"}", "{tmp_path / "two.json"}"]'))
+    config.write_text(config.read_text().replace(files, f'["{two}", "{two}"]'))
     capsys.readouterr()
     assert calibd_main(["replay", str(captures["unturned"]), "--config", str(config)]) == 2
     err = capsys.readouterr().err
     assert "[method] intrinsics:" in err and "rests on the same data as" in err and err.count("\n") == 1, err
+
+
+@pytest.mark.slow
+def test_plan_shows_what_known_intrinsics_buy(earlier, capsys):
+    bench, two = earlier
+    code = calibd_main(["plan", "--campaign", "thesis", "--latitude", "40.59129", "--g0", "9.79956",
+                        "--intrinsics", str(bench), "--intrinsics", str(two)])
+    out = capsys.readouterr().out
+    assert code == 0 and f"factory terms known from {bench}, {two}" in out.splitlines()[0]
+    pitch = next(line for line in out.splitlines() if line.strip().startswith("pitch"))
+    acc_x = next(line for line in out.splitlines() if line.strip().startswith("acc_bias_x"))
+    assert float(pitch.split()[1]) < 0.003 and float(acc_x.split()[1]) < 0.06, out
