@@ -78,7 +78,7 @@ def second_mounting(first: CaptureSessions, capture: CaptureSessions, site, opti
     if ours and theirs and ours != theirs:
         raise CalibrationError(f"is of serial number {theirs}, the first mounting's of {ours}: a second mounting "
                                "is the same unit")
-    alone = replace(options, known_terms=(), known_from=None)  # known terms enter once, through the first mounting
+    alone = options.for_second_mounting()
     number, session, fitted, _ = solved_power_up(capture, lambda s: joint_fit(s, site, alone))
     verdict = record_settling(session.time_s, session.temperature_c)
     unsettled = None  # a slow ramp is in its fit's temperature part, which the budget carries through

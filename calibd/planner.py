@@ -292,6 +292,7 @@ def plan(campaign: Campaign | str, site: Site, figures: Noise, scale: float = 1.
     inclinometers = campaign.inclinometers and figures.incl_vrw_m_s_sqrt_h is not None
 
     def solved(turned: bool) -> tuple[JointInput, float, SensorNoise, JointResult]:
+        used = options.for_second_mounting() if turned else options
         try:
             inp, seconds = _session(campaign, scale, site, inclinometers, turned)
         except ScenarioError as exc:  # what only the simulation finds: a session too long to hold
@@ -300,11 +301,11 @@ def plan(campaign: Campaign | str, site: Site, figures: Noise, scale: float = 1.
         noise = datasheet_noise(figures if inclinometers else replace(
             figures, incl_vrw_m_s_sqrt_h=None, incl_bias_instability_mg=None), inp.rate_hz, along)
         try:
-            result = solve(inp, site, options, noise=noise)
+            result = solve(inp, site, used, noise=noise)
         except Underdetermined as exc:  # what the campaign lacks, said for the campaign
             raise PlanError(f"{campaign.name}: {exc}") from None
         try:  # as calibrate does: a tilted axis sees more
-            return inp, seconds, noise, checked_by_statics(inp, result, site, options, noise)
+            return inp, seconds, noise, checked_by_statics(inp, result, site, used, noise)
         except CalibrationError as exc:  # statics not at the index step's stops
             raise PlanError(f"{campaign.name}: {exc}") from None
 

@@ -315,3 +315,22 @@ def test_plan_shows_what_known_intrinsics_buy(earlier, capsys):
     pitch = next(line for line in out.splitlines() if line.strip().startswith("pitch"))
     acc_x = next(line for line in out.splitlines() if line.strip().startswith("acc_bias_x"))
     assert float(pitch.split()[1]) < 0.003 and float(acc_x.split()[1]) < 0.06, out
+
+
+@pytest.mark.slow
+def test_known_terms_enter_a_pair_of_mountings_once(earlier):
+    """Planned on two mountings with the gyro terms already known, the terms' information is the
+    prior's, the known result's and the pair's, each once: the second mounting's fit leaves the
+    known terms to the first's posterior (JointOptions.for_second_mounting)."""
+    from calibd import planner
+    from calibd.estimators.joint import JointOptions
+    from calibd.methods.joint import measured_terms
+    from calibd.scenario import Noise
+
+    known = JointOptions(known_terms=measured_terms(load_result(earlier[1])))
+    name, prior = "gyro_misalignment_xz", 0.5
+    pair = planner.plan("thesis", THESIS.site, Noise(), remount_sigma=0.1 * DEG).estimated_terms[name][0]
+    alone = planner.plan("thesis", THESIS.site, Noise(), options=known).estimated_terms[name][0]
+    both = planner.plan("thesis", THESIS.site, Noise(), options=known, remount_sigma=0.1 * DEG).estimated_terms[name][0]
+    assert both == pytest.approx((1 / pair**2 + 1 / alone**2 - 1 / prior**2) ** -0.5, rel=0.03)
+    assert known.for_second_mounting().known_terms == ()

@@ -153,6 +153,11 @@ class JointOptions:
     known_from: str | None = None  # where they come from: the earlier results' paths
     known_serial: str | None = None  # whose they are: a sensor of another serial number is refused
 
+    def for_second_mounting(self) -> JointOptions:
+        """The options a second mounting's fit takes (calibd.estimators.remount): the known terms
+        enter the pair once, through the first mounting's posterior."""
+        return replace(self, known_terms=(), known_from=None, known_serial=None)
+
 
 # The parts a covariance is made of, in the order results list them (`JointResult.budget`)
 BUDGET_PARTS = ("white_noise", "bias_instability", "temperature", "gravity", "turn_angles", "remounting",
