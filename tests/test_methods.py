@@ -126,15 +126,22 @@ def test_every_daemon_methods_settings_are_method_config_fields():
 
 @pytest.mark.parametrize("name", DAEMON_METHODS)
 def test_the_configuration_takes_each_methods_settings_from_the_registry(name, tmp_path):
+    from calibd.results import result_json
+    from test_estimated_terms import ESTIMATED
+
     base = '[serial]\nport = "/dev/ttyUSB0"\n[site]\nlatitude_deg = 40\n[output]\nstate_dir = "s"\n'
+    earlier = tmp_path / "earlier.json"  # a result with estimated factory terms, for the intrinsics setting
+    earlier.write_bytes(result_json(ESTIMATED))
     for other in DAEMON_METHODS:
         for key, setting in estimator(other).settings.items():
-            value = "90" if key == "index_step_deg" else {bool: "true", float: "0.5"}[setting.kind]
+            value = "90" if key == "index_step_deg" else {bool: "true", float: "0.5", list: f'["{earlier}"]'}[
+                setting.kind]
             pair = {"alpha_deg": "\nbeta_deg = 0.5", "beta_deg": "\nalpha_deg = 0.5",
                     "index_sigma_deg": "\nindex_step_deg = 90"}.get(key, "")  # what each needs beside it
             text = base + f'[method]\nname = "{name}"\n{key} = {value}{pair}\n'
             if other == name:
-                assert getattr(parse_config(tomllib.loads(text), "c.toml").method, key) in (True, 0.5, 90)
+                assert getattr(parse_config(tomllib.loads(text), "c.toml").method, key) in (True, 0.5, 90,
+                                                                                          [str(earlier)])
             else:
                 with pytest.raises(ConfigError, match=f"c.toml \\[method\\] {key}: .* is not allowed with "
                                                       f'name = "{name}": it is an option of the {other} method'):
