@@ -265,8 +265,9 @@ def test_a_client_that_stops_reading_neither_delays_the_others_nor_grows(served,
     assert np.array_equal(np.concatenate([m["counter"] for m, _ in received]), fed["counter"])
     late_s = np.array([arrived - max(m["t_host"]) for m, arrived in received])
     # the newest sample of each batch, read -> socket: a server the slow client held up would be seconds
-    # late; the latency target itself (p99 in ms) is measured by benchmarks/serve.py, not on a loaded machine
-    assert np.percentile(late_s, 99) < 0.25
+    # late; the latency target itself (p99 in ms) is measured by benchmarks/serve.py, not on a loaded machine,
+    # where running beside other tests on two cores has delayed a batch by 0.25 s
+    assert np.percentile(late_s, 99) < 0.5
     queued = [c for c in hub.server._clients.values() if c.dropped or c.queue]
     assert queued and all(c.queue.bytes <= sockets.QUEUE_BYTES for c in queued)
     assert hub.server.overflows > 0
