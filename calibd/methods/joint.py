@@ -418,7 +418,7 @@ def _remounted(fitted: JointFit, second: SecondMounting) -> tuple[JointFit, dict
             f"({check.tilt_sum[0] * 1e3:.3f}, {check.tilt_sum[1] * 1e3:.3f}) mrad where the factory residuals and "
             f"the noise allow ({check.predicted[0] * 1e3:.3f} +- {sigma[0] * 1e3:.3f}, "
             f"{check.predicted[1] * 1e3:.3f} +- {sigma[1] * 1e3:.3f}) mrad (p = {check.p_value:.2g}): is the "
-            "housing turned 180 deg about its own Z axis between them?")
+            f"housing turned 180 deg about its own Z axis between this capture and {second.source.get('path')}?")
     return replace(fitted, fit=fit), record
 
 
