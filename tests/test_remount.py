@@ -334,3 +334,24 @@ def test_known_terms_enter_a_pair_of_mountings_once(earlier):
     both = planner.plan("thesis", THESIS.site, Noise(), options=known, remount_sigma=0.1 * DEG).estimated_terms[name][0]
     assert both == pytest.approx((1 / pair**2 + 1 / alone**2 - 1 / prior**2) ** -0.5, rel=0.03)
     assert known.for_second_mounting().known_terms == ()
+
+
+@pytest.mark.slow
+def test_a_unit_misaligned_beyond_its_datasheet_is_measured_and_flagged_not_refused():
+    """A gyro triad 2.5 mrad off (2.5 times the datasheet's limit): the tilts' sum is beyond what the
+    prior allows, but not beyond what a unit can be, so it is measured (alpha and beta to 2 % of
+    the move) and what it sets is flagged poor with why; a housing not turned is refused (above)."""
+    from calibd.methods.joint import SecondMounting, joint_real_case
+
+    truth = replace(TRUTH, gyro_misalignment_mrad=(0.0, 2.5, 0.0, -0.5, 0.0, 0.0))
+    _, second = _fits(QUIET, truth)
+    source = {"path": "turned.bin", "size_bytes": 1, "sha256": "0" * 64, "power_up": 1}
+    result = joint_real_case(session_of(simulate(replace(QUIET, truth=truth))), THESIS.site,
+                             second=SecondMounting(second, source, 0.0))
+    assert result.checks["second_mounting"]["p_value"] < 1e-3
+    assert {n for n, e in result.estimates.items() if e.quality == "poor"} >= set(ANGLES)
+    assert any("beyond what the datasheet's residuals allow" in w for w in result.warnings)
+    for name in ("alpha", "beta"):
+        assert result.estimates[name].value == pytest.approx(truth.estimates()[name], abs=0.02 * 0.143)
+    term = result.error_budget["factory_residuals"]["terms"]["gyro_misalignment_xz"]
+    assert term["value"] == pytest.approx(2.5, rel=0.02)

@@ -394,13 +394,17 @@ class SecondMounting:
     unsettled: str | None = None  # words when its power-up's temperature never settled
 
 
-REMOUNT_ALARM_P = 1e-3  # p-value below which the two mountings' tilts do not mirror each other
+REMOUNT_ALARM_P = 1e-3  # p-value below which the two mountings' tilts are beyond what the prior allows
+# times the datasheet's misalignment limit: a sum that needs a gyro triad misaligned more is not a unit
+# turned 180 deg (a housing not turned reads as twice its tilt), and is refused
+PLAUSIBLE_MISALIGNMENT = 3.0
 REMOUNTED = ("pitch", "roll", "alpha", "beta")  # what the second mounting's tilt sets
 
 
-def _remounted(fitted: JointFit, second: SecondMounting) -> tuple[JointFit, dict]:
+def _remounted(fitted: JointFit, second: SecondMounting) -> tuple[JointFit, dict, str | None]:
     """The first mounting's fit with what the two mountings' tilts show of the factory residuals
-    taken out, and the result's check; CalibrationError when the tilts do not mirror each other."""
+    taken out, the result's check, and why what the sum sets is flagged poor (None: it is not);
+    CalibrationError when the tilts do not mirror each other."""
     try:
         fit, check = remount.two_mountings(fitted.fit, second.fit, second.sigma)
     except ValueError:
@@ -412,14 +416,22 @@ def _remounted(fitted: JointFit, second: SecondMounting) -> tuple[JointFit, dict
         "alpha_deg": check.second["alpha"] / DEG, "beta_deg": check.second["beta"] / DEG,
         "tilt_sum_mrad": (check.tilt_sum * 1e3).tolist(), "predicted_mrad": (check.predicted * 1e3).tolist(),
         "sigma_mrad": (sigma * 1e3).tolist(), "chi2": check.chi2, "p_value": check.p_value}
-    if check.p_value < REMOUNT_ALARM_P:
+    words = (f"their tilts in the housing sum to ({check.tilt_sum[0] * 1e3:.3f}, {check.tilt_sum[1] * 1e3:.3f}) "
+             f"mrad where the factory residuals and the noise allow ({check.predicted[0] * 1e3:.3f} +- "
+             f"{sigma[0] * 1e3:.3f}, {check.predicted[1] * 1e3:.3f} +- {sigma[1] * 1e3:.3f}) mrad "
+             f"(p = {check.p_value:.2g})")
+    misaligned = np.abs(check.tilt_sum - check.predicted) / 2  # what the gyro triad would need beyond the prior's
+    plausible = PLAUSIBLE_MISALIGNMENT * spec.GYRO.misalignment_mrad * 1e-3
+    if check.p_value < REMOUNT_ALARM_P and np.any(misaligned > plausible):
         raise CalibrationError(
-            f"the two mountings' platform axes do not mirror each other: their tilts in the housing sum to "
-            f"({check.tilt_sum[0] * 1e3:.3f}, {check.tilt_sum[1] * 1e3:.3f}) mrad where the factory residuals and "
-            f"the noise allow ({check.predicted[0] * 1e3:.3f} +- {sigma[0] * 1e3:.3f}, "
-            f"{check.predicted[1] * 1e3:.3f} +- {sigma[1] * 1e3:.3f}) mrad (p = {check.p_value:.2g}): is the "
-            f"housing turned 180 deg about its own Z axis between this capture and {second.source.get('path')}?")
-    return replace(fitted, fit=fit), record
+            f"the two mountings' platform axes do not mirror each other: {words}, more than a gyro triad "
+            f"{PLAUSIBLE_MISALIGNMENT:g} times the datasheet's misalignment would make: is the housing turned 180 "
+            f"deg about its own Z axis between this capture and {second.source.get('path')}?")
+    beyond = None if check.p_value >= REMOUNT_ALARM_P else (
+        f"the two mountings' tilts are beyond what the datasheet's residuals allow: {words}; the gyro triad may be "
+        "misaligned beyond its specification (the sum still measures it), or the housing not turned exactly 180 "
+        "deg: pitch, roll, alpha and beta, which the sum sets, are flagged poor")
+    return replace(fitted, fit=fit), record, beyond
 
 
 def joint_real_case(session: Session, site: Site, options: joint.JointOptions = joint.JointOptions(),
@@ -429,9 +441,9 @@ def joint_real_case(session: Session, site: Site, options: joint.JointOptions = 
     static to the last static of the same mounting. `segments`: the session's, when already found;
     `second`: the unit's second mounting, whose tilt takes out the factory terms it shows."""
     fitted = joint_fit(session, site, options, segments)
-    remounting = None
+    remounting = beyond = None
     if second is not None:
-        fitted, remounting = _remounted(fitted, second)
+        fitted, remounting, beyond = _remounted(fitted, second)
     used, fit = fitted.segments, fitted.fit
     warnings = (session_warnings(session) + _vibration_warnings(fitted, session) + _joint_warnings(fit, site)
                 + _turn_angle_warnings(fitted, session))
@@ -452,6 +464,8 @@ def joint_real_case(session: Session, site: Site, options: joint.JointOptions = 
                          | ({} if fitted.index is None else {"indexed_turns": fitted.index.record()})
                          | ({} if remounting is None else {"second_mounting": remounting}),
                          bias_reference="turn-on", error_budget=error_budget_record(fit, fitted.options))
+    if beyond is not None:
+        result = result.flag_poor(REMOUNTED, beyond)
     if second is not None and second.unsettled:
         result = result.flag_poor(REMOUNTED, f"the second mounting's power-up {second.unsettled}: pitch, roll, "
                                              "alpha and beta, which its tilt sets, are flagged poor")
