@@ -1053,6 +1053,14 @@ def _add_remount_options(p: argparse.ArgumentParser, planned: bool = False) -> N
                         f"{DEFAULT_REMOUNT_SIGMA_DEG:g} deg)")
 
 
+def _add_intrinsics_option(p: argparse.ArgumentParser, gain: str) -> None:
+    """The unit's known factory terms (`calibrate`, `plan`; the daemon's `[method] intrinsics`)."""
+    p.add_argument("--intrinsics", type=path_arg, metavar="RESULT.json", action="append",
+                   help="the factory terms an earlier result of this unit estimated (a bench campaign's six "
+                        f"positions, a second mounting), taken as known; {gain}; repeat for several results "
+                        "(docs/turntable.md, Factory terms known from an earlier calibration)")
+
+
 def _add_method_options(p: argparse.ArgumentParser, methods: tuple[str, ...]) -> None:
     """The options that say how a capture is calibrated (`calibrate`, `batch`)."""
     p.add_argument("--method", choices=methods, default="joint",
@@ -1091,11 +1099,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "last one that has what the method needs)")
     p.add_argument("--session", type=_positive_int, dest="power_up", help=argparse.SUPPRESS)  # its former name
     _add_remount_options(p)
-    p.add_argument("--intrinsics", type=path_arg, metavar="RESULT.json", action="append",
-                   help="joint: the factory terms an earlier result of this unit estimated (a bench campaign's six "
-                        "positions, a second mounting), taken as known, what they limit falls to the noise; "
-                        "repeat for several results "
-                        "(docs/turntable.md, Factory terms known from an earlier calibration)")
+    _add_intrinsics_option(p, "joint: what they limit falls to the noise")
     p.set_defaults(func=cmd_calibrate)
     p = sub.add_parser("batch", help="captures and folders of captures -> every power-up calibrated on Dask, one "
                                      "row each in a fleet table (Parquet; docs/fleet.md)")
@@ -1188,9 +1192,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="NOISE.json (calibd.noise/1, from calibd noise) instead of the figures below")
     _add_index_options(p)
     _add_remount_options(p, planned=True)
-    p.add_argument("--intrinsics", type=path_arg, metavar="RESULT.json", action="append",
-                   help="the factory terms earlier results of the unit estimated, taken as known (as calibrate "
-                        "--intrinsics takes them): what they buy the campaign; repeat for several results")
+    _add_intrinsics_option(p, "what they buy the campaign")
     for option, (field, unit, what) in PLAN_NOISE_OPTIONS.items():
         stim300 = getattr(spec.NoiseFigures(), field)
         p.add_argument(option, dest=field, type=_number(0, 1000, unit), metavar=unit.upper(),

@@ -29,6 +29,7 @@ from stim300.source import PortSource, SampleSource
 
 from .config import SERVED_TABLES, ConfigError
 from .daemon import Calibrator, Listener, State, StateLog, Trimmer
+from .methods import OptionError
 from .statedir import ResultStore, StateDirError
 from .serve.hub import Hub, make_feeds
 from .serve.sockets import ServeError
@@ -250,7 +251,7 @@ def run(config, reload_config) -> int:
                 served = [f"[{name}]" for name in SERVED_TABLES if getattr(fresh, name) != getattr(config, name)]
                 log.info("reloaded", serve=f"changed, kept as started: {', '.join(served)} (a change needs a restart)"
                          if served else "unchanged")
-            except ConfigError as exc:
+            except (ConfigError, OptionError) as exc:  # OptionError: an intrinsics file changed since it was read
                 log.error("reload_failed", error=str(exc), detail="keeping the configuration in use")
 
     try:

@@ -201,12 +201,12 @@ def test_without_temperatures_the_watch_waits_the_window_since_power_up():
 def test_a_solve_says_what_the_campaign_lacks_or_gives_the_result_with_its_session_record():
     session = load_session(str(HEADING137))
     segments = session_segments(session)
-    lacking = solve(session, segments[:1], Site(60.0), MethodConfig(), 4)
+    lacking = solve(session, segments[:1], Site(60.0), MethodConfig(), estimator("joint").options({}), 4)
     assert lacking.result is None and not lacking.failed
     assert lacking.detail.endswith(", 1 static at 0/4 index headings, 0 index turns, 0 full turns, 0 other turns; "
                                    "waiting for: a turn and a static after it on the level static's mounting (+Z up)")
     assert lacking.progress.fields()["missing"] == lacking.detail.split("waiting for: ")[1]
-    solved = solve(session, segments, Site(60.0), MethodConfig(), 4)
+    solved = solve(session, segments, Site(60.0), MethodConfig(), estimator("joint").options({}), 4)
     assert solved.result.session.number == 4
     assert solved.result.session.duration_s == pytest.approx(float(session.time_s[-1]))
     yaw = solved.result.estimates["yaw"]

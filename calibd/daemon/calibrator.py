@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import uuid
 from collections.abc import Sequence
-from dataclasses import replace
+from dataclasses import asdict, replace
 
 import numpy as np
 import structlog
@@ -80,8 +80,11 @@ class Calibrator:
 
     def configure(self, site: Site, warmup: WarmupConfig, method: MethodConfig,
                   detection: DetectionConfig = DetectionConfig()) -> None:
-        """New settings (SIGHUP): they apply from the next solution on (detection: the next session)."""
-        self.site, self.warmup, self.method, self.detection = site, warmup, method, detection
+        """New settings (SIGHUP): they apply from the next solution on (detection: the next session).
+        The method's options are made here, once: its settings' files are read at a reload, not at
+        every solve."""
+        options = estimator(method.name).options(asdict(method))  # an OptionError leaves the settings in use
+        self.site, self.warmup, self.method, self.detection, self.options = site, warmup, method, detection, options
 
     def sensor_seen(self, identity: SensorRecord, stream: StreamRecord = StreamRecord(),
                     trims: tuple[TrimSeen, ...] = ()) -> None:
@@ -258,7 +261,7 @@ class Calibrator:
         """Solve on the session so far (`looked`: it and its segments, when just looked at)."""
         session, segments = looked or self._look()
         self._trigger.solved(self.collector.end_s, self.method.resolve_every_s)
-        attempt = solve(session, segments, self.site, self.method, self.sessions, self.session_id)
+        attempt = solve(session, segments, self.site, self.method, self.options, self.sessions, self.session_id)
         self.progress = attempt.progress
         if attempt.result is not None:
             self.result, trimmed = self._trim(attempt.result)

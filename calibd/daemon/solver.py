@@ -5,7 +5,7 @@ changed under it)."""
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
 from datetime import datetime, timezone
 
 import structlog
@@ -34,17 +34,19 @@ class Attempt:
     failed: bool = False
 
 
-def solve(session: Session, segments: list[detect.Segment], site: Site, method: MethodConfig,
+def solve(session: Session, segments: list[detect.Segment], site: Site, method: MethodConfig, options,
           number: int, session_id: str | None = None) -> Attempt:
-    """Solve session `number` (its segments found) with the configured method; `session_id`:
-    the daemon session's id, written in every result of it."""
+    """Solve session `number` (its segments found) with the configured method and its `options`
+    (`Estimator.options` of the configuration's settings, made once per configuration: the joint
+    method's read the intrinsics' files); `session_id`: the daemon session's id, written in every
+    result of it."""
     duration_s = float(session.time_s[-1])
     chosen = estimator(method.name)
     record = progress(method.name, segments)
     if not record.complete:
         return Attempt(None, f"collecting: {duration_s:.0f} s of data, {record.words()}", record)
     try:
-        result = chosen.solve(session, site, segments, chosen.options(asdict(method)))
+        result = chosen.solve(session, site, segments, options)
     except CalibrationError as exc:
         return Attempt(None, f"collecting: {duration_s:.0f} s of data; {exc}", record)
     except Exception as exc:  # a fault of calibd, not of the data: said as such, and the daemon runs on

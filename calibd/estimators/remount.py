@@ -23,6 +23,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ..frames import int_to_imu
 from .joint import FactoryPosterior, JointResult
 
 REMOUNT_PART = "remounting"  # the budget part of the re-mounting's own error (its turn's distance from 180 deg)
@@ -45,8 +46,9 @@ class Remounting:
 
 
 def tilt(alpha: float, beta: float) -> np.ndarray:
-    """tau = (k_x, k_y) / k_z of the platform axis k ~ [-sin b, sin a cos b, cos a cos b]."""
-    return np.array([-np.tan(beta) / np.cos(alpha), np.tan(alpha)])
+    """tau = (k_x, k_y) / k_z of the platform axis k = R_int^IMU [0, 0, 1]."""
+    k = int_to_imu(alpha, beta)[:, 2]
+    return k[:2] / k[2]
 
 
 def tilt_jacobian(alpha: float, beta: float) -> np.ndarray:
