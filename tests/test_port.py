@@ -195,6 +195,19 @@ def test_a_read_takes_bytes_that_came_together_at_once_and_says_whether_it_waite
         assert port._read_available(ser, limit=20) == bytes(range(20))  # a recording's last read
 
 
+
+def test_a_pyserial_url_port_reads_the_same_way():
+    """A port opened by URL (here loop://, what is written comes back) has no descriptor of its
+    own: it is read through pyserial, with the same answers."""
+    with open_serial("loop://", timeout=0.05) as ser:
+        assert port._read_waited(ser) == (b"", True)  # nothing within the port timeout
+        ser.write(bytes(range(30)))
+        wait_until(lambda: ser.in_waiting == 30, "bytes in the port")
+        assert port._read_waited(ser) == (bytes(range(30)), False)
+        ser.write(bytes(range(10)))
+        wait_until(lambda: ser.in_waiting == 10, "bytes in the port")
+        assert port._read_available(ser, limit=4) == bytes(range(4))
+
 def test_datagrams_after_quiet_spells_are_decoded_at_once_without_a_batch_wait(pty):
     """The reader sleeps `batch_s` only after bytes that were waiting: a datagram it waited for
     (a low rate, or a port that delivers in bursts) leaves it waiting for the next at once."""
@@ -264,24 +277,22 @@ def test_record_stops_after_the_duration(pty, opened, tmp_path, capsys):
 def test_record_keeps_the_bytes_on_ctrl_c(pty, monkeypatch, tmp_path):
     """Ctrl-C ends an open-ended recording; the file is renamed from .part and complete."""
     data = b"\xa7" * 5000
-    real_open = port.open_serial
+    real_open, real_read, seen = port.open_serial, port._read_available, [0]
 
-    def open_then_interrupt(*args, **kwargs):
+    def open_then_write(*args, **kwargs):
         ser = real_open(*args, **kwargs)
         pty.write(data)
-        real_read, seen = ser.read, [0]
-
-        def read(size):
-            if seen[0] == len(data):
-                raise KeyboardInterrupt
-            chunk = real_read(size)
-            seen[0] += len(chunk)
-            return chunk
-
-        ser.read = read
         return ser
 
-    monkeypatch.setattr(port, "open_serial", open_then_interrupt)
+    def read_then_interrupt(ser, limit=None):
+        if seen[0] == len(data):
+            raise KeyboardInterrupt  # as Ctrl-C lands in a read
+        chunk = real_read(ser, limit)
+        seen[0] += len(chunk)
+        return chunk
+
+    monkeypatch.setattr(port, "_read_available", read_then_interrupt)
+    monkeypatch.setattr(port, "open_serial", open_then_write)
     out = tmp_path / "imu.bin"
     assert record(pty.path, out) == 0
     assert out.read_bytes() == data and not (tmp_path / "imu.bin.part").exists()
