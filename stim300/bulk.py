@@ -25,7 +25,7 @@ import numpy as np
 from numpy.lib.stride_tricks import as_strided
 
 from .capture import Capture, StreamInfo, stream_info
-from .codec import SAMPLE_DTYPE, decode_frames, empty_columns
+from .codec import SAMPLE_DTYPE, Columns, decode_frames
 from .crc import crc_columns
 from .protocol import CR_LF, NORMAL_LAYOUTS, SPECIAL_IDS, Format
 from .reads import read_times
@@ -55,7 +55,7 @@ class Work:
 
 class BulkDecoder:
     """Decode one capture held in memory (bytes, bytearray, mmap) into the storage `allocate(n)`
-    gives: SAMPLE_DTYPE rows or `codec.empty_columns`; with `on_block`, into a scratch block
+    gives: SAMPLE_DTYPE rows or `codec.Columns`; with `on_block`, into a scratch block
     handed to `on_block(samples, scanner, offset)` as each is decoded, so memory stays one block
     whatever the capture's size (`offset`: the bytes before it are done with)."""
 
@@ -89,9 +89,7 @@ class BulkDecoder:
         return self._rows(0, self._n)
 
     def _rows(self, start: int, stop: int):
-        if isinstance(self._out, dict):
-            return {name: column[start:stop] for name, column in self._out.items()}
-        return self._out[start:stop]
+        return self._out.rows(start, stop) if isinstance(self._out, Columns) else self._out[start:stop]
 
     def release(self) -> None:
         """Let go of the capture's buffer (an mmap can only close once nothing points into it)."""
@@ -219,8 +217,8 @@ def decode_capture(data, fmt: Format | None = None, reads: np.ndarray | None = N
 
 def decode_columns(data, fmt: Format | None = None, reads: np.ndarray | None = None) \
         -> tuple[dict[str, np.ndarray], StreamInfo]:
-    """`decode_capture` as one array per SAMPLE_DTYPE field (like `codec.empty_columns`)."""
-    return _decode(data, fmt, reads, empty_columns)
+    """`decode_capture` as one array per SAMPLE_DTYPE field (like `codec.Columns`)."""
+    return _decode(data, fmt, reads, Columns.empty)
 
 
 def decode_blocks(data, on_block, fmt: Format | None = None, reads: np.ndarray | None = None) -> StreamInfo:

@@ -70,22 +70,69 @@ def join_samples(pieces: list[np.ndarray]) -> np.ndarray:
     return np.frombuffer(bytearray(b"".join([piece.tobytes() for piece in pieces])), pieces[0].dtype)
 
 
-def empty_columns(n: int) -> dict[str, np.ndarray]:
-    """Column-major storage for n samples: SAMPLE_DTYPE's fields as separate arrays, every axis of
-    a vector field contiguous (field[:, k] is a contiguous view). Bulk output to files wants this."""
-    columns = {}
-    for name in SAMPLE_DTYPE.names:
-        dtype, shape = SAMPLE_DTYPE[name].base, SAMPLE_DTYPE[name].shape
-        columns[name] = np.empty(shape + (n,), dtype).T
-    return columns
-
-
 VECTORS = ("gyro", "acc", "incl", "temp_gyro", "temp_acc", "temp_incl")  # SAMPLE_DTYPE's three-axis values
 INTEGERS = ("status_gyro", "status_acc", "status_incl", "status_temp_gyro", "status_temp_acc", "status_temp_incl",
             "status_aux", "counter", "latency_us")  # SAMPLE_DTYPE's fields copied as sent
 AUX = 3 * len(VECTORS)  # a plan's column of the AUX or PPS value, between VECTORS' and INTEGERS'
 _ABSENT = (0, 1, 0)  # (offset, bytes, mask) of a value the datagram lacks: 0 (NaN once scaled)
 CHUNK = 4096  # datagrams decode_frames decodes together: their words stay in the cache
+
+
+_GROUPS = {"values": VECTORS[:3], "temperatures": VECTORS[3:], "aux": ("aux",), "statuses": INTEGERS[:3],
+           "temperature_statuses": INTEGERS[3:6], **{name: (name,) for name in INTEGERS[6:]},
+           "t_host": ("t_host",), "datagram_id": ("datagram_id",)}  # SAMPLE_DTYPE's fields by block
+
+
+def _blocks() -> np.dtype:
+    """SAMPLE_DTYPE seen as blocks: runs of fields of one type that lie end to end in a row
+    (`_GROUPS`), each one field, so decoding writes a block of columns in one step, not a field
+    at a time (a live feed's cost is per numpy call, not per value)."""
+    names, formats, offsets = [], [], []
+    for name, fields in _GROUPS.items():
+        base, first = SAMPLE_DTYPE[fields[0]].base, SAMPLE_DTYPE.fields[fields[0]][1]
+        count = sum(SAMPLE_DTYPE[f].itemsize for f in fields) // base.itemsize
+        last = SAMPLE_DTYPE.fields[fields[-1]][1] + SAMPLE_DTYPE[fields[-1]].itemsize
+        if any(SAMPLE_DTYPE[f].base != base for f in fields) or last != first + count * base.itemsize:
+            raise TypeError(f"SAMPLE_DTYPE's {', '.join(fields)} are not one run of one type")
+        names.append(name)
+        formats.append(base if count == 1 else (base, count))
+        offsets.append(first)
+    return np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": SAMPLE_DTYPE.itemsize})
+
+
+_BLOCKS = _blocks()
+_COLUMNS = {"values": slice(0, 9), "temperatures": slice(9, AUX), "statuses": slice(AUX + 1, AUX + 4),
+            "temperature_statuses": slice(AUX + 4, AUX + 7), "status_aux": AUX + 7, "counter": AUX + 8,
+            "latency_us": AUX + 9}  # each integer and float32 block's columns of a plan
+
+
+class Columns(dict):
+    """Column-major storage for samples: SAMPLE_DTYPE's fields by name, each a separate array,
+    every axis of a vector field contiguous (field[:, k] is a contiguous view). Bulk output to
+    files wants this. The fields are views of `blocks` (as `_BLOCKS` groups them), which decoding
+    writes."""
+
+    def __init__(self, blocks: dict[str, np.ndarray]):
+        super().__init__()
+        self.blocks = blocks
+        for name, fields in _GROUPS.items():
+            block = blocks[name]
+            if block.ndim == 1:
+                self[fields[0]] = block
+                continue
+            for k, field in enumerate(fields):  # three scalars, or three vectors of three
+                self[field] = block[:, k] if SAMPLE_DTYPE[field].shape == () else block[:, 3 * k:3 * k + 3]
+        for name in SAMPLE_DTYPE.names:  # in SAMPLE_DTYPE's order, as the rows have them
+            self[name] = self.pop(name)
+
+    @classmethod
+    def empty(cls, n: int) -> Columns:
+        """Storage for n samples, uninitialised."""
+        return cls({name: np.empty(_BLOCKS[name].shape + (n,), _BLOCKS[name].base).T for name in _BLOCKS.names})
+
+    def rows(self, start: int, stop: int) -> Columns:
+        """Samples start to stop, a view."""
+        return Columns({name: block[start:stop] for name, block in self.blocks.items()})
 
 
 @dataclass(frozen=True)
@@ -137,7 +184,7 @@ def _words(data: np.ndarray, rows: int, row_bytes: int) -> np.ndarray:
 def decode_frames(frames: np.ndarray, layout: Layout, fmt: Format, out: np.ndarray,
                   t_host: float | np.ndarray = np.nan) -> None:
     """Decode normal datagrams (rows of `frames`, N x width uint8 with width >= pre_crc) into
-    `out`: N samples of SAMPLE_DTYPE, or a dict of columns like `empty_columns` gives;
+    `out`: N samples of SAMPLE_DTYPE, or `Columns`;
     `t_host` is one read time for all, or one per datagram.
 
     Every field of `out` is written, so it may come from np.empty. The CRC is not checked here:
@@ -146,38 +193,41 @@ def decode_frames(frames: np.ndarray, layout: Layout, fmt: Format, out: np.ndarr
     plan = _plan(layout, fmt)
     frames = np.ascontiguousarray(frames)
     words = _words(frames, *frames.shape)
+    blocks = None if isinstance(out, Columns) else out.view(_BLOCKS)
     for start in range(0, len(frames), CHUNK):
         rows = slice(start, start + CHUNK)
         columns = np.empty((len(plan.starts), len(words[rows])), np.int32)
         for column, word in zip(columns, plan.starts.tolist()):
             column[...] = words[rows, word]
-        part = {name: out[name][rows] for name in SAMPLE_DTYPE.names} if isinstance(out, dict) else out[rows]
+        part = out.rows(start, start + CHUNK).blocks if isinstance(out, Columns) else blocks[rows]
         _finish(columns, layout, plan, part, t_host[rows] if np.ndim(t_host) else t_host)
 
 
 def decode_at(data: np.ndarray, offsets: np.ndarray, layout: Layout, fmt: Format, out: np.ndarray,
               t_host: float | np.ndarray = np.nan) -> None:
-    """`decode_frames` of the datagrams starting at `offsets` of `data` (C-contiguous uint8),
-    every value gathered in one step: a live feed's few datagrams, wherever the read put them."""
+    """`decode_frames` of the datagrams starting at `offsets` of `data` (C-contiguous uint8) into
+    SAMPLE_DTYPE rows, every value gathered in one step: a live feed's few datagrams, wherever
+    the read put them."""
     plan = _plan(layout, fmt)
     words = _words(data, 1, len(data))[0]
-    _finish(words[plan.starts[:, None] + offsets].astype(np.int32), layout, plan, out, t_host)
+    _finish(words[plan.starts[:, None] + offsets].astype(np.int32), layout, plan, out.view(_BLOCKS), t_host)
 
 
-def _finish(columns: np.ndarray, layout: Layout, plan: _Plan, out, t_host) -> None:
+def _finish(columns: np.ndarray, layout: Layout, plan: _Plan, blocks, t_host) -> None:
     """Decode from each datagram's words (`columns`: one row per plan column, one column per
-    datagram, native int32, changed in place)."""
+    datagram, native int32, changed in place) into `blocks` (rows of `_BLOCKS`, or its blocks by
+    name), a block of fields at a time."""
     columns <<= plan.shifts
     columns >>= plan.shifts
     columns &= plan.masks
-    values = np.multiply(columns[:AUX], plan.scales, dtype=np.float32, casting="unsafe")
-    out["t_host"][...] = t_host
-    out["datagram_id"][...] = layout.datagram_id
-    for k, name in enumerate(VECTORS):
-        out[name][...] = values[3 * k:3 * k + 3].T
-    np.multiply(columns[AUX], plan.aux_scale, out=out["aux"])
-    for k, name in enumerate(INTEGERS, AUX + 1):
-        out[name][...] = columns[k]
+    for name in ("values", "temperatures"):
+        rows = _COLUMNS[name]
+        np.multiply(columns[rows], plan.scales[rows], out=blocks[name].T, dtype=np.float32, casting="unsafe")
+    np.multiply(columns[AUX], plan.aux_scale, out=blocks["aux"])
+    for name in ("statuses", "temperature_statuses", "status_aux", "counter", "latency_us"):
+        blocks[name][...] = columns[_COLUMNS[name]].T
+    blocks["t_host"][...] = t_host
+    blocks["datagram_id"][...] = layout.datagram_id
 
 
 def _put_ints(frames: np.ndarray, offset: int, counts: np.ndarray, nbytes: int) -> None:

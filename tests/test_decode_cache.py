@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from stim300.codec import CHUNK, SAMPLE_DTYPE, decode_at, decode_frames, empty_columns
+from stim300.codec import CHUNK, SAMPLE_DTYPE, Columns, decode_at, decode_frames
 from stim300.protocol import (CLUSTERS, NORMAL_LAYOUTS, TEMP_LSB, AccUnit, Format, GyroUnit, PpsUnit, acc_lsb,
                               gyro_lsb, incl_lsb)
 
@@ -80,7 +80,7 @@ def test_columns_strided_frames_and_host_times():
     rows than one chunk, with a host time per datagram."""
     layout, fmt = NORMAL_LAYOUTS[0xF7], Format(datagram_id=0xF7, acc_range_g=(2, 5, 80), pps_unit=PpsUnit.FILTERED)
     frames = np.random.default_rng(1).integers(0, 256, (2 * CHUNK + 6, layout.wire_length(True)), dtype=np.uint8)[::2]
-    columns = empty_columns(len(frames))
+    columns = Columns.empty(len(frames))
     t_host = np.arange(len(frames)) / 8.0
     decode_frames(frames, layout, fmt, columns, t_host)
     assert_rows_equal(columns, frames, layout, fmt)
