@@ -6,7 +6,11 @@ calibrate` on the 125 Hz thesis fixture in <= 2 s wall. Baselines measured in th
 bare pyserial reader on the same stream (what reading alone costs), and `stim300 info` on the
 fixture (what decoding alone costs).
 
-    python benchmarks/live.py [--seconds 600]
+    python benchmarks/live.py [--seconds 600] [--write-bytes 4096]
+
+`--write-bytes` is how the stream reaches the pty: 4096-byte writes (a burst every 32 ms at
+2000 Hz, so the reader wakes about 30 times a second), or small ones such as 64 (bytes arriving
+all the time, as from a UART or a USB adapter: the reader then wakes every `batch_s`).
 """
 
 from __future__ import annotations
@@ -71,13 +75,14 @@ def capture_2000hz(seconds: float) -> tuple[bytes, float]:
     return data, float(sim.time_s[-1] - sim.time_s[0]) + 1 / 2000
 
 
-def feed(master: int, data: bytes, rate_bytes_s: float, process, samples: list) -> None:
-    """Write `data` paced in real time; every 10 s record (wall, cpu, rss, main thread's cpu) of `process`."""
+def feed(master: int, data: bytes, rate_bytes_s: float, write_bytes: int, process, samples: list) -> None:
+    """Write `data` paced in real time, `write_bytes` at a time; every 10 s record (wall, cpu, rss,
+    main thread's cpu) of `process`."""
     start = time.monotonic()
     next_sample = start
-    for offset in range(0, len(data), 4096):
+    for offset in range(0, len(data), write_bytes):
         time.sleep(max(0.0, start + offset / rate_bytes_s - time.monotonic()))
-        view = memoryview(data)[offset:offset + 4096]
+        view = memoryview(data)[offset:offset + write_bytes]
         while view:
             if select.select([], [master], [], 1.0)[1]:
                 view = view[os.write(master, view):]
@@ -86,7 +91,7 @@ def feed(master: int, data: bytes, rate_bytes_s: float, process, samples: list) 
             next_sample += 10.0
 
 
-def measure(command: list[str], data: bytes, seconds: float) -> list:
+def measure(command: list[str], data: bytes, seconds: float, write_bytes: int) -> list:
     """Run `command` on a pty fed `data` over `seconds` (its data time: real time)."""
     master, slave = os.openpty()
     tty.setraw(master)
@@ -102,7 +107,7 @@ def measure(command: list[str], data: bytes, seconds: float) -> list:
         time.sleep(2.0)  # imports, port open
         samples = []
         try:
-            feed(master, data, len(data) / seconds, process, samples)
+            feed(master, data, len(data) / seconds, write_bytes, process, samples)
             samples.append(usage(process.pid))
         finally:
             process.send_signal(signal.SIGTERM)
@@ -115,14 +120,16 @@ def measure(command: list[str], data: bytes, seconds: float) -> list:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=600.0, help="real-time feed length (default 600 s)")
+    ap.add_argument("--write-bytes", type=int, default=4096, help="bytes per write into the pty (default 4096)")
     args = ap.parse_args()
     data, seconds = capture_2000hz(args.seconds)
-    print(f"2000 Hz 0xA7 stream, {seconds:.0f} s, {len(data) / 1e6:.1f} MB, fed in real time through a pty")
+    print(f"2000 Hz 0xA7 stream, {seconds:.0f} s, {len(data) / 1e6:.1f} MB, fed in real time through a pty "
+          f"{args.write_bytes} bytes a write")
     runs = {"bare pyserial reader": [sys.executable, "-c", BARE_READER, "{port}", "{seconds}"],
             "calibd run": [sys.executable, "-m", "calibd.cli", "run", "--config", "{config}"]}
     cpu = {}
     for name, command in runs.items():
-        samples = measure(command, data, seconds)
+        samples = measure(command, data, seconds, args.write_bytes)
         (t0, c0, m0, main0), (t1, c1, m1, main1) = samples[0], samples[-1]
         cpu[name] = 100 * (c1 - c0) / (t1 - t0)
         main = 100 * (main1 - main0) / (t1 - t0)

@@ -221,6 +221,17 @@ def test_datagrams_after_quiet_spells_are_decoded_at_once_without_a_batch_wait(p
             wait_until(lambda: ring.total == k, f"datagram {k} in the ring", timeout=DEADLINE_S)
 
 
+
+def test_a_reader_batches_longer_when_nothing_is_served(pty):
+    """With a tap, reads are served as they come: at most SERVED_BATCH_S of added latency. Without
+    one the samples wait in the ring for a consumer that polls, and the reader wakes a fifth as
+    often. A batch given is kept."""
+    ring = RingBuffer(16, SAMPLE_DTYPE)
+    assert PortReader(pty.path, ring, request_config=False).batch_s == port.UNSERVED_BATCH_S == 0.02
+    assert PortReader(pty.path, ring, request_config=False, tap=lambda settled: None).batch_s \
+        == port.SERVED_BATCH_S == 0.004
+    assert PortReader(pty.path, ring, request_config=False, batch_s=0.0).batch_s == 0.0
+
 def test_open_errors_are_one_line_naming_the_port(pty, tmp_path):
     missing = str(tmp_path / "ttyUSB7")
     with pytest.raises(PortError, match=f"^{re.escape(missing)}: no such device$"):
