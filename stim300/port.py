@@ -80,14 +80,19 @@ def _read_available(ser: serial.Serial, limit: int | None = None) -> bytes:
 
 
 SETTLE_S = 0.001  # after a first byte at an empty port, what came with it lands (a datagram: 0.64 ms at 921600 bit/s)
-READ_PIECE = 1 << 16  # the most one os.read asks for: a tty hands over about 2 kB at a time
+READ_MOST = 4096  # the most one read of a device takes (a tty's read buffer, the most pyserial's in_waiting
+# says): a pty fed at full speed (a replay) is parsed a read at a time, not gathered into one batch
+# larger than the ring. A full read means the port holds more: with nothing served the reader reads on
+# without a batch sleep (the ring's consumer sets the pace); served, it keeps its batches, whose pace
+# (READ_MOST per SERVED_BATCH_S, 1 MB/s) the served queues' threads keep up with
 DISCONNECTED = "device reports readiness to read but returned no data (device disconnected?)"
 
 
 def _read_waited(ser: serial.Serial, limit: int | None = None) -> tuple[bytes, bool]:
-    """Everything the port holds now (at most `limit` bytes), else wait (up to the port timeout)
-    for the first byte, let what arrives with it land (SETTLE_S) and take it all: bytes arriving
-    together are one read, not their first byte and then the rest. And whether it had to wait.
+    """Everything the port holds now (at most `limit` bytes, READ_MOST from a device), else wait
+    (up to the port timeout) for the first byte, let what arrives with it land (SETTLE_S) and
+    take it all: bytes arriving together are one read, not their first byte and then the rest.
+    And whether it had to wait.
 
     A device port is read straight from its descriptor (pyserial opens it non-blocking, with
     VMIN = VTIME = 0: a read of an empty port returns nothing): one system call a piece, where
@@ -101,14 +106,14 @@ def _read_waited(ser: serial.Serial, limit: int | None = None) -> tuple[bytes, b
         first = ser.read(1)
         rest = min(ser.in_waiting, limit - 1) if first else 0
         return (first + ser.read(rest) if rest > 0 else first), True
-    fd = ser.fileno()
-    data = _drain(fd, limit)
+    fd, most = ser.fileno(), min(limit, READ_MOST)
+    data = _drain(fd, most)
     if data:
         return data, False
     if not select.select([fd], [], [], ser.timeout)[0]:
         return b"", True
     time.sleep(SETTLE_S)
-    data = _drain(fd, limit)
+    data = _drain(fd, most)
     if not data:  # readable, yet empty: a device that is gone reads so
         raise serial.SerialException(DISCONNECTED)
     return data, True
@@ -119,7 +124,7 @@ def _drain(fd: int, limit: int) -> bytes:
     pieces = []
     while limit > 0:
         try:
-            piece = os.read(fd, min(limit, READ_PIECE))
+            piece = os.read(fd, limit)
         except BlockingIOError:
             break
         if not piece:
@@ -146,7 +151,8 @@ class PortReader:
     Each read takes everything the port holds (at an empty port, the bytes that arrive together)
     and is stamped with `clock()` as it returns. A parser call that decodes samples has a fixed
     cost (~0.1 ms) whatever their number, so after one on bytes that were waiting the thread
-    sleeps `batch_s`: at high rates a call then decodes several datagrams. Bytes it had to wait
+    sleeps `batch_s` (with nothing served, not after a full read: READ_MOST): at high rates a call
+    then decodes several datagrams. Bytes it had to wait
     for (after a quiet spell at low rates, or a burst from a port that delivers in bursts) are
     decoded at once and the thread goes back to waiting: a sleep would only add a wake-up. Added
     latency is at most `batch_s`: by default SERVED_BATCH_S with a tap, UNSERVED_BATCH_S without.
@@ -288,12 +294,13 @@ class PortReader:
                         failed, decoded = exc, False
                     else:
                         failed, decoded = None, bool(data) and self._decode(data, self.clock())
+                        behind = len(data) >= READ_MOST and self.parser.tap is None  # see READ_MOST
                 if failed is not None:
                     ser = self._reopen(ser, failed)
                     if ser is None:
                         return
                     continue
-                if decoded and not waited:
+                if decoded and not waited and not behind:
                     time.sleep(self.batch_s)
         except Exception as exc:  # noqa: BLE001 - the thread must report, not vanish silently
             self.error = exc
