@@ -73,7 +73,6 @@ def join_samples(pieces: list[np.ndarray]) -> np.ndarray:
 VECTORS = ("gyro", "acc", "incl", "temp_gyro", "temp_acc", "temp_incl")  # SAMPLE_DTYPE's three-axis values
 INTEGERS = ("status_gyro", "status_acc", "status_incl", "status_temp_gyro", "status_temp_acc", "status_temp_incl",
             "status_aux", "counter", "latency_us")  # SAMPLE_DTYPE's fields copied as sent
-AUX = 3 * len(VECTORS)  # a plan's column of the AUX or PPS value, between VECTORS' and INTEGERS'
 _ABSENT = (0, 1, 0)  # (offset, bytes, mask) of a value the datagram lacks: 0 (NaN once scaled)
 CHUNK = 4096  # datagrams decode_frames decodes together: their words stay in the cache
 
@@ -101,9 +100,16 @@ def _blocks() -> np.dtype:
 
 
 _BLOCKS = _blocks()
-_COLUMNS = {"values": slice(0, 9), "temperatures": slice(9, AUX), "statuses": slice(AUX + 1, AUX + 4),
-            "temperature_statuses": slice(AUX + 4, AUX + 7), "status_aux": AUX + 7, "counter": AUX + 8,
-            "latency_us": AUX + 9}  # each integer and float32 block's columns of a plan
+_PLAN_FIELDS = tuple(name for name in VECTORS for _ in range(3)) + ("aux", *INTEGERS)  # each plan column's field
+
+
+def _plan_columns(fields: tuple[str, ...]) -> slice | int:
+    """A block's columns of a plan: a run of them, or the one column of a single value."""
+    at = [k for k, field in enumerate(_PLAN_FIELDS) if field in fields]
+    return at[0] if len(at) == 1 else slice(at[0], at[-1] + 1)
+
+
+_COLUMNS = {block: _plan_columns(fields) for block, fields in _GROUPS.items() if fields[0] in _PLAN_FIELDS}
 
 
 class Columns(dict):
@@ -143,7 +149,7 @@ class _Plan:
     Every value of a datagram is one column: the big-endian 32-bit word that ends with its last
     byte, shifted left and back right (which drops the bytes before a 24-, 16- or 8-bit value
     and sign-extends it) and masked (keeping an unsigned value's bits; 0 for a block the
-    datagram lacks). Columns: VECTORS' 18 values, AUX, INTEGERS'."""
+    datagram lacks). Columns: VECTORS' 18 values, the AUX or PPS value, INTEGERS' (`_PLAN_FIELDS`)."""
 
     starts: np.ndarray  # per column, the offset of its word in a datagram
     shifts: np.ndarray  # int32 per column
@@ -184,8 +190,8 @@ def _words(data: np.ndarray, rows: int, row_bytes: int) -> np.ndarray:
 def decode_frames(frames: np.ndarray, layout: Layout, fmt: Format, out: np.ndarray,
                   t_host: float | np.ndarray = np.nan) -> None:
     """Decode normal datagrams (rows of `frames`, N x width uint8 with width >= pre_crc) into
-    `out`: N samples of SAMPLE_DTYPE, or `Columns`;
-    `t_host` is one read time for all, or one per datagram.
+    `out`: N samples of SAMPLE_DTYPE, or `Columns`; `t_host` is one read time for all, or one per
+    datagram.
 
     Every field of `out` is written, so it may come from np.empty. The CRC is not checked here:
     callers only pass frames they have verified. Many datagrams are decoded CHUNK at a time, one
@@ -193,13 +199,13 @@ def decode_frames(frames: np.ndarray, layout: Layout, fmt: Format, out: np.ndarr
     plan = _plan(layout, fmt)
     frames = np.ascontiguousarray(frames)
     words = _words(frames, *frames.shape)
-    blocks = None if isinstance(out, Columns) else out.view(_BLOCKS)
+    blocks = out.blocks if isinstance(out, Columns) else out.view(_BLOCKS)
     for start in range(0, len(frames), CHUNK):
         rows = slice(start, start + CHUNK)
         columns = np.empty((len(plan.starts), len(words[rows])), np.int32)
         for column, word in zip(columns, plan.starts.tolist()):
             column[...] = words[rows, word]
-        part = out.rows(start, start + CHUNK).blocks if isinstance(out, Columns) else blocks[rows]
+        part = {name: block[rows] for name, block in blocks.items()} if isinstance(out, Columns) else blocks[rows]
         _finish(columns, layout, plan, part, t_host[rows] if np.ndim(t_host) else t_host)
 
 
@@ -220,12 +226,13 @@ def _finish(columns: np.ndarray, layout: Layout, plan: _Plan, blocks, t_host) ->
     columns <<= plan.shifts
     columns >>= plan.shifts
     columns &= plan.masks
-    for name in ("values", "temperatures"):
-        rows = _COLUMNS[name]
-        np.multiply(columns[rows], plan.scales[rows], out=blocks[name].T, dtype=np.float32, casting="unsafe")
-    np.multiply(columns[AUX], plan.aux_scale, out=blocks["aux"])
-    for name in ("statuses", "temperature_statuses", "status_aux", "counter", "latency_us"):
-        blocks[name][...] = columns[_COLUMNS[name]].T
+    for name, at in _COLUMNS.items():
+        if name == "aux":
+            np.multiply(columns[at], plan.aux_scale, out=blocks[name])
+        elif _BLOCKS[name].base == np.float32:
+            np.multiply(columns[at], plan.scales[at], out=blocks[name].T, dtype=np.float32, casting="unsafe")
+        else:
+            blocks[name][...] = columns[at].T
     blocks["t_host"][...] = t_host
     blocks["datagram_id"][...] = layout.datagram_id
 

@@ -152,10 +152,10 @@ class PortReader:
     and is stamped with `clock()` as it returns. A parser call that decodes samples has a fixed
     cost (~0.1 ms) whatever their number, so after one on bytes that were waiting the thread
     sleeps `batch_s` (with nothing served, not after a full read: READ_MOST): at high rates a call
-    then decodes several datagrams. Bytes it had to wait
-    for (after a quiet spell at low rates, or a burst from a port that delivers in bursts) are
-    decoded at once and the thread goes back to waiting: a sleep would only add a wake-up. Added
-    latency is at most `batch_s`: by default SERVED_BATCH_S with a tap, UNSERVED_BATCH_S without.
+    then decodes several datagrams. Bytes it had to wait for (after a quiet spell at low rates, or
+    a burst from a port that delivers in bursts) are decoded at once and the thread goes back to
+    waiting: a sleep would only add a wake-up. Added latency is at most `batch_s`: by default
+    SERVED_BATCH_S with a tap (`served`), UNSERVED_BATCH_S without.
 
     `lend(use)` pauses the thread between two reads and calls `use(port)` with the open port; what
     `use` reads is its own, never fed to the parser, and reading goes on when it returns (a
@@ -177,7 +177,8 @@ class PortReader:
         self.reopen_backoff = reopen_backoff
         self.on_raw = on_raw
         self.clock = clock
-        self.batch_s = batch_s if batch_s is not None else SERVED_BATCH_S if tap is not None else UNSERVED_BATCH_S
+        self.served = tap is not None  # the parser's settled reads go to a tap as they come
+        self.batch_s = batch_s if batch_s is not None else SERVED_BATCH_S if self.served else UNSERVED_BATCH_S
         self.parser = StreamParser(fmt, tap=tap)
         self.reopens = 0
         self.read_errors = 0
@@ -294,7 +295,7 @@ class PortReader:
                         failed, decoded = exc, False
                     else:
                         failed, decoded = None, bool(data) and self._decode(data, self.clock())
-                        behind = len(data) >= READ_MOST and self.parser.tap is None  # see READ_MOST
+                        behind = len(data) >= READ_MOST and not self.served  # see READ_MOST
                 if failed is not None:
                     ser = self._reopen(ser, failed)
                     if ser is None:
