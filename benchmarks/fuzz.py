@@ -2,7 +2,8 @@
 
 Runs --count of the cases of tests/test_fuzz.py (random bytes, mutated captures, garbage runs after a
 valid header, each under a random chunking, with each format a user may give) and counts exceptions
-and disagreements between the stream parser and the bulk decoder (rows and every Stats field). Then
+and disagreements between the stream parser and the bulk decoder (rows and every Stats field), and
+between reads parsed one by one and in groups (rows with their host times, every Stats field). Then
 decodes garbage both ways and prints the CPU time per MB, the stream parser fed 4096-byte chunks as
 a serial read would deliver them, both measured in this run (target: bulk <= 2x stream):
 
@@ -37,7 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 from captures import capture  # noqa: E402
 from stim300.bulk import SYNC_RUN, decode_capture  # noqa: E402
 from stim300.stream import StreamParser  # noqa: E402
-from test_fuzz import CASES, GIVEN_FORMATS, bursts, chunking, disagreement  # noqa: E402
+from test_fuzz import CASES, GIVEN_FORMATS, bursts, chunking, disagreement, grouping  # noqa: E402
 
 
 def fuzz_range(seed: int, start: int, stop: int) -> tuple[int, int, int, str | None]:
@@ -50,7 +51,8 @@ def fuzz_range(seed: int, start: int, stop: int) -> tuple[int, int, int, str | N
         data = CASES[kind](rng)
         total += len(data)
         try:
-            what = disagreement(data, chunking(rng, len(data)), fmt)
+            cuts = chunking(rng, len(data))
+            what = disagreement(data, cuts, fmt, grouping(rng, cuts))
         except Exception as exc:  # noqa: BLE001 - counting is the point
             exceptions += 1
             what = f"{type(exc).__name__}: {exc}"

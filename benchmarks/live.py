@@ -8,7 +8,7 @@ fixture (what decoding alone costs).
 
     python benchmarks/live.py [--seconds 600] [--write-bytes 4096]
 
-`--write-bytes` is how the stream reaches the pty: 4096-byte writes (a burst every 32 ms at
+`--write-bytes` is how the stream reaches the pty: 4096-byte writes (a burst every 35 ms at
 2000 Hz, so the reader wakes about 30 times a second), or small ones such as 64 (bytes arriving
 all the time, as from a UART or a USB adapter: the reader then wakes every `batch_s`).
 """

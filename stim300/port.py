@@ -31,7 +31,7 @@ import structlog
 from .atomic import atomic_file
 from .errors import PortError, UsageError, os_reason
 from .protocol import CONFIGURATION, DEFAULT_BIT_RATE
-from .reads import ReadLog, reads_path
+from .reads import READS_DTYPE, ReadLog, reads_path
 from .ringbuffer import RingBuffer
 from .stream import StreamParser
 
@@ -81,10 +81,10 @@ def _read_available(ser: serial.Serial, limit: int | None = None) -> bytes:
 
 SETTLE_S = 0.001  # after a first byte at an empty port, what came with it lands (a datagram: 0.64 ms at 921600 bit/s)
 READ_MOST = 4096  # the most one read of a device takes (a tty's read buffer, the most pyserial's in_waiting
-# says): a pty fed at full speed (a replay) is parsed a read at a time, not gathered into one batch
-# larger than the ring. A full read means the port holds more: with nothing served the reader reads on
-# without a batch sleep (the ring's consumer sets the pace); served, it keeps its batches, whose pace
-# (READ_MOST per SERVED_BATCH_S, 1 MB/s) the served queues' threads keep up with
+# says): a pty fed at full speed (a replay) is read a piece at a time, not gathered into one read larger than
+# the ring. A full read means the port holds more: with nothing served the reader reads on without a batch
+# sleep (the ring's consumer sets the pace); served, it keeps its batches, whose pace (READ_MOST per
+# SERVED_BATCH_S, 1 MB/s) the served queues' threads keep up with
 DISCONNECTED = "device reports readiness to read but returned no data (device disconnected?)"
 
 
@@ -134,10 +134,15 @@ def _drain(fd: int, limit: int) -> bytes:
     return pieces[0] if len(pieces) == 1 else b"".join(pieces)
 
 
-SERVED_BATCH_S = 0.004  # a reader whose reads are served as they come (a tap) batches this long at most
-UNSERVED_BATCH_S = 0.02  # one whose samples wait in the ring for a consumer that polls (the daemon: every
-# 0.2 s) batches longer: a fifth of the wake-ups, each about as dear; 20 ms of a 921600 bit/s port
-# (1.8 kB) still fits the tty's 4 kB buffer
+SERVED_BATCH_S = 0.004  # a reader whose reads are served as they come (a tap) reads this often while bytes
+# flow, and parses each read at once
+UNSERVED_BATCH_S = 0.05  # one whose samples wait in the ring for a consumer that polls (the daemon: every 0.2 s)
+# reads this often: a datagram's host time is at most this late, under half a counter cycle (CYCLE_S / 2), so
+# the host clock still proves a lost cycle (`stim300.clock`); 50 ms of a 1843200 bit/s port (9 kB) waits in the
+# tty's flip buffers (64 kB or more on Linux; a pty's writer blocks)
+UNSERVED_PARSE_S = 0.2  # ... and parses its reads together this often: a parse costs about the same whatever
+# its size, several times a read's wake-up
+PARSE_MOST = 65536  # unparsed bytes parsed whatever their age (a full-speed replay): 1 100 datagrams
 
 
 class PortReader:
@@ -149,18 +154,20 @@ class PortReader:
     before the parser (e.g. to record it); `tap` is given to the parser (`StreamParser.tap`).
 
     Each read takes everything the port holds (at an empty port, the bytes that arrive together)
-    and is stamped with `clock()` as it returns. A parser call that decodes samples has a fixed
-    cost (~0.1 ms) whatever their number, so after one on bytes that were waiting the thread
-    sleeps `batch_s` (with nothing served, not after a full read: READ_MOST): at high rates a call
-    then decodes several datagrams. Bytes it had to wait for (after a quiet spell at low rates, or
-    a burst from a port that delivers in bursts) are decoded at once and the thread goes back to
-    waiting: a sleep would only add a wake-up. Added latency is at most `batch_s`: by default
-    SERVED_BATCH_S with a tap (`served`), UNSERVED_BATCH_S without.
+    and is stamped with `clock()` as it returns. A parse and a wake-up each have a fixed cost
+    (~0.3 ms and ~0.1 ms cold) whatever the bytes' number, so while bytes flow the thread reads
+    every `batch_s` and parses its reads together once the oldest is `parse_s` old, each datagram
+    stamped with its own read's time (`StreamParser.feed_reads`). Served (`served`: a tap), it
+    parses every read at once (the tap passes the stream on as it comes), and bytes it had to
+    wait for (a low rate, a port that delivers in bursts) are served at once and the thread goes
+    back to waiting; by default SERVED_BATCH_S, else UNSERVED_BATCH_S and UNSERVED_PARSE_S.
+    Unserved, after a full read (READ_MOST) the thread reads on: the port holds more.
 
-    `lend(use)` pauses the thread between two reads and calls `use(port)` with the open port; what
-    `use` reads is its own, never fed to the parser, and reading goes on when it returns (a
-    partial datagram before the loan and the datagrams the loan took show as skipped bytes and
-    lost samples). `write` refuses meanwhile, so no request lands in the borrower's exchange.
+    `lend(use)` pauses the thread between two reads, parses what it has read, and calls
+    `use(port)` with the open port; what `use` reads is its own, never fed to the parser, and
+    reading goes on when it returns (a partial datagram before the loan and the datagrams the
+    loan took show as skipped bytes and lost samples). `write` refuses meanwhile, so no request
+    lands in the borrower's exchange.
 
     Counters: `reopens`, `read_errors`, `bytes_read`, `parser.stats`; `connected` is False while
     the port is being reopened. An unexpected exception (e.g. from `on_raw`) ends the thread and
@@ -169,7 +176,7 @@ class PortReader:
 
     def __init__(self, url: str, ring: RingBuffer, fmt=None, baudrate: int = DEFAULT_BIT_RATE,
                  request_config: bool = True, reopen_backoff: tuple[float, float] = (0.1, 2.0), on_raw=None,
-                 clock=time.monotonic, batch_s: float | None = None, tap=None):
+                 clock=time.monotonic, batch_s: float | None = None, parse_s: float | None = None, tap=None):
         self.url = url
         self.ring = ring
         self.baudrate = baudrate
@@ -179,6 +186,7 @@ class PortReader:
         self.clock = clock
         self.served = tap is not None  # the parser's settled reads go to a tap as they come
         self.batch_s = batch_s if batch_s is not None else SERVED_BATCH_S if self.served else UNSERVED_BATCH_S
+        self.parse_s = parse_s if parse_s is not None else 0.0 if self.served else UNSERVED_PARSE_S
         self.parser = StreamParser(fmt, tap=tap)
         self.reopens = 0
         self.read_errors = 0
@@ -193,6 +201,9 @@ class PortReader:
         self._not_lent = threading.Event()  # cleared while a borrower waits for the port or holds it
         self._not_lent.set()
         self._loans = threading.Lock()  # one borrower at a time
+        self._unparsed: list[bytes] = []  # reads not parsed yet, and when each returned: whoever holds
+        self._unparsed_at: list[float] = []  # `_reading` parses them (`_parse`)
+        self._unparsed_bytes = 0
 
     def start(self) -> PortReader:
         if self._thread is not None:
@@ -236,6 +247,7 @@ class PortReader:
             self._not_lent.clear()  # the thread stops before its next read and waits
             try:
                 with self._reading:  # a read under way ends first
+                    self._parse()
                     with self._port_lock:
                         ser = self._port
                     if ser is None:
@@ -271,16 +283,41 @@ class PortReader:
         log.info("port_opened", port=self.url, baudrate=self.baudrate, config_requested=self.request_config)
         return ser
 
-    def _decode(self, data: bytes, t_host: float) -> bool:
-        """A read's bytes (read at `t_host`) to the raw hook, the parser and the ring; whether
-        they gave samples."""
+    def _keep(self, data: bytes, t_host: float) -> None:
+        """A read's bytes (returned at `t_host`) to the raw hook, and kept for the next parse."""
         self.bytes_read += len(data)
         if self.on_raw is not None:
             self.on_raw(data)
-        samples = self.parser.feed(data, t_host)
+        self._unparsed.append(data)
+        self._unparsed_at.append(t_host)
+        self._unparsed_bytes += len(data)
+
+    def _parse(self) -> None:
+        """The reads kept so far through the parser into the ring (by whoever holds `_reading`)."""
+        reads, times = self._unparsed, self._unparsed_at
+        if len(reads) == 1:
+            samples = self.parser.feed(reads[0], times[0])
+        elif reads:
+            read_log = np.empty(len(reads), READS_DTYPE)
+            read_log["end"] = np.cumsum([len(data) for data in reads])
+            read_log["t_host_s"] = times
+            samples = self.parser.feed_reads(b"".join(reads), read_log)
+        else:
+            return
+        reads.clear()
+        times.clear()
+        self._unparsed_bytes = 0
         if len(samples):
             self.ring.push(samples)
-        return bool(len(samples))
+
+    @property
+    def unparsed_bytes(self) -> int:
+        """Bytes read that wait for the next parse: the ring does not have their samples yet."""
+        return self._unparsed_bytes
+
+    def _parse_due(self) -> bool:
+        return bool(self._unparsed) and (self._unparsed_bytes >= PARSE_MOST
+                                         or self.clock() - self._unparsed_at[0] >= self.parse_s)
 
     def _run(self, ser: serial.Serial) -> None:
         self._publish(ser)
@@ -288,25 +325,32 @@ class PortReader:
             while not self._stop.is_set():
                 if not self._not_lent.wait(0.1):
                     continue  # lent: `stop` is still heard
-                with self._reading:  # a loan waits for a whole read: its bytes read, parsed and pushed
+                with self._reading:  # a loan waits for a whole read: its bytes read, and parsed when due
                     try:
                         data, waited = _read_waited(ser)
                     except (serial.SerialException, OSError) as exc:
-                        failed, decoded = exc, False
+                        failed = exc
+                        self._parse()
                     else:
-                        failed, decoded = None, bool(data) and self._decode(data, self.clock())
-                        behind = len(data) >= READ_MOST and not self.served  # see READ_MOST
+                        failed = None
+                        if data:
+                            self._keep(data, self.clock())
+                        if self._parse_due():
+                            self._parse()
                 if failed is not None:
                     ser = self._reopen(ser, failed)
                     if ser is None:
                         return
                     continue
-                if decoded and not waited and not behind:
+                if self.served and data and not waited or not self.served and 0 < len(data) < READ_MOST:
                     time.sleep(self.batch_s)
         except Exception as exc:  # noqa: BLE001 - the thread must report, not vanish silently
             self.error = exc
             log.exception("reader_failed", port=self.url)
         finally:
+            if self.error is None:  # stopped, or the port could not be reopened: what was read is parsed
+                with self._reading:
+                    self._parse()
             self.connected = False
             self._publish(None)
             if ser is not None:

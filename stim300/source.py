@@ -307,12 +307,14 @@ class PtySource(SampleSource):
         return batch
 
     def _unread(self) -> int:
-        """Bytes the pty holds that the reader has not read yet (a reader starved of CPU on a
-        loaded host can leave some while reads come back empty)."""
+        """Bytes whose samples the ring does not have yet: in the pty, not read yet (a reader
+        starved of CPU on a loaded host can leave some while reads come back empty), or read and
+        waiting for the reader's next parse."""
         try:
-            return struct.unpack("i", fcntl.ioctl(self._slave, termios.FIONREAD, b"\0\0\0\0"))[0]
+            waiting = struct.unpack("i", fcntl.ioctl(self._slave, termios.FIONREAD, b"\0\0\0\0"))[0]
         except OSError:
-            return 0
+            waiting = 0
+        return waiting + self._port.reader.unparsed_bytes
 
     def close(self) -> None:
         self._stop.set()

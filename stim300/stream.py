@@ -19,6 +19,7 @@ from .codec import SAMPLE_DTYPE, START_UP, decode_at
 from .crc import datagram_crc, position_tables
 from .protocol import (BIAS_TRIM, CONFIGURATION, COUNTER_MODULUS, CR_LF, INTERNAL_RATE_HZ, NORMAL_LAYOUTS,
                        PART_NUMBER, SAMPLE_RATES_HZ, SERIAL_NUMBER, SPECIAL_IDS, Format, Layout)
+from .reads import read_times
 from .records import TrimRecord
 from .special import decode_special
 
@@ -210,6 +211,8 @@ class Scanner:
         self._power_up = 0  # how far a power-up sequence has come: 1 part number, 2 then serial number
         self._quiet_until = 0  # no further CRC error is counted inside a failed candidate's span
         self._consumed = 0  # absolute offset of buf[0], to keep _quiet_until valid across buffers
+        self.looked_to = 0  # the offset after the last byte the last candidate's decision read: a stream
+        # parser fed bytes in pieces decides there once that byte has come
 
     # ------------------------------------------------------------------ decisions
     def step(self, buf, i: int, final: bool) -> int:
@@ -226,11 +229,13 @@ class Scanner:
 
     def _candidate(self, buf, i, final, pre, crlf, normal) -> int:
         end = i + pre + 4
+        self.looked_to = end
         if len(buf) < end:
             return WAIT if not final else self._skip(i)
         if datagram_crc(buf[i:i + pre]) != int.from_bytes(buf[i + pre:end], "big"):
             return self._fail(i, end)
         if crlf is not False:
+            self.looked_to = end + 2
             if len(buf) < end + 2 and not final:
                 return WAIT
             has_crlf = buf[end:end + 2] == CR_LF
@@ -434,6 +439,8 @@ class StreamParser:
         self.scanner = Scanner(fmt, self._found_normal, self._specials.append if tap is not None else None)
         self.tap = tap
         self._trims_tapped = 0  # the scanner's BTO datagrams (by sequence) a tap has been given
+        self._reach: list[tuple[int, int]] = []  # (index into _offsets, offset): the scan read up to that
+        # offset before accepting that datagram (a candidate that failed, a CR LF looked for)
 
     def _found_normal(self, offset: int, ident: int) -> None:
         self._accepted((offset,))
@@ -466,20 +473,37 @@ class StreamParser:
         self._buf += data
         return self._scan(final=False, t_host=t_host)
 
+    def feed_reads(self, data: bytes, reads: np.ndarray) -> np.ndarray:
+        """`feed` of several reads at once: `data` is their bytes end to end, `reads` (READS_DTYPE
+        rows, `stim300.reads`) where each ended in `data` and when it returned. Each datagram is
+        stamped with the time of the read holding its last byte, as the bulk decoder stamps a
+        capture by its read log: the samples feeding the reads one by one gives, at one parse's
+        cost (a live reader that reads often and parses seldom)."""
+        stamps = reads.copy()
+        stamps["end"] += len(self._buf)  # counted from the buffer's start, tail included
+        self.stats.bytes_in += len(data)
+        self._buf += data
+        return self._scan(final=False, t_host=stamps)
+
     def finish(self, t_host: float = math.nan) -> np.ndarray:
         """End of stream: decide the tail (incomplete datagrams are skipped bytes)."""
         return self._scan(final=True, t_host=t_host)
 
-    def _scan(self, final: bool, t_host: float) -> np.ndarray:
+    def _scan(self, final: bool, t_host: float | np.ndarray) -> np.ndarray:
         buf, scanner = self._buf, self.scanner
         i = self._follow(0)  # a stream in step: the datagram the last feed left short, and the rest
+        reach = scanner.looked_to = 0
         while i < len(buf):
             datagrams = scanner.stats.datagrams
             nxt = scanner.step(buf, i, final)
             if nxt == WAIT:
                 break
+            if scanner.looked_to > reach:  # no datagram from here on is decided before that byte
+                reach = scanner.looked_to
+                self._reach.append((len(self._offsets) - (scanner.stats.datagrams - datagrams), reach))
             i = nxt if scanner.stats.datagrams == datagrams else self._follow(nxt)
         samples, runs = self._decode(buf, t_host)
+        self._reach.clear()
         if self.tap is not None and i:
             first = self.stats.datagrams - len(samples)
             restarts = tuple(k for k in self.stats.restart_datagrams if k >= first)
@@ -493,8 +517,9 @@ class StreamParser:
         scanner.advance(i)
         return samples
 
-    def _decode(self, buf: bytearray, t_host: float) -> tuple[np.ndarray, tuple]:
-        """The accepted datagrams' samples, and their runs of one format (as `Settled.runs`)."""
+    def _decode(self, buf: bytearray, t_host: float | np.ndarray) -> tuple[np.ndarray, tuple]:
+        """The accepted datagrams' samples, and their runs of one format (as `Settled.runs`);
+        `t_host`: one time for all, or the reads `buf` holds (`feed_reads`)."""
         out = np.empty(len(self._offsets), SAMPLE_DTYPE)
         if not self._offsets:
             return out, ()
@@ -506,6 +531,16 @@ class StreamParser:
         self._formats.clear()
         view = np.frombuffer(buf, np.uint8)
         for layout, fmt, run, start, stop in runs:
-            decode_at(view, run, layout, fmt, out[start:stop], t_host)
+            stamps = t_host if isinstance(t_host, float) else self._read_times(t_host, run, layout, fmt, start)
+            decode_at(view, run, layout, fmt, out[start:stop], stamps)
         del view
         return out, runs
+
+    def _read_times(self, reads: np.ndarray, run: np.ndarray, layout: Layout, fmt: Format, start: int) -> np.ndarray:
+        """The time of the read that completed each datagram of a run (the first at index `start`
+        of those accepted), as feeding the reads one by one stamps it: the read holding its last
+        byte, or a later one where a decision before it (or its own CR LF) read further (`_reach`)."""
+        decided = run + layout.wire_length(fmt.crlf)
+        for index, reach in self._reach:
+            decided[max(index - start, 0):] = np.maximum(decided[max(index - start, 0):], reach)
+        return read_times(reads, decided)

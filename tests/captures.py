@@ -18,6 +18,7 @@ import numpy as np
 
 from stim300.codec import SAMPLE_DTYPE, encode_samples
 from stim300.protocol import COUNTER_MODULUS, INTERNAL_RATE_HZ, NORMAL_LAYOUTS, Format, Status
+from stim300.reads import READS_DTYPE
 from stim300.special import Configuration, PartNumber, SerialNumber, encode_special
 from stim300.stream import StreamParser
 
@@ -81,11 +82,22 @@ def power_up(config: Configuration, part: str = "84167-4400003-321", serial: str
             + encode_special(config, config.crlf))
 
 
-def stream_decode(data: bytes, cuts=(), fmt: Format | None = None) -> tuple[np.ndarray, StreamParser]:
-    """The stream parser fed `data` in chunks cut at `cuts`: its samples and the parser."""
+def stream_decode(data: bytes, cuts=(), fmt: Format | None = None, together=()) -> tuple[np.ndarray, StreamParser]:
+    """The stream parser fed `data` in reads cut at `cuts` (read k returned at time k s): its
+    samples and the parser. Each read is fed on its own, or with `together` (the indices of
+    reads that start a group), each group of reads at once (`StreamParser.feed_reads`)."""
     parser = StreamParser(fmt)
     edges = [0, *sorted(set(cuts)), len(data)]
-    parts = [parser.feed(data[a:b]) for a, b in zip(edges, edges[1:])]
+    starts = sorted({0, *together, len(edges) - 1}) if together else range(len(edges))
+    parts = []
+    for first, stop in zip(starts, starts[1:]):
+        if not together:
+            parts.append(parser.feed(data[edges[first]:edges[stop]], float(first)))
+            continue
+        reads = np.empty(stop - first, READS_DTYPE)
+        reads["end"] = np.array(edges[first + 1:stop + 1]) - edges[first]
+        reads["t_host_s"] = np.arange(first, stop)
+        parts.append(parser.feed_reads(data[edges[first]:edges[stop]], reads))
     parts.append(parser.finish())
     return np.concatenate(parts), parser
 

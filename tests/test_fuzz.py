@@ -95,19 +95,36 @@ def chunking(rng: np.random.Generator, size: int) -> list[int]:
     return sorted(set(cuts))
 
 
-def disagreement(data: bytes, cuts: list[int], fmt: Format | None = None) -> str | None:
-    """What differs between the stream parser (fed in chunks cut at `cuts`) and the bulk decoder
-    (whole, and block by block), both told `fmt`: rows, any Stats field, or the stream's
-    description; None when they agree."""
+def grouping(rng: np.random.Generator, cuts: list[int]) -> list[int]:
+    """Random groups of the reads that `cuts` make, by the index of each group's first read: what a
+    live reader parses at once."""
+    return sorted(set(rng.integers(0, len(cuts) + 1, int(rng.integers(1, 6))).tolist()))
+
+
+def different_stats(mine: Stats, theirs: Stats) -> str | None:
+    for field in fields(Stats):
+        if not np.array_equal(getattr(mine, field.name), getattr(theirs, field.name)):
+            return f"stats.{field.name}: {getattr(mine, field.name)} against {getattr(theirs, field.name)}"
+    return None
+
+
+def disagreement(data: bytes, cuts: list[int], fmt: Format | None = None, together: list[int] = (0,)) -> str | None:
+    """What differs between the stream parser (fed reads cut at `cuts`, one at a time) and the bulk
+    decoder (whole, and block by block), both told `fmt`: rows, any Stats field, or the stream's
+    description; or between those reads fed one at a time and in groups (starting at the reads
+    `together`): rows with their host times, or any Stats field. None when all agree."""
     samples, parser = stream_decode(data, cuts, fmt)
+    grouped, grouped_parser = stream_decode(data, cuts, fmt, together)
+    if not (same_samples(samples, grouped) and np.array_equal(samples["t_host"], grouped["t_host"], equal_nan=True)):
+        return f"rows or host times: read by read {len(samples)}, reads together {len(grouped)}"
+    if (differs := different_stats(grouped_parser.stats, parser.stats)) is not None:
+        return f"reads together: {differs}"
     decoder = BulkDecoder(data, fmt, None, lambda n: np.empty(n, SAMPLE_DTYPE))
     rows = decoder.run()
     if not same_samples(samples, rows):
         return f"rows: stream {len(samples)}, bulk {len(rows)}"
-    for field in fields(Stats):
-        mine, theirs = getattr(parser.stats, field.name), getattr(decoder.scanner.stats, field.name)
-        if not np.array_equal(mine, theirs):
-            return f"stats.{field.name}: stream {mine}, bulk {theirs}"
+    if (differs := different_stats(parser.stats, decoder.scanner.stats)) is not None:
+        return f"stream against bulk: {differs}"
     if stream_info(parser) != stream_info(decoder.scanner):
         return "stream info"
     blocks = []
@@ -124,7 +141,8 @@ def disagreement(data: bytes, cuts: list[int], fmt: Format | None = None) -> str
 def test_stream_and_bulk_agree_on_any_input_and_chunking(kind, fmt, seed):
     rng = np.random.default_rng(seed)
     data = CASES[kind](rng)
-    assert disagreement(data, chunking(rng, len(data)), fmt) is None
+    cuts = chunking(rng, len(data))
+    assert disagreement(data, cuts, fmt, grouping(rng, cuts)) is None
 
 
 def test_a_requested_part_number_then_data_then_a_serial_number_is_no_restart():

@@ -19,6 +19,7 @@ import stim300.port as port
 from captures import exact_samples, same_samples, wait_until
 from stim300.bulk import decode_capture
 from stim300.cli import main as stim300_main
+from stim300.clock import CYCLE_S
 from stim300.codec import SAMPLE_DTYPE, encode_samples
 from stim300.errors import FormatError, PortError, ServiceError, ServiceTimeout
 from stim300.port import PortReader, open_serial, record
@@ -208,29 +209,61 @@ def test_a_pyserial_url_port_reads_the_same_way():
         wait_until(lambda: ser.in_waiting == 10, "bytes in the port")
         assert port._read_available(ser, limit=4) == bytes(range(4))
 
-def test_datagrams_after_quiet_spells_are_decoded_at_once_without_a_batch_wait(pty):
-    """The reader sleeps `batch_s` only after bytes that were waiting: a datagram it waited for
-    (a low rate, or a port that delivers in bursts) leaves it waiting for the next at once."""
+def test_served_datagrams_after_quiet_spells_are_served_at_once_without_a_batch_wait(pty):
+    """Served, the reader sleeps `batch_s` only after bytes that were waiting: a datagram it
+    waited for (a low rate, or a port that delivers in bursts) is parsed at once and leaves it
+    waiting for the next."""
     fmt = Format(datagram_id=0xA7, crlf=False, sample_rate_hz=125)
     frames = encode_samples(exact_samples(3, fmt, 0xA7, np.random.default_rng(0)), 0xA7, fmt, crlf=False)
     ring = RingBuffer(16, SAMPLE_DTYPE)
-    with PortReader(pty.path, ring, fmt=fmt, request_config=False, batch_s=10.0):
+    with PortReader(pty.path, ring, fmt=fmt, request_config=False, batch_s=10.0, tap=lambda settled: None):
         for k, frame in enumerate(frames, 1):
             time.sleep(0.2)
             pty.write(frame.tobytes())
             wait_until(lambda: ring.total == k, f"datagram {k} in the ring", timeout=DEADLINE_S)
 
 
+def test_an_unserved_reader_parses_its_reads_together_each_datagram_stamped_by_its_read(pty):
+    """Unserved, reads wait for one parse (`parse_s`), each datagram stamped with the time its own
+    read returned; a loan, a stop or PARSE_MOST bytes parse them whatever their age."""
+    fmt = Format(datagram_id=0xA7, crlf=False, sample_rate_hz=2000)
+    frames = encode_samples(exact_samples(1200, fmt, 0xA7, np.random.default_rng(0)), 0xA7, fmt, crlf=False)
+    ring = RingBuffer(2048, SAMPLE_DTYPE)
+    reader = PortReader(pty.path, ring, fmt=fmt, request_config=False, batch_s=0.01, parse_s=60.0)
+    written = []
+    with reader:
+        for k, frame in enumerate(frames[:3], 1):
+            written.append(time.monotonic())
+            pty.write(frame.tobytes())
+            wait_until(lambda: reader.bytes_read == k * frames.shape[1], f"datagram {k} read", timeout=DEADLINE_S)
+        assert ring.total == 0  # read, not parsed yet
+        reader.lend(lambda port: None)
+        assert ring.total == 3
+        stamps = ring.read_since(0)[0]["t_host"]
+        assert written[0] <= stamps[0] < written[1] <= stamps[1] < written[2] <= stamps[2]
+        pty.write(frames[3:5].tobytes())
+        wait_until(lambda: reader.bytes_read == 5 * frames.shape[1], "datagrams 4 and 5 read", timeout=DEADLINE_S)
+    assert ring.total == 5  # parsed at the stop
+    with PortReader(pty.path, ring, fmt=fmt, request_config=False, batch_s=0.01, parse_s=60.0):
+        pty.write(frames[5:].tobytes())  # 70 kB: more than PARSE_MOST
+        wait_until(lambda: ring.total >= 5 + port.PARSE_MOST // frames.shape[1], "a parse of PARSE_MOST bytes",
+                   timeout=DEADLINE_S)
 
-def test_a_reader_batches_longer_when_nothing_is_served(pty):
+
+def test_a_reader_reads_and_parses_less_often_when_nothing_is_served(pty):
     """With a tap, reads are served as they come: at most SERVED_BATCH_S of added latency. Without
-    one the samples wait in the ring for a consumer that polls, and the reader wakes a fifth as
-    often. A batch given is kept."""
+    one the samples wait in the ring for a consumer that polls: the reader reads every 50 ms, each
+    datagram's host time still late by less than half a counter cycle (so the host clock proves a
+    lost cycle, `stim300.clock`), and parses a quarter as often. What is given is kept."""
     ring = RingBuffer(16, SAMPLE_DTYPE)
-    assert PortReader(pty.path, ring, request_config=False).batch_s == port.UNSERVED_BATCH_S == 0.02
-    assert PortReader(pty.path, ring, request_config=False, tap=lambda settled: None).batch_s \
-        == port.SERVED_BATCH_S == 0.004
-    assert PortReader(pty.path, ring, request_config=False, batch_s=0.0).batch_s == 0.0
+    unserved = PortReader(pty.path, ring, request_config=False)
+    assert (unserved.batch_s, unserved.parse_s) == (port.UNSERVED_BATCH_S, port.UNSERVED_PARSE_S) == (0.05, 0.2)
+    assert port.UNSERVED_BATCH_S < CYCLE_S / 2
+    served = PortReader(pty.path, ring, request_config=False, tap=lambda settled: None)
+    assert (served.batch_s, served.parse_s) == (port.SERVED_BATCH_S, 0.0) == (0.004, 0.0)
+    given = PortReader(pty.path, ring, request_config=False, batch_s=0.0, parse_s=1.0)
+    assert (given.batch_s, given.parse_s) == (0.0, 1.0)
+
 
 def test_open_errors_are_one_line_naming_the_port(pty, tmp_path):
     missing = str(tmp_path / "ttyUSB7")

@@ -174,7 +174,7 @@ def test_a_port_whose_reader_fails_ends_with_the_readers_error(pty):
     with PortSource(path, request_config=False) as source:
         def broken(*args):
             raise RuntimeError("parser fault")
-        source.reader.parser.feed = broken
+        source.reader.parser.feed = source.reader.parser.feed_reads = broken
         os.write(master, data)
         read_all(source)
         assert source.ended and isinstance(source.error, RuntimeError) and source.read(0.0) is None

@@ -205,6 +205,18 @@ def test_t_host_stamps_the_samples_a_read_completes():
     assert second["t_host"].tolist() == [2.5, 2.5]
 
 
+def test_reads_parsed_together_stamp_each_datagram_by_the_read_that_completed_it():
+    """As each read fed on its own would: the first datagram of a stream whose CR LF is not known
+    is accepted only once the 2 bytes after it say there is none, here in the third read."""
+    data, _, _ = capture(3, 0x90, False)  # 18 B each
+    cuts = [18, 19, 40]
+    alone, _ = stream_decode(data, cuts)
+    together, _ = stream_decode(data, cuts, together=[0])
+    assert alone["t_host"].tolist() == together["t_host"].tolist() == [2.0, 2.0, 3.0]
+    known, _ = stream_decode(data, cuts, Format(crlf=False), together=[0])
+    assert known["t_host"].tolist() == [0.0, 2.0, 3.0]  # told: accepted with its last byte
+
+
 def test_configuration_datagram_is_adopted():
     config = Configuration.build(sample_rate_hz=500, acc_range_g=30, crlf=True, temp_included=False)
     assert config.datagram_id == 0x93
