@@ -70,6 +70,7 @@ def test_csv_of_a_recording_names_its_columns_and_units(recordings, result_files
                                rtol=1e-8)
 
 
+@pytest.mark.slow
 def test_mcap_of_a_recording_keeps_its_stamps_and_frame(recordings, result_files, run_main, tmp_path):
     apply(run_main, result_files, recordings["mcap"], tmp_path / "o.mcap")
     apply(run_main, result_files, recordings["mcap"], tmp_path / "o.npz")

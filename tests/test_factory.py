@@ -347,6 +347,7 @@ def test_a_campaign_whose_statics_are_not_at_the_steps_stops_is_refused():
                                   "multiple of the index step 60 deg: the turns are not indexed by that step")
 
 
+@pytest.mark.slow
 def test_turns_that_do_not_end_at_the_stops_are_named_and_what_they_move_is_flagged():
     """A platform driven by time, not stopped at detents: the simulator's 2 % rate ripple ends
     each 90 deg turn 1.15 deg beyond it. Taken as indexed, the turns show a scale factor far
@@ -360,6 +361,7 @@ def test_turns_that_do_not_end_at_the_stops_are_named_and_what_they_move_is_flag
     assert result.estimates["yaw"].quality == "poor"
 
 
+@pytest.mark.slow
 def test_a_hidden_loss_mid_turn_is_named_and_left_out_of_the_scale_factor_with_the_statics_at_their_stops():
     """A whole 0.128 s cycle lost in the second index turn, which the counter cannot see: the
     turn's integral is 2.5 deg short, far more than a scale factor makes. Its statics keep their

@@ -43,8 +43,8 @@ def raw_replay(tmp_path_factory):
     return replay_result(CAPTURE, tmp_path_factory.mktemp("raw"))
 
 
-@pytest.mark.parametrize("kind", ["sqlite3", pytest.param("bag", marks=pytest.mark.slow),
-                                  pytest.param("mcap", marks=pytest.mark.slow)])
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["sqlite3", "bag", "mcap"])
 def test_a_recording_replays_as_its_capture_does(kind, recordings, fixture_samples, raw_replay, tmp_path, capsys):
     stamps = fixture_samples[0]
     path = recordings[kind]
@@ -94,6 +94,7 @@ def test_the_datagrams_decode_to_the_messages_and_gaps_show_as_lost_datagrams(tm
     assert session.time_s[-1] == pytest.approx(5999 * 0.008, abs=1e-9)
 
 
+@pytest.mark.slow
 def test_replay_of_a_capture_with_its_read_log_finds_the_gaps_the_counter_cannot_see(tmp_path, fixture_samples,
                                                                                       raw_replay):
     """A recording's datagrams written as a capture with its read log beside it (CAPTURE.reads.npy,
@@ -207,6 +208,7 @@ def test_a_recording_replays_through_the_raw_pty(tmp_path):
         daemon.stderr.read().decode()
 
 
+@pytest.mark.slow
 def test_without_a_warmup_window_a_recording_is_calibrated_from_its_first_message(recordings, raw_replay, tmp_path,
                                                                                     capsys):
     """The first message is no power-up, and no temperature tells the warm-up: as calibrate does,
