@@ -158,7 +158,8 @@ class BulkDecoder:
             if good:
                 self._flush()
                 self.scanner.count_counters(frames[:good, layout.counter_offset])
-                self._emit(frames[:good], layout, fmt, pos + length * np.arange(1, good + 1), pos)
+                self._emit(frames[:good], layout, fmt, pos + length * np.arange(1, good + 1), pos,
+                           self.scanner.stats.datagrams - good)
                 pos += good * length
             if good < count:
                 break
@@ -187,20 +188,22 @@ class BulkDecoder:
         """Decode what the scanner accepted since the last flush, a run of one format at a time."""
         found = self._found[:]
         self._found.clear()  # the list itself stays: the scan loop holds it
-        for layout, fmt, offsets, _, _ in format_runs(found):
+        first = self.scanner.stats.datagrams - len(found)  # the stream number of found[0]
+        for layout, fmt, offsets, start, _ in format_runs(found):
             frames = self._bytes[offsets[:, None] + np.arange(layout.pre_crc)]
-            self._emit(frames, layout, fmt, offsets + layout.wire_length(fmt.crlf), int(offsets[0]))
+            self._emit(frames, layout, fmt, offsets + layout.wire_length(fmt.crlf), int(offsets[0]), first + start)
 
-    def _emit(self, frames: np.ndarray, layout, fmt: Format, ends: np.ndarray, start: int) -> None:
-        """Decode datagrams (rows of `frames`, the first starting at byte `start`, each ending at
-        `ends`) into the output; with a read log, stamp each with the host time of the read that
-        completed it."""
+    def _emit(self, frames: np.ndarray, layout, fmt: Format, ends: np.ndarray, start: int, number: int) -> None:
+        """Decode datagrams (rows of `frames`, the first starting at byte `start` with stream
+        number `number`, each ending at `ends`) into the output; with a read log, stamp each with
+        the host time of the read that completed it (`Scanner.decided`, as the live reader does)."""
         n = len(frames)
         if self._on_block is not None:
             if len(self._out) < n:
                 self._out = self._allocate(n)
             self._n = 0
-        t_host = np.nan if self._reads is None else read_times(self._reads, ends)
+        self.scanner.forget(number)
+        t_host = np.nan if self._reads is None else read_times(self._reads, self.scanner.decided(number, ends))
         decode_frames(frames, layout, fmt, self._rows(self._n, self._n + n), t_host)
         self._n += n
         if self._on_block is not None:

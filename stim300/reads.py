@@ -58,8 +58,8 @@ def load_reads(capture) -> np.ndarray | None:
 
 
 def read_times(reads: np.ndarray, ends: np.ndarray) -> np.ndarray:
-    """Host time of the read that completed each datagram ending at byte offset `ends` (NaN for
-    bytes the log does not cover)."""
+    """Host time of the read that brought the byte before each offset of `ends` (where the bytes
+    deciding each datagram end: `Scanner.decided`), NaN for bytes the log does not cover."""
     index = np.searchsorted(reads["end"], ends, side="left")
     inside = index < len(reads)
     times = np.full(len(ends), np.nan)

@@ -211,8 +211,8 @@ class Scanner:
         self._power_up = 0  # how far a power-up sequence has come: 1 part number, 2 then serial number
         self._quiet_until = 0  # no further CRC error is counted inside a failed candidate's span
         self._consumed = 0  # absolute offset of buf[0], to keep _quiet_until valid across buffers
-        self.looked_to = 0  # the offset after the last byte the last candidate's decision read: a stream
-        # parser fed bytes in pieces decides there once that byte has come
+        self._reach: list[tuple[int, int]] = [(0, 0)]  # (datagram number, absolute offset): that datagram and
+        # those after it are decided only once the bytes up to that offset are read (`decided`)
 
     # ------------------------------------------------------------------ decisions
     def step(self, buf, i: int, final: bool) -> int:
@@ -229,13 +229,13 @@ class Scanner:
 
     def _candidate(self, buf, i, final, pre, crlf, normal) -> int:
         end = i + pre + 4
-        self.looked_to = end
+        self._look(end)
         if len(buf) < end:
             return WAIT if not final else self._skip(i)
         if datagram_crc(buf[i:i + pre]) != int.from_bytes(buf[i + pre:end], "big"):
             return self._fail(i, end)
         if crlf is not False:
-            self.looked_to = end + 2
+            self._look(end + 2)
             if len(buf) < end + 2 and not final:
                 return WAIT
             has_crlf = buf[end:end + 2] == CR_LF
@@ -250,6 +250,38 @@ class Scanner:
         else:
             self._accept_special(bytes(buf[i:end]))
         return end
+
+    def _look(self, end: int) -> None:
+        """A decision reads the buffer up to `end`: no datagram from the next one on is accepted
+        before that byte has come."""
+        end += self._consumed
+        number, reach = self._reach[-1]
+        if end > reach:
+            if number == self.stats.datagrams:
+                self._reach[-1] = (number, end)
+            else:
+                self._reach.append((self.stats.datagrams, end))
+
+    def decided(self, first: int, ends: np.ndarray) -> np.ndarray:
+        """Where the bytes end that decide the datagrams numbered first, first + 1, ... (stream
+        numbers; `ends`: each one's end, absolute offsets): its own last byte, or a later one where
+        a decision before it (a candidate that needed more bytes, its CR LF being told) read
+        further. Fed in pieces, a datagram is accepted with the piece holding that byte, so a read
+        log stamps each datagram alike whatever the chunking (`StreamParser.feed_reads`, the bulk
+        decoder). What datagrams before `first` needed is forgotten."""
+        self.forget(first)
+        numbers, reach = np.array(self._reach).T
+        return np.maximum(ends, reach[np.searchsorted(numbers, np.arange(first, first + len(ends)), "right") - 1])
+
+    def forget(self, first: int) -> None:
+        """`decided` will not be asked of datagrams before `first`: keep what later ones need."""
+        while len(self._reach) > 1 and self._reach[1][0] <= first:
+            del self._reach[0]
+
+    @property
+    def buffer_start(self) -> int:
+        """The absolute offset of the first byte of the buffer `step` is given."""
+        return self._consumed
 
     def _skip(self, i: int) -> int:
         self.stats.skipped_bytes += 1
@@ -439,8 +471,6 @@ class StreamParser:
         self.scanner = Scanner(fmt, self._found_normal, self._specials.append if tap is not None else None)
         self.tap = tap
         self._trims_tapped = 0  # the scanner's BTO datagrams (by sequence) a tap has been given
-        self._reach: list[tuple[int, int]] = []  # (index into _offsets, offset): the scan read up to that
-        # offset before accepting that datagram (a candidate that failed, a CR LF looked for)
 
     def _found_normal(self, offset: int, ident: int) -> None:
         self._accepted((offset,))
@@ -476,11 +506,11 @@ class StreamParser:
     def feed_reads(self, data: bytes, reads: np.ndarray) -> np.ndarray:
         """`feed` of several reads at once: `data` is their bytes end to end, `reads` (READS_DTYPE
         rows, `stim300.reads`) where each ended in `data` and when it returned. Each datagram is
-        stamped with the time of the read holding its last byte, as the bulk decoder stamps a
-        capture by its read log: the samples feeding the reads one by one gives, at one parse's
-        cost (a live reader that reads often and parses seldom)."""
+        stamped with the time of the read that completed it (`Scanner.decided`), as the bulk
+        decoder stamps a capture by its read log: the samples feeding the reads one by one gives,
+        at one parse's cost (a live reader that reads often and parses seldom)."""
         stamps = reads.copy()
-        stamps["end"] += len(self._buf)  # counted from the buffer's start, tail included
+        stamps["end"] += self.scanner.buffer_start + len(self._buf)  # absolute offsets, as the scanner counts
         self.stats.bytes_in += len(data)
         self._buf += data
         return self._scan(final=False, t_host=stamps)
@@ -492,18 +522,13 @@ class StreamParser:
     def _scan(self, final: bool, t_host: float | np.ndarray) -> np.ndarray:
         buf, scanner = self._buf, self.scanner
         i = self._follow(0)  # a stream in step: the datagram the last feed left short, and the rest
-        reach = scanner.looked_to = 0
         while i < len(buf):
             datagrams = scanner.stats.datagrams
             nxt = scanner.step(buf, i, final)
             if nxt == WAIT:
                 break
-            if scanner.looked_to > reach:  # no datagram from here on is decided before that byte
-                reach = scanner.looked_to
-                self._reach.append((len(self._offsets) - (scanner.stats.datagrams - datagrams), reach))
             i = nxt if scanner.stats.datagrams == datagrams else self._follow(nxt)
         samples, runs = self._decode(buf, t_host)
-        self._reach.clear()
         if self.tap is not None and i:
             first = self.stats.datagrams - len(samples)
             restarts = tuple(k for k in self.stats.restart_datagrams if k >= first)
@@ -524,6 +549,7 @@ class StreamParser:
         if not self._offsets:
             return out, ()
         offsets = np.array(self._offsets, np.int64)
+        first = self.stats.datagrams - len(offsets)  # the stream number of the first
         stops = [start for start, _ in self._formats[1:]] + [len(offsets)]
         runs = tuple((NORMAL_LAYOUTS[fmt.datagram_id], fmt, offsets[start:stop], start, stop)
                      for (start, fmt), stop in zip(self._formats, stops))
@@ -531,16 +557,9 @@ class StreamParser:
         self._formats.clear()
         view = np.frombuffer(buf, np.uint8)
         for layout, fmt, run, start, stop in runs:
-            stamps = t_host if isinstance(t_host, float) else self._read_times(t_host, run, layout, fmt, start)
+            stamps = t_host if not isinstance(t_host, np.ndarray) else read_times(t_host, self.scanner.decided(
+                first + start, self.scanner.buffer_start + run + layout.wire_length(fmt.crlf)))
             decode_at(view, run, layout, fmt, out[start:stop], stamps)
         del view
+        self.scanner.forget(self.stats.datagrams)
         return out, runs
-
-    def _read_times(self, reads: np.ndarray, run: np.ndarray, layout: Layout, fmt: Format, start: int) -> np.ndarray:
-        """The time of the read that completed each datagram of a run (the first at index `start`
-        of those accepted), as feeding the reads one by one stamps it: the read holding its last
-        byte, or a later one where a decision before it (or its own CR LF) read further (`_reach`)."""
-        decided = run + layout.wire_length(fmt.crlf)
-        for index, reach in self._reach:
-            decided[max(index - start, 0):] = np.maximum(decided[max(index - start, 0):], reach)
-        return read_times(reads, decided)

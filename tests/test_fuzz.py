@@ -20,6 +20,7 @@ from stim300.bulk import SYNC_RUN, BulkDecoder, decode_blocks, decode_capture
 from stim300.capture import stream_info
 from stim300.codec import SAMPLE_DTYPE
 from stim300.protocol import NORMAL_LAYOUTS, Format
+from stim300.reads import READS_DTYPE
 from stim300.special import Configuration, PartNumber, SerialNumber, encode_special
 from stim300.stream import Stats
 
@@ -108,21 +109,34 @@ def different_stats(mine: Stats, theirs: Stats) -> str | None:
     return None
 
 
+def read_log(data: bytes, cuts: list[int]) -> np.ndarray:
+    """The read log of `data` read in pieces cut at `cuts`, read k returned at time k s (as
+    `captures.stream_decode` stamps them)."""
+    ends = np.array(sorted({*cuts, len(data)} - {0}), np.int64)
+    log = np.empty(len(ends), READS_DTYPE)
+    log["end"] = ends
+    log["t_host_s"] = np.searchsorted(np.array([0, *sorted(set(cuts)), len(data)]), ends, "left") - 1
+    return log
+
+
 def disagreement(data: bytes, cuts: list[int], fmt: Format | None = None, together: list[int] = (0,)) -> str | None:
     """What differs between the stream parser (fed reads cut at `cuts`, one at a time) and the bulk
-    decoder (whole, and block by block), both told `fmt`: rows, any Stats field, or the stream's
-    description; or between those reads fed one at a time and in groups (starting at the reads
-    `together`): rows with their host times, or any Stats field. None when all agree."""
+    decoder (whole with the reads' log, and block by block), both told `fmt`: rows with their
+    host times, any Stats field, or the stream's description; or between those reads fed one at a
+    time and in groups (starting at the reads `together`): rows with their host times, or any
+    Stats field. None when all agree."""
     samples, parser = stream_decode(data, cuts, fmt)
     grouped, grouped_parser = stream_decode(data, cuts, fmt, together)
     if not (same_samples(samples, grouped) and np.array_equal(samples["t_host"], grouped["t_host"], equal_nan=True)):
         return f"rows or host times: read by read {len(samples)}, reads together {len(grouped)}"
     if (differs := different_stats(grouped_parser.stats, parser.stats)) is not None:
         return f"reads together: {differs}"
-    decoder = BulkDecoder(data, fmt, None, lambda n: np.empty(n, SAMPLE_DTYPE))
+    decoder = BulkDecoder(data, fmt, read_log(data, cuts), lambda n: np.empty(n, SAMPLE_DTYPE))
     rows = decoder.run()
     if not same_samples(samples, rows):
         return f"rows: stream {len(samples)}, bulk {len(rows)}"
+    if not np.array_equal(samples["t_host"], rows["t_host"], equal_nan=True):
+        return "host times: stream read by read, bulk by the read log"
     if (differs := different_stats(parser.stats, decoder.scanner.stats)) is not None:
         return f"stream against bulk: {differs}"
     if stream_info(parser) != stream_info(decoder.scanner):

@@ -12,6 +12,7 @@ from stim300.bulk import decode_capture
 from stim300.capture import stream_info
 from stim300.crc import datagram_crc
 from stim300.codec import SAMPLE_DTYPE, encode_samples
+from stim300.reads import READS_DTYPE
 from stim300.protocol import CONFIGURATION, NORMAL_LAYOUTS, SERIAL_NUMBER, Format, GyroUnit
 from stim300.special import Configuration, PartNumber, SerialNumber, encode_special
 from stim300.stream import FOLLOW_BLOCK, Scanner, StreamParser, verified
@@ -215,6 +216,8 @@ def test_reads_parsed_together_stamp_each_datagram_by_the_read_that_completed_it
     assert alone["t_host"].tolist() == together["t_host"].tolist() == [2.0, 2.0, 3.0]
     known, _ = stream_decode(data, cuts, Format(crlf=False), together=[0])
     assert known["t_host"].tolist() == [0.0, 2.0, 3.0]  # told: accepted with its last byte
+    reads = np.array([(18, 0.0), (19, 1.0), (40, 2.0), (54, 3.0)], READS_DTYPE)
+    assert decode_capture(data, reads=reads).samples["t_host"].tolist() == [2.0, 2.0, 3.0]  # offline alike
 
 
 def test_configuration_datagram_is_adopted():
