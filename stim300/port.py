@@ -31,7 +31,7 @@ import structlog
 from .atomic import atomic_file
 from .errors import PortError, UsageError, os_reason
 from .protocol import CONFIGURATION, DEFAULT_BIT_RATE
-from .reads import READS_DTYPE, ReadLog, reads_path
+from .reads import ReadLog, reads_path
 from .ringbuffer import RingBuffer
 from .stream import StreamParser
 
@@ -201,9 +201,8 @@ class PortReader:
         self._not_lent = threading.Event()  # cleared while a borrower waits for the port or holds it
         self._not_lent.set()
         self._loans = threading.Lock()  # one borrower at a time
-        self._unparsed: list[bytes] = []  # reads not parsed yet, and when each returned: whoever holds
-        self._unparsed_at: list[float] = []  # `_reading` parses them (`_parse`)
-        self._unparsed_bytes = 0
+        self._unparsed: list[bytes] = []  # reads not parsed yet, and their log (where each ended, when it
+        self._unparsed_log = ReadLog()  # returned): whoever holds `_reading` parses them (`_parse`)
 
     def start(self) -> PortReader:
         if self._thread is not None:
@@ -289,35 +288,30 @@ class PortReader:
         if self.on_raw is not None:
             self.on_raw(data)
         self._unparsed.append(data)
-        self._unparsed_at.append(t_host)
-        self._unparsed_bytes += len(data)
+        self._unparsed_log.add(self._unparsed_log.end + len(data), t_host)
 
     def _parse(self) -> None:
         """The reads kept so far through the parser into the ring (by whoever holds `_reading`)."""
-        reads, times = self._unparsed, self._unparsed_at
-        if len(reads) == 1:
-            samples = self.parser.feed(reads[0], times[0])
-        elif reads:
-            read_log = np.empty(len(reads), READS_DTYPE)
-            read_log["end"] = np.cumsum([len(data) for data in reads])
-            read_log["t_host_s"] = times
-            samples = self.parser.feed_reads(b"".join(reads), read_log)
-        else:
+        reads, log = self._unparsed, self._unparsed_log
+        if not reads:
             return
+        if len(reads) == 1:
+            samples = self.parser.feed(reads[0], log.first_s)
+        else:
+            samples = self.parser.feed_reads(b"".join(reads), log.table())
         reads.clear()
-        times.clear()
-        self._unparsed_bytes = 0
+        self._unparsed_log = ReadLog()
         if len(samples):
             self.ring.push(samples)
 
     @property
     def unparsed_bytes(self) -> int:
         """Bytes read that wait for the next parse: the ring does not have their samples yet."""
-        return self._unparsed_bytes
+        return self._unparsed_log.end
 
     def _parse_due(self) -> bool:
-        return bool(self._unparsed) and (self._unparsed_bytes >= PARSE_MOST
-                                         or self.clock() - self._unparsed_at[0] >= self.parse_s)
+        return bool(self._unparsed) and (self._unparsed_log.end >= PARSE_MOST
+                                         or self.clock() - self._unparsed_log.first_s >= self.parse_s)
 
     def _run(self, ser: serial.Serial) -> None:
         self._publish(ser)
@@ -342,8 +336,8 @@ class PortReader:
                     if ser is None:
                         return
                     continue
-                if self.served and data and not waited or not self.served and 0 < len(data) < READ_MOST:
-                    time.sleep(self.batch_s)
+                if data and (not waited if self.served else len(data) < READ_MOST):
+                    time.sleep(self.batch_s)  # served: not after a wait; unserved: not after a full read
         except Exception as exc:  # noqa: BLE001 - the thread must report, not vanish silently
             self.error = exc
             log.exception("reader_failed", port=self.url)

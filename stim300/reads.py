@@ -32,6 +32,16 @@ class ReadLog:
         self._end.append(end)
         self._t.append(t_host_s)
 
+    @property
+    def end(self) -> int:
+        """The offset after the last read's last byte (0 before any read)."""
+        return self._end[-1] if self._end else 0
+
+    @property
+    def first_s(self) -> float:
+        """When the first read returned (NaN before any read)."""
+        return self._t[0] if self._t else float("nan")
+
     def table(self) -> np.ndarray:
         rows = np.empty(len(self._end), READS_DTYPE)
         rows["end"] = np.frombuffer(self._end, np.int64)

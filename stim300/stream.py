@@ -268,8 +268,7 @@ class Scanner:
         a decision before it (a candidate that needed more bytes, its CR LF being told) read
         further. Fed in pieces, a datagram is accepted with the piece holding that byte, so a read
         log stamps each datagram alike whatever the chunking (`StreamParser.feed_reads`, the bulk
-        decoder). What datagrams before `first` needed is forgotten."""
-        self.forget(first)
+        decoder). Not for datagrams before the last `forget`."""
         numbers, reach = np.array(self._reach).T
         return np.maximum(ends, reach[np.searchsorted(numbers, np.arange(first, first + len(ends)), "right") - 1])
 
