@@ -84,10 +84,14 @@ def flipped_runs(runs: int) -> bytes:
     return buf.tobytes()
 
 
-def cpu_s(decode, data: bytes) -> float:
-    t = time.process_time()
-    decode(data)
-    return time.process_time() - t
+def cpu_s(decode, data: bytes, repeats: int = 5) -> float:
+    """The median CPU time of `repeats` decodes: one takes tens of milliseconds, noise for a ratio."""
+    times = []
+    for _ in range(repeats):
+        t = time.process_time()
+        decode(data)
+        times.append(time.process_time() - t)
+    return float(np.median(times))
 
 
 def stream(data: bytes, chunk: int = 4096) -> None:
@@ -110,7 +114,7 @@ def garbage_speed() -> None:
     for name, data in cases.items():
         mb = len(data) / 1e6
         bulk_s, stream_s = cpu_s(decode_capture, data) / mb, cpu_s(stream, data) / mb
-        print(f"  {name} ({mb:.2f} MB): bulk {bulk_s:.2f} CPU-s/MB, stream {stream_s:.2f} CPU-s/MB, "
+        print(f"  {name} ({mb:.2f} MB): bulk {bulk_s:.3f} CPU-s/MB, stream {stream_s:.3f} CPU-s/MB, "
               f"ratio {bulk_s / stream_s:.2f}")
 
 

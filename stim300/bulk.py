@@ -29,7 +29,7 @@ from .codec import SAMPLE_DTYPE, Columns, decode_frames
 from .crc import crc_columns
 from .protocol import CR_LF, NORMAL_LAYOUTS, SPECIAL_IDS, Format
 from .reads import read_times
-from .stream import Scanner, format_runs
+from .stream import FOLLOW_BLOCK, Accepted, Scanner, verified
 
 BLOCK = 65536  # datagrams checked and decoded together: keeps the columns in cache
 SYNC_RUN = 128  # datagrams the scanner accepts back to back before the vectorised path is tried: an
@@ -63,7 +63,7 @@ class BulkDecoder:
         self._reads = reads
         self._raw = memoryview(data).cast("B")
         self._bytes = np.frombuffer(self._raw, np.uint8)
-        self._found: list[tuple[int, int, Format]] = []  # accepted by the scanner, not yet decoded
+        self._accepted = Accepted()  # by the scanner, not yet decoded
         self.scanner = Scanner(fmt, self._found_normal)
         self.scanner.stats.bytes_in = len(self._raw)
         self.work = Work()
@@ -76,7 +76,7 @@ class BulkDecoder:
         self._n = 0
 
     def _found_normal(self, offset: int, ident: int) -> None:
-        self._found.append((offset, ident, self.scanner.format))
+        self._accepted.add((offset,), self.scanner.format)
 
     def run(self) -> np.ndarray | dict[str, np.ndarray]:
         """All normal samples in stream order (scanner statistics in `self.scanner.stats`)."""
@@ -100,7 +100,7 @@ class BulkDecoder:
         """Scanner decisions from `pos` until it has accepted SYNC_RUN normal datagrams back to back
         (return the offset after them) or the capture ends; after each datagram it accepts, those
         that follow it back to back are taken as the live parser takes them (`Scanner.follow`)."""
-        raw, end, scanner, found, work = self._raw, len(self._raw), self.scanner, self._found, self.work
+        raw, end, scanner, accepted, work = self._raw, len(self._raw), self.scanner, self._accepted, self.work
         run = 0
         while pos < end:
             if not _CAN_START[raw[pos]]:
@@ -109,22 +109,21 @@ class BulkDecoder:
                 pos, run = start, 0
                 if pos == self._searched_to:  # no start in the searched window: search on
                     continue
-            before = len(found)
+            before = len(accepted)
             pos = scanner.step(raw, pos, final=True)  # final=True always decides
             work.steps += 1
-            if len(found) == before:
+            if len(accepted) == before:
                 run = 0
                 continue
             run += 1
             followed = scanner.follow(raw, pos, SYNC_RUN - run)  # checked FOLLOW_BLOCK at a time
             if followed:
-                fmt = scanner.format
-                found.extend((offset, fmt.datagram_id, fmt) for offset in followed)
+                accepted.add(followed, scanner.format)
                 run, pos = run + len(followed), followed.stop
                 work.followed += len(followed)
             if run >= SYNC_RUN:
                 break
-            if len(found) >= BLOCK:
+            if len(accepted) >= BLOCK:
                 self._flush()
         return pos
 
@@ -167,8 +166,13 @@ class BulkDecoder:
         return pos
 
     def _verified(self, frames: np.ndarray, layout, crlf: bool) -> int:
-        """How many leading frames are valid datagrams; the CRC is only computed up to the first
-        wrong id or CR LF, so a block that runs into garbage costs little more than its good part."""
+        """How many leading frames are valid datagrams. Up to FOLLOW_BLOCK of them (a run's first
+        block) are checked as `Scanner.follow` checks, in one gather; a larger block by columns,
+        the CRC only up to the first wrong id or CR LF, so a block that runs into garbage costs
+        little more than its good part."""
+        if len(frames) <= FOLLOW_BLOCK:
+            self.work.checked += len(frames)
+            return verified(frames, layout, crlf)
         framed = frames[:, 0] == layout.datagram_id
         if crlf:
             framed &= (frames[:, -2] == CR_LF[0]) & (frames[:, -1] == CR_LF[1])
@@ -186,10 +190,8 @@ class BulkDecoder:
 
     def _flush(self) -> None:
         """Decode what the scanner accepted since the last flush, a run of one format at a time."""
-        found = self._found[:]
-        self._found.clear()  # the list itself stays: the scan loop holds it
-        first = self.scanner.stats.datagrams - len(found)  # the stream number of found[0]
-        for layout, fmt, offsets, start, _ in format_runs(found):
+        first = self.scanner.stats.datagrams - len(self._accepted)  # the stream number of the first
+        for layout, fmt, offsets, start, _ in self._accepted.take():
             frames = self._bytes[offsets[:, None] + np.arange(layout.pre_crc)]
             self._emit(frames, layout, fmt, offsets + layout.wire_length(fmt.crlf), int(offsets[0]), first + start)
 

@@ -419,18 +419,34 @@ class Scanner:
         self._consumed += consumed
 
 
-def format_runs(found: list[tuple[int, int, Format]]):
-    """Accepted datagrams, (offset, id, format) in stream order, as runs of one id and format that
-    decode together: (layout, format, offsets array, start, stop) with found[start:stop] the run."""
-    start = 0
-    while start < len(found):
-        _, ident, fmt = found[start]
-        stop = start + 1
-        while stop < len(found) and found[stop][1] == ident and found[stop][2] is fmt:
-            stop += 1
-        offsets = np.fromiter((f[0] for f in found[start:stop]), np.int64, stop - start)
-        yield NORMAL_LAYOUTS[ident], fmt, offsets, start, stop
-        start = stop
+class Accepted:
+    """Normal datagrams the scanner accepted and nobody decoded yet: their offsets in stream order,
+    and where each run of one format starts (a datagram has its format's id). The stream parser
+    and the bulk decoder both decode them as runs of one format (`take`)."""
+
+    def __init__(self) -> None:
+        self._offsets: list[int] = []
+        self._formats: list[tuple[int, Format]] = []  # (index into _offsets, format) where a run starts
+
+    def __len__(self) -> int:
+        return len(self._offsets)
+
+    def add(self, offsets, fmt: Format) -> None:
+        """Datagrams at `offsets` (any iterable of ints, a range at C speed), all in `fmt`."""
+        if not self._formats or self._formats[-1][1] is not fmt:
+            self._formats.append((len(self._offsets), fmt))
+        self._offsets.extend(offsets)
+
+    def take(self) -> tuple:
+        """Empty the list into its runs: (layout, format, offsets array, start, stop) each, with
+        the run's datagrams at [start:stop] of those taken."""
+        offsets = np.array(self._offsets, np.int64)
+        stops = [start for start, _ in self._formats[1:]] + [len(offsets)]
+        runs = tuple((NORMAL_LAYOUTS[fmt.datagram_id], fmt, offsets[start:stop], start, stop)
+                     for (start, fmt), stop in zip(self._formats, stops))
+        self._offsets.clear()
+        self._formats.clear()
+        return runs
 
 
 @dataclass(frozen=True)
@@ -438,7 +454,7 @@ class Settled:
     """The bytes one feed settled, for a tap (`StreamParser.tap`): every byte fed is in exactly
     one Settled, in stream order, datagrams whole; `samples` were decoded from `data`, and
     `runs` says where: (layout, format, offsets into `data`, start, stop) with
-    samples[start:stop] decoded from the datagrams at those offsets (`format_runs`). `first` is
+    samples[start:stop] decoded from the datagrams at those offsets (`Accepted.take`). `first` is
     the stream number of samples[0], `restart_datagrams` the parser's restarts from `first` on
     (each restarted sensor's first stream number, `Stats.restart_datagrams`): what a tap needs to
     cut at power-ups by the same rule as the daemon (`calibd.session.PowerUpCuts`). `specials`:
@@ -464,29 +480,21 @@ class StreamParser:
 
     def __init__(self, fmt: Format | None = None, tap=None):
         self._buf = bytearray()
-        self._offsets: list[int] = []  # the normal datagrams accepted in the buffer, not yet decoded
-        self._formats: list[tuple[int, Format]] = []  # (index into _offsets, format) where a run of one format starts
+        self._accepted = Accepted()  # the normal datagrams accepted in the buffer, not yet decoded
         self._specials: list[bytes] = []  # the special datagrams of the feed being settled, for the tap
         self.scanner = Scanner(fmt, self._found_normal, self._specials.append if tap is not None else None)
         self.tap = tap
         self._trims_tapped = 0  # the scanner's BTO datagrams (by sequence) a tap has been given
 
     def _found_normal(self, offset: int, ident: int) -> None:
-        self._accepted((offset,))
+        self._accepted.add((offset,), self.scanner.format)
 
     def _follow(self, i: int) -> int:
         """`Scanner.follow` from offset i; the offset after what it accepted."""
         run = self.scanner.follow(self._buf, i)
         if run:
-            self._accepted(run)
+            self._accepted.add(run, self.scanner.format)
         return run.stop
-
-    def _accepted(self, offsets) -> None:
-        """Normal datagrams at `offsets` accepted in the scanner's format (whose id they have)."""
-        fmt = self.scanner.format
-        if not self._formats or self._formats[-1][1] is not fmt:
-            self._formats.append((len(self._offsets), fmt))
-        self._offsets.extend(offsets)
 
     @property
     def stats(self) -> Stats:
@@ -544,16 +552,11 @@ class StreamParser:
     def _decode(self, buf: bytearray, t_host: float | np.ndarray) -> tuple[np.ndarray, tuple]:
         """The accepted datagrams' samples, and their runs of one format (as `Settled.runs`);
         `t_host`: one time for all, or the reads `buf` holds (`feed_reads`)."""
-        out = np.empty(len(self._offsets), SAMPLE_DTYPE)
-        if not self._offsets:
+        out = np.empty(len(self._accepted), SAMPLE_DTYPE)
+        if not len(out):
             return out, ()
-        offsets = np.array(self._offsets, np.int64)
-        first = self.stats.datagrams - len(offsets)  # the stream number of the first
-        stops = [start for start, _ in self._formats[1:]] + [len(offsets)]
-        runs = tuple((NORMAL_LAYOUTS[fmt.datagram_id], fmt, offsets[start:stop], start, stop)
-                     for (start, fmt), stop in zip(self._formats, stops))
-        self._offsets.clear()
-        self._formats.clear()
+        first = self.stats.datagrams - len(out)  # the stream number of the first
+        runs = self._accepted.take()
         view = np.frombuffer(buf, np.uint8)
         for layout, fmt, run, start, stop in runs:
             stamps = t_host if not isinstance(t_host, np.ndarray) else read_times(t_host, self.scanner.decided(
