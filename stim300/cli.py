@@ -15,21 +15,21 @@ import os
 import sys
 import time
 from contextlib import contextmanager
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .atomic import atomic_file
-from .bulk import decode_columns
-from .capture import StreamInfo
 from .cliutil import CommandParser, not_an_input, open_regular, path_arg, run_command, write_error
-from .clock import counter_times
-from .csvtable import write_rows
 from .errors import UsageError
-from .progress import Progress
 from .protocol import (ACC_RANGE_LSB_EXP, COUNTER_MODULUS, DEFAULT_BIT_RATE, INTERNAL_RATE_HZ, NORMAL_LAYOUTS,
                        SAMPLE_RATES_HZ, STANDARD_BIT_RATES, AccUnit, Format, GyroUnit, Status)
-from .reads import load_reads
-from .special import Configuration, UndefinedCode
+
+if TYPE_CHECKING:
+    from .capture import StreamInfo
+    from .special import Configuration
+
+# A command imports the decoders, the writers and Service Mode in its own body, so that
+# `stim300 --version` and `--help` cost about numpy's import (benchmarks/startup.py).
 
 AXES = "xyz"
 GYRO_UNITS = {"rate": GyroUnit.RATE, "incremental": GyroUnit.INCREMENTAL_ANGLE,
@@ -106,6 +106,8 @@ def _decode(path: str, fmt: Format, reads: np.ndarray | None) -> tuple[dict[str,
     """Samples (columns) and stream info; with the capture's read log (`reads`), samples carry
     host times. A given format option the data overrode is said on stderr; a given rate the
     counter contradicts is refused."""
+    from .bulk import decode_columns
+
     with _mapped(path) as data:
         samples, info = decode_columns(data, fmt, reads=reads)
     if info.stats.datagrams == 0:
@@ -183,6 +185,8 @@ def column_units(names, fmt: Format) -> dict[str, str]:
 @contextmanager
 def _output(path: str):
     """`atomic_file` for a table that can be made again (no sync), with one-line errors."""
+    from .atomic import atomic_file
+
     try:
         with atomic_file(path, durable=False) as f:
             yield f
@@ -193,6 +197,9 @@ def _output(path: str):
 def _write_csv(f, cols: dict[str, np.ndarray]) -> None:
     """Text is slow (about 0.7 M rows/s of 2000 Hz columns: `stim300.csvtable`), so long tables report progress on
     stderr."""
+    from .csvtable import write_rows
+    from .progress import Progress
+
     names = list(cols)
     f.write((",".join(names) + "\n").encode())
     formats = ["%d" if cols[n].dtype.kind in "ui" else "%.6f" if n in ("t_s", "t_host_s") else "%.9g"
@@ -229,6 +236,8 @@ def cmd_decode(args) -> int:
 def sample_times(samples, stream: StreamInfo):
     """The samples' stream times (`stim300.clock`: the running sum of counter steps / 2000, plus
     the whole counter cycles a read log proves lost)."""
+    from .clock import counter_times
+
     return counter_times(samples["counter"], stream.rate_hz or INTERNAL_RATE_HZ, samples["t_host"])
 
 
@@ -333,6 +342,8 @@ INCL_RANGE_G = {0: "1.7"}  # inclinometer range code -> +- g
 def _configuration_lines(c: Configuration) -> list[str]:
     """The configuration datagram as indented `key  value` lines, grouped by block, with units.
     A code the byte map does not define shows as read (a warning line says so)."""
+    from .special import UndefinedCode
+
     def axes(active) -> str:
         return ", ".join(axis for axis, on in zip("XYZ", active) if on) or "none"
 
@@ -396,6 +407,7 @@ def _configuration_lines(c: Configuration) -> list[str]:
 def _reads(path: str) -> np.ndarray | None:
     """The capture's read log: beside it (CAPTURE.reads.npy), or in the MCAP `stim300 record` wrote."""
     from .mcaprec import holds_capture, read_capture
+    from .reads import load_reads
 
     return read_capture(path)[1] if holds_capture(path) else load_reads(path)
 

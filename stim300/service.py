@@ -16,7 +16,7 @@ from contextlib import contextmanager
 import serial
 
 from .errors import FormatError, ServiceError, ServiceTimeout, Stim300Error
-from .port import _read_available
+from .serialread import read_available
 
 PROMPT = b"\r>"
 SERVICEMODE_REQUEST = b"SERVICEMODE\r"
@@ -35,7 +35,7 @@ def _read_until(ser: serial.Serial, done, timeout: float, what: str, command: st
     while not done(buf):
         if time.monotonic() >= deadline:
             raise ServiceTimeout(command, f"{ser.port}: no {what} within {timeout} s; last bytes {bytes(buf[-24:])!r}")
-        buf += _read_available(ser)
+        buf += read_available(ser)
     return buf
 
 
@@ -153,7 +153,7 @@ def _drain(ser: serial.Serial, timeout: float) -> None:
     deadline = time.monotonic() + timeout
     quiet_since = time.monotonic()
     while time.monotonic() - quiet_since < ENTER_SETTLE_S and time.monotonic() < deadline:
-        if _read_available(ser):
+        if read_available(ser):
             quiet_since = time.monotonic()
 
 

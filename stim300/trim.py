@@ -22,7 +22,7 @@ import numpy as np
 import serial
 
 from .errors import ServiceError, Stim300Error
-from .port import _read_available
+from .serialread import read_available
 from .protocol import GYRO_RATE_LSB, INCL_ACC_LSB, AccUnit, GyroUnit, Status, acc_lsb
 from .records import TrimOffsets
 from .service import save_to_flash, service_command, service_mode
@@ -125,7 +125,7 @@ class NormalLink:
         return np.concatenate(parts)[:wanted]
 
     def _feed(self) -> np.ndarray:
-        samples = self.parser.feed(_read_available(self.ser), time.monotonic())
+        samples = self.parser.feed(read_available(self.ser), time.monotonic())
         flags = samples["status_gyro"] | samples["status_acc"] | samples["status_incl"]
         self.starting_up |= bool(self.parser.stats.restarts or np.any(flags & Status.START_UP))
         return samples

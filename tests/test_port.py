@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 import stim300.port as port
+import stim300.serialread as serialread
 from captures import exact_samples, same_samples, wait_until
 from stim300.bulk import decode_capture
 from stim300.cli import main as stim300_main
@@ -186,14 +187,14 @@ def test_a_read_takes_bytes_that_came_together_at_once_and_says_whether_it_waite
     with open_serial(pty.path, timeout=DEADLINE_S) as ser, ThreadPoolExecutor(1) as pool:
         pty.write(bytes(range(200)))
         wait_until(lambda: ser.in_waiting == 200, "bytes in the port")
-        assert port._read_waited(ser) == (bytes(range(200)), False)
-        later = pool.submit(port._read_waited, ser)
+        assert serialread.read_waited(ser) == (bytes(range(200)), False)
+        later = pool.submit(serialread.read_waited, ser)
         time.sleep(0.2)  # the read waits at an empty port
         pty.write(bytes(range(100, 0, -1)))
         assert later.result(timeout=DEADLINE_S) == (bytes(range(100, 0, -1)), True)
         pty.write(bytes(range(50)))
         wait_until(lambda: ser.in_waiting == 50, "bytes in the port")
-        assert port._read_available(ser, limit=20) == bytes(range(20))  # a recording's last read
+        assert serialread.read_available(ser, limit=20) == bytes(range(20))  # a recording's last read
 
 
 
@@ -201,13 +202,13 @@ def test_a_pyserial_url_port_reads_the_same_way():
     """A port opened by URL (here loop://, what is written comes back) has no descriptor of its
     own: it is read through pyserial, with the same answers."""
     with open_serial("loop://", timeout=0.05) as ser:
-        assert port._read_waited(ser) == (b"", True)  # nothing within the port timeout
+        assert serialread.read_waited(ser) == (b"", True)  # nothing within the port timeout
         ser.write(bytes(range(30)))
         wait_until(lambda: ser.in_waiting == 30, "bytes in the port")
-        assert port._read_waited(ser) == (bytes(range(30)), False)
+        assert serialread.read_waited(ser) == (bytes(range(30)), False)
         ser.write(bytes(range(10)))
         wait_until(lambda: ser.in_waiting == 10, "bytes in the port")
-        assert port._read_available(ser, limit=4) == bytes(range(4))
+        assert serialread.read_available(ser, limit=4) == bytes(range(4))
 
 def test_served_datagrams_after_quiet_spells_are_served_at_once_without_a_batch_wait(pty):
     """Served, the reader sleeps `batch_s` only after bytes that were waiting: a datagram it
@@ -321,7 +322,7 @@ def test_record_stops_after_the_duration(pty, opened, tmp_path, capsys):
 def test_record_keeps_the_bytes_on_ctrl_c(pty, monkeypatch, tmp_path):
     """Ctrl-C ends an open-ended recording; the file is renamed from .part and complete."""
     data = b"\xa7" * 5000
-    real_open, real_read, seen = port.open_serial, port._read_available, [0]
+    real_open, real_read, seen = port.open_serial, port.read_available, [0]
 
     def open_then_write(*args, **kwargs):
         ser = real_open(*args, **kwargs)
@@ -335,7 +336,7 @@ def test_record_keeps_the_bytes_on_ctrl_c(pty, monkeypatch, tmp_path):
         seen[0] += len(chunk)
         return chunk
 
-    monkeypatch.setattr(port, "_read_available", read_then_interrupt)
+    monkeypatch.setattr(port, "read_available", read_then_interrupt)
     monkeypatch.setattr(port, "open_serial", open_then_write)
     out = tmp_path / "imu.bin"
     assert record(pty.path, out) == 0

@@ -1,7 +1,8 @@
 """calibd starts without scipy: `import calibd`, `import calibd.cli`, `calibd --version` and
 `calibd status` load none of it; each command imports what it needs itself, and a method's
-module is imported when the method is asked for (the speed: benchmarks/startup.py). Each check
-runs in a fresh interpreter, where nothing is loaded yet."""
+module is imported when the method is asked for. `stim300 --version` loads no decoder, port
+reader or logging (the speed: benchmarks/startup.py). Each check runs in a fresh interpreter,
+where nothing is loaded yet."""
 
 import json
 import os
@@ -69,3 +70,14 @@ def test_status_help_works():
                           env=ENV, cwd=ROOT, timeout=60)
     assert done.returncode == 0 and done.stderr == ""
     assert done.stdout.startswith("usage: calibd status") and "--state-dir" in done.stdout
+
+
+def test_stim300_version_and_its_parser_load_no_decoder_reader_or_logging():
+    heavy = ("stim300.stream", "stim300.bulk", "stim300.port", "stim300.csvtable", "structlog")
+    program = (f"import sys, stim300.cli\ntry:\n    stim300.cli.main(['--version'])\nexcept SystemExit:\n    pass\n"
+               f"print(sorted(m for m in sys.modules if m in {heavy!r}))")
+    done = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True, env=ENV, cwd=ROOT,
+                          timeout=60)
+    assert done.returncode == 0, done.stderr
+    version, loaded = done.stdout.splitlines()
+    assert version.startswith("stim300 ") and loaded == "[]"
