@@ -8,8 +8,9 @@ force, the trim range) once the unit has been read. Offsets in force go to a bac
 state directory first (the KEPT_BACKUPS newest of a sensor are kept), what is written is read
 back within one count, and any failure puts the backup back and leaves the unit in Normal Mode.
 No flash save is ever spent. A result made on the output this daemon trimmed (its `sensor.trim`
-carries the reference written) is not trimmed again: once per power-up, as a power-up starts
-again from flash's trims.
+carries the reference written) is not trimmed again, nor a later result of the session a trim was
+made from (samples read while the solve and the trim ran, solved after them: output before the
+trim): once per power-up, as a power-up starts again from flash's trims.
 """
 
 from __future__ import annotations
@@ -44,11 +45,12 @@ class Trimmer:
     def __init__(self, config: TrimConfig, backup_dir: Path, port: str, lend, timeout: float = 3.0):
         self.config, self.backup_dir, self.port, self.lend, self.timeout = config, backup_dir, port, lend, timeout
         self._written: TrimReading | None = None  # the trims this daemon wrote last, as read back
+        self._trimmed_session: str | None = None  # the session whose result they were made from
         self._refused_session: str | None = None  # the session whose refusal was logged
         self._failed: tuple[str | None, int] = (None, 0)  # the session whose failure was logged, and its failures
 
     def __call__(self, result: CalibrationResult) -> tuple[CalibrationResult, str]:
-        if self.config.apply == "off" or self._on_own_trim(result):
+        if self.config.apply == "off" or self._trimmed_already(result):
             return result, ""
         try:
             problems = self._result_problems(result)
@@ -61,7 +63,7 @@ class Trimmer:
         except (Stim300Error, CalibdError, serial.SerialException, OSError) as exc:
             self._failure(result, str(exc) or type(exc).__name__)
             return result, ""
-        self._written = reading
+        self._written, self._trimmed_session = reading, result.session_id
         sensors = self.config.sensors
         offsets = {sensor: list(reading.trims.of(sensor)) for sensor in sensors}
         log.info("trimmed", offsets=offsets, units={sensor: UNITS[sensor] for sensor in sensors},
@@ -74,11 +76,15 @@ class Trimmer:
                           + f" {UNITS[sensor]}" for sensor, values in offsets.items())
         return replace(result, trimmed=record), f"trimmed (volatile): {words}"
 
-    def _on_own_trim(self, result: CalibrationResult) -> bool:
+    def _trimmed_already(self, result: CalibrationResult) -> bool:
         """Whether the result was made on the output this daemon trimmed (its trim's reference is
-        the one written, which names the result it came from): its biases are what the trim left."""
-        return (result.sensor.trim is not None and self._written is not None
-                and result.sensor.trim.reference == self._written.reference)
+        the one written, which names the result it came from: its biases are what the trim left),
+        or is a later one of the session the trim was made from (its output is from before the
+        trim, whose stream ends that session once the trim read back reaches it)."""
+        if self._written is None:
+            return False
+        return result.session_id == self._trimmed_session or (
+            result.sensor.trim is not None and result.sensor.trim.reference == self._written.reference)
 
     def _result_problems(self, result: CalibrationResult) -> list[str]:
         """What the result alone says against it: its estimates, staleness, its power-up."""
