@@ -45,7 +45,8 @@ from .stream import StreamParser, TrimSeen
 RING_S = 30  # seconds of samples a port's ring holds at the internal rate
 IDLE_READS_AT_END = 3  # a pty whose writer is done and that holds no unread byte has been read out after
 # this many empty reads
-WAIT_FOR_PARSER_S = 1.0  # a paced pty writer waits at most this long for the reader to learn the rate
+PACE_BYTES = 1 << 20  # a paced pty writer takes the capture's byte rate from this much of its start (at least
+# 8 s of a 2000 Hz stream)
 
 
 @dataclass(frozen=True)
@@ -237,7 +238,9 @@ class CaptureSource(SampleSource):
 class PtySource(SampleSource):
     """A capture written into a pseudo-terminal and read back by a `PortSource` (pyserial, the
     reader thread, the ring). Pacing happens where the bytes enter the pty, as a real port's
-    bytes arrive paced. The writer waits while the ring is more than half unread, so nothing is
+    bytes arrive paced, at the byte rate the capture's start gives (PACE_BYTES: its sample rate
+    and bytes per sample), known before the first write whatever the reader's pace; a start that
+    does not tell it is written unpaced. The writer waits while the ring is more than half unread, so nothing is
     lost even when the consumer is slow; the stream has ended once the writer is done and
     the port has been read out."""
 
@@ -265,13 +268,12 @@ class PtySource(SampleSource):
     def _write(self) -> None:
         port, data, size = self._port, self._data, self._chunk_bytes
         half = port.ring.capacity // 2
-        bytes_per_s = None
+        bytes_per_s = _bytes_per_second(data) if self._writer_pacer.speed else None
         for offset in range(0, len(data), size):
             while port.unread > half and not self._stop.is_set():
                 time.sleep(0.01)
             if self._stop.is_set():
                 return
-            bytes_per_s = bytes_per_s or self._byte_rate(offset)
             if bytes_per_s:
                 self._writer_pacer.wait(offset / bytes_per_s)
             view = memoryview(data)[offset:offset + size]
@@ -283,17 +285,6 @@ class PtySource(SampleSource):
                     self._write_error = exc
                 return
             self.done_bytes = min(offset + size, len(data))
-
-    def _byte_rate(self, written: int) -> float | None:
-        """The stream's byte rate, once the reader's parser knows it. Paced, the writer first waits
-        (at most WAIT_FOR_PARSER_S) for the parser to have taken in what was written: otherwise a
-        writer scheduled before the reader could pour out the whole capture unpaced."""
-        parser = self._port.reader.parser
-        if self._writer_pacer.speed:
-            deadline = time.monotonic() + WAIT_FOR_PARSER_S
-            while parser.stats.bytes_in < written and time.monotonic() < deadline and not self._stop.is_set():
-                time.sleep(0.001)
-        return _bytes_per_second(parser)
 
     def _read_internal(self, timeout_s: float) -> Batch | None:
         batch = self._port.read(timeout_s)
@@ -329,8 +320,11 @@ class PtySource(SampleSource):
                 pass  # closed already: close() may be called again
 
 
-def _bytes_per_second(parser: StreamParser) -> float | None:
-    """The stream's byte rate once the parser knows the datagram length and the sample rate."""
+def _bytes_per_second(data) -> float | None:
+    """A capture's byte rate by its first PACE_BYTES: its sample rate (configured, or measured from
+    the counter) times its bytes per datagram sent or lost; None when they do not tell it."""
+    parser = StreamParser()
+    parser.feed(bytes(data[:PACE_BYTES]))
     rate, stats = stream_info(parser).rate_hz, parser.stats
     if not rate or not stats.datagrams:
         return None

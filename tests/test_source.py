@@ -17,6 +17,7 @@ from stim300.codec import SAMPLE_DTYPE
 from stim300.errors import PortError
 from stim300.protocol import INTERNAL_RATE_HZ
 from stim300.reads import READS_DTYPE
+import stim300.source as source_module
 from stim300.source import CaptureSource, PortSource, PtySource
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
@@ -128,6 +129,23 @@ def test_a_paced_capture_takes_its_data_time_over_the_speed():
             count = sum(len(b.samples) for b in read_all(source))
         elapsed = time.monotonic() - started
         assert count == len(truth) and low_s <= elapsed <= high_s, (pace, elapsed)
+
+
+def test_a_pty_writer_takes_its_pace_from_the_capture_not_from_the_reader():
+    """The byte rate a paced pty is written at is the capture's own, known before the first write:
+    the fault capture's exactly (its lost datagrams and garbage included), a 2000 Hz capture's from
+    its first megabyte. It once came from what the reader had parsed, and a reader starved of CPU
+    gave it from a partial first read: a replay 2.4 times too fast."""
+    data = FAULTS.read_bytes()
+    faults = decode_capture(data)
+    duration_s = (len(faults.samples) + faults.info.stats.lost_samples) / 125
+    assert source_module._bytes_per_second(data) == pytest.approx(len(data) / duration_s, rel=1e-12)
+    data = (FIXTURES / "static_turn_2000hz.bin").read_bytes()
+    assert len(data) > source_module.PACE_BYTES
+    fast = decode_capture(data)
+    duration_s = (len(fast.samples) + fast.info.stats.lost_samples) / 2000
+    assert source_module._bytes_per_second(data) == pytest.approx(len(data) / duration_s, rel=0.005)
+    assert source_module._bytes_per_second(bytes(range(256)) * 8) is None  # nothing tells it: unpaced
 
 
 def test_a_capture_source_holds_one_chunk_of_samples_not_the_capture():
