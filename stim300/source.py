@@ -240,9 +240,9 @@ class PtySource(SampleSource):
     reader thread, the ring). Pacing happens where the bytes enter the pty, as a real port's
     bytes arrive paced, at the byte rate the capture's start gives (PACE_BYTES: its sample rate
     and bytes per sample), known before the first write whatever the reader's pace; a start that
-    does not tell it is written unpaced. The writer waits while the ring is more than half unread, so nothing is
-    lost even when the consumer is slow; the stream has ended once the writer is done and
-    the port has been read out."""
+    does not tell it is written unpaced. The writer waits while the ring is more than half
+    unread, so nothing is lost even when the consumer is slow; the stream has ended once the
+    writer is done and the port has been read out."""
 
     def __init__(self, data, speed: float | None = None, chunk_bytes: int = 4096, tap=None):
         super().__init__(speed=None)  # reads follow the bytes' arrival
