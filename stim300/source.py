@@ -324,7 +324,7 @@ def _bytes_per_second(data) -> float | None:
     """A capture's byte rate by its first PACE_BYTES: its sample rate (configured, or measured from
     the counter) times its bytes per datagram sent or lost; None when they do not tell it."""
     parser = StreamParser()
-    parser.feed(bytes(data[:PACE_BYTES]))
+    parser.feed(data[:PACE_BYTES])
     rate, stats = stream_info(parser).rate_hz, parser.stats
     if not rate or not stats.datagrams:
         return None

@@ -45,7 +45,6 @@ class Trimmer:
     def __init__(self, config: TrimConfig, backup_dir: Path, port: str, lend, timeout: float = 3.0):
         self.config, self.backup_dir, self.port, self.lend, self.timeout = config, backup_dir, port, lend, timeout
         self._written: TrimReading | None = None  # the trims this daemon wrote last, as read back
-        self._trimmed_session: str | None = None  # the session whose result they were made from
         self._refused_session: str | None = None  # the session whose refusal was logged
         self._failed: tuple[str | None, int] = (None, 0)  # the session whose failure was logged, and its failures
 
@@ -63,7 +62,7 @@ class Trimmer:
         except (Stim300Error, CalibdError, serial.SerialException, OSError) as exc:
             self._failure(result, str(exc) or type(exc).__name__)
             return result, ""
-        self._written, self._trimmed_session = reading, result.session_id
+        self._written = reading
         sensors = self.config.sensors
         offsets = {sensor: list(reading.trims.of(sensor)) for sensor in sensors}
         log.info("trimmed", offsets=offsets, units={sensor: UNITS[sensor] for sensor in sensors},
@@ -83,8 +82,9 @@ class Trimmer:
         trim, whose stream ends that session once the trim read back reaches it)."""
         if self._written is None:
             return False
-        return result.session_id == self._trimmed_session or (
-            result.sensor.trim is not None and result.sensor.trim.reference == self._written.reference)
+        written = self._written.reference  # trim_reference of the session it was made from
+        return trim_reference(result.session_id) == written or (
+            result.sensor.trim is not None and result.sensor.trim.reference == written)
 
     def _result_problems(self, result: CalibrationResult) -> list[str]:
         """What the result alone says against it: its estimates, staleness, its power-up."""
